@@ -1,0 +1,54 @@
+//! calib-core: D-H kinematics, least-squares identification and EM drift calibration for the
+//! exocal 7-DoF upper-limb exoskeleton (after Qin et al. 2024, with the fixes of ERRATA.md).
+//!
+//! `no_std` without the default `std` feature, no `unsafe`, no allocation: every buffer is a
+//! const-generic array or a caller-provided slice. All arithmetic is `f64`.
+//!
+//! # API overview
+//!
+//! | what | where |
+//! |---|---|
+//! | D-H table, Table 1 / Table 4, FK, Jacobians | [`DhTable`], [`DhTable::paper_nominal`], [`DhTable::fk`], [`DhTable::fk_jacobian`] |
+//! | pose error (tool frame: position, rotation vector) | [`pose_error`] |
+//! | anatomical bounds (Table 2) and ranges (Table 3) | [`Bounds::paper`], [`check_bounds`], [`JointRanges::paper`] |
+//! | a calibration sample | [`Sample`] `{ joints: [f64; N], pose: Frame }` |
+//! | Gauss-Markov drift and the Section 4 simulator | [`GaussMarkov`], [`Scenario`] |
+//! | least squares | [`identify_ls`]`::<N, P>(&start, &samples, &LsOptions) -> Result<LsResult, CalibError>` |
+//! | the paper's EM (eqs. 33–36) | [`paper_em`] |
+//! | our EM (Kalman + RTS smoother over the drift) | [`em_drift`] |
+//! | objective y (eq. 10) and parameter errors | [`objective_y`], [`ParamErrors`] |
+//!
+//! Generic functions take the joint count `N` and the parameter count `P = 4N` separately
+//! (stable Rust cannot write `4 * N` in a type); `P == 4N` is checked at compile time. For the
+//! suit: `N = `[`SUIT_JOINTS`]` = 7`, `P = `[`SUIT_PARAMS`]` = 28`.
+//!
+//! # f32?
+//! Everything is `f64`. `f32` would not do for identification: the pose errors to resolve are
+//! ~1e-4 of the arm length while the Jacobian is accumulated over thousands of samples and
+//! the column-scaled condition number is ~10²–10³, so f32's 6e-8 relative precision leaves
+//! 3–4 significant digits at best, and the noise-free 1e-9 recovery target is far below f32
+//! resolution (6e-8 m on a 0.7 m arm). Cortex-M4F has only a single-precision FPU, so f64 is
+//! emulated in software there: correct, ~10× slower (an LS iteration at K = 6,000 is then
+//! seconds, acceptable for a one-off calibration). FK alone at runtime could use f32.
+#![cfg_attr(not(any(test, feature = "std")), no_std)]
+#![deny(unsafe_code)]
+#![warn(missing_docs)]
+
+pub mod drift;
+pub mod error;
+pub mod linalg;
+pub mod ls;
+pub mod model;
+pub mod rng;
+pub mod sim;
+
+pub use drift::{Discretisation, DriftParams, GaussMarkov};
+pub use error::CalibError;
+pub use linalg::{Observability, QrAccumulator};
+pub use ls::{identify_ls, validate_samples, BoundsOutcome, BoundsPolicy, InputChecks, LsOptions, LsResult, NullDirection};
+pub use model::{
+    check_bounds, clamp_to_bounds, pose_error, BoundViolation, Bounds, DhRow, DhTable, Frame, JointRanges, ParamKind, Sample,
+    SUIT_JOINTS, SUIT_PARAMS,
+};
+pub use rng::Rng;
+pub use sim::{Motion, Scenario, ScenarioConfig, SimSample};
