@@ -1,0 +1,145 @@
+//! `cargo xtask`: exocal's long commands.
+//!
+//! ```text
+//! cargo xtask test                 everything: unit + doc tests, then the vcan suites in the harness
+//! cargo xtask vcan -- CMD [ARG..]  run CMD with real vcan0 and vcan1 up (native netns or QEMU guest)
+//! cargo xtask setup                install what the harness and the cross-build need (root, Debian)
+//! ```
+//!
+//! Exit status: `vcan` returns the command's own status (128 + signal if it was killed); `test`
+//! returns 0 only when every suite passed; 2 means the harness itself could not run.
+
+mod harness;
+mod native;
+mod setup;
+mod suite;
+mod vm;
+
+use std::process::ExitCode;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+
+/// Set by the harness inside its namespace or guest: `native` or `vm`.
+pub const HARNESS_ENV: &str = "EXOCAL_VCAN_HARNESS";
+
+const USAGE: &str = "\
+usage:
+  cargo xtask test [--mode auto|native|vm] [--timeout SECS]
+      Run every test: `cargo test --workspace` (unit, integration and doc tests), then the suites
+      that need real vcan (crate exocal-tests, feature `vcan`) inside the vcan harness.
+  cargo xtask vcan [--mode auto|native|vm] [--timeout SECS] [--mem MIB] [--verbose] -- CMD [ARG..]
+      Run CMD with real vcan0 and vcan1 up. `native` uses this kernel's vcan in a private network
+      namespace (unshare); `vm` boots Debian's kernel under qemu-system-x86_64 -accel tcg with the
+      host root shared read-only. `auto` (default) picks native when it can and the VM when it must.
+      The exit status and output of CMD come back unchanged.
+  cargo xtask setup
+      Install the Debian packages the harness needs (qemu-system-x86, linux-image-amd64,
+      busybox-static, cpio) and the thumbv7em-none-eabihf target. Needs root for apt.
+  cargo xtask run-suites BIN [BIN..]
+      (internal) Run test binaries one after another inside the harness, one thread each.";
+
+fn main() -> ExitCode {
+    match run(std::env::args().skip(1).collect()) {
+        Ok(code) => ExitCode::from(code),
+        Err(err) => {
+            eprintln!("xtask: error: {err:#}");
+            ExitCode::from(2)
+        }
+    }
+}
+
+fn run(args: Vec<String>) -> Result<u8> {
+    let Some((cmd, rest)) = args.split_first() else {
+        println!("{USAGE}");
+        return Ok(2);
+    };
+    match cmd.as_str() {
+        "vcan" => {
+            let (opts, argv) = HarnessArgs::parse(rest)?;
+            if argv.is_empty() {
+                bail!("vcan: no command given\n{USAGE}");
+            }
+            let outcome = harness::run(&opts.request(argv)?)?;
+            Ok(outcome.code)
+        }
+        "test" => {
+            let (opts, extra) = HarnessArgs::parse(rest)?;
+            if !extra.is_empty() {
+                bail!("test: unexpected arguments {extra:?}");
+            }
+            suite::test_all(&opts)
+        }
+        "run-suites" => suite::run_suites(rest),
+        "setup" => {
+            setup::install_all()?;
+            Ok(0)
+        }
+        "help" | "--help" | "-h" => {
+            println!("{USAGE}");
+            Ok(0)
+        }
+        other => bail!("unknown command {other:?}\n{USAGE}"),
+    }
+}
+
+/// Options shared by `vcan` and `test`.
+#[derive(Debug, Clone)]
+pub struct HarnessArgs {
+    pub mode: harness::Mode,
+    pub timeout: Duration,
+    pub mem_mib: u32,
+    pub verbose: bool,
+}
+
+impl HarnessArgs {
+    /// Parses options up to `--`; returns them and the command after `--`.
+    fn parse(args: &[String]) -> Result<(Self, Vec<String>)> {
+        let mut opts = HarnessArgs {
+            mode: harness::Mode::Auto,
+            timeout: Duration::from_secs(1200),
+            mem_mib: 3072,
+            verbose: false,
+        };
+        let mut it = args.iter();
+        while let Some(arg) = it.next() {
+            let mut value = |name: &str| {
+                it.next()
+                    .cloned()
+                    .with_context(|| format!("{name} needs a value"))
+            };
+            match arg.as_str() {
+                "--" => return Ok((opts, it.cloned().collect())),
+                "--mode" => opts.mode = value("--mode")?.parse()?,
+                "--timeout" => {
+                    let secs: u64 = value("--timeout")?
+                        .parse()
+                        .context("--timeout takes whole seconds")?;
+                    opts.timeout = Duration::from_secs(secs);
+                }
+                "--mem" => opts.mem_mib = value("--mem")?.parse().context("--mem takes MiB")?,
+                "--verbose" | "-v" => opts.verbose = true,
+                other if other.starts_with('-') => bail!("unknown option {other:?}\n{USAGE}"),
+                _ => {
+                    // A command without `--` is accepted too.
+                    let mut argv = vec![arg.clone()];
+                    argv.extend(it.cloned());
+                    return Ok((opts, argv));
+                }
+            }
+        }
+        Ok((opts, Vec::new()))
+    }
+
+    fn request(&self, argv: Vec<String>) -> Result<harness::Request> {
+        Ok(harness::Request {
+            argv,
+            cwd: std::env::current_dir().context("current directory")?,
+            timeout: self.timeout,
+            mode: self.mode,
+            mem_mib: self.mem_mib,
+            verbose: self.verbose,
+            capture_stdout: false,
+        })
+    }
+}
