@@ -38,7 +38,9 @@ pub mod drift;
 pub mod error;
 pub mod linalg;
 pub mod ls;
+pub mod metrics;
 pub mod model;
+pub mod paper_em;
 pub mod rng;
 pub mod sim;
 
@@ -46,9 +48,11 @@ pub use drift::{Discretisation, DriftParams, GaussMarkov};
 pub use error::CalibError;
 pub use linalg::{Observability, QrAccumulator};
 pub use ls::{identify_ls, validate_samples, BoundsOutcome, BoundsPolicy, InputChecks, LsOptions, LsResult, NullDirection};
+pub use metrics::{objective_y, objective_y_corrected, ParamErrors};
 pub use model::{
     check_bounds, clamp_to_bounds, pose_error, BoundViolation, Bounds, DhRow, DhTable, Frame, JointRanges, ParamKind, Sample,
     SUIT_JOINTS, SUIT_PARAMS,
 };
+pub use paper_em::{paper_em, PaperEmForm, PaperEmOptions, PaperEmResult, MAX_EM_ITERATIONS};
 pub use rng::Rng;
 pub use sim::{Motion, Scenario, ScenarioConfig, SimSample};
