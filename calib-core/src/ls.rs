@@ -96,6 +96,11 @@ pub fn validate_samples<const N: usize>(samples: &[Sample<N>], checks: &InputChe
     Ok(())
 }
 
+/// True for a finite, strictly positive number.
+pub(crate) fn positive(x: f64) -> bool {
+    x.is_finite() && x > 0.0
+}
+
 /// Options of [`identify_ls`].
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LsOptions<const N: usize> {
@@ -243,7 +248,7 @@ pub fn identify_ls<const N: usize, const P: usize>(
     if !start.is_finite() {
         return Err(CalibError::InvalidInput { what: "starting table" });
     }
-    if !(opts.step_tolerance > 0.0 && opts.rank_tolerance > 0.0 && opts.rank_tolerance < 1.0) {
+    if !positive(opts.step_tolerance) || !positive(opts.rank_tolerance) || opts.rank_tolerance >= 1.0 {
         return Err(CalibError::InvalidInput {
             what: "LsOptions tolerances",
         });

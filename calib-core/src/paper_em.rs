@@ -116,8 +116,8 @@ pub fn paper_em<const N: usize>(
     }
     if opts.max_iterations == 0
         || opts.max_iterations >= MAX_EM_ITERATIONS
-        || !(opts.tolerance > 0.0)
-        || !(opts.variance_floor > 0.0)
+        || !crate::ls::positive(opts.tolerance)
+        || !crate::ls::positive(opts.variance_floor)
     {
         return Err(CalibError::InvalidInput { what: "PaperEmOptions" });
     }
