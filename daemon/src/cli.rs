@@ -1,0 +1,138 @@
+//! Command line: what a newcomer types, and what systemd runs.
+//!
+//! `exocald calibrate` is the power-up service (one session, then exit); `exocald run` serves and
+//! calibrates when triggered; `exocald demo` runs the emulated suit and the daemon in one process
+//! (no CAN, no root); `exocald check-config` validates a configuration file and prints it.
+
+use std::path::PathBuf;
+
+use clap::{Args, Parser, Subcommand};
+
+/// Where the packaged configuration lives; used when `--config` is not given and it exists.
+pub const SYSTEM_CONFIG: &str = "/etc/exocal/exocald.toml";
+
+/// exocald: calibrates the exoskeleton's kinematic table from a minute of free motion.
+///
+/// At power-up (`exocald calibrate`, run by systemd) the daemon listens to the IMU nodes on CAN,
+/// aligns their clocks, collects free arm motion until every joint has moved enough, identifies
+/// the D-H table (least squares, then EM over the joint-angle drift), checks the result against
+/// the anatomical bounds and on a held-out slice of the session, and only then pushes it to every
+/// node. Every session is logged to an MCAP file you can open in Foxglove.
+///
+/// New here? Try `exocald demo`: the whole story in one process, with an emulated suit.
+#[derive(Debug, Parser)]
+#[command(name = "exocald", version, about, long_about, propagate_version = true)]
+pub struct Cli {
+    /// Configuration file (TOML). Default: /etc/exocal/exocald.toml if it exists, otherwise the
+    /// built-in defaults (print them with `exocald check-config --print-default`).
+    #[arg(long, short = 'c', global = true, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// The subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Collect one session, calibrate, validate, push to every node, then exit.
+    ///
+    /// This is what the systemd unit runs at power-up. Exit status: 0 pushed; 65 calibration
+    /// refused by validation (nothing pushed); 66 the session never had enough motion; 69 CAN
+    /// interface missing or a node unreachable; 74 I/O error; 75 interrupted (nothing pushed);
+    /// 78 bad configuration.
+    Calibrate(SessionArgs),
+    /// Serve: keep listening, and calibrate each time a trigger frame arrives on CAN.
+    Run(SessionArgs),
+    /// Emulated suit and daemon in one process, on the in-process bus: no CAN, no root.
+    ///
+    /// Plays the paper's simulation scenario (Table 4 "actual" arm, drifting joint angles),
+    /// calibrates, pushes to the emulated nodes and writes the session's MCAP log.
+    Demo(DemoArgs),
+    /// Check a configuration file: print what was understood, or the error (exit 78).
+    CheckConfig(CheckConfigArgs),
+}
+
+/// Options shared by `calibrate` and `run`.
+#[derive(Debug, Args)]
+pub struct SessionArgs {
+    /// CAN interface, overriding `can.interface` (e.g. vcan0).
+    #[arg(long, short = 'i', value_name = "IFACE")]
+    pub interface: Option<String>,
+    /// Folder for the session's MCAP log, overriding `output.directory`.
+    #[arg(long, short = 'o', value_name = "DIR")]
+    pub output: Option<PathBuf>,
+    /// Calibrate and validate, but push nothing.
+    #[arg(long)]
+    pub dry_run: bool,
+}
+
+/// Options of `demo`.
+#[derive(Debug, Args)]
+pub struct DemoArgs {
+    /// Seed of the emulated suit (motion, drift, noise): the same seed gives the same table.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Folder for the session's MCAP log.
+    #[arg(long, short = 'o', value_name = "DIR", default_value = "exocal-demo")]
+    pub output: PathBuf,
+}
+
+/// Options of `check-config`.
+#[derive(Debug, Args)]
+pub struct CheckConfigArgs {
+    /// Print the built-in default configuration (a commented TOML file) and exit.
+    #[arg(long)]
+    pub print_default: bool,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    #[test]
+    fn the_cli_is_consistent() {
+        Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn calibrate_takes_a_config_and_overrides() {
+        let cli = Cli::try_parse_from([
+            "exocald",
+            "calibrate",
+            "--config",
+            "x.toml",
+            "-i",
+            "vcan0",
+            "--dry-run",
+        ])
+        .unwrap();
+        assert_eq!(cli.config, Some(PathBuf::from("x.toml")));
+        match cli.command {
+            Command::Calibrate(a) => {
+                assert_eq!(a.interface.as_deref(), Some("vcan0"));
+                assert!(a.dry_run);
+                assert_eq!(a.output, None);
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn a_subcommand_is_required_and_typos_are_errors() {
+        assert!(Cli::try_parse_from(["exocald"]).is_err());
+        assert!(Cli::try_parse_from(["exocald", "calibrat"]).is_err());
+        assert!(Cli::try_parse_from(["exocald", "demo", "--sed", "3"]).is_err());
+    }
+
+    #[test]
+    fn help_mentions_the_demo_and_exit_codes() {
+        let help = Cli::command().render_long_help().to_string();
+        assert!(help.contains("exocald demo"), "{help}");
+        let mut cmd = Cli::command();
+        let cal = cmd.find_subcommand_mut("calibrate").unwrap();
+        let cal_help = cal.render_long_help().to_string();
+        assert!(cal_help.contains("78 bad configuration"), "{cal_help}");
+    }
+}

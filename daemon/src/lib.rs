@@ -1,0 +1,13 @@
+//! exocald: the SocketCAN service that aligns, calibrates, logs and pushes.
+//!
+//! | module | contract |
+//! |---|---|
+//! | [`config`] | strict TOML configuration; errors name key and line |
+//! | [`cli`] | the command line (clap) |
+//! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
+//! | [`app`] | what each subcommand does |
+
+pub mod app;
+pub mod cli;
+pub mod config;
+pub mod exit;
