@@ -35,6 +35,7 @@
 #![warn(missing_docs)]
 
 pub mod drift;
+pub mod drift_em;
 pub mod error;
 pub mod linalg;
 pub mod ls;
@@ -45,6 +46,9 @@ pub mod rng;
 pub mod sim;
 
 pub use drift::{Discretisation, DriftParams, GaussMarkov};
+#[cfg(any(test, feature = "std"))]
+pub use drift_em::em_drift_vec;
+pub use drift_em::{em_drift, DriftEmOptions, DriftEmResult, DriftSlot};
 pub use error::CalibError;
 pub use linalg::{Observability, QrAccumulator};
 pub use ls::{identify_ls, validate_samples, BoundsOutcome, BoundsPolicy, InputChecks, LsOptions, LsResult, NullDirection};
