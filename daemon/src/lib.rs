@@ -2,11 +2,13 @@
 //!
 //! | module | contract |
 //! |---|---|
+//! | [`align`] | per-node clock models, resampling onto one grid |
 //! | [`config`] | strict TOML configuration; errors name key and line |
 //! | [`cli`] | the command line (clap) |
 //! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
 //! | [`app`] | what each subcommand does |
 
+pub mod align;
 pub mod app;
 pub mod cli;
 pub mod config;

@@ -10,7 +10,11 @@ fn main() -> ExitCode {
         Ok(cli) => cli,
         Err(e) => {
             // --help and --version are not failures; anything else is EX_USAGE (64).
-            let status = if e.use_stderr() { code::USAGE } else { code::OK };
+            let status = if e.use_stderr() {
+                code::USAGE
+            } else {
+                code::OK
+            };
             let _ = e.print();
             return ExitCode::from(status);
         }
