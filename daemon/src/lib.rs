@@ -5,6 +5,7 @@
 //! | [`align`] | per-node clock models, resampling onto one grid |
 //! | [`config`] | strict TOML configuration; errors name key and line |
 //! | [`cli`] | the command line (clap) |
+//! | [`mcaplog`] | the per-session MCAP log (zstd chunks, flushed on an interval, Foxglove schemas) |
 //! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
 //! | [`app`] | what each subcommand does |
 
@@ -13,3 +14,4 @@ pub mod app;
 pub mod cli;
 pub mod config;
 pub mod exit;
+pub mod mcaplog;
