@@ -823,6 +823,37 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
+    /// Cross-check with another implementation: Python's `mcap`, every CRC validated.
+    /// Run: `EXOCAL_PYTHON=<venv>/bin/python cargo test -p exocald -- --ignored python`.
+    #[test]
+    #[ignore = "needs python3 with the `mcap` and `zstandard` packages (EXOCAL_PYTHON)"]
+    fn python_mcap_reader_validates_crcs_and_counts() {
+        let python = std::env::var("EXOCAL_PYTHON").unwrap_or_else(|_| "python3".into());
+        let dir = std::env::temp_dir().join(format!("exocald-py-{}", std::process::id()));
+        let (path, mut log) =
+            SessionLog::create_in(&dir, 1_700_000_000_000_000_000, 500_000_000).unwrap();
+        let expected = write_session(&mut log);
+        log.finish().unwrap();
+        let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tools/check_mcap.py");
+        let out = std::process::Command::new(&python)
+            .arg(script)
+            .arg(&path)
+            .output()
+            .unwrap_or_else(|e| panic!("cannot run {python}: {e}"));
+        assert!(
+            out.status.success(),
+            "python mcap reader failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let got: BTreeMap<String, u64> = serde_json::from_slice(&out.stdout).unwrap();
+        let expected: BTreeMap<String, u64> = expected
+            .into_iter()
+            .map(|(k, v)| (k.to_string(), v))
+            .collect();
+        assert_eq!(got, expected);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
     #[test]
     fn file_names_are_utc_dates() {
         assert_eq!(session_file_name(0), "exocal-19700101T000000Z.mcap");
