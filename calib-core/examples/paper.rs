@@ -60,7 +60,15 @@ fn main() {
     .expect("paper EM vector");
     let t_pem = t0.elapsed();
     let t0 = Instant::now();
-    let (em, drift) = em_drift_vec::<7, SUIT_PARAMS>(&ls.table, &samples, &DriftEmOptions::new(cfg.drift.dt)).expect("our EM");
+    let (em, drift) = em_drift_vec::<7, SUIT_PARAMS>(
+        &ls.table,
+        &samples,
+        &DriftEmOptions {
+            max_iterations: arg("--em-iterations", 100.0) as usize,
+            ..DriftEmOptions::new(cfg.drift.dt)
+        },
+    )
+    .expect("our EM");
     let t_em = t0.elapsed();
 
     let y_nom = objective_y(&nominal, &samples);
@@ -157,6 +165,18 @@ fn main() {
         em.log_likelihood[0],
         em.log_likelihood[em.log_likelihood.len() - 1],
         em.measurement_variance.map(|v| format!("{:.1e}", v.sqrt()))
+    );
+    let h = &em.log_likelihood;
+    let picks: Vec<String> = [0, 1, 2, 3, 5, 10, 20, 50, 100, 200]
+        .iter()
+        .filter(|&&i| i < h.len())
+        .map(|&i| format!("[{i}] {:.1}", h[i]))
+        .collect();
+    println!(
+        "our EM log-likelihood history: {} … [{}] {:.1}",
+        picks.join(", "),
+        h.len() - 1,
+        h[h.len() - 1]
     );
     println!();
     println!(

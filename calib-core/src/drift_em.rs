@@ -81,6 +81,14 @@ pub struct DriftEmOptions<const N: usize> {
     pub max_iterations: usize,
     /// Converged when the log-likelihood changes by less than this (relative).
     pub tolerance: f64,
+    /// Also converged when, in one iteration, the geometry moved less than
+    /// `geometry_tolerance` and every τ_j and q_j changed by less than `param_tolerance`
+    /// (relative). The likelihood is a poor stopping signal on noise-free data: the noise
+    /// variance creeps towards `noise_floor` for hundreds of iterations (EM's linear rate) while
+    /// the geometry stays put to 1e-6.
+    pub param_tolerance: f64,
+    /// See `param_tolerance` (m, rad).
+    pub geometry_tolerance: f64,
     /// Fail with [`CalibError::NotConverged`] when the limit is reached first.
     pub require_convergence: bool,
     /// Starting correlation time (s) of every joint.
@@ -105,6 +113,8 @@ impl<const N: usize> DriftEmOptions<N> {
             dt,
             max_iterations: 100,
             tolerance: 1e-9,
+            param_tolerance: 2e-3,
+            geometry_tolerance: 1e-5,
             require_convergence: false,
             initial_tau: 3.0,
             initial_drift_std: 0.02,
@@ -400,6 +410,8 @@ pub fn em_drift<const N: usize, const P: usize>(
     }
     let valid = positive(opts.dt)
         && positive(opts.tolerance)
+        && positive(opts.param_tolerance)
+        && positive(opts.geometry_tolerance)
         && positive(opts.initial_tau)
         && positive(opts.initial_drift_std)
         && positive(opts.initial_noise_std)
@@ -435,10 +447,11 @@ pub fn em_drift<const N: usize, const P: usize>(
     let mut converged = false;
     let mut rank = 0;
     let mut iterations = 0;
+    let mut settled = false;
     while iterations < opts.max_iterations {
         let (ll, acc) = geometry_pass::<N, P>(&g, samples, &par)?;
         if let Some(&prev) = history.last() {
-            if (ll - prev).abs() <= opts.tolerance * ll.abs().max(1.0) {
+            if settled || (ll - prev).abs() <= opts.tolerance * ll.abs().max(1.0) {
                 converged = true;
             }
         }
@@ -453,8 +466,10 @@ pub fn em_drift<const N: usize, const P: usize>(
         let step = analysis.step(0.0);
         let mut accepted = false;
         let mut t = 1.0;
+        let mut moved = 0.0f64;
         for _ in 0..12 {
             let delta: [f64; P] = core::array::from_fn(|p| t * step[p]);
+            moved = delta.iter().fold(0.0, |m, d| m.max(d.abs()));
             let candidate = g.perturbed(&delta);
             if let Ok(ll_c) = filter_pass::<N, P>(&candidate, samples, &par, ws) {
                 if ll_c >= ll - 1e-12 * ll.abs() {
@@ -466,10 +481,18 @@ pub fn em_drift<const N: usize, const P: usize>(
             t *= 0.5;
         }
         if !accepted {
+            moved = 0.0;
             filter_pass::<N, P>(&g, samples, &par, ws)?;
         }
         let st = smooth(ws, &par)?;
-        par = m_step(&st, &par, samples.len(), opts.noise_floor);
+        let new = m_step(&st, &par, samples.len(), opts.noise_floor);
+        let rel = |a: f64, b: f64| (a - b).abs() / b.abs().max(1e-300);
+        settled = moved < opts.geometry_tolerance
+            && (0..N).all(|j| {
+                rel(new.phi[j], par.phi[j]) < opts.param_tolerance * (1.0 - par.phi[j])
+                    && rel(new.q[j], par.q[j]) < opts.param_tolerance
+            });
+        par = new;
     }
     let ll = filter_pass::<N, P>(&g, samples, &par, ws)?;
     smooth(ws, &par)?;
