@@ -6,6 +6,8 @@
 //! | [`config`] | strict TOML configuration; errors name key and line |
 //! | [`cli`] | the command line (clap) |
 //! | [`mcaplog`] | the per-session MCAP log (zstd chunks, flushed on an interval, Foxglove schemas) |
+//! | [`session`] | the collection window: coverage, sample counts, ready/failed |
+//! | [`report`] | progress bar / systemd `STATUS=` / plain lines; READY and WATCHDOG |
 //! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
 //! | [`app`] | what each subcommand does |
 
@@ -15,3 +17,5 @@ pub mod cli;
 pub mod config;
 pub mod exit;
 pub mod mcaplog;
+pub mod report;
+pub mod session;

@@ -1,0 +1,346 @@
+//! The collection window: is there enough motion to calibrate yet?
+//!
+//! Contract:
+//! - [`Coverage`] divides a joint's anatomical range into [`COVERAGE_BINS`] equal bins; a bin
+//!   counts as visited once [`BIN_MIN_SAMPLES`] samples fell in it. Coverage is the visited
+//!   fraction: a single spike cannot fake excitation the way a min/max span could. Samples
+//!   outside the range are counted apart (they hint at a wrong offset or a bad sensor), never
+//!   binned. NaN samples are ignored.
+//! - [`Session`] accumulates per-joint coverage and per-stream sample counts and, given the
+//!   elapsed time, says [`Phase::Collecting`], [`Phase::Ready`] (minimum duration reached,
+//!   every joint covered, enough samples) or [`Phase::Failed`] (maximum duration reached
+//!   without that, with the reasons).
+//! - [`Progress`] is the snapshot the reporters show and the MCAP log records.
+
+use serde::Serialize;
+
+use crate::config::{Interval, SessionRules, JOINTS};
+
+/// Bins of a joint's range.
+pub const COVERAGE_BINS: usize = 36;
+/// Samples needed in a bin to count it as visited.
+pub const BIN_MIN_SAMPLES: u32 = 3;
+
+/// Visited fraction of one joint's anatomical range.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Coverage {
+    range: Interval,
+    bins: [u32; COVERAGE_BINS],
+    /// Samples outside the range.
+    pub outside: u64,
+    /// Samples inside the range.
+    pub inside: u64,
+}
+
+impl Coverage {
+    /// Empty coverage of `range` (rad).
+    pub fn new(range: Interval) -> Coverage {
+        Coverage {
+            range,
+            bins: [0; COVERAGE_BINS],
+            outside: 0,
+            inside: 0,
+        }
+    }
+
+    /// Records one angle (rad).
+    pub fn add(&mut self, angle: f64) {
+        if angle.is_nan() {
+            return;
+        }
+        if !self.range.contains(angle) {
+            self.outside += 1;
+            return;
+        }
+        let u = (angle - self.range.min) / self.range.width();
+        let bin = ((u * COVERAGE_BINS as f64) as usize).min(COVERAGE_BINS - 1);
+        self.bins[bin] = self.bins[bin].saturating_add(1);
+        self.inside += 1;
+    }
+
+    /// Visited fraction in [0, 1].
+    pub fn fraction(&self) -> f64 {
+        let visited = self.bins.iter().filter(|&&n| n >= BIN_MIN_SAMPLES).count();
+        visited as f64 / COVERAGE_BINS as f64
+    }
+}
+
+/// Where the collection stands.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Phase {
+    /// Keep collecting.
+    Collecting,
+    /// Enough: calibrate now.
+    Ready,
+    /// The maximum duration passed without enough data: the reasons.
+    Failed(Vec<String>),
+}
+
+/// A snapshot of the collection, for reporters and the log.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Progress {
+    pub elapsed_s: f64,
+    /// Samples of the scarcest stream (joints and pose).
+    pub samples: u64,
+    /// Coverage of each joint, 0..1.
+    pub coverage: [f64; JOINTS],
+    /// Condition number of the identification problem, when computed.
+    pub condition_number: Option<f64>,
+    /// Overall readiness 0..1: the least advanced of time, coverage and samples.
+    pub readiness: f64,
+}
+
+impl Progress {
+    /// One line for a log or `STATUS=`.
+    pub fn line(&self, required: f64) -> String {
+        let cov: Vec<String> = self
+            .coverage
+            .iter()
+            .map(|c| format!("{:.0}", c * 100.0))
+            .collect();
+        let mut s = format!(
+            "collecting {:.1} s, {} samples, coverage % [{}] (need {:.0})",
+            self.elapsed_s,
+            self.samples,
+            cov.join(" "),
+            required * 100.0
+        );
+        if let Some(k) = self.condition_number {
+            s.push_str(&format!(", cond {k:.3e}"));
+        }
+        s
+    }
+}
+
+/// The collection window of one calibration session.
+#[derive(Debug, Clone)]
+pub struct Session {
+    rules: SessionRules,
+    coverage: [Coverage; JOINTS],
+    joint_samples: [u64; JOINTS],
+    pose_samples: u64,
+    condition_number: Option<f64>,
+}
+
+impl Session {
+    /// A new window with these rules over these joint ranges (rad).
+    pub fn new(rules: SessionRules, ranges: [Interval; JOINTS]) -> Session {
+        Session {
+            rules,
+            coverage: ranges.map(Coverage::new),
+            joint_samples: [0; JOINTS],
+            pose_samples: 0,
+            condition_number: None,
+        }
+    }
+
+    /// One joint angle (rad) of joint index `joint` (0-based); out-of-range indices are ignored.
+    pub fn joint_sample(&mut self, joint: usize, angle: f64) {
+        if let (Some(c), Some(n)) = (
+            self.coverage.get_mut(joint),
+            self.joint_samples.get_mut(joint),
+        ) {
+            c.add(angle);
+            if !angle.is_nan() {
+                *n += 1;
+            }
+        }
+    }
+
+    /// One end-effector pose arrived.
+    pub fn pose_sample(&mut self) {
+        self.pose_samples += 1;
+    }
+
+    /// Records the latest condition number of the identification problem.
+    pub fn set_condition_number(&mut self, k: f64) {
+        self.condition_number = Some(k);
+    }
+
+    /// Per-joint coverage.
+    pub fn coverage(&self) -> &[Coverage; JOINTS] {
+        &self.coverage
+    }
+
+    /// Samples of the scarcest stream.
+    pub fn samples(&self) -> u64 {
+        self.joint_samples
+            .iter()
+            .copied()
+            .chain([self.pose_samples])
+            .min()
+            .unwrap_or(0)
+    }
+
+    /// The snapshot at `elapsed_s`.
+    pub fn progress(&self, elapsed_s: f64) -> Progress {
+        let coverage = self.coverage.each_ref().map(Coverage::fraction);
+        let r = &self.rules;
+        let time = (elapsed_s / r.min_duration_s).clamp(0.0, 1.0);
+        let cov = coverage
+            .iter()
+            .map(|c| (c / r.excitation_required).min(1.0))
+            .fold(1.0, f64::min);
+        let samples = (self.samples() as f64 / r.min_samples as f64).min(1.0);
+        Progress {
+            elapsed_s,
+            samples: self.samples(),
+            coverage,
+            condition_number: self.condition_number,
+            readiness: time.min(cov).min(samples),
+        }
+    }
+
+    /// What is still missing (empty when the data suffices, duration aside).
+    pub fn shortfalls(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        for (i, c) in self.coverage.iter().enumerate() {
+            let f = c.fraction();
+            if f < self.rules.excitation_required {
+                out.push(format!(
+                    "joint {} covered {:.0}% of its range, {:.0}% required",
+                    i + 1,
+                    f * 100.0,
+                    self.rules.excitation_required * 100.0
+                ));
+            }
+        }
+        let n = self.samples();
+        if n < self.rules.min_samples as u64 {
+            out.push(format!(
+                "{n} samples from the scarcest stream, {} required",
+                self.rules.min_samples
+            ));
+        }
+        out
+    }
+
+    /// The phase at `elapsed_s`.
+    pub fn phase(&self, elapsed_s: f64) -> Phase {
+        let missing = self.shortfalls();
+        if elapsed_s >= self.rules.min_duration_s && missing.is_empty() {
+            Phase::Ready
+        } else if elapsed_s >= self.rules.max_duration_s {
+            Phase::Failed(missing)
+        } else {
+            Phase::Collecting
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::Config;
+
+    fn range() -> Interval {
+        Interval {
+            min: -1.0,
+            max: 2.6,
+        }
+    }
+
+    #[test]
+    fn coverage_counts_visited_bins_not_spikes() {
+        let mut c = Coverage::new(range());
+        // A single excursion to both ends: no bin has 3 samples except the resting one.
+        c.add(-0.99);
+        c.add(2.59);
+        for _ in 0..100 {
+            c.add(0.0);
+        }
+        assert!((c.fraction() - 1.0 / 36.0).abs() < 1e-12);
+        // A sweep across the lower half, three times.
+        for _ in 0..3 {
+            for k in 0..180 {
+                c.add(-1.0 + k as f64 * 0.01);
+            }
+        }
+        assert!((c.fraction() - 0.5).abs() < 1e-12, "{}", c.fraction());
+        assert_eq!(c.outside, 0);
+    }
+
+    #[test]
+    fn coverage_counts_out_of_range_and_ignores_nan() {
+        let mut c = Coverage::new(range());
+        c.add(3.0);
+        c.add(-1.5);
+        c.add(f64::NAN);
+        c.add(2.6); // the upper bound itself is in the last bin
+        assert_eq!((c.outside, c.inside), (2, 1));
+        assert_eq!(c.fraction(), 0.0);
+    }
+
+    fn session() -> Session {
+        let c = Config::default_config();
+        Session::new(c.session.clone(), c.bounds.joint_range)
+    }
+
+    /// Sweeps every joint over `fraction` of its range, `n` samples per joint, and as many poses.
+    fn sweep(s: &mut Session, fraction: f64, n: usize) {
+        let ranges = Config::default_config().bounds.joint_range;
+        for k in 0..n {
+            let u = (k as f64 / n as f64 * 7.0).fract() * fraction;
+            for (j, r) in ranges.iter().enumerate() {
+                s.joint_sample(j, r.min + u * r.width());
+            }
+            s.pose_sample();
+        }
+    }
+
+    #[test]
+    fn ready_only_after_min_duration_with_coverage_and_samples() {
+        let mut s = session();
+        assert_eq!(s.phase(0.0), Phase::Collecting);
+        sweep(&mut s, 0.3, 1500);
+        // Coverage 30% < 50%: collecting, then failed at the maximum duration.
+        assert_eq!(s.phase(30.0), Phase::Collecting);
+        match s.phase(120.0) {
+            Phase::Failed(why) => {
+                assert_eq!(why.len(), 7, "{why:?}");
+                assert!(why[0].starts_with("joint 1 covered 31%"), "{why:?}");
+            }
+            p => panic!("{p:?}"),
+        }
+        sweep(&mut s, 1.0, 1500);
+        assert_eq!(s.phase(10.0), Phase::Collecting); // before the minimum duration
+        assert_eq!(s.phase(20.0), Phase::Ready);
+        let p = s.progress(20.0);
+        assert_eq!(p.samples, 3000);
+        assert_eq!(p.readiness, 1.0);
+        assert!(p.coverage.iter().all(|&c| c == 1.0));
+    }
+
+    #[test]
+    fn the_scarcest_stream_sets_the_sample_count() {
+        let mut s = session();
+        sweep(&mut s, 1.0, 2000);
+        // Poses stop: 2000 of each joint, 2000 poses; then 5000 more joint-1 samples.
+        for _ in 0..5000 {
+            s.joint_sample(0, 0.1);
+        }
+        assert_eq!(s.samples(), 2000);
+        s.joint_sample(99, 0.0); // ignored, no panic
+        let mut lean = session();
+        sweep(&mut lean, 1.0, 500);
+        let why = lean.shortfalls();
+        assert_eq!(
+            why,
+            vec!["500 samples from the scarcest stream, 1000 required"]
+        );
+        let p = lean.progress(40.0);
+        assert!((p.readiness - 0.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn progress_line_is_readable() {
+        let mut s = session();
+        s.set_condition_number(123.0);
+        let line = s.progress(3.25).line(0.5);
+        assert!(
+            line.starts_with("collecting 3.2 s, 0 samples, coverage % [0 0 0 0 0 0 0] (need 50)"),
+            "{line}"
+        );
+        assert!(line.ends_with("cond 1.230e2"), "{line}");
+    }
+}
