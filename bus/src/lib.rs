@@ -1,0 +1,352 @@
+//! exocal-bus: the CAN transport shared by the hil emulator and the daemon.
+//!
+//! One trait, [`Transport`]: send a classic CAN [`Frame`], receive a [`Received`] frame with its
+//! receive timestamp, and count frames the receiver dropped. Two implementations:
+//!
+//! - [`InProcessBus`] / [`Endpoint`]: every frame an endpoint sends is delivered to every other
+//!   attached endpoint (not to itself), like a CAN bus with SocketCAN's default loopback.
+//!   Timestamps come from the bus clock (wall clock by default, or any clock given to
+//!   [`InProcessBus::with_clock`], e.g. a simulated one). An endpoint that falls more than
+//!   the bus capacity behind loses the oldest frames and counts them in [`Transport::dropped`].
+//! - `SocketCan` (feature `socketcan`): a raw CAN socket with an 8 MiB receive buffer, kernel
+//!   receive timestamps (`SO_TIMESTAMPNS`) and the kernel's drop counter (`SO_RXQ_OVFL`).
+//!
+//! Both `recv` futures are cancel-safe, so they can sit in a `tokio::select!` next to a timer.
+
+use std::future::Future;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+pub use embedded_can;
+use embedded_can::{Frame as _, Id};
+
+#[cfg(feature = "socketcan")]
+mod socket;
+#[cfg(feature = "socketcan")]
+pub use socket::SocketCan;
+
+/// A classic CAN frame (0..=8 data bytes), standard or extended identifier, data or remote.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Frame {
+    id: Id,
+    len: u8,
+    data: [u8; 8],
+    remote: bool,
+}
+
+impl embedded_can::Frame for Frame {
+    fn new(id: impl Into<Id>, data: &[u8]) -> Option<Self> {
+        if data.len() > 8 {
+            return None;
+        }
+        let mut buf = [0u8; 8];
+        buf[..data.len()].copy_from_slice(data);
+        Some(Frame {
+            id: id.into(),
+            len: data.len() as u8,
+            data: buf,
+            remote: false,
+        })
+    }
+
+    fn new_remote(id: impl Into<Id>, dlc: usize) -> Option<Self> {
+        (dlc <= 8).then(|| Frame {
+            id: id.into(),
+            len: dlc as u8,
+            data: [0; 8],
+            remote: true,
+        })
+    }
+
+    fn is_extended(&self) -> bool {
+        matches!(self.id, Id::Extended(_))
+    }
+
+    fn is_remote_frame(&self) -> bool {
+        self.remote
+    }
+
+    fn id(&self) -> Id {
+        self.id
+    }
+
+    fn dlc(&self) -> usize {
+        usize::from(self.len)
+    }
+
+    fn data(&self) -> &[u8] {
+        if self.remote {
+            &[]
+        } else {
+            &self.data[..usize::from(self.len)]
+        }
+    }
+}
+
+impl Frame {
+    /// Copies any `embedded_can` frame.
+    pub fn from_frame<F: embedded_can::Frame>(f: &F) -> Frame {
+        if f.is_remote_frame() {
+            Frame {
+                id: f.id(),
+                len: f.dlc().min(8) as u8,
+                data: [0; 8],
+                remote: true,
+            }
+        } else {
+            Frame::new(f.id(), &f.data()[..f.data().len().min(8)]).expect("at most 8 bytes")
+        }
+    }
+
+    /// The raw identifier (11 or 29 bits).
+    pub fn raw_id(&self) -> u32 {
+        match self.id {
+            Id::Standard(id) => u32::from(id.as_raw()),
+            Id::Extended(id) => id.as_raw(),
+        }
+    }
+}
+
+/// A frame as received, with its receive timestamp.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Received {
+    /// The frame.
+    pub frame: Frame,
+    /// Receive time since the transport clock's epoch (the UNIX epoch for SocketCAN and for the
+    /// in-process bus's default clock).
+    pub timestamp: Duration,
+}
+
+/// Why a transport operation failed.
+#[derive(Debug)]
+pub enum BusError {
+    /// The operating system refused (socket errors, interface missing, buffer full, …).
+    Io(std::io::Error),
+    /// The bus is gone.
+    Closed,
+}
+
+impl std::fmt::Display for BusError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            BusError::Io(e) => write!(f, "CAN I/O: {e}"),
+            BusError::Closed => f.write_str("the CAN bus is closed"),
+        }
+    }
+}
+
+impl std::error::Error for BusError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            BusError::Io(e) => Some(e),
+            BusError::Closed => None,
+        }
+    }
+}
+
+impl From<std::io::Error> for BusError {
+    fn from(e: std::io::Error) -> Self {
+        BusError::Io(e)
+    }
+}
+
+/// A CAN interface: frames out, timestamped frames in.
+pub trait Transport: Send {
+    /// Sends one frame.
+    fn send(&mut self, frame: &Frame) -> impl Future<Output = Result<(), BusError>> + Send;
+    /// Waits for the next frame sent by someone else. Cancel-safe.
+    fn recv(&mut self) -> impl Future<Output = Result<Received, BusError>> + Send;
+    /// Frames lost by this receiver so far (receive queue overflow).
+    fn dropped(&self) -> u64;
+}
+
+/// A clock for bus timestamps.
+pub type Clock = Arc<dyn Fn() -> Duration + Send + Sync>;
+
+fn wall_clock() -> Duration {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .unwrap_or_default()
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Envelope {
+    sender: u64,
+    frame: Frame,
+    timestamp: Duration,
+}
+
+/// An in-process CAN bus; cheap to clone (clones share the bus).
+#[derive(Clone)]
+pub struct InProcessBus {
+    tx: tokio::sync::broadcast::Sender<Envelope>,
+    next_endpoint: Arc<AtomicU64>,
+    clock: Clock,
+}
+
+impl std::fmt::Debug for InProcessBus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("InProcessBus")
+            .field("endpoints", &self.tx.receiver_count())
+            .finish()
+    }
+}
+
+impl InProcessBus {
+    /// Frames each endpoint may lag behind before it starts dropping, by default.
+    pub const DEFAULT_CAPACITY: usize = 65_536;
+
+    /// A bus stamping frames with the wall clock.
+    pub fn new() -> Self {
+        Self::with_clock(Self::DEFAULT_CAPACITY, Arc::new(wall_clock))
+    }
+
+    /// A bus with its own receive-queue capacity and timestamp clock.
+    pub fn with_clock(capacity: usize, clock: Clock) -> Self {
+        let (tx, _) = tokio::sync::broadcast::channel(capacity.max(1));
+        InProcessBus {
+            tx,
+            next_endpoint: Arc::new(AtomicU64::new(0)),
+            clock,
+        }
+    }
+
+    /// Attaches a new endpoint; it receives frames sent after this call.
+    pub fn attach(&self) -> Endpoint {
+        Endpoint {
+            id: self.next_endpoint.fetch_add(1, Ordering::Relaxed),
+            tx: self.tx.clone(),
+            rx: self.tx.subscribe(),
+            clock: self.clock.clone(),
+            dropped: 0,
+        }
+    }
+}
+
+impl Default for InProcessBus {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// One node's connection to an [`InProcessBus`].
+pub struct Endpoint {
+    id: u64,
+    tx: tokio::sync::broadcast::Sender<Envelope>,
+    rx: tokio::sync::broadcast::Receiver<Envelope>,
+    clock: Clock,
+    dropped: u64,
+}
+
+impl Endpoint {
+    /// Sends without waiting (the in-process bus never blocks).
+    pub fn send_now(&self, frame: &Frame) {
+        // With no other endpoint attached nobody listens; like an unacknowledged frame on an
+        // empty bus, it is simply lost.
+        let _ = self.tx.send(Envelope {
+            sender: self.id,
+            frame: *frame,
+            timestamp: (self.clock)(),
+        });
+    }
+
+    /// The next frame if one is waiting, without blocking.
+    pub fn try_recv(&mut self) -> Option<Received> {
+        use tokio::sync::broadcast::error::TryRecvError;
+        loop {
+            match self.rx.try_recv() {
+                Ok(e) if e.sender == self.id => continue,
+                Ok(e) => {
+                    return Some(Received {
+                        frame: e.frame,
+                        timestamp: e.timestamp,
+                    })
+                }
+                Err(TryRecvError::Lagged(n)) => self.dropped += n,
+                Err(TryRecvError::Empty | TryRecvError::Closed) => return None,
+            }
+        }
+    }
+}
+
+impl Transport for Endpoint {
+    async fn send(&mut self, frame: &Frame) -> Result<(), BusError> {
+        self.send_now(frame);
+        Ok(())
+    }
+
+    async fn recv(&mut self) -> Result<Received, BusError> {
+        use tokio::sync::broadcast::error::RecvError;
+        loop {
+            match self.rx.recv().await {
+                Ok(e) if e.sender == self.id => continue,
+                Ok(e) => {
+                    return Ok(Received {
+                        frame: e.frame,
+                        timestamp: e.timestamp,
+                    })
+                }
+                Err(RecvError::Lagged(n)) => self.dropped += n,
+                Err(RecvError::Closed) => return Err(BusError::Closed),
+            }
+        }
+    }
+
+    fn dropped(&self) -> u64 {
+        self.dropped
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use embedded_can::{ExtendedId, StandardId};
+
+    fn frame(id: u16, byte: u8) -> Frame {
+        Frame::new(StandardId::new(id).unwrap(), &[byte; 8]).unwrap()
+    }
+
+    #[tokio::test]
+    async fn frames_reach_every_other_endpoint_but_not_the_sender() {
+        let bus = InProcessBus::new();
+        let mut a = bus.attach();
+        let mut b = bus.attach();
+        let mut c = bus.attach();
+        a.send(&frame(0x101, 1)).await.unwrap();
+        b.send(&frame(0x102, 2)).await.unwrap();
+        assert_eq!(b.recv().await.unwrap().frame, frame(0x101, 1));
+        assert_eq!(c.recv().await.unwrap().frame, frame(0x101, 1));
+        assert_eq!(c.recv().await.unwrap().frame, frame(0x102, 2));
+        assert_eq!(a.recv().await.unwrap().frame, frame(0x102, 2));
+        assert!(a.try_recv().is_none(), "the sender does not hear itself");
+    }
+
+    #[tokio::test]
+    async fn a_slow_endpoint_counts_what_it_lost() {
+        let bus = InProcessBus::with_clock(4, Arc::new(|| Duration::from_micros(42)));
+        let tx = bus.attach();
+        let mut rx = bus.attach();
+        for i in 0..10 {
+            tx.send_now(&frame(0x100, i));
+        }
+        let first = rx.recv().await.unwrap();
+        assert_eq!(rx.dropped(), 6);
+        assert_eq!(first.frame, frame(0x100, 6));
+        assert_eq!(first.timestamp, Duration::from_micros(42));
+    }
+
+    #[test]
+    fn frame_type_follows_embedded_can() {
+        assert!(Frame::new(StandardId::new(1).unwrap(), &[0; 9]).is_none());
+        let f = Frame::new(ExtendedId::new(0x1234_5678).unwrap(), &[1, 2, 3]).unwrap();
+        assert!(f.is_extended());
+        assert_eq!(
+            (f.raw_id(), f.dlc(), f.data()),
+            (0x1234_5678, 3, &[1u8, 2, 3][..])
+        );
+        let r = Frame::new_remote(StandardId::new(7).unwrap(), 4).unwrap();
+        assert!(r.is_remote_frame() && r.data().is_empty() && r.dlc() == 4);
+        assert_eq!(Frame::from_frame(&r), r);
+    }
+}
