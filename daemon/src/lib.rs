@@ -8,6 +8,7 @@
 //! | [`mcaplog`] | the per-session MCAP log (zstd chunks, flushed on an interval, Foxglove schemas) |
 //! | [`session`] | the collection window: coverage, sample counts, ready/failed |
 //! | [`report`] | progress bar / systemd `STATUS=` / plain lines; READY and WATCHDOG |
+//! | [`validate`] | bounds, condition number and held-out accuracy before any push |
 //! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
 //! | [`app`] | what each subcommand does |
 
@@ -19,3 +20,4 @@ pub mod exit;
 pub mod mcaplog;
 pub mod report;
 pub mod session;
+pub mod validate;
