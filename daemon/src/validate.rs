@@ -167,7 +167,7 @@ pub fn validate(
             "only {} held-out samples, at least {MIN_HELDOUT} needed",
             heldout.len()
         ));
-    } else if !(improvement >= config.validation.min_improvement) {
+    } else if improvement.is_nan() || improvement < config.validation.min_improvement {
         reasons.push(format!(
             "held-out pose error {:.3e} vs nominal {:.3e}: {:.1}% better, {:.1}% required",
             cand.mean_error,
@@ -265,7 +265,8 @@ mod tests {
     #[test]
     fn angle_deviation_wraps() {
         assert!((angle_diff(3.1, -3.1) - (6.2 - std::f64::consts::TAU)).abs() < 1e-12);
-        assert!((angle_diff(-1.5707963, 4.712389) - 0.0).abs() < 1e-6);
+        let half_pi = std::f64::consts::FRAC_PI_2;
+        assert!(angle_diff(-half_pi, 3.0 * half_pi).abs() < 1e-12);
     }
 
     #[test]
