@@ -46,6 +46,11 @@ pub struct Request {
     pub verbose: bool,
     /// Keep a copy of the command's stdout (it is still forwarded as it comes).
     pub capture_stdout: bool,
+    /// Boot systemd as PID 1 (VM only) and run the command from a unit once the system is up.
+    pub systemd: bool,
+    /// With `systemd`: a script run as root in the guest's root before systemd starts (install
+    /// units, create the vcan `.netdev`, enable services).
+    pub setup: Option<PathBuf>,
 }
 
 /// What came back.
@@ -66,7 +71,11 @@ pub const TIMED_OUT: u8 = 124;
 /// Runs the request on the path its mode allows, failing loudly when neither is possible.
 pub fn run(req: &Request) -> Result<Outcome> {
     let start = Instant::now();
-    let path = match req.mode {
+    if req.systemd && req.mode == Mode::Native {
+        bail!("--systemd needs the VM path: systemd must be PID 1");
+    }
+    let mode = if req.systemd { Mode::Vm } else { req.mode };
+    let path = match mode {
         Mode::Native => {
             if let Err(why) = crate::native::available() {
                 bail!("native vcan is not available: {why}");

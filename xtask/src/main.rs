@@ -28,11 +28,16 @@ usage:
   cargo xtask test [--mode auto|native|vm] [--timeout SECS]
       Run every test: `cargo test --workspace` (unit, integration and doc tests), then the suites
       that need real vcan (crate exocal-tests, feature `vcan`) inside the vcan harness.
-  cargo xtask vcan [--mode auto|native|vm] [--timeout SECS] [--mem MIB] [--verbose] -- CMD [ARG..]
+  cargo xtask vcan [--mode auto|native|vm] [--timeout SECS] [--mem MIB] [--verbose]
+                   [--systemd [--setup SCRIPT]] -- CMD [ARG..]
       Run CMD with real vcan0 and vcan1 up. `native` uses this kernel's vcan in a private network
       namespace (unshare); `vm` boots Debian's kernel under qemu-system-x86_64 -accel tcg with the
       host root shared read-only. `auto` (default) picks native when it can and the VM when it must.
       The exit status and output of CMD come back unchanged.
+      --systemd boots systemd as PID 1 in the guest (host root read-only under a tmpfs overlay),
+      runs SCRIPT as root in that root before boot (install units, enable services; vcan0/vcan1
+      are then the script's to create, e.g. with a .netdev), and runs CMD from a unit once
+      multi-user.target is up; the boot's journal is kept for the caller (--verbose shows where).
   cargo xtask setup
       Install the Debian packages the harness needs (qemu-system-x86, linux-image-amd64,
       busybox-static, cpio) and the thumbv7em-none-eabihf target. Needs root for apt.
@@ -90,6 +95,8 @@ pub struct HarnessArgs {
     pub timeout: Duration,
     pub mem_mib: u32,
     pub verbose: bool,
+    pub systemd: bool,
+    pub setup: Option<std::path::PathBuf>,
 }
 
 impl HarnessArgs {
@@ -100,6 +107,8 @@ impl HarnessArgs {
             timeout: Duration::from_secs(1200),
             mem_mib: 3072,
             verbose: false,
+            systemd: false,
+            setup: None,
         };
         let mut it = args.iter();
         while let Some(arg) = it.next() {
@@ -119,6 +128,8 @@ impl HarnessArgs {
                 }
                 "--mem" => opts.mem_mib = value("--mem")?.parse().context("--mem takes MiB")?,
                 "--verbose" | "-v" => opts.verbose = true,
+                "--systemd" => opts.systemd = true,
+                "--setup" => opts.setup = Some(value("--setup")?.into()),
                 other if other.starts_with('-') => bail!("unknown option {other:?}\n{USAGE}"),
                 _ => {
                     // A command without `--` is accepted too.
@@ -140,6 +151,8 @@ impl HarnessArgs {
             mem_mib: self.mem_mib,
             verbose: self.verbose,
             capture_stdout: false,
+            systemd: self.systemd,
+            setup: self.setup.clone(),
         })
     }
 }

@@ -35,7 +35,7 @@ const MODULES: &[&str] = &[
 ];
 
 /// Bumped when the initramfs layout or `/init` changes, so cached images are rebuilt.
-const INITRAMFS_VERSION: u32 = 1;
+const INITRAMFS_VERSION: u32 = 3;
 
 const INIT: &str = r#"#!/bin/sh
 # exocal vcan harness: guest init (busybox). Never exits: it powers the guest off.
@@ -48,6 +48,30 @@ fail() { echo "exocal-init: $*"; poweroff -f; }
 while read -r m; do insmod "/modules/$m" || fail "insmod $m failed"; done < /modules/order
 scratch=$(sed -n 's/.*exocal\.scratch=\([^ ]*\).*/\1/p' /proc/cmdline)
 [ -n "$scratch" ] || fail "no exocal.scratch= on the kernel command line"
+mode=$(sed -n 's/.*exocal\.mode=\([^ ]*\).*/\1/p' /proc/cmdline)
+if [ "$mode" = systemd ]; then
+  # systemd as PID 1 on a tmpfs overlay of the read-only host root.
+  mkdir -p /lower /rw /newroot
+  mount -t 9p -o trans=virtio,version=9p2000.L,msize=524288,cache=loose,ro hostroot /lower || fail "mount host root"
+  mount -t tmpfs -o mode=755 tmpfs /rw || fail "mount overlay tmpfs"
+  mkdir -p /rw/upper /rw/work
+  mount -t overlay overlay -o lowerdir=/lower,upperdir=/rw/upper,workdir=/rw/work /newroot || fail "mount overlay"
+  mount -t 9p -o trans=virtio,version=9p2000.L,msize=524288 scratch "/newroot$scratch" || fail "mount scratch"
+  mount -t proc proc /newroot/proc
+  mount -t sysfs sysfs /newroot/sys
+  mount -t devtmpfs devtmpfs /newroot/dev
+  # The host's own services and timers (databases, apt, man-db) are not the guest's business.
+  rm -f /newroot/etc/systemd/system/multi-user.target.wants/* /newroot/etc/systemd/system/timers.target.wants/*
+  cp "/newroot$scratch/exocal-harness.service" /newroot/etc/systemd/system/ || fail "install harness unit"
+  mkdir -p /newroot/etc/systemd/system/multi-user.target.wants
+  ln -sf ../exocal-harness.service /newroot/etc/systemd/system/multi-user.target.wants/exocal-harness.service
+  if [ -f "/newroot$scratch/setup.sh" ]; then
+    chroot /newroot /bin/sh "$scratch/setup.sh" > "/newroot$scratch/setup.log" 2>&1 || fail "setup script failed: see setup.log"
+  fi
+  umount /newroot/proc /newroot/sys /newroot/dev
+  echo "exocal-init: switching to systemd"
+  exec switch_root /newroot /lib/systemd/systemd
+fi
 mkdir -p /host
 mount -t 9p -o trans=virtio,version=9p2000.L,msize=524288,cache=loose,ro hostroot /host || fail "mount host root"
 mount -t tmpfs -o mode=1777 tmpfs /host/tmp || fail "mount /tmp"
@@ -72,6 +96,23 @@ sync
 umount "/host$scratch"
 poweroff -f
 "#;
+
+/// With `--systemd`: the unit that runs the command once the system is up, records its exit
+/// status and the boot's journal in the scratch folder, and powers the guest off.
+const HARNESS_UNIT: &str = "[Unit]
+Description=exocal harness: run the command, report, power off
+After=multi-user.target
+SuccessAction=poweroff
+FailureAction=poweroff
+
+[Service]
+Type=oneshot
+StandardOutput=file:@SCRATCH@/stdout
+StandardError=file:@SCRATCH@/stderr
+ExecStart=/bin/sh @SCRATCH@/run.sh
+ExecStopPost=/bin/sh -c 'journalctl -b --no-pager -o short-monotonic > @SCRATCH@/journal.txt 2>&1; echo \"$EXIT_STATUS\" > @SCRATCH@/rc.tmp; mv @SCRATCH@/rc.tmp @SCRATCH@/rc'
+TimeoutStartSec=infinity
+";
 
 /// The guest's kernel and modules.
 struct Kernel {
@@ -114,6 +155,21 @@ fn boot(
     scratch: &Path,
 ) -> Result<(u8, Vec<u8>)> {
     write_run_script(req, scratch)?;
+    let mut append = format!(
+        "console=ttyS0 quiet loglevel=3 panic=-1 exocal.scratch={}",
+        scratch.display()
+    );
+    if req.systemd {
+        fs::write(
+            scratch.join("exocal-harness.service"),
+            HARNESS_UNIT.replace("@SCRATCH@", &scratch.display().to_string()),
+        )?;
+        if let Some(setup) = &req.setup {
+            fs::copy(setup, scratch.join("setup.sh"))
+                .with_context(|| format!("copy setup script {}", setup.display()))?;
+        }
+        append.push_str(" exocal.mode=systemd systemd.unit=multi-user.target");
+    }
     for name in ["stdout", "stderr"] {
         fs::File::create(scratch.join(name))?;
     }
@@ -136,10 +192,7 @@ fn boot(
         .arg("-initrd")
         .arg(initramfs)
         .arg("-append")
-        .arg(format!(
-            "console=ttyS0 quiet loglevel=3 panic=-1 exocal.scratch={}",
-            scratch.display()
-        ))
+        .arg(append)
         .arg("-virtfs")
         .arg("local,path=/,mount_tag=hostroot,security_model=none,readonly=on,multidevs=remap")
         .arg("-virtfs")
@@ -198,6 +251,15 @@ fn boot(
     if timed_out {
         show_console(&console);
         return Ok((TIMED_OUT, out.captured));
+    }
+    if req.systemd {
+        let kept = scratch
+            .parent()
+            .unwrap_or(scratch)
+            .join("last-boot-journal.txt");
+        if fs::copy(scratch.join("journal.txt"), &kept).is_ok() {
+            note(&format!("the boot's journal is in {}", kept.display()));
+        }
     }
     let rc = fs::read_to_string(scratch.join("rc")).ok();
     match rc.as_deref().map(str::trim).map(str::parse::<u8>) {
@@ -368,8 +430,24 @@ fn build_initramfs(kernel: &Kernel, cache: &Path) -> Result<PathBuf> {
     }
     fs::copy(crate::setup::BUSYBOX, root.join("bin/busybox"))?;
     for applet in [
-        "sh", "mount", "umount", "insmod", "mkdir", "ip", "poweroff", "sed", "chroot", "echo",
-        "mv", "sync", "cat", "sleep", "ls",
+        "sh",
+        "mount",
+        "umount",
+        "insmod",
+        "mkdir",
+        "ip",
+        "poweroff",
+        "sed",
+        "chroot",
+        "echo",
+        "mv",
+        "sync",
+        "cat",
+        "sleep",
+        "ls",
+        "cp",
+        "ln",
+        "switch_root",
     ] {
         std::os::unix::fs::symlink("busybox", root.join("bin").join(applet))?;
     }
@@ -590,6 +668,8 @@ kernel/net/can/can.ko.xz:
             mem_mib: 512,
             verbose: false,
             capture_stdout: false,
+            systemd: false,
+            setup: None,
         };
         write_run_script(&req, &dir).unwrap();
         let script = fs::read_to_string(dir.join("run.sh")).unwrap();

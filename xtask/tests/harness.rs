@@ -46,3 +46,31 @@ fn the_time_limit_kills_a_hung_run() {
     );
     assert!(started.elapsed().as_secs() < 60);
 }
+
+#[test]
+fn systemd_boots_as_pid1_with_the_setup_applied_and_runs_the_command() {
+    let dir = std::env::temp_dir().join(format!("xtask-systemd-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let setup = dir.join("setup.sh");
+    std::fs::write(
+        &setup,
+        "set -e\nmkdir -p /etc/exocal-test\necho from-setup > /etc/exocal-test/marker\n",
+    )
+    .unwrap();
+    let out = xtask()
+        .args(["vcan", "--systemd", "--timeout", "400", "--setup"])
+        .arg(&setup)
+        .args(["--", "sh", "-c"])
+        .arg("echo pid1=$(cat /proc/1/comm); cat /etc/exocal-test/marker; systemctl is-active multi-user.target; exit 5")
+        .output()
+        .expect("run xtask vcan --systemd");
+    std::fs::remove_dir_all(&dir).unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(
+        out.status.code(),
+        Some(5),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(stdout, "pid1=systemd\nfrom-setup\nactive\n");
+}
