@@ -149,6 +149,10 @@ pub struct DriftEmResult<const N: usize> {
     pub converged: bool,
     /// Numerical rank of the last geometry step.
     pub rank: usize,
+    /// Cramér-Rao bound (1σ) of every geometric parameter under the fitted drift and noise
+    /// model, `std_errors[kind][joint]` (m, rad): the inverse of the exact Fisher information
+    /// of the static parameters with the drift integrated out (from the two-stage filter).
+    pub std_errors: [[f64; N]; 4],
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -494,7 +498,10 @@ pub fn em_drift<const N: usize, const P: usize>(
             });
         par = new;
     }
-    let ll = filter_pass::<N, P>(&g, samples, &par, ws)?;
+    let (ll, acc) = geometry_pass::<N, P>(&g, samples, &par)?;
+    let analysis = acc.analyse(opts.rank_tolerance);
+    let crb = analysis.std_errors(1.0);
+    filter_pass::<N, P>(&g, samples, &par, ws)?;
     smooth(ws, &par)?;
     if !converged {
         let _ = history.push(ll);
@@ -519,6 +526,7 @@ pub fn em_drift<const N: usize, const P: usize>(
         iterations,
         converged,
         rank,
+        std_errors: core::array::from_fn(|k| core::array::from_fn(|j| crb[k * N + j])),
     })
 }
 
