@@ -12,6 +12,7 @@
 mod harness;
 mod native;
 mod setup;
+mod ship;
 mod suite;
 mod vm;
 
@@ -41,6 +42,11 @@ usage:
   cargo xtask setup
       Install the Debian packages the harness needs (qemu-system-x86, linux-image-amd64,
       busybox-static, cpio) and the thumbv7em-none-eabihf target. Needs root for apt.
+  cargo xtask cross [--target TRIPLE]..
+      Release-build exocald and exocal-hil for aarch64 and armv7 (or the given targets), run
+      --help and an in-process demo of each under qemu-user, and report binary sizes.
+  cargo xtask deb [--target TRIPLE|ARCH]..
+      Build the Debian package (default: this machine's arch) into target/debian/, run lintian.
   cargo xtask run-suites BIN [BIN..]
       (internal) Run test binaries one after another inside the harness, one thread each.";
 
@@ -76,6 +82,8 @@ fn run(args: Vec<String>) -> Result<u8> {
             suite::test_all(&opts)
         }
         "run-suites" => suite::run_suites(rest),
+        "cross" => ship::cross(rest),
+        "deb" => ship::deb(rest),
         "setup" => {
             setup::install_all()?;
             Ok(0)

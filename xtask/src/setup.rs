@@ -80,31 +80,31 @@ pub fn install_packages(packages: &[&str]) -> Result<()> {
     Ok(())
 }
 
-/// Adds the embedded rustup target if it is missing.
-pub fn install_rust_target() -> Result<()> {
+/// Adds a rustup target if it is missing.
+pub fn add_rust_target(triple: &str) -> Result<()> {
     let list = Command::new("rustup")
         .args(["target", "list", "--installed"])
         .output()
-        .context("rustup (the embedded cross-build needs rustup)")?;
+        .context("rustup (cross-builds need rustup)")?;
     if String::from_utf8_lossy(&list.stdout)
         .lines()
-        .any(|l| l.trim() == EMBEDDED_TARGET)
+        .any(|l| l.trim() == triple)
     {
         return Ok(());
     }
     let status = Command::new("rustup")
-        .args(["target", "add", EMBEDDED_TARGET])
+        .args(["target", "add", triple])
         .stdin(Stdio::null())
         .status()?;
     if !status.success() {
-        bail!("rustup target add {EMBEDDED_TARGET} failed");
+        bail!("rustup target add {triple} failed");
     }
     Ok(())
 }
 
 /// `cargo xtask setup`: everything, so that a fresh machine can build and test.
 pub fn install_all() -> Result<()> {
-    install_rust_target()?;
+    add_rust_target(EMBEDDED_TARGET)?;
     if crate::native::available().is_ok() {
         eprintln!("[setup] native vcan works here: no VM packages needed");
         return Ok(());

@@ -1,0 +1,497 @@
+//! Shipping to the suit's controller: cross-builds and Debian packages.
+//!
+//! ```text
+//! cargo xtask cross [--target TRIPLE]..   build exocald + exocal-hil, run them under qemu-user
+//! cargo xtask deb   [--target TRIPLE]..   build the Debian package(s) into target/debian/
+//! ```
+//!
+//! Cross-linking uses Debian's cross gcc (`.cargo/config.toml` names it), and the binaries are
+//! run with `qemu-<arch>-static -L /usr/<gnu triple>` directly, so no binfmt is needed.
+
+use std::fmt::Write as _;
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use anyhow::{bail, Context, Result};
+
+/// A target the controller may be.
+#[derive(Debug, Clone, Copy)]
+pub struct Target {
+    pub triple: &'static str,
+    /// Debian's architecture name.
+    pub deb_arch: &'static str,
+    /// Debian's cross gcc package, `None` for the build machine itself.
+    pub gcc_package: Option<&'static str>,
+    /// Debian's multiarch triple: the cross sysroot is `/usr/<gnu>`.
+    pub gnu: &'static str,
+    /// The qemu-user binary (`None`: runs natively).
+    pub qemu: Option<&'static str>,
+}
+
+pub const TARGETS: &[Target] = &[
+    Target {
+        triple: "x86_64-unknown-linux-gnu",
+        deb_arch: "amd64",
+        gcc_package: None,
+        gnu: "x86_64-linux-gnu",
+        qemu: None,
+    },
+    Target {
+        triple: "aarch64-unknown-linux-gnu",
+        deb_arch: "arm64",
+        gcc_package: Some("gcc-aarch64-linux-gnu"),
+        gnu: "aarch64-linux-gnu",
+        qemu: Some("qemu-aarch64-static"),
+    },
+    Target {
+        triple: "armv7-unknown-linux-gnueabihf",
+        deb_arch: "armhf",
+        gcc_package: Some("gcc-arm-linux-gnueabihf"),
+        gnu: "arm-linux-gnueabihf",
+        qemu: Some("qemu-arm-static"),
+    },
+];
+
+/// The binaries that ship.
+pub const BINARIES: &[&str] = &["exocald", "exocal-hil"];
+
+pub fn target(triple: &str) -> Result<Target> {
+    TARGETS
+        .iter()
+        .copied()
+        .find(|t| t.triple == triple || t.deb_arch == triple)
+        .with_context(|| {
+            let known: Vec<_> = TARGETS.iter().map(|t| t.triple).collect();
+            format!("unknown target {triple:?}; known: {}", known.join(", "))
+        })
+}
+
+/// Parses `--target X` options; the cross targets when none is given.
+pub fn parse_targets(args: &[String], default_cross: bool) -> Result<Vec<Target>> {
+    let mut out = Vec::new();
+    let mut it = args.iter();
+    while let Some(a) = it.next() {
+        match a.as_str() {
+            "--target" => out.push(target(it.next().context("--target needs a value")?)?),
+            other => bail!("unexpected argument {other:?}"),
+        }
+    }
+    if out.is_empty() {
+        if default_cross {
+            out.extend(TARGETS.iter().copied().filter(|t| t.qemu.is_some()));
+        } else {
+            out.push(TARGETS[0]);
+        }
+    }
+    Ok(out)
+}
+
+/// Installs the cross toolchain for `targets` (rustup targets, Debian packages).
+pub fn ensure_toolchain(targets: &[Target]) -> Result<()> {
+    let mut packages: Vec<&str> = Vec::new();
+    for t in targets {
+        if let Some(gcc) = t.gcc_package {
+            packages.push(gcc);
+            packages.push("qemu-user-static");
+        }
+        crate::setup::add_rust_target(t.triple)?;
+    }
+    packages.sort();
+    packages.dedup();
+    let missing: Vec<&str> = packages
+        .into_iter()
+        .filter(|p| !crate::setup::installed(p))
+        .collect();
+    crate::setup::install_packages(&missing)
+}
+
+fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("xtask sits in the workspace")
+        .to_path_buf()
+}
+
+fn cargo() -> String {
+    std::env::var("CARGO").unwrap_or_else(|_| "cargo".into())
+}
+
+/// Release-builds the shipped binaries for `t`; returns their paths.
+pub fn build(t: &Target) -> Result<Vec<PathBuf>> {
+    let root = workspace_root();
+    let mut cmd = Command::new(cargo());
+    cmd.current_dir(&root)
+        .args(["build", "--release", "--target", t.triple])
+        .stdin(Stdio::null());
+    for b in BINARIES {
+        cmd.args(["--bin", b]);
+    }
+    let status = cmd.status().context("cargo build")?;
+    if !status.success() {
+        bail!("cross-build for {} failed", t.triple);
+    }
+    let dir = target_dir(&root).join(t.triple).join("release");
+    Ok(BINARIES.iter().map(|b| dir.join(b)).collect())
+}
+
+fn target_dir(root: &Path) -> PathBuf {
+    std::env::var_os("CARGO_TARGET_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| root.join("target"))
+}
+
+/// The command that runs a binary built for `t` on this machine.
+pub fn runner(t: &Target, bin: &Path) -> Command {
+    match t.qemu {
+        None => Command::new(bin),
+        Some(qemu) => {
+            let mut cmd = Command::new(qemu);
+            cmd.arg("-L").arg(format!("/usr/{}", t.gnu)).arg(bin);
+            cmd
+        }
+    }
+}
+
+/// `cargo xtask cross`: build, then run `--help` and a short in-process demo under qemu-user.
+pub fn cross(args: &[String]) -> Result<u8> {
+    let targets = parse_targets(args, true)?;
+    ensure_toolchain(&targets)?;
+    let mut report = String::new();
+    for t in &targets {
+        println!("==> {}: release build", t.triple);
+        let bins = build(t)?;
+        for bin in &bins {
+            let out = runner(t, bin)
+                .arg("--help")
+                .stdin(Stdio::null())
+                .output()
+                .with_context(|| format!("run {} under {:?}", bin.display(), t.qemu))?;
+            if !out.status.success() || out.stdout.is_empty() {
+                bail!(
+                    "{} --help failed under {}: {}",
+                    bin.display(),
+                    t.qemu.unwrap_or("the host"),
+                    String::from_utf8_lossy(&out.stderr)
+                );
+            }
+            let size = fs::metadata(bin)?.len();
+            writeln!(
+                report,
+                "{:32} {:12} {:>6.2} MiB  --help ok",
+                t.triple,
+                bin.file_name().unwrap_or_default().to_string_lossy(),
+                size as f64 / (1 << 20) as f64
+            )?;
+        }
+        let out_dir = std::env::temp_dir().join(format!("exocal-cross-demo-{}", t.deb_arch));
+        let _ = fs::remove_dir_all(&out_dir);
+        println!("==> {}: exocald demo under qemu-user", t.triple);
+        let status = runner(t, &bins[0])
+            .args(["demo", "--output"])
+            .arg(&out_dir)
+            .stdin(Stdio::null())
+            .status()?;
+        if !status.success() {
+            bail!("exocald demo failed for {} ({status})", t.triple);
+        }
+        writeln!(report, "{:32} exocald demo (in-process bus) ok", t.triple)?;
+        let _ = fs::remove_dir_all(&out_dir);
+    }
+    println!("\ncross-builds (release, with line tables):\n{report}");
+    Ok(0)
+}
+
+/// The package's version: the workspace version, Debian revision 1.
+fn package_version() -> String {
+    format!("{}-1", env!("CARGO_PKG_VERSION"))
+}
+
+/// The highest `GLIBC_2.N` symbol version a binary needs, for `Depends: libc6 (>= 2.N)`.
+fn glibc_floor(bin: &[u8]) -> String {
+    let needle = b"GLIBC_2.";
+    let mut best = (2u32, 17u32);
+    let mut i = 0;
+    while let Some(pos) = bin[i..].windows(needle.len()).position(|w| w == needle) {
+        let start = i + pos + needle.len();
+        let digits: String = bin[start..]
+            .iter()
+            .take_while(|b| b.is_ascii_digit() || **b == b'.')
+            .map(|b| *b as char)
+            .collect();
+        let minor = digits
+            .split('.')
+            .next()
+            .and_then(|m| m.parse().ok())
+            .unwrap_or(0);
+        best = best.max((2, minor));
+        i = start;
+    }
+    format!("{}.{}", best.0, best.1)
+}
+
+const POSTINST: &str = "#!/bin/sh
+set -e
+if [ \"$1\" = configure ] || [ \"$1\" = abort-upgrade ]; then
+    # Start at every boot; not now (the installer's bus may be anything).
+    deb-systemd-helper unmask exocald.service >/dev/null || true
+    deb-systemd-helper enable exocald.service >/dev/null || true
+    if [ -d /run/systemd/system ]; then
+        systemctl --system daemon-reload >/dev/null || true
+    fi
+fi
+";
+
+const PRERM: &str = "#!/bin/sh
+set -e
+if [ -d /run/systemd/system ] && [ \"$1\" = remove ]; then
+    deb-systemd-invoke stop exocald.service >/dev/null || true
+fi
+";
+
+const POSTRM: &str = "#!/bin/sh
+set -e
+if [ -d /run/systemd/system ]; then
+    systemctl --system daemon-reload >/dev/null || true
+fi
+if [ \"$1\" = remove ]; then
+    deb-systemd-helper mask exocald.service >/dev/null || true
+fi
+if [ \"$1\" = purge ]; then
+    deb-systemd-helper purge exocald.service >/dev/null || true
+    deb-systemd-helper unmask exocald.service >/dev/null || true
+fi
+";
+
+const COPYRIGHT: &str = "Format: https://www.debian.org/doc/packaging-manuals/copyright-format/1.0/
+Upstream-Name: exocal
+Source: https://example.invalid/exocal
+
+Files: *
+Copyright: 2026 exocal developers
+License: MIT or Apache-2.0
+ Licensed under either of the Apache License, Version 2.0 or the MIT license, at your option.
+ .
+ On Debian systems, the full text of the Apache License, Version 2.0 can be found in
+ /usr/share/common-licenses/Apache-2.0.
+";
+
+/// Builds the Debian package for `t` from already-built binaries; returns its path.
+pub fn package(t: &Target, bins: &[PathBuf]) -> Result<PathBuf> {
+    let root = workspace_root();
+    let out = target_dir(&root).join("debian");
+    let name = format!("exocal_{}_{}", package_version(), t.deb_arch);
+    let stage = out.join(&name);
+    let _ = fs::remove_dir_all(&stage);
+    let put = |rel: &str, data: &[u8], mode: u32| -> Result<()> {
+        use std::os::unix::fs::PermissionsExt;
+        let path = stage.join(rel);
+        fs::create_dir_all(path.parent().expect("has a parent"))?;
+        fs::write(&path, data)?;
+        fs::set_permissions(&path, fs::Permissions::from_mode(mode))?;
+        Ok(())
+    };
+    let read = |rel: &str| fs::read(root.join(rel)).with_context(|| format!("read {rel}"));
+
+    let mut glibc = String::from("2.17");
+    for bin in bins {
+        let file = bin.file_name().context("binary name")?.to_string_lossy();
+        let stripped = stage.join("usr/bin").join(&*file);
+        fs::create_dir_all(stripped.parent().expect("usr/bin"))?;
+        let strip = if t.qemu.is_some() {
+            format!("{}-strip", t.gnu)
+        } else {
+            "strip".into()
+        };
+        let status = Command::new(&strip)
+            .arg("--strip-unneeded")
+            .arg("-o")
+            .arg(&stripped)
+            .arg(bin)
+            .status()
+            .with_context(|| format!("run {strip} (binutils for {})", t.gnu))?;
+        if !status.success() {
+            bail!("{strip} failed on {}", bin.display());
+        }
+        let floor = glibc_floor(&fs::read(&stripped)?);
+        if version_key(&floor) > version_key(&glibc) {
+            glibc = floor;
+        }
+    }
+    put(
+        "lib/systemd/system/exocald.service",
+        &read("systemd/exocald.service")?,
+        0o644,
+    )?;
+    put(
+        "usr/lib/systemd/network/80-can0.network",
+        &read("systemd/80-can0.network")?,
+        0o644,
+    )?;
+    for bench in ["80-vcan0.netdev", "80-vcan0.network"] {
+        put(
+            &format!("usr/share/exocal/examples/{bench}"),
+            &read(&format!("systemd/{bench}"))?,
+            0o644,
+        )?;
+    }
+    put(
+        "etc/exocal/exocald.toml",
+        &read("daemon/exocald.toml")?,
+        0o644,
+    )?;
+    put(
+        "usr/share/exocal/exocal.dbc",
+        &read("dbc/exocal.dbc")?,
+        0o644,
+    )?;
+    if root.join("hil/scenarios").is_dir() {
+        for entry in fs::read_dir(root.join("hil/scenarios"))? {
+            let entry = entry?;
+            let file = entry.file_name().to_string_lossy().into_owned();
+            if file.ends_with(".toml") {
+                put(
+                    &format!("usr/share/exocal/scenarios/{file}"),
+                    &fs::read(entry.path())?,
+                    0o644,
+                )?;
+            }
+        }
+    }
+    put(
+        "usr/share/doc/exocal/copyright",
+        COPYRIGHT.as_bytes(),
+        0o644,
+    )?;
+    let changelog = format!(
+        "exocal ({}) unstable; urgency=medium\n\n  * Release {}.\n\n -- exocal developers <dev@exocal.invalid>  Sat, 21 Nov 2026 12:00:00 +0000\n",
+        package_version(),
+        env!("CARGO_PKG_VERSION")
+    );
+    put(
+        "usr/share/doc/exocal/changelog.Debian.gz",
+        &gzip(changelog.as_bytes())?,
+        0o644,
+    )?;
+
+    let installed_kib = dir_size(&stage)?.div_ceil(1024);
+    let control = format!(
+        "Package: exocal
+Version: {version}
+Architecture: {arch}
+Maintainer: exocal developers <dev@exocal.invalid>
+Installed-Size: {installed_kib}
+Depends: libc6 (>= {glibc}), libgcc-s1, init-system-helpers (>= 1.52)
+Section: misc
+Priority: optional
+Homepage: https://example.invalid/exocal
+Description: kinematic calibration for the exocal exoskeleton
+ exocald collects a minute of free arm motion from the suit's IMU nodes over
+ SocketCAN, identifies the D-H table by least squares and EM, validates it,
+ pushes it to every node with CRC readback and logs the session as MCAP.
+ exocal-hil emulates the nodes for benches without hardware.
+",
+        version = package_version(),
+        arch = t.deb_arch,
+    );
+    put("DEBIAN/control", control.as_bytes(), 0o644)?;
+    put("DEBIAN/conffiles", b"/etc/exocal/exocald.toml\n", 0o644)?;
+    put("DEBIAN/postinst", POSTINST.as_bytes(), 0o755)?;
+    put("DEBIAN/prerm", PRERM.as_bytes(), 0o755)?;
+    put("DEBIAN/postrm", POSTRM.as_bytes(), 0o755)?;
+    let deb = out.join(format!("{name}.deb"));
+    let status = Command::new("dpkg-deb")
+        .args(["--root-owner-group", "-Zxz", "--build"])
+        .arg(&stage)
+        .arg(&deb)
+        .stdout(Stdio::null())
+        .status()
+        .context("dpkg-deb")?;
+    if !status.success() {
+        bail!("dpkg-deb failed for {}", deb.display());
+    }
+    Ok(deb)
+}
+
+fn version_key(v: &str) -> Vec<u32> {
+    v.split('.').filter_map(|p| p.parse().ok()).collect()
+}
+
+fn gzip(data: &[u8]) -> Result<Vec<u8>> {
+    use std::io::Write;
+    let mut child = Command::new("gzip")
+        .args(["-9n"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .spawn()
+        .context("gzip")?;
+    child.stdin.take().context("stdin")?.write_all(data)?;
+    let out = child.wait_with_output()?;
+    Ok(out.stdout)
+}
+
+fn dir_size(dir: &Path) -> Result<u64> {
+    let mut total = 0;
+    for entry in fs::read_dir(dir)? {
+        let entry = entry?;
+        let meta = entry.metadata()?;
+        total += if meta.is_dir() {
+            dir_size(&entry.path())?
+        } else {
+            meta.len()
+        };
+    }
+    Ok(total)
+}
+
+/// `cargo xtask deb`: build the package(s) and run lintian on them.
+pub fn deb(args: &[String]) -> Result<u8> {
+    let targets = parse_targets(args, false)?;
+    ensure_toolchain(&targets)?;
+    for t in &targets {
+        let bins = build(t)?;
+        let deb = package(t, &bins)?;
+        println!("built {}", deb.display());
+        if crate::vm::which("lintian").is_some() {
+            let out = Command::new("lintian")
+                .args([
+                    "--no-tag-display-limit",
+                    "--suppress-tags",
+                    "no-manual-page",
+                ])
+                .arg(&deb)
+                .output()?;
+            let text = String::from_utf8_lossy(&out.stdout);
+            if text.trim().is_empty() {
+                println!(
+                    "lintian: clean (no-manual-page suppressed: exocald --help is the manual)"
+                );
+            } else {
+                println!("lintian:\n{text}");
+            }
+        }
+    }
+    Ok(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn glibc_floor_takes_the_highest_version() {
+        assert_eq!(
+            glibc_floor(b"xxGLIBC_2.2.5\0GLIBC_2.34\0GLIBC_2.17\0"),
+            "2.34"
+        );
+        assert_eq!(glibc_floor(b"nothing"), "2.17");
+    }
+
+    #[test]
+    fn targets_resolve_by_triple_or_debian_arch() {
+        assert_eq!(target("arm64").unwrap().triple, "aarch64-unknown-linux-gnu");
+        assert!(target("mips").is_err());
+        let cross = parse_targets(&[], true).unwrap();
+        assert_eq!(cross.len(), 2);
+    }
+}
