@@ -1,0 +1,308 @@
+//! The calibration-vs-scipy benchmark, Rust side: simulates the paper's Section 4 scenario,
+//! exports it as CSV for `benches/scipy_ls.py`, and times calib-core on the same data.
+//!
+//! ```text
+//! cargo run -p calib-core --release --example export_dataset -- \
+//!     --out DIR [--k 1000,6000,20000] [--seed 1] [--repeats 7] [--em-k 1000,6000] [--em-repeats 3]
+//! ```
+//!
+//! For every K it writes `DIR/k{K}/samples.csv` (one row per sample: the reported joint angles
+//! `q1..q7` (rad), then the measured tool pose in the base frame, rotation row-major `r00..r22`
+//! and position `px py pz` (m)) and `DIR/k{K}/tables.csv` (per parameter, in calib-core's order
+//! `kind · 7 + joint` with kinds a, d, alpha, theta: the starting point, which is the nominal
+//! Table 1, and the truth, Table 4). Floats are written in Rust's shortest round-trip form, so
+//! Python reads back the identical doubles.
+//!
+//! Then it times [`identify_ls`] (`--repeats` runs, one after another in this thread) and, for
+//! K in `--em-k`, LS followed by our EM ([`em_drift_vec`]), and prints one JSON object per line
+//! on stdout (`{"bench":"calib-core", ...}`): every run's wall time, their median, and the
+//! accuracy of the result (LS cost Σ‖e‖², the paper's y of eq. 10, and the largest parameter
+//! error of each kind against Table 4). A first line (`"bench":"calib-core-kernels"`) gives the
+//! per-sample cost of one LS linearisation split into its kernels. Nothing else goes to stdout.
+
+use std::fs::{self, File};
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use calib_core::{
+    em_drift_vec, identify_ls, objective_y, pose_error, DhTable, DriftEmOptions, LsOptions, LsResult, ParamErrors, ParamKind,
+    Sample, Scenario, ScenarioConfig, SUIT_PARAMS,
+};
+
+struct Args {
+    out: PathBuf,
+    ks: Vec<usize>,
+    seed: u64,
+    repeats: usize,
+    em_ks: Vec<usize>,
+    em_repeats: usize,
+}
+
+fn parse_args() -> Result<Args, String> {
+    let argv: Vec<String> = std::env::args().skip(1).collect();
+    let get = |name: &str| -> Option<&str> {
+        argv.iter()
+            .position(|a| a == name)
+            .and_then(|i| argv.get(i + 1))
+            .map(String::as_str)
+    };
+    let list = |name: &str, default: &str| -> Result<Vec<usize>, String> {
+        let v = get(name).unwrap_or(default);
+        if v.is_empty() {
+            return Ok(Vec::new());
+        }
+        v.split(',')
+            .map(|x| x.trim().parse().map_err(|_| format!("{name}: `{x}` is not a count")))
+            .collect()
+    };
+    let number = |name: &str, default: u64| -> Result<u64, String> {
+        get(name).map_or(Ok(default), |v| {
+            v.parse().map_err(|_| format!("{name}: `{v}` is not a number"))
+        })
+    };
+    Ok(Args {
+        out: PathBuf::from(get("--out").ok_or("--out DIR is required")?),
+        ks: list("--k", "1000,6000,20000")?,
+        seed: number("--seed", 1)?,
+        repeats: number("--repeats", 7)?.max(1) as usize,
+        em_ks: list("--em-k", "1000,6000")?,
+        em_repeats: number("--em-repeats", 3)?.max(1) as usize,
+    })
+}
+
+fn write_dataset(dir: &Path, samples: &[Sample<7>]) -> std::io::Result<()> {
+    fs::create_dir_all(dir)?;
+    let mut f = BufWriter::new(File::create(dir.join("samples.csv"))?);
+    writeln!(f, "q1,q2,q3,q4,q5,q6,q7,r00,r01,r02,r10,r11,r12,r20,r21,r22,px,py,pz")?;
+    for s in samples {
+        let mut fields: Vec<String> = s.joints.iter().map(|q| format!("{q:e}")).collect();
+        for i in 0..3 {
+            for j in 0..3 {
+                fields.push(format!("{:e}", s.pose.r[(i, j)]));
+            }
+        }
+        fields.extend(s.pose.p.iter().map(|x| format!("{x:e}")));
+        writeln!(f, "{}", fields.join(","))?;
+    }
+    f.flush()?;
+    let mut t = BufWriter::new(File::create(dir.join("tables.csv"))?);
+    writeln!(t, "index,kind,joint,start,truth")?;
+    let (start, truth) = (DhTable::paper_nominal(), DhTable::paper_actual());
+    for p in 0..SUIT_PARAMS {
+        let (kind, joint) = ParamKind::of_index(p, 7);
+        writeln!(
+            t,
+            "{p},{},{},{:e},{:e}",
+            kind.name(),
+            joint + 1,
+            start.param(p),
+            truth.param(p)
+        )?;
+    }
+    t.flush()
+}
+
+fn median(xs: &[f64]) -> f64 {
+    let mut v = xs.to_vec();
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+fn json_list(xs: &[f64]) -> String {
+    let items: Vec<String> = xs.iter().map(|x| format!("{x:e}")).collect();
+    format!("[{}]", items.join(","))
+}
+
+/// The accuracy fields shared by every line: LS cost, y and the parameter errors of `table`.
+fn accuracy(table: &DhTable<7>, samples: &[Sample<7>]) -> String {
+    let cost: f64 = samples
+        .iter()
+        .map(|s| pose_error(&table.fk(&s.joints), &s.pose).norm_squared())
+        .sum();
+    let e = ParamErrors::between(table, &DhTable::paper_actual());
+    let rms = (0..SUIT_PARAMS)
+        .map(|p| (table.param(p) - DhTable::paper_actual().param(p)).powi(2))
+        .sum::<f64>()
+        .sqrt();
+    format!(
+        "\"cost\":{cost:e},\"y\":{:e},\"err_a\":{:e},\"err_d\":{:e},\"err_alpha\":{:e},\"err_theta\":{:e},\"err_norm\":{rms:e}",
+        objective_y(table, samples),
+        e.a,
+        e.d,
+        e.alpha,
+        e.theta
+    )
+}
+
+fn run_ls(samples: &[Sample<7>]) -> Result<LsResult<7, SUIT_PARAMS>, String> {
+    identify_ls::<7, SUIT_PARAMS>(&DhTable::paper_nominal(), samples, &LsOptions::paper()).map_err(|e| format!("LS: {e}"))
+}
+
+fn bench(args: &Args) -> Result<(), String> {
+    let cfg = ScenarioConfig::paper();
+    let kmax = args.ks.iter().chain(&args.em_ks).copied().max().unwrap_or(0);
+    // One session; every K is its first K samples (K = 6,000 is the paper's 60 s at 100 Hz).
+    let all: Vec<Sample<7>> = Scenario::new(cfg, args.seed).take(kmax.max(1)).map(|s| s.sample).collect();
+    kernels(&all);
+    for &k in &args.ks {
+        let samples = &all[..k];
+        let dir = args.out.join(format!("k{k}"));
+        write_dataset(&dir, samples).map_err(|e| format!("writing {}: {e}", dir.display()))?;
+        let mut times = Vec::new();
+        let mut last = None;
+        for _ in 0..args.repeats {
+            let t0 = Instant::now();
+            let r = run_ls(samples)?;
+            times.push(t0.elapsed().as_secs_f64());
+            last = Some(r);
+        }
+        let r = last.ok_or("no run")?;
+        println!(
+            "{{\"bench\":\"calib-core\",\"solver\":\"ls\",\"k\":{k},\"seed\":{},\"dir\":\"{}\",\"median_s\":{:e},\"runs_s\":{},\"iterations\":{},\"condition\":{:e},\"cost_start\":{:e},\"y_start\":{:e},{}}}",
+            args.seed,
+            dir.display(),
+            median(&times),
+            json_list(&times),
+            r.iterations,
+            r.condition,
+            samples
+                .iter()
+                .map(|s| pose_error(&DhTable::paper_nominal().fk(&s.joints), &s.pose).norm_squared())
+                .sum::<f64>(),
+            objective_y(&DhTable::paper_nominal(), samples),
+            accuracy(&r.table, samples)
+        );
+    }
+    for &k in &args.em_ks {
+        let samples = &all[..k];
+        let (mut times, mut em_times) = (Vec::new(), Vec::new());
+        let mut last = None;
+        for _ in 0..args.em_repeats {
+            let t0 = Instant::now();
+            let ls = run_ls(samples)?;
+            let t1 = Instant::now();
+            let (em, _drift) = em_drift_vec::<7, SUIT_PARAMS>(&ls.table, samples, &DriftEmOptions::new(cfg.drift.dt))
+                .map_err(|e| format!("EM: {e}"))?;
+            em_times.push(t1.elapsed().as_secs_f64());
+            times.push(t0.elapsed().as_secs_f64());
+            last = Some(em);
+        }
+        let em = last.ok_or("no run")?;
+        println!(
+            "{{\"bench\":\"calib-core\",\"solver\":\"ls+em\",\"k\":{k},\"seed\":{},\"median_s\":{:e},\"runs_s\":{},\"em_median_s\":{:e},\"em_iterations\":{},\"em_converged\":{},{}}}",
+            args.seed,
+            median(&times),
+            json_list(&times),
+            median(&em_times),
+            em.iterations,
+            em.converged,
+            accuracy(&em.table, samples)
+        );
+    }
+    Ok(())
+}
+
+/// Median time (s) of one call of `f`, over `reps` batches of `n` calls.
+fn time_per_call(reps: usize, n: usize, mut f: impl FnMut()) -> f64 {
+    let times: Vec<f64> = (0..reps)
+        .map(|_| {
+            let t0 = Instant::now();
+            for _ in 0..n {
+                f();
+            }
+            t0.elapsed().as_secs_f64() / n as f64
+        })
+        .collect();
+    median(&times)
+}
+
+/// Per-sample cost of one LS linearisation, split into its kernels: FK + identification
+/// Jacobian, the residual Jacobian `M(e)·J`, and absorbing the 6 rows into the streaming QR;
+/// plus one SVD analysis of the 28 × 28 triangle.
+fn kernels(all: &[Sample<7>]) {
+    use calib_core::model::error_jacobian;
+    use calib_core::QrAccumulator;
+    use std::hint::black_box;
+    let table = DhTable::paper_nominal();
+    let n = all.len().clamp(1, 2000);
+    let s = &all[..n];
+    let mut i = 0;
+    let mut next = || {
+        i = (i + 1) % n;
+        &s[i]
+    };
+    let fk_jac = time_per_call(7, 20_000, || {
+        black_box(black_box(&table).fk_jacobian(&next().joints));
+    });
+    let (t, cols) = table.fk_jacobian(&s[0].joints);
+    let e = pose_error(&t, &s[0].pose);
+    let residual_jac = time_per_call(7, 20_000, || {
+        let m = error_jacobian(black_box(&e));
+        let mut rows = [[0.0; SUIT_PARAMS]; 6];
+        for p in 0..SUIT_PARAMS {
+            let c = m * cols[p / 7][p % 7];
+            for r in 0..6 {
+                rows[r][p] = c[r];
+            }
+        }
+        black_box(rows);
+    });
+    let rows: [[f64; SUIT_PARAMS]; 6] = core::array::from_fn(|r| core::array::from_fn(|p| cols[p / 7][p % 7][r]));
+    let mut acc = QrAccumulator::<SUIT_PARAMS>::new();
+    let qr_rows = time_per_call(7, 20_000, || {
+        for (r, row) in rows.iter().enumerate() {
+            acc.add_row(black_box(row), e[r]);
+        }
+    });
+    // What-if: the same Givens update with `sqrt(a² + b²)` instead of `libm::hypot` (safe here:
+    // the entries are O(1) to O(√K)), to show how much of the QR time is the hypot call.
+    let mut r = [[0.0; SUIT_PARAMS]; SUIT_PARAMS];
+    let mut z = [0.0; SUIT_PARAMS];
+    let qr_rows_sqrt = time_per_call(7, 20_000, || {
+        for (k, row) in rows.iter().enumerate() {
+            givens_sqrt(&mut r, &mut z, black_box(row), e[k]);
+        }
+    });
+    let analyse = time_per_call(7, 20, || {
+        black_box(black_box(&acc).analyse(1e-9));
+    });
+    println!(
+        "{{\"bench\":\"calib-core-kernels\",\"fk_jacobian_s\":{fk_jac:e},\"residual_jacobian_s\":{residual_jac:e},\"qr_6_rows_s\":{qr_rows:e},\"qr_6_rows_sqrt_s\":{qr_rows_sqrt:e},\"analyse_s\":{analyse:e}}}"
+    );
+}
+
+/// `QrAccumulator::add_row` with `sqrt(a² + b²)` for `hypot` (the what-if of [`kernels`]).
+fn givens_sqrt(r: &mut [[f64; SUIT_PARAMS]; SUIT_PARAMS], z: &mut [f64; SUIT_PARAMS], h: &[f64; SUIT_PARAMS], y: f64) {
+    let (mut h, mut y) = (*h, y);
+    for j in 0..SUIT_PARAMS {
+        if h[j] == 0.0 {
+            continue;
+        }
+        let a = r[j][j];
+        let rr = (a * a + h[j] * h[j]).sqrt();
+        let (c, s) = (a / rr, h[j] / rr);
+        r[j][j] = rr;
+        for k in j + 1..SUIT_PARAMS {
+            let (rk, hk) = (r[j][k], h[k]);
+            r[j][k] = c * rk + s * hk;
+            h[k] = c * hk - s * rk;
+        }
+        let zj = z[j];
+        z[j] = c * zj + s * y;
+        y = c * y - s * zj;
+    }
+}
+
+fn main() {
+    let result = parse_args().and_then(|a| bench(&a));
+    if let Err(e) = result {
+        eprintln!("export_dataset: {e}");
+        std::process::exit(2);
+    }
+}
