@@ -8,12 +8,14 @@
 //! | [`mcaplog`] | the per-session MCAP log (zstd chunks, flushed on an interval, Foxglove schemas) |
 //! | [`session`] | the collection window: coverage, sample counts, ready/failed |
 //! | [`report`] | progress bar / systemd `STATUS=` / plain lines; READY and WATCHDOG |
+//! | [`calibrate`] | LS, then drift EM, then validation, on aligned samples (pure) |
 //! | [`validate`] | bounds, condition number and held-out accuracy before any push |
 //! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
 //! | [`app`] | what each subcommand does |
 
 pub mod align;
 pub mod app;
+pub mod calibrate;
 pub mod cli;
 pub mod config;
 pub mod exit;
