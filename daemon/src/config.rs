@@ -504,10 +504,10 @@ impl Checker<'_> {
 
         let joint_nodes = raw.nodes.joints;
         for (i, &id) in joint_nodes.iter().enumerate() {
-            if id == 0 || id > 0x7f {
+            if !(1..=JOINTS as u8).contains(&id) {
                 return Err(self.err(
                     format!("nodes.joints[{i}]"),
-                    format!("node id {id} is outside 1..=127"),
+                    format!("node id {id}: the DBC's joint nodes are 1..=7"),
                 ));
             }
             if joint_nodes[..i].contains(&id) {
@@ -841,6 +841,11 @@ mod tests {
             "joints = [0, 2, 3, 4, 5, 6, 7]",
         ));
         assert_eq!(key, "nodes.joints[0]");
+        let (key, _, _) = invalid(&edited(
+            "joints = [1, 2, 3, 4, 5, 6, 7]",
+            "joints = [1, 2, 3, 4, 5, 6, 8]",
+        ));
+        assert_eq!(key, "nodes.joints[6]");
         let (key, _, _) = invalid(&edited(
             "joints = [1, 2, 3, 4, 5, 6, 7]",
             "joints = [1, 2, 3, 4, 5, 6, 300]",

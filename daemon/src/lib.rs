@@ -3,6 +3,7 @@
 //! | module | contract |
 //! |---|---|
 //! | [`align`] | per-node clock models, resampling onto one grid |
+//! | [`ingest`] | frames → decoded messages → per-node streams; counts unknown/malformed |
 //! | [`config`] | strict TOML configuration; errors name key and line |
 //! | [`cli`] | the command line (clap) |
 //! | [`mcaplog`] | the per-session MCAP log (zstd chunks, flushed on an interval, Foxglove schemas) |
@@ -19,6 +20,7 @@ pub mod calibrate;
 pub mod cli;
 pub mod config;
 pub mod exit;
+pub mod ingest;
 pub mod mcaplog;
 pub mod report;
 pub mod session;
