@@ -18,6 +18,28 @@
 //! | our EM (Kalman + RTS smoother over the drift) | [`em_drift`] |
 //! | objective y (eq. 10) and parameter errors | [`objective_y`], [`ParamErrors`] |
 //!
+//! # Quick start
+//! ```
+//! use calib_core::*;
+//!
+//! // A simulated 10 s session of the paper's Section 4 (use real samples in the daemon).
+//! let cfg = ScenarioConfig::paper();
+//! let samples: Vec<Sample<7>> = Scenario::new(cfg, 7).take(1000).map(|s| s.sample).collect();
+//!
+//! let nominal = DhTable::paper_nominal();
+//! let ls = identify_ls::<7, SUIT_PARAMS>(&nominal, &samples, &LsOptions::paper())?;
+//! assert!(objective_y(&ls.table, &samples) < 0.2 * objective_y(&nominal, &samples));
+//! assert_eq!(ls.rank, SUIT_PARAMS); // every D-H error is identifiable from full poses
+//!
+//! let opts = DriftEmOptions { max_iterations: 10, ..DriftEmOptions::new(cfg.drift.dt) };
+//! let mut workspace = vec![DriftSlot::default(); samples.len()];
+//! let em = em_drift::<7, SUIT_PARAMS>(&ls.table, &samples, &opts, &mut workspace)?;
+//! let drift_of_sample_0: [f64; 7] = workspace[0].drift();
+//! assert!(check_bounds(&em.table, &Bounds::paper()).is_ok());
+//! # let _ = drift_of_sample_0;
+//! # Ok::<(), CalibError>(())
+//! ```
+//!
 //! Generic functions take the joint count `N` and the parameter count `P = 4N` separately
 //! (stable Rust cannot write `4 * N` in a type); `P == 4N` is checked at compile time. For the
 //! suit: `N = `[`SUIT_JOINTS`]` = 7`, `P = `[`SUIT_PARAMS`]` = 28`.
@@ -43,6 +65,8 @@ pub mod metrics;
 pub mod model;
 pub mod paper_em;
 pub mod rng;
+#[cfg(test)]
+mod scenario_tests;
 pub mod sim;
 
 pub use drift::{Discretisation, DriftParams, GaussMarkov};

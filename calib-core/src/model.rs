@@ -15,7 +15,7 @@
 //!   is the tool-frame twist `[v; ω]` produced by a unit change of that parameter, so that
 //!   `pose_error(fk(table), fk(table + Δ)) ≈ J Δ`. The joint Jacobian is the `Δθ` block.
 
-use nalgebra::{Isometry3, Matrix3, Matrix6, Rotation3, Translation3, UnitQuaternion, Vector3, Vector6};
+use nalgebra::{Isometry3, Matrix3, Matrix4, Matrix6, Rotation3, Translation3, UnitQuaternion, Vector3, Vector6};
 
 /// Number of joints of the exocal suit (and of the paper's arm).
 pub const SUIT_JOINTS: usize = 7;
@@ -117,6 +117,22 @@ impl Frame {
             r: iso.rotation.to_rotation_matrix().into_inner(),
             p: iso.translation.vector,
         }
+    }
+
+    /// From a 4 × 4 homogeneous matrix (the bottom row is ignored; the rotation is taken as is).
+    pub fn from_matrix4(m: &Matrix4<f64>) -> Frame {
+        Frame {
+            r: m.fixed_view::<3, 3>(0, 0).into_owned(),
+            p: m.fixed_view::<3, 1>(0, 3).into_owned(),
+        }
+    }
+
+    /// To a 4 × 4 homogeneous matrix.
+    pub fn to_matrix4(&self) -> Matrix4<f64> {
+        let mut m = Matrix4::identity();
+        m.fixed_view_mut::<3, 3>(0, 0).copy_from(&self.r);
+        m.fixed_view_mut::<3, 1>(0, 3).copy_from(&self.p);
+        m
     }
 
     /// True when every entry is finite.
@@ -467,6 +483,16 @@ pub struct Sample<const N: usize> {
     pub pose: Frame,
 }
 
+impl<const N: usize> Sample<N> {
+    /// A sample from joint angles and a nalgebra isometry.
+    pub fn from_isometry(joints: [f64; N], pose: &Isometry3<f64>) -> Self {
+        Sample {
+            joints,
+            pose: Frame::from_isometry(pose),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -569,6 +595,9 @@ mod tests {
         assert!(pose_error(&t, &t).norm() < 1e-12);
         let back = Frame::from_isometry(&t.to_isometry());
         assert!((back.r - t.r).norm() < 1e-12 && (back.p - t.p).norm() < 1e-15);
+        assert_eq!(Frame::from_matrix4(&t.to_matrix4()), t);
+        let s = Sample::from_isometry([0.0; 7], &t.to_isometry());
+        assert!(pose_error(&s.pose, &t).norm() < 1e-12);
     }
 
     #[test]
