@@ -11,6 +11,7 @@
 //! | [`report`] | progress bar / systemd `STATUS=` / plain lines; READY and WATCHDOG |
 //! | [`calibrate`] | LS, then drift EM, then validation, on aligned samples (pure) |
 //! | [`validate`] | bounds, condition number and held-out accuracy before any push |
+//! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
 //! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
 //! | [`app`] | what each subcommand does |
 
@@ -22,6 +23,7 @@ pub mod config;
 pub mod exit;
 pub mod ingest;
 pub mod mcaplog;
+pub mod push;
 pub mod report;
 pub mod session;
 pub mod validate;

@@ -1,0 +1,373 @@
+//! Pushing the validated tables to the joint nodes.
+//!
+//! Contract:
+//! - every node gets its own [`exocal_dbc::transfer::Upload`] (Begin, six segments, Commit with
+//!   the CRC, then a Readback compared field by field), all nodes in parallel on the bus;
+//! - a failed upload is retried up to `push.retries` times, each in a fresh transfer session,
+//!   after an exponential backoff ([`crate::config::PushPolicy::backoff_ms`]);
+//! - the node-side state machine installs a table only whole, at a Commit whose CRC matches, so
+//!   a node is never left with a partial table; the [`NodeReport`] says which table each node
+//!   holds afterwards, by CRC: the new one (verified by readback), the old one, or unknown;
+//! - time comes from the bus clock (simulated in the demo), never from the system directly.
+
+use std::time::Duration;
+
+use exocal_bus::{Clock, Frame, Received, Transport};
+use exocal_dbc::table::Table;
+use exocal_dbc::transfer::{RetryPolicy, Upload};
+use exocal_dbc::{Message, NodeId};
+use serde::Serialize;
+
+use crate::config::PushPolicy;
+
+/// Which table a node holds after the push.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub enum Holds {
+    /// The new table, committed and read back identical.
+    New,
+    /// Its previous table (the CRC it reported is not the new one).
+    Old,
+    /// The node never answered: nothing is known.
+    Unknown,
+}
+
+/// The push outcome of one node.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct NodeReport {
+    pub node: String,
+    /// CRC-32 of the table sent.
+    pub new_crc: u32,
+    /// CRC the node last reported holding.
+    pub held_crc: Option<u32>,
+    pub holds: Holds,
+    /// Uploads started (1 + retries used).
+    pub attempts: u32,
+    /// The last failure, if the node does not hold the new table.
+    pub error: Option<String>,
+}
+
+/// What the push did, per node.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PushReport {
+    pub nodes: Vec<NodeReport>,
+}
+
+impl PushReport {
+    /// Whether every node holds its new table.
+    pub fn complete(&self) -> bool {
+        self.nodes.iter().all(|n| n.holds == Holds::New)
+    }
+
+    /// One line per node.
+    pub fn lines(&self) -> Vec<String> {
+        self.nodes
+            .iter()
+            .map(|n| {
+                let held = n
+                    .held_crc
+                    .map_or_else(|| "none".to_string(), |c| format!("{c:#010x}"));
+                let mut s = format!(
+                    "{}: {:?} table (sent {:#010x}, holds {held}, {} attempt(s))",
+                    n.node, n.holds, n.new_crc, n.attempts
+                );
+                if let Some(e) = &n.error {
+                    s.push_str(&format!(": {e}"));
+                }
+                s
+            })
+            .collect()
+    }
+}
+
+/// Frames seen or sent during the push, for the log: `(sent, frame, time)`.
+pub type FrameSink<'a> = dyn FnMut(bool, &Frame, Duration) + 'a;
+
+struct Job {
+    node: NodeId,
+    table: Table,
+    upload: Option<Upload>,
+    attempts: u32,
+    /// Start of the next attempt (µs on the bus clock), after a backoff.
+    next_start_us: u64,
+    last_error: Option<String>,
+    held_crc: Option<u32>,
+    done: bool,
+    ok: bool,
+}
+
+fn micros(d: Duration) -> u64 {
+    d.as_micros().min(u128::from(u64::MAX)) as u64
+}
+
+/// Pushes `tables` to their nodes; `first_session` numbers the transfer sessions (incremented
+/// per upload, mod 256). Frames that are not table replies are passed to `sink` like all others.
+pub async fn push_tables<T: Transport>(
+    bus: &mut T,
+    clock: &Clock,
+    tables: &[(NodeId, Table)],
+    policy: &PushPolicy,
+    first_session: u8,
+    sink: &mut FrameSink<'_>,
+) -> Result<PushReport, exocal_bus::BusError> {
+    let retry = RetryPolicy {
+        timeout_us: policy.timeout_ms * 1000,
+        ..RetryPolicy::default()
+    };
+    let mut session = first_session;
+    let mut jobs: Vec<Job> = tables
+        .iter()
+        .map(|&(node, table)| Job {
+            node,
+            table,
+            upload: None,
+            attempts: 0,
+            next_start_us: 0,
+            last_error: None,
+            held_crc: None,
+            done: false,
+            ok: false,
+        })
+        .collect();
+    while jobs.iter().any(|j| !j.done) {
+        let now = clock();
+        let now_us = micros(now);
+        for job in jobs.iter_mut().filter(|j| !j.done) {
+            if job.upload.is_none() && now_us >= job.next_start_us {
+                job.attempts += 1;
+                job.upload = Some(Upload::new(job.node, session, job.table, retry));
+                session = session.wrapping_add(1);
+            }
+            let Some(up) = job.upload.as_mut() else {
+                continue;
+            };
+            if let Some(cmd) = up.poll(now_us) {
+                // Encoding a TableCmd built from a valid Table cannot fail; if it ever did,
+                // the upload times out and is reported, never panics.
+                if let Ok(frame) = Message::TableCmd(cmd).to_frame::<Frame>() {
+                    bus.send(&frame).await?;
+                    sink(true, &frame, now);
+                }
+            }
+            if let Some(result) = up.outcome() {
+                job.held_crc = up.held_crc().or(job.held_crc);
+                job.upload = None;
+                match result {
+                    Ok(_) => {
+                        job.done = true;
+                        job.ok = true;
+                        job.last_error = None;
+                    }
+                    Err(e) => {
+                        job.last_error = Some(e.to_string());
+                        if job.attempts > policy.retries {
+                            job.done = true;
+                        } else {
+                            job.next_start_us = now_us + policy.backoff_ms(job.attempts) * 1000;
+                        }
+                    }
+                }
+            }
+        }
+        if jobs.iter().all(|j| j.done) {
+            break;
+        }
+        // Wait a little for replies (real time; the logic runs on the bus clock).
+        match tokio::time::timeout(Duration::from_millis(1), bus.recv()).await {
+            Ok(Ok(rx)) => on_received(&rx, &mut jobs, sink),
+            Ok(Err(e)) => return Err(e),
+            Err(_) => {}
+        }
+    }
+    Ok(PushReport {
+        nodes: jobs
+            .iter()
+            .map(|j| {
+                let new_crc = j.table.crc();
+                let holds = if j.ok {
+                    Holds::New
+                } else {
+                    match j.held_crc {
+                        Some(c) if c == new_crc => Holds::New,
+                        Some(_) => Holds::Old,
+                        None => Holds::Unknown,
+                    }
+                };
+                NodeReport {
+                    node: j.node.name().to_string(),
+                    new_crc,
+                    held_crc: j.held_crc,
+                    holds,
+                    attempts: j.attempts,
+                    error: if j.ok { None } else { j.last_error.clone() },
+                }
+            })
+            .collect(),
+    })
+}
+
+fn on_received(rx: &Received, jobs: &mut [Job], sink: &mut FrameSink<'_>) {
+    sink(false, &rx.frame, rx.timestamp);
+    if let Ok(Message::TableReply(reply)) = exocal_dbc::decode_frame(&rx.frame) {
+        for job in jobs.iter_mut().filter(|j| j.node == reply.node) {
+            if let Some(up) = job.upload.as_mut() {
+                up.on_reply(&reply);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::Config;
+    use exocal_bus::InProcessBus;
+    use exocal_dbc::transfer::{NodeTransfer, StorageError, TableStorage};
+    use std::sync::{Arc, Mutex};
+
+    #[derive(Default, Clone)]
+    struct Flash(Arc<Mutex<Option<Table>>>);
+    impl TableStorage for Flash {
+        fn store(&mut self, t: &Table) -> Result<(), StorageError> {
+            *self.0.lock().unwrap() = Some(*t);
+            Ok(())
+        }
+    }
+
+    fn table(k: f64) -> Table {
+        Table::from_si(0.04 + k * 1e-3, 1.5, 0.001, 0.01 * k, 1.0, 1.0).unwrap()
+    }
+
+    /// Emulated nodes answering on `bus`; replies are dropped when `lose(n)` says so for the
+    /// n-th reply, and `silent` nodes never answer.
+    fn spawn_nodes(
+        bus: &InProcessBus,
+        flashes: Vec<(NodeId, Flash)>,
+        lose: impl Fn(u64) -> bool + Send + 'static,
+        silent: Vec<NodeId>,
+    ) -> tokio::task::JoinHandle<()> {
+        let mut ep = bus.attach();
+        tokio::spawn(async move {
+            let mut nodes: Vec<(NodeTransfer, Flash)> = flashes
+                .into_iter()
+                .map(|(n, f)| {
+                    let held = *f.0.lock().unwrap();
+                    (NodeTransfer::new(n, held), f)
+                })
+                .collect();
+            let mut n = 0u64;
+            while let Ok(rx) = ep.recv().await {
+                let Ok(Message::TableCmd(cmd)) = exocal_dbc::decode_frame(&rx.frame) else {
+                    continue;
+                };
+                if silent.contains(&cmd.node) {
+                    continue;
+                }
+                let now_us = micros(rx.timestamp);
+                for (node, flash) in nodes.iter_mut() {
+                    for reply in node.handle(&cmd, now_us, flash) {
+                        n += 1;
+                        if lose(n) {
+                            continue;
+                        }
+                        let f: Frame = Message::TableReply(reply).to_frame().unwrap();
+                        ep.send_now(&f);
+                    }
+                }
+            }
+        })
+    }
+
+    fn setup(old: bool) -> (Vec<(NodeId, Flash)>, Vec<(NodeId, Table)>) {
+        let flashes: Vec<(NodeId, Flash)> = NodeId::JOINTS
+            .iter()
+            .map(|&n| {
+                let f = Flash::default();
+                if old {
+                    *f.0.lock().unwrap() = Some(table(0.0));
+                }
+                (n, f)
+            })
+            .collect();
+        let tables = NodeId::JOINTS
+            .iter()
+            .enumerate()
+            .map(|(i, &n)| (n, table(i as f64 + 1.0)))
+            .collect();
+        (flashes, tables)
+    }
+
+    fn policy() -> PushPolicy {
+        PushPolicy {
+            retries: 3,
+            backoff_initial_ms: 5,
+            backoff_max_ms: 20,
+            timeout_ms: 20,
+        }
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn every_node_gets_its_table_by_crc() {
+        let bus = InProcessBus::new();
+        let (flashes, tables) = setup(true);
+        let nodes = spawn_nodes(&bus, flashes.clone(), |_| false, vec![]);
+        let mut ep = bus.attach();
+        let clock: Clock = Arc::new(|| {
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap()
+        });
+        let mut sent = 0;
+        let mut sink = |tx: bool, _: &Frame, _: Duration| sent += usize::from(tx);
+        let report = push_tables(&mut ep, &clock, &tables, &policy(), 1, &mut sink)
+            .await
+            .unwrap();
+        assert!(report.complete(), "{:#?}", report.lines());
+        for ((_, flash), (_, t)) in flashes.iter().zip(&tables) {
+            assert_eq!(flash.0.lock().unwrap().unwrap().crc(), t.crc());
+        }
+        // Begin, 6 segments, Commit, Readback per node.
+        assert_eq!(sent, 7 * 9);
+        nodes.abort();
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn lost_replies_are_retried_and_a_silent_node_is_reported() {
+        let bus = InProcessBus::new();
+        let (flashes, tables) = setup(true);
+        // Lose every 5th reply; node 4 never answers.
+        let silent = NodeId::JOINTS[3];
+        let nodes = spawn_nodes(&bus, flashes.clone(), |n| n % 5 == 0, vec![silent]);
+        let mut ep = bus.attach();
+        let clock: Clock = Arc::new(|| {
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap()
+        });
+        let mut sink = |_: bool, _: &Frame, _: Duration| {};
+        let report = push_tables(&mut ep, &clock, &tables, &policy(), 200, &mut sink)
+            .await
+            .unwrap();
+        assert!(!report.complete());
+        for (r, ((node, flash), (_, t))) in report.nodes.iter().zip(flashes.iter().zip(&tables)) {
+            let held = flash.0.lock().unwrap().unwrap();
+            if *node == silent {
+                assert_eq!(r.holds, Holds::Unknown, "{r:?}");
+                assert_eq!(r.attempts, 4);
+                assert!(r.error.as_deref().unwrap().contains("no reply"), "{r:?}");
+                assert_eq!(held, table(0.0), "the silent node keeps its old table");
+            } else {
+                assert_eq!(r.holds, Holds::New, "{r:?}");
+                assert_eq!(held.crc(), t.crc());
+            }
+        }
+        let lines = report.lines();
+        assert!(lines[3].starts_with("Joint4: Unknown table"), "{lines:?}");
+        nodes.abort();
+    }
+
+    #[test]
+    fn the_config_policy_is_usable() {
+        let p = Config::default_config().push;
+        assert!(p.timeout_ms > 0 && p.retries > 0);
+    }
+}
