@@ -277,7 +277,9 @@ mod tests {
         })
     }
 
-    fn setup(old: bool) -> (Vec<(NodeId, Flash)>, Vec<(NodeId, Table)>) {
+    type Setup = (Vec<(NodeId, Flash)>, Vec<(NodeId, Table)>);
+
+    fn setup(old: bool) -> Setup {
         let flashes: Vec<(NodeId, Flash)> = NodeId::JOINTS
             .iter()
             .map(|&n| {
