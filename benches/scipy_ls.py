@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import scipy
 from scipy.optimize import least_squares
 
 N = 7
@@ -231,6 +232,9 @@ def main():
                 {
                     "bench": "scipy-check",
                     "k": k,
+                    "python": sys.version.split()[0],
+                    "numpy": np.__version__,
+                    "scipy": scipy.__version__,
                     "jac_max_abs_diff": float(np.abs(jac - fd).max()),
                     "jac_max_abs": float(np.abs(jac).max()),
                     "cost_start": problem.cost(start),

@@ -4,7 +4,10 @@
 //! ```text
 //! cargo run -p calib-core --release --example export_dataset -- \
 //!     --out DIR [--k 1000,6000,20000] [--seed 1] [--repeats 7] [--em-k 1000,6000] [--em-repeats 3]
+//! cargo run -p calib-core --release --example export_dataset -- --firmware-twin
 //! ```
+//!
+//! (`--firmware-twin` only prints the LS result of `benches/firmware`'s dataset, computed here.)
 //!
 //! For every K it writes `DIR/k{K}/samples.csv` (one row per sample: the reported joint angles
 //! `q1..q7` (rad), then the measured tool pose in the base frame, rotation row-major `r00..r22`
@@ -299,7 +302,32 @@ fn givens_sqrt(r: &mut [[f64; SUIT_PARAMS]; SUIT_PARAMS], z: &mut [f64; SUIT_PAR
     }
 }
 
+/// The dataset and LS of `benches/firmware` (200 samples, one every 0.1 s, seed 1), run here:
+/// its cost bits let the report check the Cortex-M4F result (software f64) against the host.
+fn firmware_twin() -> Result<(), String> {
+    let samples: Vec<Sample<7>> = Scenario::new(ScenarioConfig::paper(), 1)
+        .step_by(10)
+        .take(200)
+        .map(|s| s.sample)
+        .collect();
+    let r = run_ls(&samples)?;
+    println!(
+        "{{\"bench\":\"calib-core-firmware-twin\",\"k\":200,\"iterations\":{},\"rank\":{},\"cost_bits\":\"{:#x}\"}}",
+        r.iterations,
+        r.rank,
+        r.cost.to_bits()
+    );
+    Ok(())
+}
+
 fn main() {
+    if std::env::args().any(|a| a == "--firmware-twin") {
+        if let Err(e) = firmware_twin() {
+            eprintln!("export_dataset: {e}");
+            std::process::exit(2);
+        }
+        return;
+    }
     let result = parse_args().and_then(|a| bench(&a));
     if let Err(e) = result {
         eprintln!("export_dataset: {e}");

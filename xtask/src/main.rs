@@ -9,6 +9,7 @@
 //! Exit status: `vcan` returns the command's own status (128 + signal if it was killed); `test`
 //! returns 0 only when every suite passed; 2 means the harness itself could not run.
 
+mod bench;
 mod harness;
 mod native;
 mod setup;
@@ -47,6 +48,9 @@ usage:
       --help and an in-process demo of each under qemu-user, and report binary sizes.
   cargo xtask deb [--target TRIPLE|ARCH]..
       Build the Debian package (default: this machine's arch) into target/debian/, run lintian.
+  cargo xtask bench [--quick] [--only calib,firmware,ingest] [--out FILE]
+      Measure calib-core against scipy, its firmware memory use, and the daemon's ingest against
+      candump; write BENCHMARKS.md (long: not part of `test`).
   cargo xtask run-suites BIN [BIN..]
       (internal) Run test binaries one after another inside the harness, one thread each.";
 
@@ -82,6 +86,7 @@ fn run(args: Vec<String>) -> Result<u8> {
             suite::test_all(&opts)
         }
         "run-suites" => suite::run_suites(rest),
+        "bench" => bench::bench(rest),
         "cross" => ship::cross(rest),
         "deb" => ship::deb(rest),
         "setup" => {
