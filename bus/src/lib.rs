@@ -7,7 +7,8 @@
 //!   attached endpoint (not to itself), like a CAN bus with SocketCAN's default loopback.
 //!   Timestamps come from the bus clock (wall clock by default, or any clock given to
 //!   [`InProcessBus::with_clock`], e.g. a simulated one). An endpoint that falls more than
-//!   the bus capacity behind loses the oldest frames and counts them in [`Transport::dropped`].
+//!   the bus capacity behind loses the newest frames (as a full socket buffer would) and
+//!   counts them in [`Transport::dropped`].
 //! - `SocketCan` (feature `socketcan`): a raw CAN socket with an 8 MiB receive buffer, kernel
 //!   receive timestamps (`SO_TIMESTAMPNS`) and the kernel's drop counter (`SO_RXQ_OVFL`).
 //!
@@ -170,31 +171,36 @@ fn wall_clock() -> Duration {
         .unwrap_or_default()
 }
 
-#[derive(Clone, Copy, Debug)]
-struct Envelope {
-    sender: u64,
-    frame: Frame,
-    timestamp: Duration,
+struct Port {
+    id: u64,
+    tx: tokio::sync::mpsc::Sender<Received>,
+    dropped: Arc<AtomicU64>,
+}
+
+struct Shared {
+    ports: std::sync::Mutex<Vec<Port>>,
+    next_endpoint: AtomicU64,
+    capacity: usize,
+    clock: Clock,
 }
 
 /// An in-process CAN bus; cheap to clone (clones share the bus).
 #[derive(Clone)]
 pub struct InProcessBus {
-    tx: tokio::sync::broadcast::Sender<Envelope>,
-    next_endpoint: Arc<AtomicU64>,
-    clock: Clock,
+    shared: Arc<Shared>,
 }
 
 impl std::fmt::Debug for InProcessBus {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let n = self.shared.ports.lock().map_or(0, |p| p.len());
         f.debug_struct("InProcessBus")
-            .field("endpoints", &self.tx.receiver_count())
+            .field("endpoints", &n)
             .finish()
     }
 }
 
 impl InProcessBus {
-    /// Frames each endpoint may lag behind before it starts dropping, by default.
+    /// Frames each endpoint may have waiting before new ones are dropped, by default.
     pub const DEFAULT_CAPACITY: usize = 65_536;
 
     /// A bus stamping frames with the wall clock.
@@ -202,24 +208,38 @@ impl InProcessBus {
         Self::with_clock(Self::DEFAULT_CAPACITY, Arc::new(wall_clock))
     }
 
-    /// A bus with its own receive-queue capacity and timestamp clock.
+    /// A bus with its own per-endpoint receive-queue capacity and timestamp clock.
     pub fn with_clock(capacity: usize, clock: Clock) -> Self {
-        let (tx, _) = tokio::sync::broadcast::channel(capacity.max(1));
         InProcessBus {
-            tx,
-            next_endpoint: Arc::new(AtomicU64::new(0)),
-            clock,
+            shared: Arc::new(Shared {
+                ports: std::sync::Mutex::new(Vec::new()),
+                next_endpoint: AtomicU64::new(0),
+                capacity: capacity.max(1),
+                clock,
+            }),
         }
     }
 
     /// Attaches a new endpoint; it receives frames sent after this call.
     pub fn attach(&self) -> Endpoint {
+        let id = self.shared.next_endpoint.fetch_add(1, Ordering::Relaxed);
+        let (tx, rx) = tokio::sync::mpsc::channel(self.shared.capacity);
+        let dropped = Arc::new(AtomicU64::new(0));
+        let port = Port {
+            id,
+            tx,
+            dropped: dropped.clone(),
+        };
+        self.shared
+            .ports
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(port);
         Endpoint {
-            id: self.next_endpoint.fetch_add(1, Ordering::Relaxed),
-            tx: self.tx.clone(),
-            rx: self.tx.subscribe(),
-            clock: self.clock.clone(),
-            dropped: 0,
+            id,
+            shared: self.shared.clone(),
+            rx,
+            dropped,
         }
     }
 }
@@ -230,43 +250,42 @@ impl Default for InProcessBus {
     }
 }
 
-/// One node's connection to an [`InProcessBus`].
+/// One node's connection to an [`InProcessBus`]. Dropping it detaches it.
 pub struct Endpoint {
     id: u64,
-    tx: tokio::sync::broadcast::Sender<Envelope>,
-    rx: tokio::sync::broadcast::Receiver<Envelope>,
-    clock: Clock,
-    dropped: u64,
+    shared: Arc<Shared>,
+    rx: tokio::sync::mpsc::Receiver<Received>,
+    dropped: Arc<AtomicU64>,
 }
 
 impl Endpoint {
-    /// Sends without waiting (the in-process bus never blocks).
+    /// Sends without waiting (the in-process bus never blocks): every other endpoint gets the
+    /// frame, or counts it as dropped if its queue is full.
     pub fn send_now(&self, frame: &Frame) {
-        // With no other endpoint attached nobody listens; like an unacknowledged frame on an
-        // empty bus, it is simply lost.
-        let _ = self.tx.send(Envelope {
-            sender: self.id,
+        let rx = Received {
             frame: *frame,
-            timestamp: (self.clock)(),
+            timestamp: (self.shared.clock)(),
+        };
+        let mut ports = self.shared.ports.lock().unwrap_or_else(|e| e.into_inner());
+        ports.retain(|p| {
+            if p.id == self.id {
+                return true;
+            }
+            match p.tx.try_send(rx) {
+                Ok(()) => true,
+                Err(tokio::sync::mpsc::error::TrySendError::Full(_)) => {
+                    p.dropped.fetch_add(1, Ordering::Relaxed);
+                    true
+                }
+                // The endpoint is gone: detach it.
+                Err(tokio::sync::mpsc::error::TrySendError::Closed(_)) => false,
+            }
         });
     }
 
     /// The next frame if one is waiting, without blocking.
     pub fn try_recv(&mut self) -> Option<Received> {
-        use tokio::sync::broadcast::error::TryRecvError;
-        loop {
-            match self.rx.try_recv() {
-                Ok(e) if e.sender == self.id => continue,
-                Ok(e) => {
-                    return Some(Received {
-                        frame: e.frame,
-                        timestamp: e.timestamp,
-                    })
-                }
-                Err(TryRecvError::Lagged(n)) => self.dropped += n,
-                Err(TryRecvError::Empty | TryRecvError::Closed) => return None,
-            }
-        }
+        self.rx.try_recv().ok()
     }
 }
 
@@ -277,24 +296,12 @@ impl Transport for Endpoint {
     }
 
     async fn recv(&mut self) -> Result<Received, BusError> {
-        use tokio::sync::broadcast::error::RecvError;
-        loop {
-            match self.rx.recv().await {
-                Ok(e) if e.sender == self.id => continue,
-                Ok(e) => {
-                    return Ok(Received {
-                        frame: e.frame,
-                        timestamp: e.timestamp,
-                    })
-                }
-                Err(RecvError::Lagged(n)) => self.dropped += n,
-                Err(RecvError::Closed) => return Err(BusError::Closed),
-            }
-        }
+        // Our own port holds the sender, so the channel never closes while we exist.
+        self.rx.recv().await.ok_or(BusError::Closed)
     }
 
     fn dropped(&self) -> u64 {
-        self.dropped
+        self.dropped.load(Ordering::Relaxed)
     }
 }
 
@@ -330,10 +337,20 @@ mod tests {
         for i in 0..10 {
             tx.send_now(&frame(0x100, i));
         }
-        let first = rx.recv().await.unwrap();
         assert_eq!(rx.dropped(), 6);
-        assert_eq!(first.frame, frame(0x100, 6));
+        let first = rx.recv().await.unwrap();
+        assert_eq!(first.frame, frame(0x100, 0));
         assert_eq!(first.timestamp, Duration::from_micros(42));
+        assert_eq!(tx.dropped(), 0, "the sender queues nothing for itself");
+    }
+
+    #[tokio::test]
+    async fn dropped_endpoints_detach() {
+        let bus = InProcessBus::new();
+        let a = bus.attach();
+        drop(bus.attach());
+        a.send_now(&frame(1, 1));
+        assert_eq!(format!("{bus:?}"), "InProcessBus { endpoints: 1 }");
     }
 
     #[test]

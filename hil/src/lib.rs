@@ -1,0 +1,382 @@
+//! exocal-hil: emulates the suit's IMU nodes on a CAN interface.
+//!
+//! The emulated suit ([`sim::Suit`]) is a deterministic, seeded model of the true arm, seven
+//! joint nodes and the end-effector reference node, with per-node clocks, table storage in
+//! emulated flash files ([`flash`]) behind the `no_std` transfer state machine of `exocal-dbc`,
+//! and injected faults, all described by a TOML [`Scenario`]. [`Hil`] plays it on any
+//! [`exocal_bus::Transport`] (SocketCAN or the in-process bus) at `speed` × real time:
+//!
+//! ```no_run
+//! # async fn demo() -> Result<(), exocal_hil::HilError> {
+//! use exocal_bus::InProcessBus;
+//! use exocal_hil::{Hil, Scenario, SimClock};
+//! let mut hil = Hil::new(Scenario::paper(), std::path::Path::new("/tmp/exocal-flash"))?;
+//! // Simulated time starts with the clock: make it right before `run`.
+//! let clock = SimClock::new(20.0).expect("positive speed");
+//! let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+//! let mut hil_end = bus.attach();
+//! let _daemon_end = bus.attach(); // give this one to the daemon
+//! let report = hil.run(&mut hil_end, &clock).await?;
+//! println!("{report}");
+//! # Ok(()) }
+//! ```
+
+pub mod clock;
+pub mod flash;
+pub mod scenario;
+pub mod sim;
+
+pub use clock::SimClock;
+pub use scenario::{Scenario, ScenarioError};
+pub use sim::{Kind, Stats, Suit};
+
+use exocal_bus::{BusError, Transport};
+use exocal_dbc::NodeId;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+/// Why the emulation could not start or stopped.
+#[derive(Debug)]
+pub enum HilError {
+    /// Bad scenario.
+    Scenario(ScenarioError),
+    /// A flash file could not be read or written.
+    Flash(flash::FlashError),
+    /// The factory table does not fit the table format.
+    Factory(NodeId, exocal_dbc::EncodeError),
+    /// The bus failed.
+    Bus(BusError),
+}
+
+impl std::fmt::Display for HilError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            HilError::Scenario(e) => e.fmt(f),
+            HilError::Flash(e) => e.fmt(f),
+            HilError::Factory(n, e) => write!(f, "factory table of {n}: {e}"),
+            HilError::Bus(e) => e.fmt(f),
+        }
+    }
+}
+
+impl std::error::Error for HilError {}
+
+/// What a run did.
+#[derive(Clone, Debug)]
+pub struct RunReport {
+    /// Simulated seconds played.
+    pub simulated_s: f64,
+    /// Wall-clock time taken.
+    pub wall: Duration,
+    /// Send attempts that the interface refused for lack of buffer (retried).
+    pub send_retries: u64,
+    /// Frames received from the bus.
+    pub received: u64,
+    /// Frames the transport says it dropped on receive.
+    pub rx_dropped: u64,
+    /// The emulation's counters.
+    pub stats: Stats,
+}
+
+impl std::fmt::Display for RunReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let s = &self.stats;
+        writeln!(
+            f,
+            "simulated {:.3} s in {:.3} s wall ({:.1}x); frames sent {}, received {}, rx dropped {}, send retries {}",
+            self.simulated_s,
+            self.wall.as_secs_f64(),
+            self.simulated_s / self.wall.as_secs_f64().max(1e-9),
+            s.frames_sent,
+            self.received,
+            self.rx_dropped,
+            self.send_retries
+        )?;
+        writeln!(
+            f,
+            "faults: lost {}, duplicated {}, delayed {}, malformed {}, babbled {}, NaN {}, reboots {}; \
+             table commands {}, replies {}, corrupt flash {}",
+            s.lost, s.duplicated, s.delayed, s.malformed, s.babbled, s.nans, s.reboots, s.commands, s.replies, s.flash_corrupt
+        )?;
+        for node in NodeId::ALL {
+            let c = s.samples[usize::from(node.raw())];
+            write!(f, "{node}:")?;
+            for k in Kind::ALL {
+                if c[k as usize] > 0 {
+                    write!(f, " {k:?}={}", c[k as usize])?;
+                }
+            }
+            writeln!(f)?;
+        }
+        Ok(())
+    }
+}
+
+/// The emulator driving a transport.
+pub struct Hil {
+    suit: Suit,
+}
+
+impl Hil {
+    /// Powers the suit of `scenario` up, with node flash files in `flash_dir`.
+    pub fn new(scenario: Scenario, flash_dir: &Path) -> Result<Hil, HilError> {
+        Ok(Hil {
+            suit: Suit::new(scenario, flash_dir)?,
+        })
+    }
+
+    /// The emulated suit (truth, held tables, counters).
+    pub fn suit(&self) -> &Suit {
+        &self.suit
+    }
+
+    /// Plays the scenario on `bus` until `scenario.duration_s` of simulated time has passed on
+    /// `clock`, answering table transfers as they come. Frames go out in simulated-time order at
+    /// `clock.speed()` × real time. Timers have about 1 ms of wall-clock resolution, so a node
+    /// answers a command within about `speed` ms of simulated time: scale transfer timeouts.
+    pub async fn run<T: Transport>(
+        &mut self,
+        bus: &mut T,
+        clock: &SimClock,
+    ) -> Result<RunReport, HilError> {
+        let started = Instant::now();
+        let end = self.suit.scenario().duration_s;
+        let (mut retries, mut received) = (0u64, 0u64);
+        loop {
+            let now = clock.now_s().min(end);
+            for frame in self.suit.advance(now) {
+                retries += send(bus, &frame).await?;
+            }
+            if now >= end {
+                break;
+            }
+            let next = self.suit.next_event_s().min(end);
+            // Biased: when the sender lags behind the clock, received commands still go first.
+            tokio::select! {
+                biased;
+                r = bus.recv() => {
+                    let r = r.map_err(HilError::Bus)?;
+                    received += 1;
+                    self.suit.receive(&r.frame, clock.now_s());
+                }
+                _ = clock.sleep_until(next) => {}
+            }
+        }
+        Ok(RunReport {
+            simulated_s: end,
+            wall: started.elapsed(),
+            send_retries: retries,
+            received,
+            rx_dropped: bus.dropped(),
+            stats: self.suit.stats().clone(),
+        })
+    }
+}
+
+/// Sends, retrying while the interface reports a full queue (ENOBUFS/EAGAIN); returns retries.
+async fn send<T: Transport>(bus: &mut T, frame: &exocal_bus::Frame) -> Result<u64, HilError> {
+    let mut retries = 0;
+    loop {
+        match bus.send(frame).await {
+            Ok(()) => return Ok(retries),
+            Err(BusError::Io(e))
+                if retries < 1000
+                    && (e.raw_os_error() == Some(105)
+                        || e.kind() == std::io::ErrorKind::WouldBlock) =>
+            {
+                retries += 1;
+                tokio::time::sleep(Duration::from_micros(200)).await;
+            }
+            Err(e) => return Err(HilError::Bus(e)),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use exocal_bus::{Endpoint, InProcessBus};
+    use exocal_dbc::transfer::{RetryPolicy, Upload, UploadError};
+    use exocal_dbc::{decode_frame, CmdCode, Message, NackReason, Table};
+    use scenario::{TransferBehaviour, TransferFault};
+
+    fn temp_dir(name: &str) -> std::path::PathBuf {
+        let d = std::env::temp_dir().join(format!("exocal-hil-run-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        d
+    }
+
+    /// Pushes `table` to `node` from a controller endpoint while the hil runs; returns the
+    /// upload outcome and every frame the controller saw.
+    async fn push(
+        scenario: Scenario,
+        dir: &Path,
+        node: NodeId,
+        table: Table,
+    ) -> (Option<Result<u32, UploadError>>, Vec<Message>, RunReport) {
+        let mut hil = Hil::new(scenario, dir).unwrap();
+        // Slow enough that a loaded CI machine keeps up (timeouts are in simulated time).
+        let clock = SimClock::new(10.0).unwrap();
+        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+        let mut hil_end = bus.attach();
+        let mut ctrl: Endpoint = bus.attach();
+        let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await.unwrap() });
+        let mut up = Upload::new(
+            node,
+            42,
+            table,
+            RetryPolicy {
+                timeout_us: 500_000,
+                max_attempts: 4,
+                max_restarts: 2,
+            },
+        );
+        let mut seen = Vec::new();
+        let mut log = Vec::new();
+        let t0 = std::time::Instant::now();
+        // Let the nodes run for a simulated second before pushing.
+        while clock.now_s() < 1.0 {
+            if let Some(r) = ctrl.try_recv() {
+                seen.push(decode_frame(&r.frame).unwrap());
+            } else {
+                tokio::time::sleep(Duration::from_millis(1)).await;
+            }
+        }
+        while up.outcome().is_none() && t0.elapsed() < Duration::from_secs(20) {
+            let now_us = (clock.now_s() * 1e6) as u64;
+            if let Some(cmd) = up.poll(now_us) {
+                log.push(format!("{:.3} send {:?}", clock.now_s(), cmd.cmd));
+                ctrl.send_now(&Message::TableCmd(cmd).to_frame().unwrap());
+            }
+            let mut idle = true;
+            while let Some(r) = ctrl.try_recv() {
+                idle = false;
+                let m = decode_frame(&r.frame).unwrap();
+                if let Message::TableReply(rep) = m {
+                    log.push(format!("{:.3} got {:?}", clock.now_s(), rep.reply));
+                    up.on_reply(&rep);
+                }
+                seen.push(m);
+            }
+            if idle {
+                tokio::time::sleep(Duration::from_millis(1)).await;
+            }
+        }
+        // Keep listening until the hil stops, for the heartbeats after the push.
+        while !hil_task.is_finished() {
+            while let Some(r) = ctrl.try_recv() {
+                seen.push(decode_frame(&r.frame).unwrap());
+            }
+            tokio::time::sleep(Duration::from_millis(1)).await;
+        }
+        while let Some(r) = ctrl.try_recv() {
+            seen.push(decode_frame(&r.frame).unwrap());
+        }
+        let report = hil_task.await.unwrap();
+        if up.outcome() != Some(Ok(table.crc())) {
+            eprintln!("upload log:\n{}", log.join("\n"));
+        }
+        (up.outcome(), seen, report)
+    }
+
+    fn short_paper() -> Scenario {
+        let mut s = Scenario::paper();
+        s.duration_s = 12.0;
+        s
+    }
+
+    fn new_table() -> Table {
+        Table::from_si(0.0301, -1.5, 0.0299, 0.01, 1.2, 0.9).unwrap()
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_pushed_table_is_installed_persisted_and_reported() {
+        let dir = temp_dir("push");
+        let node = NodeId::JOINTS[0];
+        let (outcome, seen, report) = push(short_paper(), &dir, node, new_table()).await;
+        let replies: Vec<_> = seen
+            .iter()
+            .filter(|m| matches!(m, Message::TableReply(_)))
+            .collect();
+        assert_eq!(
+            outcome,
+            Some(Ok(new_table().crc())),
+            "{report}\n{replies:?}"
+        );
+        assert_eq!(
+            flash::read(&dir, node).unwrap().map(|i| i.table),
+            Some(new_table())
+        );
+        // Later heartbeats carry the new CRC.
+        let last_hb = seen.iter().rev().find_map(|m| match m {
+            Message::Heartbeat(h) if h.node == node => Some(h.table_crc),
+            _ => None,
+        });
+        assert_eq!(last_hb, Some(new_table().crc()));
+        assert!(
+            report.stats.commands >= 9 && report.received >= 9,
+            "{report}"
+        );
+        // Other nodes still hold their factory tables.
+        let factory = flash::read(&dir, NodeId::JOINTS[1]).unwrap().unwrap().table;
+        assert_ne!(factory, new_table());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn nacking_and_silent_nodes_keep_their_table_and_the_upload_fails() {
+        for (behaviour, want) in [
+            (
+                TransferBehaviour::Nack,
+                UploadError::Nacked(CmdCode::Begin, NackReason::FlashError),
+            ),
+            (
+                TransferBehaviour::Silent,
+                UploadError::Timeout(CmdCode::Begin),
+            ),
+        ] {
+            let dir = temp_dir(&format!("{behaviour:?}"));
+            let node = NodeId::JOINTS[4];
+            let mut s = short_paper();
+            s.faults.transfer.push(TransferFault { node: 5, behaviour });
+            let (outcome, _, _) = push(s, &dir, node, new_table()).await;
+            assert_eq!(outcome, Some(Err(want)));
+            let held = flash::read(&dir, node).unwrap().unwrap().table;
+            assert_ne!(held, new_table());
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn run_plays_the_scenario_in_time_at_speed() {
+        let dir = temp_dir("speed");
+        let mut s = Scenario::paper();
+        s.duration_s = 8.0;
+        let mut hil = Hil::new(s, &dir).unwrap();
+        let clock = SimClock::new(40.0).unwrap();
+        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+        let mut hil_end = bus.attach();
+        let mut rx = bus.attach();
+        let report = hil.run(&mut hil_end, &clock).await.unwrap();
+        let wall = report.wall.as_secs_f64();
+        assert!((0.19..0.5).contains(&wall), "8 s at 40x took {wall} s");
+        let mut n = 0u64;
+        let mut last = Duration::ZERO;
+        let first = rx.try_recv().unwrap().timestamp;
+        while let Some(r) = rx.try_recv() {
+            assert!(r.timestamp >= last);
+            last = r.timestamp;
+            n += 1;
+        }
+        assert_eq!(n + 1, report.stats.frames_sent);
+        // Frames are stamped in simulated time when they reach the bus: the span is the
+        // scenario's 8 s, plus however far the sender lagged behind (debug builds, busy CPUs).
+        let span = (last - first).as_secs_f64();
+        let lag = wall * 40.0 - 8.0;
+        assert!(
+            span >= 7.8 && span <= 8.1 + lag.max(0.0),
+            "bus timestamps span {span} simulated s, lag {lag}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

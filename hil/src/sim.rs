@@ -1,0 +1,1115 @@
+//! The emulated suit: true arm, nodes, sensors, clocks, faults, and the frames they produce.
+//!
+//! Contract: [`Suit`] is deterministic for a given scenario and seed and does no I/O besides
+//! the node flash files. [`Suit::advance`] runs simulated time forward and returns the frames
+//! that reach the bus by then, in bus order; [`Suit::receive`] hands a frame from the bus to the
+//! nodes (table transfers). Nothing here reads a clock: time is always an argument.
+//!
+//! Physics: the true joint angles follow a smooth random motion inside the scenario's ranges
+//! (calib-core's [`Motion`]). A joint node on link j reports `θ_j − Δθ_j + noise`, where Δθ_j is
+//! its Gauss-Markov drift stepped once per joint sample; its gyro reports the angular velocity
+//! of link j in the link frame plus a slowly drifting bias and noise; its accelerometer the
+//! specific force of the link origin (second difference of FK, plus gravity along −z of the base
+//! frame); its magnetometer a fixed earth field seen from the link frame. The end-effector node
+//! reports `FK(true table, true angles)` plus noise as a unit quaternion with w ≥ 0.
+//!
+//! Clocks: each node stamps frames with `offset + (t − boot)·(1 + skew) + jumps + jitter` in
+//! µs, wrapping at 2^32, and samples every `1/rate` of *its own* clock.
+
+use crate::flash::{self, FlashImage, NodeFlash};
+use crate::scenario::{Scenario, TransferBehaviour};
+use crate::HilError;
+use calib_core::{DhTable, Discretisation, Frame as Pose3, GaussMarkov, Motion, Rng};
+use exocal_bus::embedded_can::{ExtendedId, Frame as _, StandardId};
+use exocal_bus::Frame;
+use exocal_dbc::message::{
+    Command, Heartbeat, ImuVector, JointState, Message, NackReason, NodeState, Reply, TableCmd,
+    TableReply,
+};
+use exocal_dbc::pose::Pose;
+use exocal_dbc::transfer::NodeTransfer;
+use exocal_dbc::{NodeId, Table};
+use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+use std::path::{Path, PathBuf};
+
+/// Standard gravity, m/s².
+const G: f64 = 9.80665;
+/// Earth magnetic field in the base frame, µT.
+const EARTH_FIELD_UT: [f64; 3] = [20.0, 0.0, -45.0];
+/// Transmit latency after sampling, s.
+const TX_LATENCY_S: f64 = 50e-6;
+/// Reply latency after a table command, s.
+const REPLY_LATENCY_S: f64 = 300e-6;
+/// Firmware version the nodes report.
+const FW: (u8, u8) = (1, 0);
+
+/// One IMU channel: value in the sensor frame, noise, full scale, message.
+type ImuChannel = (Vector3<f64>, f64, f64, fn(ImuVector) -> Message);
+
+/// The periodic samples a node takes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Kind {
+    /// `JointState` (one frame).
+    JointState = 0,
+    /// `ImuGyro`, `ImuAccel`, `ImuMag` (three frames, one instant).
+    Imu = 1,
+    /// `EePose` (four frames).
+    Pose = 2,
+    /// `Heartbeat` (one frame).
+    Heartbeat = 3,
+}
+
+impl Kind {
+    /// All kinds.
+    pub const ALL: [Kind; 4] = [Kind::JointState, Kind::Imu, Kind::Pose, Kind::Heartbeat];
+}
+
+/// Counters of what the emulation did.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Stats {
+    /// Samples taken per node (index = node id) and kind (index = `Kind as usize`); an IMU
+    /// sample is three frames, a pose sample four.
+    pub samples: [[u64; 4]; 9],
+    /// Frames put on the bus.
+    pub frames_sent: u64,
+    /// Frames lost by uniform loss or bursts (both directions).
+    pub lost: u64,
+    /// Extra copies sent.
+    pub duplicated: u64,
+    /// Frames delayed or held back.
+    pub delayed: u64,
+    /// Malformed frames injected.
+    pub malformed: u64,
+    /// Babble frames injected.
+    pub babbled: u64,
+    /// NaN values injected.
+    pub nans: u64,
+    /// Table commands handled by a node.
+    pub commands: u64,
+    /// Replies produced by nodes.
+    pub replies: u64,
+    /// Reboots done.
+    pub reboots: u64,
+    /// Flash files that read as corrupt at boot.
+    pub flash_corrupt: u64,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct NodeClock {
+    offset_us: f64,
+    skew: f64,
+    jitter_us: f64,
+    boot_s: f64,
+    jump_us: f64,
+}
+
+impl NodeClock {
+    fn local_us(&self, t: f64) -> f64 {
+        self.offset_us + (t - self.boot_s) * 1e6 * (1.0 + self.skew) + self.jump_us
+    }
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Schedule {
+    kind: Kind,
+    next_s: f64,
+    period_s: f64,
+}
+
+struct Node {
+    id: NodeId,
+    clock: NodeClock,
+    schedules: Vec<Schedule>,
+    rng: Rng,
+    drift: f64,
+    gm: Option<GaussMarkov>,
+    bias: [f64; 3],
+    bias_gm: GaussMarkov,
+    pose_seq: u8,
+    up: bool,
+    boot_count: u32,
+    transfer: NodeTransfer,
+    flash: NodeFlash,
+    behaviour: TransferBehaviour,
+    rx_errors: u32,
+    tx_errors: u32,
+    last_frame: Option<Frame>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Event {
+    Jump(u8, f64),
+    Down(u8),
+    Up(u8),
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Pending {
+    t_s: f64,
+    order: u64,
+    frame: Frame,
+}
+
+impl Eq for Pending {}
+impl PartialOrd for Pending {
+    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for Pending {
+    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
+        self.t_s
+            .total_cmp(&other.t_s)
+            .then(self.order.cmp(&other.order))
+    }
+}
+
+/// The emulated suit.
+pub struct Suit {
+    scenario: Scenario,
+    arm: DhTable<7>,
+    motion: Motion<7>,
+    nodes: Vec<Node>,
+    events: Vec<(f64, Event)>,
+    next_event: usize,
+    babble_next: Vec<f64>,
+    malformed_next: f64,
+    queue: BinaryHeap<Reverse<Pending>>,
+    order: u64,
+    fault_rng: Rng,
+    burst_left: u32,
+    now_s: f64,
+    flash_dir: PathBuf,
+    stats: Stats,
+}
+
+fn seeded(seed: u64, stream: u64) -> Rng {
+    Rng::new(seed ^ stream.wrapping_mul(0x9E37_79B9_7F4A_7C15))
+}
+
+impl Suit {
+    /// Powers the suit up: reads (or factory-writes) every node's flash in `flash_dir`.
+    pub fn new(scenario: Scenario, flash_dir: &Path) -> Result<Suit, HilError> {
+        scenario.validate().map_err(HilError::Scenario)?;
+        let arm = scenario.arm.table();
+        let motion = Motion::random(&scenario.arm.ranges(), &mut seeded(scenario.seed, 1));
+        let mut clock_rng = seeded(scenario.seed, 2);
+        let factory_table = scenario.factory.preset.table();
+        let mut stats = Stats::default();
+        let mut nodes = Vec::new();
+        for id in NodeId::ALL {
+            let explicit = scenario.clocks.node.iter().find(|c| c.node == id.raw());
+            let offset_us = explicit
+                .and_then(|c| c.offset_us)
+                .unwrap_or_else(|| clock_rng.uniform() * 4294967296.0);
+            let skew_ppm = explicit.and_then(|c| c.skew_ppm).unwrap_or_else(|| {
+                (2.0 * clock_rng.uniform() - 1.0) * scenario.clocks.skew_ppm_max
+            });
+            let jitter_us = explicit
+                .and_then(|c| c.jitter_us)
+                .unwrap_or(scenario.clocks.jitter_us);
+            let clock = NodeClock {
+                offset_us,
+                skew: skew_ppm * 1e-6,
+                jitter_us,
+                boot_s: 0.0,
+                jump_us: 0.0,
+            };
+
+            let image = match flash::read(flash_dir, id) {
+                Ok(image) => image,
+                Err(flash::FlashError::Corrupt(..)) => {
+                    stats.flash_corrupt += 1;
+                    None
+                }
+                Err(e) => return Err(HilError::Flash(e)),
+            };
+            let image = match (image, id.joint_index()) {
+                (Some(i), _) => Some(i),
+                (None, Some(j)) => {
+                    let r = factory_table.rows[j];
+                    let f = &scenario.factory;
+                    let table = Table::from_si(r.a, r.alpha, r.d, r.theta_offset, f.tau_s, f.sigma)
+                        .map_err(|e| HilError::Factory(id, e))?;
+                    Some(FlashImage {
+                        boot_count: 0,
+                        table,
+                    })
+                }
+                (None, None) => None,
+            };
+            let boot_count = image.map_or(0, |i| i.boot_count.wrapping_add(1));
+            if let Some(i) = image {
+                flash::write(
+                    flash_dir,
+                    id,
+                    &FlashImage {
+                        boot_count,
+                        table: i.table,
+                    },
+                )
+                .map_err(|e| {
+                    HilError::Flash(flash::FlashError::Io(flash::path(flash_dir, id), e))
+                })?;
+            }
+            let mut rng = seeded(scenario.seed, 16 + u64::from(id.raw()));
+            let joint_dt = 1.0 / scenario.rates.joint_state_hz;
+            let gm = match id.joint_index() {
+                Some(j) if scenario.drift.enabled => Some(scenario.drift.process(j, joint_dt)),
+                _ => None,
+            };
+            let drift = gm.map_or(0.0, |g| g.initial(&mut rng));
+            let bias_gm = GaussMarkov {
+                dt: 1.0 / scenario.rates.imu_hz,
+                tau: scenario.noise.gyro_bias_tau_s,
+                sigma: scenario.noise.gyro_bias_rad_s,
+                discretisation: Discretisation::Exact,
+            };
+            let bias = [
+                bias_gm.initial(&mut rng),
+                bias_gm.initial(&mut rng),
+                bias_gm.initial(&mut rng),
+            ];
+            let mut node = Node {
+                id,
+                clock,
+                schedules: Vec::new(),
+                rng,
+                drift,
+                gm,
+                bias,
+                bias_gm,
+                pose_seq: 0,
+                up: true,
+                boot_count,
+                transfer: NodeTransfer::new(id, image.map(|i| i.table)),
+                flash: NodeFlash::new(flash_dir, id, boot_count),
+                behaviour: scenario.faults.transfer_behaviour(id.raw()),
+                rx_errors: 0,
+                tx_errors: 0,
+                last_frame: None,
+            };
+            node.schedules = schedules(&scenario, &mut node, 0.0);
+            nodes.push(node);
+        }
+        let mut events: Vec<(f64, Event)> = Vec::new();
+        for j in &scenario.faults.clock_jumps {
+            events.push((j.at_s, Event::Jump(j.node, j.jump_us)));
+        }
+        for r in &scenario.faults.reboots {
+            events.push((r.at_s, Event::Down(r.node)));
+            events.push((r.at_s + r.down_s, Event::Up(r.node)));
+        }
+        events.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let mut fault_rng = seeded(scenario.seed, 3);
+        let malformed_next = if scenario.faults.malformed_hz > 0.0 {
+            fault_rng.uniform() / scenario.faults.malformed_hz
+        } else {
+            f64::INFINITY
+        };
+        let babble_next = scenario.faults.babble.iter().map(|b| b.from_s).collect();
+        Ok(Suit {
+            arm,
+            motion,
+            nodes,
+            events,
+            next_event: 0,
+            babble_next,
+            malformed_next,
+            queue: BinaryHeap::new(),
+            order: 0,
+            fault_rng,
+            burst_left: 0,
+            now_s: 0.0,
+            flash_dir: flash_dir.to_path_buf(),
+            stats,
+            scenario,
+        })
+    }
+
+    /// The scenario.
+    pub fn scenario(&self) -> &Scenario {
+        &self.scenario
+    }
+
+    /// The true D-H table of the arm.
+    pub fn true_table(&self) -> &DhTable<7> {
+        &self.arm
+    }
+
+    /// True joint angles at simulated time `t_s`.
+    pub fn true_joints(&self, t_s: f64) -> [f64; 7] {
+        self.motion.at(t_s)
+    }
+
+    /// Current drift Δθ of joint `j` (0-based).
+    pub fn drift(&self, j: usize) -> f64 {
+        self.nodes[j].drift
+    }
+
+    /// The table node `node` holds now.
+    pub fn held_table(&self, node: NodeId) -> Option<Table> {
+        self.nodes[usize::from(node.raw() - 1)]
+            .transfer
+            .held()
+            .copied()
+    }
+
+    /// Where the node flash files are.
+    pub fn flash_dir(&self) -> &Path {
+        &self.flash_dir
+    }
+
+    /// Counters so far.
+    pub fn stats(&self) -> &Stats {
+        &self.stats
+    }
+
+    /// Simulated time reached by [`Suit::advance`].
+    pub fn now_s(&self) -> f64 {
+        self.now_s
+    }
+
+    fn next_internal_s(&self) -> f64 {
+        let mut t = self.malformed_next;
+        for n in self.nodes.iter().filter(|n| n.up) {
+            for s in &n.schedules {
+                t = t.min(s.next_s);
+            }
+        }
+        if let Some((te, _)) = self.events.get(self.next_event) {
+            t = t.min(*te);
+        }
+        for (b, next) in self.scenario.faults.babble.iter().zip(&self.babble_next) {
+            if *next < b.to_s {
+                t = t.min(*next);
+            }
+        }
+        t
+    }
+
+    /// The next simulated time at which something happens (a sample, a fault, a queued frame).
+    pub fn next_event_s(&self) -> f64 {
+        let q = self.queue.peek().map_or(f64::INFINITY, |p| p.0.t_s);
+        self.next_internal_s().min(q)
+    }
+
+    /// Runs simulated time up to `to_s`; returns the frames that reach the bus by then, in order.
+    pub fn advance(&mut self, to_s: f64) -> Vec<Frame> {
+        loop {
+            let t = self.next_internal_s();
+            if t > to_s {
+                break;
+            }
+            self.step(t);
+        }
+        self.now_s = self.now_s.max(to_s);
+        let mut out = Vec::new();
+        while self.queue.peek().is_some_and(|p| p.0.t_s <= to_s) {
+            out.push(self.queue.pop().expect("peeked").0.frame);
+        }
+        self.stats.frames_sent += out.len() as u64;
+        out
+    }
+
+    fn step(&mut self, t: f64) {
+        if let Some(&(te, ev)) = self.events.get(self.next_event) {
+            if te <= t {
+                self.next_event += 1;
+                self.apply(te, ev);
+                return;
+            }
+        }
+        if self.malformed_next <= t {
+            self.malformed(t);
+            self.malformed_next =
+                t - self.fault_rng.uniform().max(1e-12).ln() / self.scenario.faults.malformed_hz;
+            return;
+        }
+        for i in 0..self.babble_next.len() {
+            let b = self.scenario.faults.babble[i];
+            if self.babble_next[i] <= t && self.babble_next[i] < b.to_s {
+                self.babble_next[i] += 1.0 / b.rate_hz;
+                let node = &self.nodes[usize::from(b.node - 1)];
+                if let (true, Some(f)) = (node.up, node.last_frame) {
+                    self.stats.babbled += 1;
+                    self.emit(t, f);
+                }
+                return;
+            }
+        }
+        for n in 0..self.nodes.len() {
+            if !self.nodes[n].up {
+                continue;
+            }
+            for s in 0..self.nodes[n].schedules.len() {
+                let sched = self.nodes[n].schedules[s];
+                if sched.next_s <= t {
+                    self.nodes[n].schedules[s].next_s += sched.period_s;
+                    self.sample(n, sched.kind, t);
+                    return;
+                }
+            }
+        }
+    }
+
+    fn apply(&mut self, t: f64, ev: Event) {
+        match ev {
+            Event::Jump(node, us) => self.nodes[usize::from(node - 1)].clock.jump_us += us,
+            Event::Down(node) => self.nodes[usize::from(node - 1)].up = false,
+            Event::Up(node) => {
+                self.stats.reboots += 1;
+                let scenario = &self.scenario;
+                let n = &mut self.nodes[usize::from(node - 1)];
+                n.up = true;
+                n.boot_count = n.boot_count.wrapping_add(1);
+                n.clock.boot_s = t;
+                n.clock.jump_us = 0.0;
+                n.clock.offset_us = 1000.0 * n.rng.uniform();
+                n.pose_seq = 0;
+                n.rx_errors = 0;
+                n.tx_errors = 0;
+                // RAM is gone: the table comes back from flash.
+                let image = flash::read(&self.flash_dir, n.id).ok().flatten();
+                if let Some(i) = image {
+                    let _ = flash::write(
+                        &self.flash_dir,
+                        n.id,
+                        &FlashImage {
+                            boot_count: n.boot_count,
+                            table: i.table,
+                        },
+                    );
+                }
+                n.transfer = NodeTransfer::new(n.id, image.map(|i| i.table));
+                n.flash = NodeFlash::new(&self.flash_dir, n.id, n.boot_count);
+                n.schedules = schedules(scenario, n, t);
+            }
+        }
+    }
+
+    fn stamp(&mut self, n: usize, t: f64) -> u32 {
+        let node = &mut self.nodes[n];
+        let jitter = node.clock.jitter_us * node.rng.normal();
+        (node.clock.local_us(t) + jitter).rem_euclid(4294967296.0) as u64 as u32
+    }
+
+    /// Frames of links 1..=7 at angles `q` (index j = frame after joint j+1).
+    fn link_frames(&self, q: &[f64; 7]) -> [Pose3; 7] {
+        let mut t = Pose3::identity();
+        std::array::from_fn(|j| {
+            t = t.compose(&self.arm.rows[j].transform(q[j]));
+            t
+        })
+    }
+
+    fn sample(&mut self, n: usize, kind: Kind, t: f64) {
+        let id = self.nodes[n].id;
+        self.stats.samples[usize::from(id.raw())][kind as usize] += 1;
+        let link = id.joint_index().unwrap_or(6);
+        let noise = self.scenario.noise;
+        let nan_p = self.scenario.faults.nan;
+        let messages: Vec<Message> = match kind {
+            Kind::JointState => {
+                let q = self.motion.at(t);
+                let h = 1e-4;
+                let (qp, qm) = (self.motion.at(t + h), self.motion.at(t - h));
+                let node = &mut self.nodes[n];
+                if let Some(gm) = node.gm {
+                    node.drift = gm.step(node.drift, &mut node.rng);
+                }
+                let mut angle = q[link] - node.drift + noise.angle_rad * node.rng.normal();
+                let rate = (qp[link] - qm[link]) / (2.0 * h) + noise.rate_rad_s * node.rng.normal();
+                if nan_p > 0.0 && self.fault_rng.uniform() < nan_p {
+                    angle = f64::NAN;
+                    self.stats.nans += 1;
+                }
+                let timestamp_us = self.stamp(n, t);
+                vec![Message::JointState(JointState {
+                    node: id,
+                    timestamp_us,
+                    angle,
+                    rate,
+                })]
+            }
+            Kind::Imu => {
+                let q = self.motion.at(t);
+                let frames = self.link_frames(&q);
+                let r = frames[link].r;
+                // Gyro: angular velocity of the link, Σ z_{i-1} q̇_i, seen from the link frame.
+                let h = 1e-4;
+                let (qp, qm) = (self.motion.at(t + h), self.motion.at(t - h));
+                let mut w = Vector3::zeros();
+                let mut z = Vector3::z();
+                for j in 0..=link {
+                    w += z * (qp[j] - qm[j]) / (2.0 * h);
+                    z = frames[j].r.column(2).into_owned();
+                }
+                // Accelerometer: specific force of the link origin (second difference of FK).
+                let h2 = 5e-3;
+                let p = |s: &Self, t: f64| s.link_frames(&s.motion.at(t))[link].p;
+                let a = (p(self, t + h2) - 2.0 * frames[link].p + p(self, t - h2)) / (h2 * h2);
+                let node = &mut self.nodes[n];
+                for b in node.bias.iter_mut() {
+                    *b = node.bias_gm.step(*b, &mut node.rng);
+                }
+                let channels: [ImuChannel; 3] = [
+                    (
+                        r.transpose() * w + Vector3::from(node.bias),
+                        noise.gyro_rad_s,
+                        32.767,
+                        Message::ImuGyro,
+                    ),
+                    (
+                        r.transpose() * (a + Vector3::new(0.0, 0.0, G)),
+                        noise.accel_m_s2,
+                        65.534,
+                        Message::ImuAccel,
+                    ),
+                    (
+                        r.transpose() * Vector3::from(EARTH_FIELD_UT),
+                        noise.mag_ut,
+                        327.67,
+                        Message::ImuMag,
+                    ),
+                ];
+                let timestamp_lo = self.stamp(n, t) as u16;
+                let mut out = Vec::with_capacity(3);
+                for (mut v, sd, max, wrap) in channels {
+                    let node = &mut self.nodes[n];
+                    for x in v.iter_mut() {
+                        // Sensors saturate at their full scale.
+                        *x = (*x + sd * node.rng.normal()).clamp(-max, max);
+                    }
+                    let mut xyz = [v.x, v.y, v.z];
+                    if nan_p > 0.0 && self.fault_rng.uniform() < nan_p {
+                        xyz[0] = f64::NAN;
+                        self.stats.nans += 1;
+                    }
+                    out.push(wrap(ImuVector {
+                        node: id,
+                        xyz,
+                        timestamp_lo,
+                    }));
+                }
+                out
+            }
+            Kind::Pose => {
+                let q = self.motion.at(t);
+                let mut pose = self.arm.fk(&q);
+                let node = &mut self.nodes[n];
+                let (sp, sr) = (noise.pose_position_m, noise.pose_rotation_rad);
+                if sp > 0.0 {
+                    pose.p += Vector3::new(
+                        sp * node.rng.normal(),
+                        sp * node.rng.normal(),
+                        sp * node.rng.normal(),
+                    );
+                }
+                if sr > 0.0 {
+                    let w = Vector3::new(
+                        sr * node.rng.normal(),
+                        sr * node.rng.normal(),
+                        sr * node.rng.normal(),
+                    );
+                    pose.r *= Rotation3::new(w).into_inner();
+                }
+                let mut quat = quaternion(&pose.r);
+                if quat[0] < 0.0 {
+                    quat = quat.map(|c| -c);
+                }
+                let seq = node.pose_seq;
+                node.pose_seq = (node.pose_seq + 1) % 64;
+                let timestamp_us = self.stamp(n, t);
+                let pose = Pose {
+                    seq,
+                    timestamp_us,
+                    position: [pose.p.x, pose.p.y, pose.p.z],
+                    quat,
+                };
+                pose.pages().map(Message::EePose).to_vec()
+            }
+            Kind::Heartbeat => {
+                let node = &self.nodes[n];
+                let local = ((t - node.clock.boot_s) * 1e6) as u64;
+                let state = if node.transfer.is_staging(local) {
+                    NodeState::Staging
+                } else {
+                    NodeState::Operational
+                };
+                vec![Message::Heartbeat(Heartbeat {
+                    node: id,
+                    state,
+                    boot_count: (node.boot_count % 16) as u8,
+                    tx_errors: node.tx_errors.min(255) as u8,
+                    rx_errors: node.rx_errors.min(255) as u8,
+                    table_crc: node.transfer.held_crc(),
+                    fw_major: FW.0,
+                    fw_minor: FW.1,
+                })]
+            }
+        };
+        for m in messages {
+            match m.to_frame::<Frame>() {
+                Ok(f) => {
+                    self.nodes[n].last_frame = Some(f);
+                    self.emit(t + TX_LATENCY_S, f);
+                }
+                // A value the DBC cannot carry: the firmware drops the sample and counts it.
+                Err(_) => self.nodes[n].tx_errors += 1,
+            }
+        }
+    }
+
+    fn malformed(&mut self, t: f64) {
+        self.stats.malformed += 1;
+        let r = &mut self.fault_rng;
+        let pick = (r.uniform() * 3.0) as u32;
+        let byte = (r.next_u64() & 0xFF) as u8;
+        let frame = match pick {
+            0 => {
+                // A JointState identifier with a short payload.
+                let node = 1 + (r.uniform() * 7.0) as u16;
+                let len = (r.uniform() * 8.0) as usize;
+                Frame::new(
+                    StandardId::new(0x100 | node).expect("11 bits"),
+                    &[byte; 8][..len],
+                )
+            }
+            1 => {
+                // An identifier the DBC does not define (0x300..0x57F is unused).
+                let id = 0x300 + (r.uniform() * f64::from(0x280u16)) as u16;
+                Frame::new(StandardId::new(id).expect("11 bits"), &[byte; 8])
+            }
+            _ => {
+                let id = (r.next_u64() as u32) & 0x1FFF_FFFF;
+                Frame::new(ExtendedId::new(id).expect("29 bits"), &[byte; 8])
+            }
+        };
+        self.emit(t, frame.expect("valid frame"));
+    }
+
+    /// Puts a frame on the (faulty) wire at `t`.
+    fn emit(&mut self, t: f64, frame: Frame) {
+        let f = &self.scenario.faults;
+        let r = &mut self.fault_rng;
+        if self.burst_left > 0 {
+            self.burst_left -= 1;
+            self.stats.lost += 1;
+            return;
+        }
+        if f.burst_start > 0.0 && r.uniform() < f.burst_start {
+            self.burst_left = f.burst_len.saturating_sub(1);
+            self.stats.lost += 1;
+            return;
+        }
+        if f.loss > 0.0 && r.uniform() < f.loss {
+            self.stats.lost += 1;
+            return;
+        }
+        let mut at = t;
+        if f.delay > 0.0 && r.uniform() < f.delay {
+            at += f.delay_ms * 1e-3;
+            self.stats.delayed += 1;
+        }
+        if f.reorder > 0.0 && r.uniform() < f.reorder {
+            at += f.reorder_max_ms * 1e-3 * r.uniform();
+            self.stats.delayed += 1;
+        }
+        let dup = f.duplicate > 0.0 && r.uniform() < f.duplicate;
+        self.push(at, frame);
+        if dup {
+            self.stats.duplicated += 1;
+            self.push(at + 20e-6, frame);
+        }
+    }
+
+    fn push(&mut self, t_s: f64, frame: Frame) {
+        self.order += 1;
+        self.queue.push(Reverse(Pending {
+            t_s,
+            order: self.order,
+            frame,
+        }));
+    }
+
+    /// A frame from the bus reaches the nodes at simulated time `t_s`. Table commands are
+    /// handled (subject to loss, the node being up, and its transfer behaviour); everything else
+    /// is ignored, as node firmware would.
+    pub fn receive(&mut self, frame: &Frame, t_s: f64) {
+        let raw = frame.raw_id();
+        let addressed =
+            !frame.is_extended() && raw & !0xF == 0x600 && (1..=7).contains(&(raw & 0xF));
+        if !addressed {
+            return;
+        }
+        let n = (raw & 0xF) as usize - 1;
+        if !self.nodes[n].up {
+            return;
+        }
+        let f = &self.scenario.faults;
+        if f.loss > 0.0 && self.fault_rng.uniform() < f.loss {
+            self.stats.lost += 1;
+            return;
+        }
+        let cmd: TableCmd = match exocal_dbc::decode_frame(frame) {
+            Ok(Message::TableCmd(c)) => c,
+            _ => {
+                self.nodes[n].rx_errors += 1;
+                return;
+            }
+        };
+        self.stats.commands += 1;
+        let node = &mut self.nodes[n];
+        let local = ((t_s - node.clock.boot_s).max(0.0) * 1e6) as u64;
+        let replies: Vec<TableReply> = match node.behaviour {
+            TransferBehaviour::Silent => Vec::new(),
+            TransferBehaviour::Nack => vec![TableReply {
+                node: node.id,
+                session: cmd.session,
+                reply: Reply::Nack {
+                    cmd: cmd.cmd.code(),
+                    held_crc: node.transfer.held_crc(),
+                    reason: NackReason::FlashError,
+                },
+            }],
+            TransferBehaviour::Normal => node
+                .transfer
+                .handle(&cmd, local, &mut node.flash)
+                .into_iter()
+                .collect(),
+        };
+        if matches!(cmd.cmd, Command::Begin | Command::Segment(..)) && replies.is_empty() {
+            node.rx_errors += 1;
+        }
+        for (i, r) in replies.into_iter().enumerate() {
+            self.stats.replies += 1;
+            let frame = Message::TableReply(r)
+                .to_frame::<Frame>()
+                .expect("replies are always encodable");
+            self.emit(t_s + REPLY_LATENCY_S + i as f64 * 20e-6, frame);
+        }
+    }
+}
+
+fn quaternion(r: &Matrix3<f64>) -> [f64; 4] {
+    // FK products are orthonormal to rounding: no re-orthonormalisation needed.
+    let q = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(*r));
+    [q.w, q.i, q.j, q.k]
+}
+
+fn schedules(scenario: &Scenario, node: &mut Node, boot_s: f64) -> Vec<Schedule> {
+    let r = scenario.rates;
+    let kinds: &[(Kind, f64)] = if node.id.joint_index().is_some() {
+        &[
+            (Kind::JointState, r.joint_state_hz),
+            (Kind::Imu, r.imu_hz),
+            (Kind::Heartbeat, r.heartbeat_hz),
+        ]
+    } else {
+        &[
+            (Kind::Imu, r.imu_hz),
+            (Kind::Pose, r.pose_hz),
+            (Kind::Heartbeat, r.heartbeat_hz),
+        ]
+    };
+    kinds
+        .iter()
+        .map(|&(kind, hz)| {
+            // The node's timer ticks every 1/hz of its own clock.
+            let period_s = 1.0 / (hz * (1.0 + node.clock.skew));
+            Schedule {
+                kind,
+                next_s: boot_s + period_s * node.rng.uniform(),
+                period_s,
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use exocal_dbc::pose::PoseAssembler;
+    use exocal_dbc::{decode_frame, PoseFrame};
+    use std::collections::BTreeMap;
+
+    pub(crate) fn temp_dir(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("exocal-hil-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        d
+    }
+
+    /// A scenario with ideal clocks (offset 0, no skew, no jitter) so that timestamps are the
+    /// simulated sample times.
+    fn ideal(mut s: Scenario) -> Scenario {
+        s.clocks.skew_ppm_max = 0.0;
+        s.clocks.jitter_us = 0.0;
+        s.clocks.node = (1..=8)
+            .map(|node| crate::scenario::NodeClockSpec {
+                node,
+                offset_us: Some(0.0),
+                skew_ppm: Some(0.0),
+                jitter_us: Some(0.0),
+            })
+            .collect();
+        s
+    }
+
+    fn counts(frames: &[Frame]) -> BTreeMap<u32, u64> {
+        let mut c = BTreeMap::new();
+        for f in frames {
+            *c.entry(f.raw_id()).or_default() += 1;
+        }
+        c
+    }
+
+    #[test]
+    fn paper_scenario_sends_every_message_at_its_rate_and_all_decode() {
+        let dir = temp_dir("rates");
+        let mut suit = Suit::new(Scenario::paper(), &dir).unwrap();
+        let frames = suit.advance(10.0);
+        for f in &frames {
+            decode_frame(f).unwrap_or_else(|e| panic!("{f:?}: {e}"));
+        }
+        let c = counts(&frames);
+        let near = |id: u32, want: f64, tol: f64| {
+            let got = c.get(&id).copied().unwrap_or(0) as f64;
+            assert!(
+                (got - want).abs() <= tol,
+                "{id:#x}: {got} frames, want {want}"
+            );
+        };
+        for j in 1..=7 {
+            near(0x100 | j, 1000.0, 2.0);
+        }
+        for n in 1..=8 {
+            near(0x200 | n, 1000.0, 2.0);
+            near(0x210 | n, 1000.0, 2.0);
+            near(0x220 | n, 1000.0, 2.0);
+            near(0x700 | n, 10.0, 1.0);
+        }
+        near(0x148, 4000.0, 8.0);
+        assert_eq!(c.len(), 7 + 3 * 8 + 8 + 1, "no other identifiers");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn the_same_seed_gives_the_same_frames() {
+        let (d1, d2, d3) = (temp_dir("seed1"), temp_dir("seed2"), temp_dir("seed3"));
+        let a = Suit::new(Scenario::paper(), &d1).unwrap().advance(2.0);
+        let b = Suit::new(Scenario::paper(), &d2).unwrap().advance(2.0);
+        let mut other = Scenario::paper();
+        other.seed += 1;
+        let c = Suit::new(other, &d3).unwrap().advance(2.0);
+        assert_eq!(a, b);
+        assert_ne!(a, c);
+        for d in [d1, d2, d3] {
+            let _ = std::fs::remove_dir_all(d);
+        }
+    }
+
+    #[test]
+    fn joint_angles_are_truth_minus_drift_and_pose_is_fk_of_truth() {
+        for drift in [false, true] {
+            let dir = temp_dir(&format!("truth{drift}"));
+            let mut s = ideal(Scenario::paper());
+            s.drift.enabled = drift;
+            let mut suit = Suit::new(s, &dir).unwrap();
+            let frames = suit.advance(20.0);
+            let (mut sum2, mut n) = (0.0, 0.0);
+            let mut poses = PoseAssembler::new();
+            let mut pose_checked = 0;
+            for f in &frames {
+                match decode_frame(f).unwrap() {
+                    Message::JointState(js) => {
+                        let t = f64::from(js.timestamp_us) * 1e-6;
+                        let j = js.node.joint_index().unwrap();
+                        let e = js.angle - suit.true_joints(t)[j];
+                        sum2 += e * e;
+                        n += 1.0;
+                        if !drift {
+                            assert!(e.abs() <= 1e-5, "1e-5 rad and 1 µs resolution only: {e}");
+                        }
+                    }
+                    Message::EePose(p) => {
+                        if let Some(pose) = poses.push(PoseFrame { ..p }) {
+                            let pose = pose.unwrap();
+                            let t = f64::from(pose.timestamp_us) * 1e-6;
+                            let fk = suit.true_table().fk(&suit.true_joints(t));
+                            for k in 0..3 {
+                                // 1 µm wire resolution plus the 1 µs timestamp resolution.
+                                assert!(
+                                    (pose.position[k] - fk.p[k]).abs() <= 3e-6,
+                                    "{pose:?} vs {fk:?}"
+                                );
+                            }
+                            let q = quaternion(&fk.r);
+                            let dot: f64 = (0..4).map(|k| q[k] * pose.quat[k]).sum();
+                            // Components are rounded to 1e-6 on the wire.
+                            assert!(dot.abs() > 1.0 - 1e-5, "{q:?} vs {:?}", pose.quat);
+                            pose_checked += 1;
+                        }
+                    }
+                    _ => {}
+                }
+            }
+            assert!(pose_checked > 1900, "{pose_checked}");
+            let rms = (sum2 / n).sqrt();
+            if drift {
+                // Paper drift: stationary deviation √(Δt²σ²(1−φ)/(1−φ²)) ≈ 0.0071 rad.
+                let gm = GaussMarkov::paper();
+                let want = gm.stationary_variance().sqrt();
+                assert!((rms / want - 1.0).abs() < 0.25, "rms {rms} vs {want}");
+            }
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+    }
+
+    #[test]
+    fn imu_channels_are_physically_consistent() {
+        let dir = temp_dir("imu");
+        let mut s = Scenario::paper();
+        s.noise.accel_m_s2 = 0.0;
+        s.noise.mag_ut = 0.0;
+        let mut suit = Suit::new(s, &dir).unwrap();
+        let (mut acc, mut na) = (0.0, 0.0);
+        let field = Vector3::from(EARTH_FIELD_UT).norm();
+        for f in suit.advance(5.0) {
+            match decode_frame(&f).unwrap() {
+                Message::ImuAccel(v) => {
+                    acc += Vector3::from(v.xyz).norm();
+                    na += 1.0;
+                }
+                Message::ImuMag(v) => {
+                    assert!((Vector3::from(v.xyz).norm() - field).abs() < 0.03, "{v:?}")
+                }
+                _ => {}
+            }
+        }
+        // Slow arm motion: the specific force is dominated by gravity.
+        assert!((acc / na - G).abs() < 0.5, "mean |f| = {}", acc / na);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn node_clocks_roll_over_and_reboots_reset_clock_and_count_boots() {
+        let dir = temp_dir("reboot");
+        let mut s = Scenario::paper();
+        s.faults.reboots.push(crate::scenario::Reboot {
+            node: 3,
+            at_s: 5.0,
+            down_s: 0.5,
+        });
+        let mut suit = Suit::new(s, &dir).unwrap();
+        let frames = suit.advance(20.0);
+        let mut j7: Vec<u32> = Vec::new();
+        let mut j3: Vec<u32> = Vec::new();
+        let mut boots = Vec::new();
+        for f in &frames {
+            match decode_frame(f).unwrap() {
+                Message::JointState(js) if js.node.raw() == 7 => j7.push(js.timestamp_us),
+                Message::JointState(js) if js.node.raw() == 3 => j3.push(js.timestamp_us),
+                Message::Heartbeat(h) if h.node.raw() == 3 => boots.push(h.boot_count),
+                _ => {}
+            }
+        }
+        let wraps = j7.windows(2).filter(|w| w[1] < w[0]).count();
+        assert_eq!(wraps, 1, "node 7 rolls over once at ~17 s");
+        let resets: Vec<usize> = (1..j3.len()).filter(|&i| j3[i] < j3[i - 1]).collect();
+        assert_eq!(resets.len(), 1);
+        assert!(
+            j3[resets[0]] < 20_000,
+            "clock restarts near 0: {}",
+            j3[resets[0]]
+        );
+        assert!(
+            (1949..=1952).contains(&j3.len()),
+            "0.5 s silent: {}",
+            j3.len()
+        );
+        assert_eq!(boots.first().map(|b| (b + 1) % 16), boots.last().copied());
+        assert_eq!(suit.stats().reboots, 1);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn injected_faults_show_on_the_wire() {
+        let dir = temp_dir("faults");
+        let mut s = Scenario::paper();
+        s.faults.malformed_hz = 50.0;
+        s.faults.nan = 0.01;
+        s.faults.loss = 0.05;
+        s.faults.duplicate = 0.01;
+        s.faults.babble.push(crate::scenario::Babble {
+            node: 2,
+            from_s: 1.0,
+            to_s: 2.0,
+            rate_hz: 2000.0,
+        });
+        let clean = Suit::new(Scenario::paper(), &temp_dir("clean"))
+            .unwrap()
+            .advance(10.0)
+            .len() as f64;
+        let mut suit = Suit::new(s, &dir).unwrap();
+        let frames = suit.advance(10.0);
+        let st = suit.stats().clone();
+        let bad = frames.iter().filter(|f| decode_frame(*f).is_err()).count() as u64;
+        assert!(
+            bad > 350 && bad <= st.malformed,
+            "{bad} undecodable of {} malformed",
+            st.malformed
+        );
+        let nans = frames
+            .iter()
+            .filter(|f| match decode_frame(*f) {
+                Ok(Message::JointState(j)) => j.angle.is_nan(),
+                Ok(Message::ImuGyro(v) | Message::ImuAccel(v) | Message::ImuMag(v)) => {
+                    v.xyz[0].is_nan()
+                }
+                _ => false,
+            })
+            .count() as f64;
+        assert!(
+            (nans / st.nans as f64) > 0.9,
+            "{nans} NaN frames of {} injected",
+            st.nans
+        );
+        assert!(st.babbled > 1900 && st.duplicated > 0);
+        let want =
+            clean + st.babbled as f64 + st.malformed as f64 + st.duplicated as f64 - st.lost as f64;
+        assert!(
+            (frames.len() as f64 - want).abs() < 0.01 * want,
+            "{} vs {want}",
+            frames.len()
+        );
+        let lost_ratio = st.lost as f64 / (frames.len() as f64 + st.lost as f64);
+        assert!((lost_ratio - 0.05).abs() < 0.01, "{lost_ratio}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn delays_and_reordering_change_the_order_not_the_content() {
+        let dir = temp_dir("reorder");
+        let mut s = Scenario::paper();
+        s.faults.reorder = 0.2;
+        s.faults.reorder_max_ms = 30.0;
+        s.faults.delay = 0.01;
+        s.faults.delay_ms = 50.0;
+        let mut suit = Suit::new(s, &dir).unwrap();
+        let frames = suit.advance(5.0);
+        let mut last = BTreeMap::new();
+        let mut out_of_order = 0;
+        for f in &frames {
+            if let Ok(Message::JointState(js)) = decode_frame(f) {
+                if let Some(prev) = last.insert(js.node, js.timestamp_us) {
+                    out_of_order += usize::from(js.timestamp_us < prev);
+                }
+            }
+        }
+        assert!(out_of_order > 100, "{out_of_order}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
