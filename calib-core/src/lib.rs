@@ -14,6 +14,7 @@
 //! | a calibration sample | [`Sample`] `{ joints: [f64; N], pose: Frame }` |
 //! | Gauss-Markov drift and the Section 4 simulator | [`GaussMarkov`], [`Scenario`] |
 //! | least squares | [`identify_ls`]`::<N, P>(&start, &samples, &LsOptions) -> Result<LsResult, CalibError>` |
+//! | least squares with base and tool frames (`P = 4N + 12`) | [`identify_ls_frames`] |
 //! | the paper's EM (eqs. 33–36) | [`paper_em`] |
 //! | our EM (Kalman + RTS smoother over the drift) | [`em_drift`] |
 //! | objective y (eq. 10) and parameter errors | [`objective_y`], [`ParamErrors`] |
@@ -59,6 +60,7 @@
 pub mod drift;
 pub mod drift_em;
 pub mod error;
+pub mod frames;
 pub mod linalg;
 pub mod ls;
 pub mod metrics;
@@ -74,6 +76,7 @@ pub use drift::{Discretisation, DriftParams, GaussMarkov};
 pub use drift_em::em_drift_vec;
 pub use drift_em::{em_drift, DriftEmOptions, DriftEmResult, DriftSlot};
 pub use error::CalibError;
+pub use frames::{identify_ls_frames, LsFramesResult, Mounting, Param, FRAME_PARAMS};
 pub use linalg::{Observability, QrAccumulator};
 pub use ls::{identify_ls, validate_samples, BoundsOutcome, BoundsPolicy, InputChecks, LsOptions, LsResult, NullDirection};
 pub use metrics::{objective_y, objective_y_corrected, ParamErrors};

@@ -248,18 +248,36 @@ pub fn identify_ls<const N: usize, const P: usize>(
     if !start.is_finite() {
         return Err(CalibError::InvalidInput { what: "starting table" });
     }
+    check_options(opts)?;
+    validate_samples(samples, &opts.checks)?;
+    let (table, cost, iterations, analysis) =
+        levenberg_marquardt::<N, P, DhTable<N>>(*start, |t| linearise::<N, P>(t, samples), |t, step| t.perturbed(step), opts)?;
+    finish(table, cost, iterations, &analysis, opts)
+}
+
+/// Rejects tolerances that are not finite and positive (rank tolerance also below 1).
+pub(crate) fn check_options<const N: usize>(opts: &LsOptions<N>) -> Result<(), CalibError> {
     if !positive(opts.step_tolerance) || !positive(opts.rank_tolerance) || opts.rank_tolerance >= 1.0 {
         return Err(CalibError::InvalidInput {
             what: "LsOptions tolerances",
         });
     }
-    validate_samples(samples, &opts.checks)?;
-    let mut table = *start;
-    let (mut acc, mut cost) = linearise::<N, P>(&table, samples);
+    Ok(())
+}
+
+/// Levenberg-Marquardt over any state: `lin` linearises (streaming QR + cost), `apply` adds a
+/// step. Returns the final state, cost, iterations and the SVD analysis at the final state.
+pub(crate) fn levenberg_marquardt<const N: usize, const P: usize, S: Copy>(
+    start: S,
+    lin: impl Fn(&S) -> (QrAccumulator<P>, f64),
+    apply: impl Fn(&S, &[f64; P]) -> S,
+    opts: &LsOptions<N>,
+) -> Result<(S, f64, usize, Analysis<P>), CalibError> {
+    let mut state = start;
+    let (acc, mut cost) = lin(&state);
     let mut analysis = acc.analyse(opts.rank_tolerance);
     let mut lambda = 0.0;
     let mut last_change = f64::INFINITY;
-    let mut converged = false;
     let mut iterations = 0;
     while iterations < opts.max_iterations {
         iterations += 1;
@@ -271,32 +289,27 @@ pub fn identify_ls<const N: usize, const P: usize>(
                 last_change: max_step,
             });
         }
-        let candidate = table.perturbed(&step);
-        let (cand_acc, cand_cost) = linearise::<N, P>(&candidate, samples);
+        let candidate = apply(&state, &step);
+        let (cand_acc, cand_cost) = lin(&candidate);
         if cand_cost <= cost || max_step <= opts.step_tolerance {
-            table = candidate;
+            state = candidate;
             let gain = cost - cand_cost;
             cost = cand_cost;
-            acc = cand_acc;
-            analysis = acc.analyse(opts.rank_tolerance);
+            analysis = cand_acc.analyse(opts.rank_tolerance);
             lambda = if lambda > 0.0 { lambda * 0.1 } else { 0.0 };
             last_change = max_step;
             if max_step <= opts.step_tolerance || (lambda == 0.0 && gain <= 1e-15 * cost && max_step < 1e-8) {
-                converged = true;
-                break;
+                return Ok((state, cost, iterations, analysis));
             }
         } else {
             let s0 = analysis.singular[0];
             lambda = if lambda == 0.0 { 1e-4 * s0 * s0 } else { lambda * 10.0 };
         }
     }
-    if !converged {
-        return Err(CalibError::NotConverged { iterations, last_change });
-    }
-    finish(table, cost, iterations, &analysis, opts)
+    Err(CalibError::NotConverged { iterations, last_change })
 }
 
-fn finish<const N: usize, const P: usize>(
+pub(crate) fn finish<const N: usize, const P: usize>(
     mut table: DhTable<N>,
     cost: f64,
     iterations: usize,
