@@ -18,7 +18,9 @@
 //!
 //! Then it times [`identify_ls`] (`--repeats` runs, one after another in this thread) and, for
 //! K in `--em-k`, LS followed by our EM ([`em_drift_vec`]), and prints one JSON object per line
-//! on stdout (`{"bench":"calib-core", ...}`): every run's wall time, their median, and the
+//! on stdout (`{"bench":"calib-core", ...}`): every run's CPU time (`runs_s`; the process CPU
+//! clock, so that other processes on a shared core do not count), their median (`median_s`),
+//! the median wall time (`wall_median_s`), and the
 //! accuracy of the result (LS cost Σ‖e‖², the paper's y of eq. 10, and the largest parameter
 //! error of each kind against Table 4). A first line (`"bench":"calib-core-kernels"`) gives the
 //! per-sample cost of one LS linearisation split into its kernels. Nothing else goes to stdout.
@@ -143,6 +145,38 @@ fn accuracy(table: &DhTable<7>, samples: &[Sample<7>]) -> String {
     )
 }
 
+/// CPU time of this process (s): on a shared machine, unlike wall time, it leaves out the time
+/// other processes held the core.
+fn cpu_time() -> f64 {
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: clock_gettime writes one timespec into the valid, exclusively borrowed `ts`.
+    let rc = unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
+    if rc != 0 {
+        return f64::NAN;
+    }
+    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
+}
+
+/// CPU and wall time since `start`.
+struct Stopwatch {
+    cpu: f64,
+    wall: Instant,
+}
+
+impl Stopwatch {
+    fn start() -> Self {
+        Stopwatch {
+            cpu: cpu_time(),
+            wall: Instant::now(),
+        }
+    }
+
+    /// (CPU seconds, wall seconds).
+    fn read(&self) -> (f64, f64) {
+        (cpu_time() - self.cpu, self.wall.elapsed().as_secs_f64())
+    }
+}
+
 fn run_ls(samples: &[Sample<7>]) -> Result<LsResult<7, SUIT_PARAMS>, String> {
     identify_ls::<7, SUIT_PARAMS>(&DhTable::paper_nominal(), samples, &LsOptions::paper()).map_err(|e| format!("LS: {e}"))
 }
@@ -157,21 +191,24 @@ fn bench(args: &Args) -> Result<(), String> {
         let samples = &all[..k];
         let dir = args.out.join(format!("k{k}"));
         write_dataset(&dir, samples).map_err(|e| format!("writing {}: {e}", dir.display()))?;
-        let mut times = Vec::new();
+        let (mut times, mut walls) = (Vec::new(), Vec::new());
         let mut last = None;
         for _ in 0..args.repeats {
-            let t0 = Instant::now();
+            let t0 = Stopwatch::start();
             let r = run_ls(samples)?;
-            times.push(t0.elapsed().as_secs_f64());
+            let (cpu, wall) = t0.read();
+            times.push(cpu);
+            walls.push(wall);
             last = Some(r);
         }
         let r = last.ok_or("no run")?;
         println!(
-            "{{\"bench\":\"calib-core\",\"solver\":\"ls\",\"k\":{k},\"seed\":{},\"dir\":\"{}\",\"median_s\":{:e},\"runs_s\":{},\"iterations\":{},\"condition\":{:e},\"cost_start\":{:e},\"y_start\":{:e},{}}}",
+            "{{\"bench\":\"calib-core\",\"solver\":\"ls\",\"k\":{k},\"seed\":{},\"dir\":\"{}\",\"median_s\":{:e},\"runs_s\":{},\"wall_median_s\":{:e},\"iterations\":{},\"condition\":{:e},\"cost_start\":{:e},\"y_start\":{:e},{}}}",
             args.seed,
             dir.display(),
             median(&times),
             json_list(&times),
+            median(&walls),
             r.iterations,
             r.condition,
             samples
@@ -184,24 +221,27 @@ fn bench(args: &Args) -> Result<(), String> {
     }
     for &k in &args.em_ks {
         let samples = &all[..k];
-        let (mut times, mut em_times) = (Vec::new(), Vec::new());
+        let (mut times, mut em_times, mut walls) = (Vec::new(), Vec::new(), Vec::new());
         let mut last = None;
         for _ in 0..args.em_repeats {
-            let t0 = Instant::now();
+            let t0 = Stopwatch::start();
             let ls = run_ls(samples)?;
-            let t1 = Instant::now();
+            let t1 = Stopwatch::start();
             let (em, _drift) = em_drift_vec::<7, SUIT_PARAMS>(&ls.table, samples, &DriftEmOptions::new(cfg.drift.dt))
                 .map_err(|e| format!("EM: {e}"))?;
-            em_times.push(t1.elapsed().as_secs_f64());
-            times.push(t0.elapsed().as_secs_f64());
+            em_times.push(t1.read().0);
+            let (cpu, wall) = t0.read();
+            times.push(cpu);
+            walls.push(wall);
             last = Some(em);
         }
         let em = last.ok_or("no run")?;
         println!(
-            "{{\"bench\":\"calib-core\",\"solver\":\"ls+em\",\"k\":{k},\"seed\":{},\"median_s\":{:e},\"runs_s\":{},\"em_median_s\":{:e},\"em_iterations\":{},\"em_converged\":{},{}}}",
+            "{{\"bench\":\"calib-core\",\"solver\":\"ls+em\",\"k\":{k},\"seed\":{},\"median_s\":{:e},\"runs_s\":{},\"wall_median_s\":{:e},\"em_median_s\":{:e},\"em_iterations\":{},\"em_converged\":{},{}}}",
             args.seed,
             median(&times),
             json_list(&times),
+            median(&walls),
             median(&em_times),
             em.iterations,
             em.converged,
@@ -211,15 +251,15 @@ fn bench(args: &Args) -> Result<(), String> {
     Ok(())
 }
 
-/// Median time (s) of one call of `f`, over `reps` batches of `n` calls.
+/// Median CPU time (s) of one call of `f`, over `reps` batches of `n` calls.
 fn time_per_call(reps: usize, n: usize, mut f: impl FnMut()) -> f64 {
     let times: Vec<f64> = (0..reps)
         .map(|_| {
-            let t0 = Instant::now();
+            let t0 = Stopwatch::start();
             for _ in 0..n {
                 f();
             }
-            t0.elapsed().as_secs_f64() / n as f64
+            t0.read().0 / n as f64
         })
         .collect();
     median(&times)

@@ -597,9 +597,30 @@ mod tests {
             em_drift::<7, 28>(&start, &samples, &opts, &mut ws).unwrap_err(),
             CalibError::WorkspaceTooSmall { got: 100, need: 200 }
         );
-        let bad = DriftEmOptions { dt: 0.0, ..opts };
+        for bad in [
+            DriftEmOptions { dt: 0.0, ..opts },
+            DriftEmOptions {
+                initial_tau: f64::NAN,
+                ..opts
+            },
+            DriftEmOptions {
+                noise_floor: -1.0,
+                ..opts
+            },
+            DriftEmOptions {
+                max_iterations: MAX_EM_ITERATIONS,
+                ..opts
+            },
+        ] {
+            assert_eq!(
+                em_drift_vec::<7, 28>(&start, &samples, &bad).unwrap_err(),
+                CalibError::InvalidInput { what: "DriftEmOptions" }
+            );
+        }
+        let mut nan_start = start;
+        nan_start.rows[3].alpha = f64::NAN;
         assert!(matches!(
-            em_drift_vec::<7, 28>(&start, &samples, &bad),
+            em_drift_vec::<7, 28>(&nan_start, &samples, &opts),
             Err(CalibError::InvalidInput { .. })
         ));
         let mut nan = samples.clone();

@@ -107,3 +107,52 @@ impl fmt::Display for CalibError {
 }
 
 impl core::error::Error for CalibError {}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::string::ToString;
+
+    #[test]
+    fn every_variant_has_a_message_naming_the_problem() {
+        let cases = [
+            (CalibError::TooFewSamples { got: 3, need: 28 }, "got 3, need at least 28"),
+            (CalibError::NonFinite { sample: 4 }, "sample 4"),
+            (
+                CalibError::InvalidInput {
+                    what: "LsOptions tolerances",
+                },
+                "LsOptions tolerances",
+            ),
+            (CalibError::NoExcitation { joint: 2, range: 0.0 }, "joint 3 barely moved"),
+            (
+                CalibError::JointOutOfRange {
+                    sample: 1,
+                    joint: 0,
+                    value: 3.0,
+                },
+                "joint 1 at 171.9 deg",
+            ),
+            (
+                CalibError::NotConverged {
+                    iterations: 5,
+                    last_change: 1e-3,
+                },
+                "after 5 iterations",
+            ),
+            (
+                CalibError::OutOfBounds {
+                    kind: ParamKind::A,
+                    joint: 2,
+                    value: 0.5,
+                },
+                "a3 = 0.50000",
+            ),
+            (CalibError::WorkspaceTooSmall { got: 1, need: 2 }, "1 slots, 2 needed"),
+        ];
+        for (e, needle) in cases {
+            let msg = e.to_string();
+            assert!(msg.contains(needle), "{msg:?} lacks {needle:?}");
+        }
+    }
+}

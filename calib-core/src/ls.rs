@@ -455,6 +455,27 @@ mod tests {
             identify_ls::<7, 28>(&bad_start, &good, &opts),
             Err(CalibError::InvalidInput { .. })
         ));
+        for bad in [
+            LsOptions {
+                step_tolerance: 0.0,
+                ..opts
+            },
+            LsOptions {
+                rank_tolerance: 1.5,
+                ..opts
+            },
+            LsOptions {
+                rank_tolerance: f64::NAN,
+                ..opts
+            },
+        ] {
+            assert_eq!(
+                run(&good, &bad),
+                CalibError::InvalidInput {
+                    what: "LsOptions tolerances"
+                }
+            );
+        }
         let mut one_iter = opts;
         one_iter.max_iterations = 1;
         assert!(matches!(
