@@ -15,8 +15,8 @@
 //! | Gauss-Markov drift and the Section 4 simulator | [`GaussMarkov`], [`Scenario`] |
 //! | least squares | [`identify_ls`]`::<N, P>(&start, &samples, &LsOptions) -> Result<LsResult, CalibError>` |
 //! | least squares with base and tool frames (`P = 4N + 12`) | [`identify_ls_frames`] |
-//! | the paper's EM (eqs. 33–36) | [`paper_em`] |
-//! | our EM (Kalman + RTS smoother over the drift) | [`em_drift`] |
+//! | the paper's EM (eqs. 33–36) | [`paper_em()`] |
+//! | our EM (Kalman + RTS smoother over the drift) | [`em_drift()`] |
 //! | objective y (eq. 10) and parameter errors | [`objective_y`], [`ParamErrors`] |
 //!
 //! # Quick start
