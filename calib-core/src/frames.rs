@@ -263,6 +263,12 @@ mod tests {
             )
         };
         assert_eq!(r.ls.unidentifiable.len(), 6);
+        assert!(
+            r.ls.condition > 1e12 && r.ls.condition_identifiable < 1e4,
+            "{} {}",
+            r.ls.condition,
+            r.ls.condition_identifiable
+        );
         for n in &r.ls.unidentifiable {
             for (p, c) in n.named_terms::<7>(1e-6) {
                 assert!(redundant(p), "{p} ({c}) in a null direction");

@@ -195,8 +195,10 @@ pub struct LsResult<const N: usize, const P: usize> {
     pub cost: f64,
     /// RMS of the pose-error components.
     pub rms: f64,
-    /// Condition number of the column-scaled Jacobian.
+    /// Condition number of the column-scaled Jacobian (infinite-ish when `rank < P`).
     pub condition: f64,
+    /// Condition number of its identifiable part, `σ_max / σ_rank`.
+    pub condition_identifiable: f64,
     /// Numerical rank (`P` when everything is identifiable).
     pub rank: usize,
     /// Singular values of the scaled Jacobian, descending.
@@ -347,6 +349,11 @@ pub(crate) fn finish<const N: usize, const P: usize>(
         cost,
         rms: libm::sqrt(cost / rows),
         condition: analysis.condition(),
+        condition_identifiable: if analysis.rank > 0 {
+            smax / analysis.singular[analysis.rank - 1]
+        } else {
+            f64::INFINITY
+        },
         rank: analysis.rank,
         singular_values: analysis.singular,
         observability: analysis.observability(),
@@ -388,6 +395,7 @@ mod tests {
                 );
             }
             assert!(r.rms < 1e-12 && r.condition.is_finite() && r.observability.o2 > 0.0);
+            assert_eq!(r.condition, r.condition_identifiable);
             assert_eq!(r.bounds.violation, None);
         }
     }
