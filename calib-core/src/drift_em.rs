@@ -588,6 +588,34 @@ mod tests {
     }
 
     #[test]
+    fn recovers_tau_sigma_and_noise_of_an_exact_gauss_markov_drift() {
+        // Exact discretisation, τ = 0.5 s, σ = 10 mrad, with 0.5 mm / 1 mrad pose noise, 40 s.
+        let mut cfg = ScenarioConfig::paper();
+        cfg.drift = crate::GaussMarkov {
+            tau: 0.5,
+            sigma: 0.01,
+            discretisation: crate::Discretisation::Exact,
+            ..cfg.drift
+        };
+        cfg.position_noise = 5e-4;
+        cfg.rotation_noise = 1e-3;
+        let samples: std::vec::Vec<_> = Scenario::new(cfg, 77).take(4000).map(|s| s.sample).collect();
+        let ls = identify_ls::<7, 28>(&DhTable::paper_nominal(), &samples, &LsOptions::paper()).unwrap();
+        let (r, _) = em_drift_vec::<7, 28>(&ls.table, &samples, &DriftEmOptions::new(0.01)).unwrap();
+        let mean = |f: &dyn Fn(&DriftParams) -> f64| r.drift.iter().map(f).sum::<f64>() / 7.0;
+        let (tau, sigma) = (mean(&|d| d.tau), mean(&|d| d.stationary_sigma));
+        assert!((tau - 0.5).abs() < 0.15, "τ {tau}");
+        assert!((sigma - 0.01).abs() < 0.002, "σ {sigma}");
+        let v = r.measurement_variance;
+        for i in 0..3 {
+            assert!(
+                (v[i].sqrt() - 5e-4).abs() < 1e-4 && (v[i + 3].sqrt() - 1e-3).abs() < 2e-4,
+                "noise {v:?}"
+            );
+        }
+    }
+
+    #[test]
     fn bad_inputs_are_typed_errors() {
         let samples: std::vec::Vec<_> = session(1, 200).iter().map(|s| s.sample).collect();
         let start = DhTable::paper_nominal();
