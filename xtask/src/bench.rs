@@ -132,6 +132,12 @@ pub fn bench(args: &[String]) -> Result<u8> {
         }
     }
     let load_after = read_trimmed("/proc/loadavg");
+    for s in &mut sections {
+        s.body = s
+            .body
+            .replace(ctx.target.to_string_lossy().as_ref(), "target")
+            .replace(&format!("{}/", ctx.root.to_string_lossy()), "");
+    }
     let md = render(&ctx, &machine_before, &load_after, &sections, args);
     std::fs::write(&out, md).with_context(|| format!("writing {}", out.display()))?;
     eprintln!("==> wrote {}", out.display());
@@ -162,7 +168,12 @@ fn show(cmd: &Command) -> String {
             }
         }
     }
-    s.push_str(&cmd.get_program().to_string_lossy());
+    let program = Path::new(cmd.get_program());
+    if program.file_name().is_some_and(|n| n == "cargo") {
+        s.push_str("cargo");
+    } else {
+        s.push_str(&program.to_string_lossy());
+    }
     for a in cmd.get_args() {
         let a = a.to_string_lossy();
         if a.contains(' ') {
@@ -418,8 +429,10 @@ fn calib(ctx: &Ctx) -> Result<Section> {
          against calib-core's step tolerance 1e-12 and cost-gain tolerance 1e-15, four variants \
          (`trf`/`lm` × analytic Jacobian / scipy's `2-point`); the fastest variant that reaches \
          the same cost is the one compared. Both sides single-threaded on CPU 0 \
-         (`taskset -c 0`, BLAS threads 1); times are wall-clock medians of repeated solves \
-         (data loading excluded), calib-core {repeats} runs, scipy {py_repeats} runs per variant.\n"
+         (`taskset -c 0`, BLAS threads 1). Times are medians of repeated solves (data loading \
+         excluded; calib-core {repeats} runs, scipy {py_repeats} runs per variant) of the \
+         process CPU clock, so that other processes on the shared core do not count; wall-clock \
+         medians are given beside them.\n"
     );
     // Model agreement: both sides evaluate the starting cost on the same data.
     let _ = writeln!(body, "**Same model on both sides** (cost Σ‖e‖² at Table 1; analytic Jacobian vs central differences in numpy):\n");
@@ -439,7 +452,7 @@ fn calib(ctx: &Ctx) -> Result<Section> {
     let _ = writeln!(body);
     let _ = writeln!(
         body,
-        "| K | calib-core LS (ms) | fastest scipy (ms) | scipy ÷ calib-core | cost calib-core | cost scipy | y calib-core | y scipy | ‖x − truth‖ calib-core | ‖x − truth‖ scipy |\n|---|---|---|---|---|---|---|---|---|---|"
+        "| K | calib-core LS, CPU ms (wall) | fastest scipy, CPU ms (wall) | scipy ÷ calib-core | cost calib-core | cost scipy | y calib-core | y scipy | ‖x − truth‖ calib-core | ‖x − truth‖ scipy |\n|---|---|---|---|---|---|---|---|---|---|"
     );
     let mut worst_ratio = f64::INFINITY;
     let mut accuracy_ok = true;
@@ -463,9 +476,11 @@ fn calib(ctx: &Ctx) -> Result<Section> {
         accuracy_ok &= cost <= f(b, "cost") * (1.0 + 1e-9);
         let _ = writeln!(
             body,
-            "| {k} | {} | {} ({}) | {ratio:.2}× | {:.10e} | {:.10e} | {:.6} | {:.6} | {:.3e} | {:.3e} |",
+            "| {k} | {} ({}) | {} ({}), {} | {ratio:.2}× | {:.10e} | {:.10e} | {:.6} | {:.6} | {:.3e} | {:.3e} |",
             ms(f(r, "median_s")),
+            ms(f(r, "wall_median_s")),
             ms(f(b, "median_s")),
+            ms(f(b, "wall_median_s")),
             s(b, "variant"),
             cost,
             f(b, "cost"),
@@ -475,7 +490,7 @@ fn calib(ctx: &Ctx) -> Result<Section> {
             f(b, "err_norm")
         );
     }
-    let _ = writeln!(body, "\nEvery scipy variant (median ms; function and Jacobian evaluations; ratio to calib-core's LS):\n");
+    let _ = writeln!(body, "\nEvery scipy variant (median CPU ms; function and Jacobian evaluations; ratio to calib-core's LS):\n");
     let _ = writeln!(body, "| K | variant | median (ms) | nfev | njev | scipy ÷ calib-core | cost | stop |\n|---|---|---|---|---|---|---|---|");
     for v in &scipy {
         let k = f(v, "k");
@@ -490,7 +505,9 @@ fn calib(ctx: &Ctx) -> Result<Section> {
             s(v, "variant"),
             ms(f(v, "median_s")),
             v.get("nfev").map(Value::to_string).unwrap_or_default(),
-            v.get("njev").map(Value::to_string).unwrap_or_default(),
+            v.get("njev")
+                .filter(|n| !n.is_null())
+                .map_or("—".to_string(), Value::to_string),
             f(v, "median_s") / ours,
             f(v, "cost"),
             s(v, "message").replace('|', "/")
@@ -527,7 +544,7 @@ fn calib(ctx: &Ctx) -> Result<Section> {
     }
     // LS + EM.
     let _ = writeln!(body, "\nLS followed by our EM (Kalman filter + RTS smoother over the drift), calib-core only (scipy has no counterpart):\n");
-    let _ = writeln!(body, "| K | LS + EM (ms, median) | of which EM (ms) | EM iterations | converged | y (static table) |\n|---|---|---|---|---|---|");
+    let _ = writeln!(body, "| K | LS + EM, CPU ms (wall) | of which EM (CPU ms) | EM iterations | converged | y (static table) |\n|---|---|---|---|---|---|");
     let mut em6000 = None;
     for r in ls.iter().filter(|v| s(v, "solver") == "ls+em") {
         if f(r, "k") == 6000.0 {
@@ -535,9 +552,10 @@ fn calib(ctx: &Ctx) -> Result<Section> {
         }
         let _ = writeln!(
             body,
-            "| {} | {} | {} | {} | {} | {:.4} |",
+            "| {} | {} ({}) | {} | {} | {} | {:.4} |",
             f(r, "k"),
             ms(f(r, "median_s")),
+            ms(f(r, "wall_median_s")),
             ms(f(r, "em_median_s")),
             r.get("em_iterations")
                 .map(Value::to_string)
@@ -554,7 +572,7 @@ fn calib(ctx: &Ctx) -> Result<Section> {
         + f(&kernels, "qr_6_rows_s");
     let _ = writeln!(
         body,
-        "\n**What the LS time is made of** (per sample and linearisation, median of 7 × 20,000 calls): \
+        "\n**What the LS time is made of** (CPU time per sample and linearisation, median of 7 × 20,000 calls): \
          FK + identification Jacobian {:.2} µs, residual Jacobian M(e)·J {:.2} µs, Givens QR of the \
          6 rows into the 28 × 28 triangle {:.2} µs ({:.2} µs with `sqrt(a² + b²)` in place of \
          `libm::hypot`); one SVD analysis of the triangle {:.2} ms. calib-core re-linearises every \
@@ -568,7 +586,7 @@ fn calib(ctx: &Ctx) -> Result<Section> {
     );
     let _ = writeln!(
         body,
-        "| K | iterations | predicted (ms) | measured (ms) |\n|---|---|---|---|"
+        "| K | iterations | predicted (CPU ms) | measured (CPU ms) |\n|---|---|---|---|"
     );
     for r in ls.iter().filter(|v| s(v, "solver") == "ls") {
         let it = f(r, "iterations");
@@ -1277,6 +1295,12 @@ fn render(
         } else {
             format!("`{}`", ctx.pin.join(" "))
         }
+    );
+    let _ = writeln!(
+        md,
+        "`target/` in the commands below is the cargo target directory (`CARGO_TARGET_DIR`, \
+         here `{}`); commands run from the repository's root.\n",
+        ctx.target.display()
     );
     let _ = writeln!(
         md,
