@@ -1,0 +1,138 @@
+#!/bin/sh
+# The daemon against `candump -l` on vcan, run INSIDE the vcan harness (`cargo xtask bench
+# --only ingest` calls it as `cargo xtask vcan -- sh benches/ingest.sh ...`). Only /tmp is
+# written (the guest's host root is read-only); results go to stdout as one line per run:
+#
+#   INGEST speed=S hil_wall_s=W hil_sent=N daemon_frames=D daemon_dropped=X daemon_cpu_s=C
+#          candump_frames=M candump_cpu_s=C2 daemon_rss_kb=R candump_rss_kb=R2
+#   INGEST_MCAP speed=S TOPIC=COUNT ...   (the daemon's log read back; BENCH_PYTHON has `mcap`)
+#   SESSION rss_kb=R wall_s=W exit=E window_end_s=T0 verified_s=T1 ...
+#
+# usage:
+#   ingest.sh load BIN_DIR WALL_SECONDS SPEED...
+#       For each SPEED: the daemon (`exocald calibrate --dry-run` with the shipped configuration
+#       but a collection window far longer than the run, so it only ingests: decode, clock
+#       model, MCAP write) and `candump -l` listen on vcan0 while `exocal-hil --speed SPEED`
+#       plays WALL_SECONDS × SPEED simulated seconds of the paper scenario; then the daemon gets
+#       SIGTERM (it finishes its MCAP). The CPU time of each listener is read from /proc once
+#       the hil has stopped sending, before either does anything else.
+#   ingest.sh session BIN_DIR
+#       One power-up session at speed 1: `exocald calibrate` (pushing to the hil's nodes) under
+#       /usr/bin/time (peak RSS), its stderr time-stamped to find the end of the collection
+#       window and the moment every node's table was verified.
+set -u
+
+here=$(cd "$(dirname "$0")" && pwd)
+mode=$1
+bin=$2
+shift 2
+hz=$(getconf CLK_TCK)
+
+# CPU seconds (user + system) of a live process, from /proc/PID/stat fields 14 and 15.
+cpu_s() {
+    awk -v hz="$hz" '{ sub(/^.*\) /, ""); printf "%.3f", ($12 + $13) / hz }' "/proc/$1/stat"
+}
+
+# Peak RSS (kB) of a live process.
+rss_kb() {
+    awk '/^VmHWM:/ { print $2 }' "/proc/$1/status"
+}
+
+# Waits up to $2 tenths of a second for a file to contain text $3.
+wait_for() {
+    n=0
+    while [ "$n" -lt "$2" ]; do
+        grep -q "$3" "$1" 2>/dev/null && return 0
+        sleep 0.1
+        n=$((n + 1))
+    done
+    return 1
+}
+
+case "$mode" in
+load)
+    wall=$1
+    shift
+    config=/tmp/ingest-exocald.toml
+    "$bin/exocald" check-config --print-default |
+        sed 's/^min_duration_s = .*/min_duration_s = 100000.0/; s/^max_duration_s = .*/max_duration_s = 200000.0/' >"$config"
+    for speed in "$@"; do
+        w=/tmp/ingest-$speed
+        rm -rf "$w"
+        mkdir -p "$w/log" "$w/flash" "$w/candump"
+        seconds=$(awk -v w="$wall" -v s="$speed" 'BEGIN { print w * s }')
+        (cd "$w/candump" && exec candump -l vcan0) &
+        cpid=$!
+        "$bin/exocald" -c "$config" calibrate -i vcan0 -o "$w/log" --dry-run >"$w/daemon.out" 2>"$w/daemon.err" &
+        dpid=$!
+        # Both sockets open (the daemon says so when it starts logging).
+        wait_for "$w/daemon.err" 100 "logging to" || echo "ingest.sh: the daemon did not start: $(cat "$w/daemon.err")" >&2
+        sleep 0.5
+        "$bin/exocal-hil" --iface vcan0 --speed "$speed" --duration "$seconds" --flash-dir "$w/flash" \
+            >"$w/hil.out" 2>"$w/hil.err"
+        sleep 1
+        dcpu=$(cpu_s "$dpid" 2>/dev/null || echo nan)
+        drss=$(rss_kb "$dpid" 2>/dev/null || echo nan)
+        ccpu=$(cpu_s "$cpid" 2>/dev/null || echo nan)
+        crss=$(rss_kb "$cpid" 2>/dev/null || echo nan)
+        kill -TERM "$dpid" 2>/dev/null
+        kill -INT "$cpid" 2>/dev/null
+        wait "$dpid"
+        dexit=$?
+        wait "$cpid"
+        sent=$(sed -n 's/.*frames sent \([0-9]*\).*/\1/p' "$w/hil.out" | head -n 1)
+        hwall=$(sed -n 's/.*s in \([0-9.]*\) s wall.*/\1/p' "$w/hil.out" | head -n 1)
+        done_line=$(grep -m 1 "collection done\|frames (" "$w/daemon.err" | tr -s ' ')
+        dframes=$(echo "$done_line" | sed -n 's/.*: \([0-9]*\) frames.*/\1/p')
+        ddropped=$(echo "$done_line" | sed -n 's/.* \([0-9]*\) dropped by the receiver.*/\1/p')
+        cframes=$(cat "$w"/candump/*.log 2>/dev/null | wc -l)
+        echo "INGEST speed=$speed hil_wall_s=${hwall:-nan} hil_sent=${sent:-nan} daemon_frames=${dframes:-nan}" \
+            "daemon_dropped=${ddropped:-nan} daemon_cpu_s=$dcpu daemon_rss_kb=$drss daemon_exit=$dexit" \
+            "candump_frames=$cframes candump_cpu_s=$ccpu candump_rss_kb=$crss"
+        # The daemon's MCAP log, read back with the python reader: messages per topic.
+        for f in "$w"/log/*.mcap; do
+            [ -e "$f" ] || continue
+            if counts=$("${BENCH_PYTHON:-python3}" "$here/mcap_counts.py" "$f"); then
+                echo "INGEST_MCAP speed=$speed ${counts#MCAP }"
+            fi
+        done
+        if [ -z "$dframes" ]; then
+            echo "ingest.sh: speed $speed: no frame count from the daemon; its stderr ends with:" >&2
+            tail -n 5 "$w/daemon.err" >&2
+        fi
+    done
+    ;;
+session)
+    w=/tmp/session
+    rm -rf "$w"
+    mkdir -p "$w/log" "$w/flash"
+    t0=$(date +%s.%N)
+    # Time-stamp every stderr line of the daemon (seconds since t0).
+    (/usr/bin/time -f "TIME %e %M" "$bin/exocald" calibrate -i vcan0 -o "$w/log" 2>&1 >"$w/daemon.out"; echo "EXIT $?") |
+        while IFS= read -r line; do
+            printf '%s %s\n' "$(date +%s.%N)" "$line"
+        done >"$w/daemon.err" &
+    spid=$!
+    wait_for "$w/daemon.err" 100 "logging to" || echo "ingest.sh: the daemon did not start" >&2
+    sleep 0.5
+    # The hil outlives the session: it must answer the table transfers after the window.
+    "$bin/exocal-hil" --iface vcan0 --speed 1 --duration 600 --flash-dir "$w/flash" >"$w/hil.out" 2>"$w/hil.err" &
+    hpid=$!
+    wait "$spid"
+    kill -INT "$hpid" 2>/dev/null
+    wait "$hpid" 2>/dev/null
+    rel() { awk -v t0="$t0" '{ printf "%.3f", $1 - t0 }'; }
+    window=$(grep -m 1 "collection done" "$w/daemon.err" | rel)
+    verified=$(grep -m 1 "every node holds its new table" "$w/daemon.err" | rel)
+    time_line=$(grep -m 1 " TIME " "$w/daemon.err")
+    exit_code=$(grep -m 1 " EXIT " "$w/daemon.err" | awk '{ print $3 }')
+    echo "SESSION exit=${exit_code:-nan} rss_kb=$(echo "$time_line" | awk '{ print $4 }') wall_s=$(echo "$time_line" | awk '{ print $3 }')" \
+        "window_end_s=${window:-nan} verified_s=${verified:-nan}"
+    echo "ingest.sh: daemon stderr (time-stamped):" >&2
+    tail -n 30 "$w/daemon.err" >&2
+    ;;
+*)
+    echo "usage: ingest.sh load BIN_DIR SECONDS SPEED... | ingest.sh session BIN_DIR" >&2
+    exit 2
+    ;;
+esac
