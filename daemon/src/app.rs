@@ -2,10 +2,17 @@
 //! it to an exit status).
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use exocal_bus::{Clock, SocketCan, Transport};
+use tokio::signal::unix::{signal, SignalKind};
 
 use crate::cli::{CheckConfigArgs, Cli, Command, SessionArgs, SYSTEM_CONFIG};
 use crate::config::{Config, ConfigError, DEFAULT_TOML};
 use crate::exit::DaemonError;
+use crate::report::{Notifier, Reporter};
+use crate::runner::{run_session, SessionError, SessionSummary};
 
 /// Where a configuration came from.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -71,19 +78,235 @@ pub fn require_interface(name: &str) -> Result<(), DaemonError> {
 pub fn run(cli: Cli) -> Result<(), DaemonError> {
     match cli.command {
         Command::CheckConfig(args) => check_config(cli.config.as_deref(), &args),
-        Command::Calibrate(args) | Command::Run(args) => {
-            let (mut config, source) =
-                resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
-            apply_overrides(&mut config, &args);
-            eprintln!("exocald: configuration from {source}");
-            require_interface(&config.interface)?;
-            Err(DaemonError::Unsupported(
-                "CAN sessions need the exocal-bus/exocal-dbc integration, not wired yet".into(),
-            ))
+        Command::Calibrate(args) => {
+            let config = session_config(cli.config.as_deref(), &args)?;
+            runtime()?.block_on(calibrate_on_can(config, args.dry_run))
+        }
+        Command::Run(args) => {
+            let config = session_config(cli.config.as_deref(), &args)?;
+            runtime()?.block_on(serve_on_can(config, args.dry_run))
         }
         Command::Demo(_) => Err(DaemonError::Unsupported(
             "the demo needs the exocal-hil integration, not wired yet".into(),
         )),
+    }
+}
+
+fn session_config(path: Option<&Path>, args: &SessionArgs) -> Result<Config, DaemonError> {
+    let (mut config, source) = resolve_config(path, Path::new(SYSTEM_CONFIG))?;
+    apply_overrides(&mut config, args);
+    eprintln!("exocald: configuration from {source}");
+    require_interface(&config.interface)?;
+    Ok(config)
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime, DaemonError> {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(|source| DaemonError::Io {
+            what: "starting the async runtime".into(),
+            source,
+        })
+}
+
+/// The wall clock as a bus clock (SocketCAN timestamps are wall-clock time).
+pub fn wall_clock() -> Clock {
+    Arc::new(|| {
+        SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .unwrap_or_default()
+    })
+}
+
+/// A flag raised by SIGTERM or SIGINT; [`Shutdown::wait`] completes once it is.
+#[derive(Clone)]
+pub struct Shutdown(tokio::sync::watch::Receiver<bool>);
+
+impl Shutdown {
+    /// Installs the signal handlers (inside a runtime).
+    pub fn on_signals() -> Shutdown {
+        let (tx, rx) = tokio::sync::watch::channel(false);
+        tokio::spawn(async move {
+            let term = async {
+                match signal(SignalKind::terminate()) {
+                    Ok(mut s) => {
+                        s.recv().await;
+                    }
+                    Err(_) => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                () = term => {}
+            }
+            let _ = tx.send(true);
+        });
+        Shutdown(rx)
+    }
+
+    /// A flag raised by hand (tests, the demo).
+    pub fn manual() -> (tokio::sync::watch::Sender<bool>, Shutdown) {
+        let (tx, rx) = tokio::sync::watch::channel(false);
+        (tx, Shutdown(rx))
+    }
+
+    /// Completes when the flag is raised.
+    pub fn wait(&self) -> impl std::future::Future<Output = ()> + use<> {
+        let mut rx = self.0.clone();
+        async move {
+            while !*rx.borrow_and_update() {
+                if rx.changed().await.is_err() {
+                    std::future::pending::<()>().await;
+                }
+            }
+        }
+    }
+}
+
+fn open_can(config: &Config) -> Result<SocketCan, DaemonError> {
+    SocketCan::open(&config.interface).map_err(|e| DaemonError::Interface {
+        name: config.interface.clone(),
+        reason: e.to_string(),
+    })
+}
+
+/// Prints what a session did, to stdout (one line per fact).
+pub fn print_summary(summary: &SessionSummary) {
+    println!("log: {}", summary.log_path.display());
+    let f = &summary.frames;
+    println!(
+        "frames: {} received, {} unknown, {} malformed, {} invalid angles",
+        f.received, f.unknown, f.malformed, f.invalid_angles
+    );
+    println!(
+        "aligned samples: {} ({} grid points excluded as gaps)",
+        summary.aligned_samples, summary.gaps
+    );
+    for c in &summary.clocks {
+        println!(
+            "clock {}: skew {} ppm, {} jump(s), {} samples excluded",
+            c.node,
+            c.skew_ppm
+                .map_or_else(|| "?".into(), |s| format!("{s:+.1}")),
+            c.jumps,
+            c.unmapped
+        );
+    }
+    if let Some(o) = &summary.outcome {
+        let v = &o.verdict;
+        println!(
+            "held-out mean pose error: nominal {:.4e}, calibrated {:.4e} ({:.1}% better); condition number {:.3e}",
+            v.nominal.mean_error,
+            v.candidate.mean_error,
+            v.improvement * 100.0,
+            v.condition_number
+        );
+        for reason in &v.reasons {
+            println!("refused: {reason}");
+        }
+    }
+    if let Some(p) = &summary.push {
+        for line in p.lines() {
+            println!("push {line}");
+        }
+    }
+}
+
+/// `exocald calibrate`: one session on the configured CAN interface.
+pub async fn calibrate_on_can(config: Config, dry_run: bool) -> Result<(), DaemonError> {
+    let shutdown = Shutdown::on_signals();
+    let mut bus = open_can(&config)?;
+    let mut notifier = Notifier::from_env();
+    let mut reporter = Reporter::detect(&notifier);
+    let clock = wall_clock();
+    let result = run_session(
+        &mut bus,
+        &clock,
+        &config,
+        dry_run,
+        shutdown.wait(),
+        &mut notifier,
+        &mut reporter,
+    )
+    .await;
+    finish(result)
+}
+
+/// Prints the summary of a session result and returns its error.
+pub fn finish(result: Result<SessionSummary, SessionError>) -> Result<(), DaemonError> {
+    match result {
+        Ok(summary) => {
+            print_summary(&summary);
+            Ok(())
+        }
+        Err(SessionError { error, summary }) => {
+            if let Some(s) = summary {
+                print_summary(&s);
+            }
+            Err(error)
+        }
+    }
+}
+
+/// `exocald run`: wait for a `Trigger` frame (StartCalibration) or SIGUSR1, run a session,
+/// and wait again, until SIGTERM/SIGINT.
+pub async fn serve_on_can(config: Config, dry_run: bool) -> Result<(), DaemonError> {
+    const IDLE: &str = "idle: waiting for a trigger (CAN Trigger frame or SIGUSR1)";
+    let shutdown = Shutdown::on_signals();
+    let mut bus = open_can(&config)?;
+    let mut notifier = Notifier::from_env();
+    let mut reporter = Reporter::detect(&notifier);
+    let clock = wall_clock();
+    let mut usr1 = signal(SignalKind::user_defined1()).map_err(|source| DaemonError::Io {
+        what: "installing the SIGUSR1 handler".into(),
+        source,
+    })?;
+    let started = std::time::Instant::now();
+    let mut tick = tokio::time::interval(crate::runner::TICK);
+    notifier.ready(IDLE);
+    let stop = shutdown.wait();
+    tokio::pin!(stop);
+    loop {
+        let trigger = tokio::select! {
+            () = &mut stop => return Ok(()),
+            _ = usr1.recv() => true,
+            rx = bus.recv() => {
+                let rx = rx.map_err(|e| DaemonError::Io {
+                    what: "receiving CAN".into(),
+                    source: std::io::Error::other(e.to_string()),
+                })?;
+                matches!(
+                    exocal_dbc::decode_frame(&rx.frame),
+                    Ok(exocal_dbc::Message::Trigger(exocal_dbc::TriggerCommand::StartCalibration))
+                )
+            }
+            _ = tick.tick() => {
+                notifier.watchdog(started.elapsed());
+                false
+            }
+        };
+        if !trigger {
+            continue;
+        }
+        reporter.message("trigger received: starting a session");
+        let result = run_session(
+            &mut bus,
+            &clock,
+            &config,
+            dry_run,
+            shutdown.wait(),
+            &mut notifier,
+            &mut reporter,
+        )
+        .await;
+        match finish(result) {
+            Ok(()) => {}
+            Err(DaemonError::Interrupted) => return Err(DaemonError::Interrupted),
+            Err(e) => reporter.message(&format!("session failed: {e}")),
+        }
+        notifier.status(IDLE);
     }
 }
 

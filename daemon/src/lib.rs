@@ -12,6 +12,7 @@
 //! | [`calibrate`] | LS, then drift EM, then validation, on aligned samples (pure) |
 //! | [`validate`] | bounds, condition number and held-out accuracy before any push |
 //! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
+//! | [`runner`] | one session on any transport: collect, align, calibrate, validate, push, log |
 //! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
 //! | [`app`] | what each subcommand does |
 
@@ -25,5 +26,6 @@ pub mod ingest;
 pub mod mcaplog;
 pub mod push;
 pub mod report;
+pub mod runner;
 pub mod session;
 pub mod validate;

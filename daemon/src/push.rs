@@ -79,8 +79,20 @@ impl PushReport {
     }
 }
 
-/// Frames seen or sent during the push, for the log: `(sent, frame, time)`.
-pub type FrameSink<'a> = dyn FnMut(bool, &Frame, Duration) + 'a;
+/// Watches the push: every frame sent or received (for the log) and every loop turn (to feed
+/// the watchdog and flush the log while waiting on slow nodes).
+pub trait PushObserver {
+    /// A frame sent (`sent`) or received, at bus time `t`.
+    fn frame(&mut self, sent: bool, frame: &Frame, t: Duration);
+    /// One turn of the push loop (at least every few milliseconds).
+    fn tick(&mut self) {}
+}
+
+impl<F: FnMut(bool, &Frame, Duration)> PushObserver for F {
+    fn frame(&mut self, sent: bool, frame: &Frame, t: Duration) {
+        self(sent, frame, t)
+    }
+}
 
 struct Job {
     node: NodeId,
@@ -100,14 +112,14 @@ fn micros(d: Duration) -> u64 {
 }
 
 /// Pushes `tables` to their nodes; `first_session` numbers the transfer sessions (incremented
-/// per upload, mod 256). Frames that are not table replies are passed to `sink` like all others.
+/// per upload, mod 256). Every frame sent or received goes to `observer`.
 pub async fn push_tables<T: Transport>(
     bus: &mut T,
     clock: &Clock,
     tables: &[(NodeId, Table)],
     policy: &PushPolicy,
     first_session: u8,
-    sink: &mut FrameSink<'_>,
+    observer: &mut dyn PushObserver,
 ) -> Result<PushReport, exocal_bus::BusError> {
     let retry = RetryPolicy {
         timeout_us: policy.timeout_ms * 1000,
@@ -145,7 +157,7 @@ pub async fn push_tables<T: Transport>(
                 // the upload times out and is reported, never panics.
                 if let Ok(frame) = Message::TableCmd(cmd).to_frame::<Frame>() {
                     bus.send(&frame).await?;
-                    sink(true, &frame, now);
+                    observer.frame(true, &frame, now);
                 }
             }
             if let Some(result) = up.outcome() {
@@ -168,12 +180,13 @@ pub async fn push_tables<T: Transport>(
                 }
             }
         }
+        observer.tick();
         if jobs.iter().all(|j| j.done) {
             break;
         }
         // Wait a little for replies (real time; the logic runs on the bus clock).
         match tokio::time::timeout(Duration::from_millis(1), bus.recv()).await {
-            Ok(Ok(rx)) => on_received(&rx, &mut jobs, sink),
+            Ok(Ok(rx)) => on_received(&rx, &mut jobs, observer),
             Ok(Err(e)) => return Err(e),
             Err(_) => {}
         }
@@ -205,8 +218,8 @@ pub async fn push_tables<T: Transport>(
     })
 }
 
-fn on_received(rx: &Received, jobs: &mut [Job], sink: &mut FrameSink<'_>) {
-    sink(false, &rx.frame, rx.timestamp);
+fn on_received(rx: &Received, jobs: &mut [Job], observer: &mut dyn PushObserver) {
+    observer.frame(false, &rx.frame, rx.timestamp);
     if let Ok(Message::TableReply(reply)) = exocal_dbc::decode_frame(&rx.frame) {
         for job in jobs.iter_mut().filter(|j| j.node == reply.node) {
             if let Some(up) = job.upload.as_mut() {

@@ -1,0 +1,536 @@
+//! One calibration session on any transport: collect → align → calibrate → validate → push,
+//! with the MCAP log written throughout.
+//!
+//! Contract:
+//! - [`run_session`] owns the session's log: it is created first and finished on every path
+//!   (success, refusal, error, shutdown), so a session always leaves a readable file;
+//! - nothing is pushed unless the calibration passed validation, the session was not
+//!   interrupted, and `dry_run` is off; a shutdown (the `shutdown` future completing) before the
+//!   push starts ends the session with [`DaemonError::Interrupted`]; once started, the push runs
+//!   to its end (it is bounded by the push policy, and every node transfer is atomic);
+//! - session time (durations, push timeouts) is the bus clock, so a simulated suit at any speed
+//!   sees the same behaviour; the watchdog and the log's flush cadence use real time;
+//! - the heavy calibration runs on a blocking thread while the loop keeps draining (and
+//!   logging) the bus, feeding the watchdog and flushing the log.
+
+use std::future::Future;
+use std::io::{BufWriter, Write};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use exocal_bus::{Clock, Frame, Received, Transport};
+use exocal_dbc::table::Table;
+use exocal_dbc::NodeId;
+use serde::Serialize;
+
+use crate::align::AlignParams;
+use crate::calibrate::{self, Outcome};
+use crate::config::{Config, JOINTS};
+use crate::exit::DaemonError;
+use crate::ingest::{ClockReport, Event, FrameStats, Ingest};
+use crate::mcaplog::{CanFrameRecord, Counts, Level, LogError, SessionLog, Transform};
+use crate::push::{push_tables, PushObserver, PushReport};
+use crate::report::{Notifier, Reporter};
+use crate::session::{Phase, Session};
+
+/// Real time between two turns of the housekeeping tick.
+pub const TICK: Duration = Duration::from_millis(100);
+/// Rate (Hz) at which the arm's frames are written to `/tf` for Foxglove.
+pub const TF_HZ: f64 = 20.0;
+
+/// What a session did (also when it failed: see [`SessionError`]).
+#[derive(Debug, Clone, Serialize)]
+pub struct SessionSummary {
+    pub log_path: PathBuf,
+    pub log_counts: Vec<(String, u64)>,
+    pub frames: FrameStats,
+    pub clocks: Vec<ClockReport>,
+    pub aligned_samples: usize,
+    pub gaps: usize,
+    pub outcome: Option<Outcome>,
+    pub push: Option<PushReport>,
+}
+
+/// A failed session: why, and what it did up to then (the log is finished).
+#[derive(Debug)]
+pub struct SessionError {
+    pub error: DaemonError,
+    pub summary: Option<SessionSummary>,
+}
+
+impl From<DaemonError> for SessionError {
+    fn from(error: DaemonError) -> Self {
+        SessionError {
+            error,
+            summary: None,
+        }
+    }
+}
+
+fn io_err(what: &str, e: LogError) -> DaemonError {
+    DaemonError::Io {
+        what: what.to_string(),
+        source: match e {
+            LogError::Io(e) => e,
+            other => std::io::Error::other(other.to_string()),
+        },
+    }
+}
+
+fn ns(d: Duration) -> u64 {
+    d.as_nanos().min(u128::from(u64::MAX)) as u64
+}
+
+fn record(frame: &Frame, t: Duration) -> CanFrameRecord {
+    use exocal_bus::embedded_can::Frame as _;
+    CanFrameRecord {
+        id: frame.raw_id(),
+        extended: frame.is_extended(),
+        dlc: frame.dlc() as u8,
+        data: frame.data().to_vec(),
+        host_ns: ns(t),
+        kernel_ns: Some(ns(t)),
+    }
+}
+
+/// The log, the notifier and the reporter, and the real-time start, bundled for the loop.
+struct Io<'a> {
+    log: SessionLog<BufWriter<std::fs::File>>,
+    notifier: &'a mut Notifier,
+    reporter: &'a mut Reporter,
+    started: Instant,
+    log_error: Option<LogError>,
+}
+
+impl Io<'_> {
+    /// Remembers the first log error (the session then ends with it) and carries on.
+    fn check(&mut self, r: Result<(), LogError>) {
+        if let Err(e) = r {
+            self.log_error.get_or_insert(e);
+        }
+    }
+
+    fn housekeeping(&mut self) {
+        let now = self.started.elapsed();
+        let r = self.log.tick(ns(now)).map(|_| ());
+        self.check(r);
+        self.notifier.watchdog(now);
+    }
+
+    fn event(&mut self, t: Duration, level: Level, message: &str) {
+        if level >= Level::Warning {
+            self.reporter.message(message);
+        }
+        let r = self.log.event(ns(t), level, message);
+        self.check(r);
+    }
+
+    fn frame(&mut self, sent: bool, frame: &Frame, t: Duration) {
+        let r = self.log.can_frame(sent, &record(frame, t));
+        self.check(r);
+    }
+}
+
+impl PushObserver for Io<'_> {
+    fn frame(&mut self, sent: bool, frame: &Frame, t: Duration) {
+        Io::frame(self, sent, frame, t);
+    }
+
+    fn tick(&mut self) {
+        self.housekeeping();
+    }
+}
+
+/// Logs one received frame and feeds it to ingest and the session.
+fn take_frame(rx: &Received, ingest: &mut Ingest, session: &mut Session, io: &mut Io<'_>) {
+    io.frame(false, &rx.frame, rx.timestamp);
+    let t = ns(rx.timestamp);
+    match ingest.on_frame(rx) {
+        Event::Joint {
+            joint,
+            node_timestamp_us,
+            angle,
+            rate,
+        } => {
+            session.joint_sample(joint, angle);
+            let r = io
+                .log
+                .joint_state(t, joint + 1, node_timestamp_us, angle, rate);
+            io.check(r);
+        }
+        Event::Pose(p) => {
+            session.pose_sample();
+            let pose = Transform {
+                translation: p.position,
+                rotation_wxyz: p.quat,
+            };
+            let r = io.log.ee_pose(t, &pose);
+            io.check(r);
+        }
+        Event::Unknown(e) | Event::Malformed(e) => {
+            // The first few are worth a line each; the counters carry the rest.
+            let s = ingest.stats();
+            if s.unknown + s.malformed <= 10 {
+                io.event(rx.timestamp, Level::Warning, &format!("bad frame: {e}"));
+            }
+        }
+        Event::Message(_) | Event::Partial => {}
+    }
+}
+
+/// The arm's link frames for Foxglove, from `table` at joint angles `q`.
+fn arm_transforms(table: &calib_core::DhTable<JOINTS>, q: &[f64; JOINTS]) -> Vec<Transform> {
+    table
+        .rows
+        .iter()
+        .zip(q)
+        .map(|(row, &qi)| {
+            let f = row.transform(qi);
+            let rot = nalgebra::UnitQuaternion::from_rotation_matrix(
+                &nalgebra::Rotation3::from_matrix(&f.r),
+            );
+            Transform {
+                translation: [f.p.x, f.p.y, f.p.z],
+                rotation_wxyz: [rot.w, rot.i, rot.j, rot.k],
+            }
+        })
+        .collect()
+}
+
+/// Node tables to push, from the calibrated rows.
+pub fn node_tables(outcome: &Outcome, config: &Config) -> Result<Vec<(NodeId, Table)>, String> {
+    outcome
+        .node_rows
+        .iter()
+        .enumerate()
+        .map(|(i, r)| {
+            let node = NodeId::new(config.joint_nodes[i])
+                .ok_or_else(|| format!("joint {}: no node id", i + 1))?;
+            let table = Table::from_si(r.a, r.alpha, r.d, r.theta_offset, r.tau, r.sigma)
+                .map_err(|e| format!("{node}: the table does not fit the DBC: {e}"))?;
+            Ok((node, table))
+        })
+        .collect()
+}
+
+/// Runs one session on `bus` (see the module docs). `clock` is the bus clock.
+pub async fn run_session<T: Transport>(
+    bus: &mut T,
+    clock: &Clock,
+    config: &Config,
+    dry_run: bool,
+    shutdown: impl Future<Output = ()>,
+    notifier: &mut Notifier,
+    reporter: &mut Reporter,
+) -> Result<SessionSummary, SessionError> {
+    let start = clock();
+    let flush_ns = (config.output.flush_interval_s * 1e9) as u64;
+    let (log_path, log) = SessionLog::create_in(&config.output.directory, ns(start), flush_ns)
+        .map_err(|e| {
+            io_err(
+                &format!("creating the log in {}", config.output.directory.display()),
+                e,
+            )
+        })?;
+    let mut io = Io {
+        log,
+        notifier,
+        reporter,
+        started: Instant::now(),
+        log_error: None,
+    };
+    io.reporter
+        .message(&format!("logging to {}", log_path.display()));
+    io.event(
+        start,
+        Level::Info,
+        &format!("session started on {}", config.interface),
+    );
+    io.notifier.ready("collecting free motion");
+    io.housekeeping();
+
+    let mut summary = SessionSummary {
+        log_path,
+        log_counts: Vec::new(),
+        frames: FrameStats::default(),
+        clocks: Vec::new(),
+        aligned_samples: 0,
+        gaps: 0,
+        outcome: None,
+        push: None,
+    };
+    let result = session_body(
+        bus,
+        clock,
+        config,
+        dry_run,
+        shutdown,
+        &mut io,
+        &mut summary,
+        start,
+    )
+    .await;
+    io.reporter.finish();
+    if let Err(e) = &result {
+        io.event(clock(), Level::Error, &e.to_string());
+    }
+    io.notifier.stopping();
+    let counts: Counts = io.log.counts();
+    let log_error = io.log_error.take();
+    let finished = io.log.finish();
+    summary.log_counts = counts
+        .iter()
+        .map(|(t, n)| (t.name().to_string(), *n))
+        .collect();
+    let result = match (result, log_error, finished) {
+        (Err(e), _, _) => Err(e),
+        (Ok(()), Some(e), _) | (Ok(()), None, Err(e)) => Err(io_err("writing the log", e)),
+        (Ok(()), None, Ok(_)) => Ok(()),
+    };
+    match result {
+        Ok(()) => Ok(summary),
+        Err(error) => Err(SessionError {
+            error,
+            summary: Some(summary),
+        }),
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+async fn session_body<T: Transport>(
+    bus: &mut T,
+    clock: &Clock,
+    config: &Config,
+    dry_run: bool,
+    shutdown: impl Future<Output = ()>,
+    io: &mut Io<'_>,
+    summary: &mut SessionSummary,
+    start: Duration,
+) -> Result<(), DaemonError> {
+    tokio::pin!(shutdown);
+    let mut ingest = Ingest::new(config.joint_nodes);
+    let mut session = Session::new(config.session.clone(), config.bounds.joint_range);
+    let mut tick = tokio::time::interval(TICK);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let required = config.session.excitation_required;
+
+    // 1. Collect.
+    loop {
+        tokio::select! {
+            biased;
+            () = &mut shutdown => {
+                summary.frames = ingest.stats().clone();
+                return Err(DaemonError::Interrupted);
+            }
+            rx = bus.recv() => {
+                let rx = rx.map_err(|e| DaemonError::Io { what: "receiving CAN".into(), source: std::io::Error::other(e.to_string()) })?;
+                take_frame(&rx, &mut ingest, &mut session, io);
+            }
+            _ = tick.tick() => {
+                io.housekeeping();
+                let elapsed = (clock().saturating_sub(start)).as_secs_f64();
+                let progress = session.progress(elapsed);
+                io.reporter.update(&progress, required, io.notifier);
+                let r = io.log.write(crate::mcaplog::Topic::Progress, ns(clock()), &progress);
+                io.check(r);
+                match session.phase(elapsed) {
+                    Phase::Collecting => {}
+                    Phase::Ready => break,
+                    Phase::Failed(why) => {
+                        summary.frames = ingest.stats().clone();
+                        return Err(DaemonError::Session(why.join("; ")));
+                    }
+                }
+            }
+        }
+        if let Some(e) = io.log_error.take() {
+            return Err(io_err("writing the log", e));
+        }
+    }
+    summary.frames = ingest.stats().clone();
+    let s = ingest.stats();
+    io.event(
+        clock(),
+        Level::Info,
+        &format!(
+            "collection done: {} frames ({} unknown, {} malformed, {} invalid angles, {} dropped by the receiver)",
+            s.received,
+            s.unknown,
+            s.malformed,
+            s.invalid_angles,
+            bus.dropped()
+        ),
+    );
+
+    // 2. Align.
+    let (aligned, clocks) = ingest.align(
+        &AlignParams::default(),
+        config.session.grid_hz,
+        config.session.max_gap_s,
+    );
+    summary.clocks = clocks;
+    summary.aligned_samples = aligned.samples.len();
+    summary.gaps = aligned.gaps;
+    for c in &summary.clocks {
+        if c.jumps > 0 || c.unmapped > 0 {
+            let line = format!(
+                "{}: {} clock jump(s)/reboot(s), {} samples excluded",
+                c.node, c.jumps, c.unmapped
+            );
+            io.event(clock(), Level::Warning, &line);
+        }
+    }
+    let origin = ingest.origin().unwrap_or(start);
+    for s in &aligned.samples {
+        let t = ns(origin + Duration::from_secs_f64(s.t.max(0.0)));
+        let r = io.log.aligned(t, s);
+        io.check(r);
+    }
+    io.event(
+        clock(),
+        Level::Info,
+        &format!(
+            "aligned {} samples on a {} Hz grid, {} grid points excluded as gaps",
+            aligned.samples.len(),
+            config.session.grid_hz,
+            aligned.gaps
+        ),
+    );
+
+    // 3. Calibrate on a blocking thread; keep the bus drained and the watchdog fed.
+    io.notifier.status("calibrating");
+    io.reporter.message("calibrating (least squares, then EM)");
+    let samples = aligned.samples.clone();
+    let cfg = config.clone();
+    let job = tokio::task::spawn_blocking(move || calibrate::run(&samples, &cfg));
+    tokio::pin!(job);
+    let outcome = loop {
+        tokio::select! {
+            biased;
+            () = &mut shutdown => return Err(DaemonError::Interrupted),
+            done = &mut job => break done,
+            rx = bus.recv() => {
+                if let Ok(rx) = rx {
+                    take_frame(&rx, &mut ingest, &mut session, io);
+                }
+            }
+            _ = tick.tick() => io.housekeeping(),
+        }
+    };
+    let outcome = outcome
+        .map_err(|e| DaemonError::Unsupported(format!("calibration task failed: {e}")))?
+        .map_err(|e| DaemonError::Session(e.to_string()))?;
+    summary.frames = ingest.stats().clone();
+
+    // The arm for Foxglove, on the calibrated table.
+    let calibrated = calib_core::DhTable {
+        rows: std::array::from_fn(|i| {
+            let r = outcome.node_rows[i];
+            calib_core::DhRow {
+                a: r.a,
+                alpha: r.alpha,
+                d: r.d,
+                theta_offset: r.theta_offset,
+            }
+        }),
+    };
+    let step = ((config.session.grid_hz / TF_HZ).round() as usize).max(1);
+    for s in aligned.samples.iter().step_by(step) {
+        let t = ns(origin + Duration::from_secs_f64(s.t.max(0.0)));
+        let r = io
+            .log
+            .arm_transforms(t, &arm_transforms(&calibrated, &s.joints));
+        io.check(r);
+    }
+    let report = serde_json::json!({
+        "outcome": &outcome,
+        "frames": &summary.frames,
+        "clocks": &summary.clocks,
+        "aligned_samples": summary.aligned_samples,
+        "gaps": summary.gaps,
+    });
+    let r = io
+        .log
+        .write(crate::mcaplog::Topic::Calibration, ns(clock()), &report);
+    io.check(r);
+    let v = &outcome.verdict;
+    io.event(
+        clock(),
+        Level::Info,
+        &format!(
+            "held-out pose error {:.3e} → {:.3e} ({:.1}% better than nominal), condition number {:.3e}",
+            v.nominal.mean_error,
+            v.candidate.mean_error,
+            v.improvement * 100.0,
+            v.condition_number
+        ),
+    );
+    let accepted = v.accepted();
+    let reasons = v.reasons.clone();
+    summary.outcome = Some(outcome);
+    if !accepted {
+        return Err(DaemonError::Validation(reasons));
+    }
+    if dry_run {
+        io.event(clock(), Level::Info, "dry run: nothing pushed");
+        return Ok(());
+    }
+    if let Some(e) = io.log_error.take() {
+        return Err(io_err("writing the log", e));
+    }
+    // Last chance to stop before touching the nodes.
+    if futures_ready(&mut shutdown) {
+        return Err(DaemonError::Interrupted);
+    }
+
+    // 4. Push.
+    let outcome = summary.outcome.as_ref().ok_or(DaemonError::Interrupted)?;
+    let tables = node_tables(outcome, config).map_err(|e| DaemonError::Validation(vec![e]))?;
+    io.notifier.status("pushing tables");
+    io.reporter.message("pushing the tables to the nodes");
+    let first_session = (ns(start) / 1_000_000 % 251) as u8;
+    let report = push_tables(bus, clock, &tables, &config.push, first_session, io)
+        .await
+        .map_err(|e| DaemonError::Io {
+            what: "pushing tables".into(),
+            source: std::io::Error::other(e.to_string()),
+        })?;
+    for line in report.lines() {
+        io.event(clock(), Level::Info, &line);
+    }
+    let r = io
+        .log
+        .write(crate::mcaplog::Topic::Calibration, ns(clock()), &report);
+    io.check(r);
+    let complete = report.complete();
+    let failed: Vec<String> = report
+        .lines()
+        .into_iter()
+        .zip(&report.nodes)
+        .filter(|(_, n)| n.holds != crate::push::Holds::New)
+        .map(|(l, _)| l)
+        .collect();
+    summary.push = Some(report);
+    if !complete {
+        return Err(DaemonError::Push(failed.join("; ")));
+    }
+    io.event(
+        clock(),
+        Level::Info,
+        "every node holds its new table (CRC read back)",
+    );
+    Ok(())
+}
+
+/// Whether a pinned future is already complete (polled once, without waiting).
+fn futures_ready<F: Future<Output = ()>>(f: &mut std::pin::Pin<&mut F>) -> bool {
+    let waker = std::task::Waker::noop();
+    let mut cx = std::task::Context::from_waker(waker);
+    f.as_mut().poll(&mut cx).is_ready()
+}
+
+/// Writes `summary` as pretty JSON to `out` (for `--report`).
+pub fn write_summary(summary: &SessionSummary, out: &mut impl Write) -> std::io::Result<()> {
+    serde_json::to_writer_pretty(&mut *out, summary)?;
+    writeln!(out)
+}
