@@ -10,7 +10,8 @@
 //!   the bus capacity behind loses the newest frames (as a full socket buffer would) and
 //!   counts them in [`Transport::dropped`].
 //! - `SocketCan` (feature `socketcan`): a raw CAN socket with an 8 MiB receive buffer, kernel
-//!   receive timestamps (`SO_TIMESTAMPNS`) and the kernel's drop counter (`SO_RXQ_OVFL`).
+//!   receive timestamps (`SO_TIMESTAMPNS`) and the kernel's drop counter (`SO_RXQ_OVFL`); it
+//!   sends and receives in batches (`sendmmsg`/`recvmmsg`), one system call per up to 64 frames.
 //!
 //! Both `recv` futures are cancel-safe, so they can sit in a `tokio::select!` next to a timer.
 
@@ -156,6 +157,15 @@ impl From<std::io::Error> for BusError {
 pub trait Transport: Send {
     /// Sends one frame.
     fn send(&mut self, frame: &Frame) -> impl Future<Output = Result<(), BusError>> + Send;
+    /// Sends frames in order; transports that can batch (SocketCAN: `sendmmsg`) do.
+    fn send_all(&mut self, frames: &[Frame]) -> impl Future<Output = Result<(), BusError>> + Send {
+        async move {
+            for f in frames {
+                self.send(f).await?;
+            }
+            Ok(())
+        }
+    }
     /// Waits for the next frame sent by someone else. Cancel-safe.
     fn recv(&mut self) -> impl Future<Output = Result<Received, BusError>> + Send;
     /// Frames lost by this receiver so far (receive queue overflow).

@@ -5,11 +5,14 @@
 //! the kernel's software receive timestamp (`SO_TIMESTAMPNS`, wall clock), falling back to the
 //! time of the read when the kernel sends none; [`Transport::dropped`] is the kernel's count of
 //! frames dropped on this socket for lack of buffer space (`SO_RXQ_OVFL`). CAN error frames are
-//! not delivered (the socket's error mask is empty by default).
+//! not delivered (the socket's error mask is empty by default). Frames move in batches of up
+//! to 64 per system call (`recvmmsg`, `sendmmsg`); a full interface queue (`ENOBUFS`) is waited
+//! out for up to about a second before it is reported.
 
 use crate::{wall_clock, BusError, Frame, Received, Transport};
 use embedded_can::{ExtendedId, Frame as _, Id, StandardId};
-use socketcan::{CanFrame, Socket, SocketOptions};
+use socketcan::{Socket, SocketOptions};
+use std::collections::VecDeque;
 use std::os::fd::AsRawFd;
 use std::time::Duration;
 use tokio::io::unix::AsyncFd;
@@ -21,6 +24,8 @@ pub const RCVBUF_BYTES: i32 = 8 << 20;
 /// A SocketCAN interface (`can0`, `vcan0`, …).
 pub struct SocketCan {
     fd: AsyncFd<socketcan::CanSocket>,
+    /// Frames read by the last `recvmmsg` and not yet returned (keeps `recv` cancel-safe).
+    pending: VecDeque<RawRx>,
     dropped: u64,
     iface: String,
 }
@@ -59,6 +64,7 @@ impl SocketCan {
         let fd = unsafe { AsyncFd::register(sock) }.map_err(|e| BusError::Io(e.into()))?;
         Ok(SocketCan {
             fd,
+            pending: VecDeque::new(),
             dropped: 0,
             iface: iface.to_string(),
         })
@@ -95,6 +101,11 @@ fn getsockopt_rcvbuf(fd: i32) -> std::io::Result<usize> {
     Ok(val as usize)
 }
 
+/// Frames per `recvmmsg`/`sendmmsg` call.
+const BATCH: usize = 64;
+/// Control buffer per message: room for a timespec and a u32 control message, 8-byte aligned.
+const CONTROL_WORDS: usize = 16;
+
 /// One raw frame, its timestamp and the drop counter if the kernel sent them.
 struct RawRx {
     frame: [u8; 16],
@@ -102,58 +113,110 @@ struct RawRx {
     overflow: Option<u32>,
 }
 
-/// `recvmsg` of one `struct can_frame` with its control messages.
-fn recv_raw(fd: i32) -> std::io::Result<RawRx> {
-    let mut frame = [0u8; 16];
-    // Room for a timespec and a u32 control message, 8-byte aligned.
-    let mut control = [0u64; 16];
-    let mut iov = libc::iovec {
-        iov_base: frame.as_mut_ptr().cast(),
-        iov_len: frame.len(),
-    };
-    // SAFETY (whole block): `msghdr` is plain data and all-zero is a valid value; the pointers
-    // stored in it refer to `iov`, `frame` and `control`, which outlive the `recvmsg` call; the
-    // CMSG_* macros walk only the `msg_controllen` bytes the kernel wrote into `control`, and each
-    // payload is read unaligned with the size the kernel documents for its type.
+/// `recvmmsg` of up to [`BATCH`] `struct can_frame`s with their control messages, appended to
+/// `out`; `WouldBlock` when none is waiting.
+fn recv_batch(fd: i32, out: &mut VecDeque<RawRx>) -> std::io::Result<usize> {
+    let mut frames = [[0u8; 16]; BATCH];
+    let mut control = [[0u64; CONTROL_WORDS]; BATCH];
+    // SAFETY (whole block): `iovec` and `mmsghdr` are plain data and all-zero is a valid value;
+    // every pointer stored in them refers to `frames` or `control`, which outlive the
+    // `recvmmsg` call and are not otherwise accessed during it; the CMSG_* macros walk only the
+    // `msg_controllen` bytes the kernel wrote into each control buffer, and each payload is read
+    // unaligned with the size the kernel documents for its type.
     #[allow(unsafe_code)]
     unsafe {
-        let mut msg: libc::msghdr = std::mem::zeroed();
-        msg.msg_iov = &mut iov;
-        msg.msg_iovlen = 1;
-        msg.msg_control = control.as_mut_ptr().cast();
-        msg.msg_controllen = std::mem::size_of_val(&control) as _;
-        let n = libc::recvmsg(fd, &mut msg, libc::MSG_DONTWAIT);
+        let mut iovs: [libc::iovec; BATCH] = std::mem::zeroed();
+        let mut hdrs: [libc::mmsghdr; BATCH] = std::mem::zeroed();
+        for i in 0..BATCH {
+            iovs[i] = libc::iovec {
+                iov_base: frames[i].as_mut_ptr().cast(),
+                iov_len: 16,
+            };
+            hdrs[i].msg_hdr.msg_iov = &mut iovs[i];
+            hdrs[i].msg_hdr.msg_iovlen = 1;
+            hdrs[i].msg_hdr.msg_control = control[i].as_mut_ptr().cast();
+            hdrs[i].msg_hdr.msg_controllen = std::mem::size_of_val(&control[i]) as _;
+        }
+        let n = libc::recvmmsg(
+            fd,
+            hdrs.as_mut_ptr(),
+            BATCH as u32,
+            libc::MSG_DONTWAIT,
+            std::ptr::null_mut(),
+        );
         if n < 0 {
             return Err(std::io::Error::last_os_error());
         }
-        if (n as usize) < frame.len() {
-            return Err(std::io::Error::new(
-                std::io::ErrorKind::InvalidData,
-                "short CAN frame",
-            ));
-        }
-        let mut out = RawRx {
-            frame,
-            timestamp: None,
-            overflow: None,
-        };
-        let mut cmsg = libc::CMSG_FIRSTHDR(&msg);
-        while !cmsg.is_null() {
-            let data = libc::CMSG_DATA(cmsg);
-            match ((*cmsg).cmsg_level, (*cmsg).cmsg_type) {
-                (libc::SOL_SOCKET, libc::SCM_TIMESTAMPNS) => {
-                    let ts = std::ptr::read_unaligned(data as *const libc::timespec);
-                    out.timestamp = Some(Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32));
-                }
-                (libc::SOL_SOCKET, libc::SO_RXQ_OVFL) => {
-                    out.overflow = Some(std::ptr::read_unaligned(data as *const u32));
-                }
-                _ => {}
+        for i in 0..n as usize {
+            if (hdrs[i].msg_len as usize) < 16 {
+                continue;
             }
-            cmsg = libc::CMSG_NXTHDR(&msg, cmsg);
+            let mut rx = RawRx {
+                frame: frames[i],
+                timestamp: None,
+                overflow: None,
+            };
+            let msg = &hdrs[i].msg_hdr;
+            let mut cmsg = libc::CMSG_FIRSTHDR(msg);
+            while !cmsg.is_null() {
+                let data = libc::CMSG_DATA(cmsg);
+                match ((*cmsg).cmsg_level, (*cmsg).cmsg_type) {
+                    (libc::SOL_SOCKET, libc::SCM_TIMESTAMPNS) => {
+                        let ts = std::ptr::read_unaligned(data as *const libc::timespec);
+                        rx.timestamp = Some(Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32));
+                    }
+                    (libc::SOL_SOCKET, libc::SO_RXQ_OVFL) => {
+                        rx.overflow = Some(std::ptr::read_unaligned(data as *const u32));
+                    }
+                    _ => {}
+                }
+                cmsg = libc::CMSG_NXTHDR(msg, cmsg);
+            }
+            out.push_back(rx);
         }
-        Ok(out)
+        Ok(n as usize)
     }
+}
+
+/// `sendmmsg` of raw `struct can_frame`s; returns how many the kernel took.
+fn send_batch(fd: i32, frames: &[[u8; 16]]) -> std::io::Result<usize> {
+    let n = frames.len().min(BATCH);
+    // SAFETY (whole block): as in `recv_batch`; the kernel only reads the frames, through the
+    // iovecs that point into `frames`, which outlives the call.
+    #[allow(unsafe_code)]
+    unsafe {
+        let mut iovs: [libc::iovec; BATCH] = std::mem::zeroed();
+        let mut hdrs: [libc::mmsghdr; BATCH] = std::mem::zeroed();
+        for i in 0..n {
+            iovs[i] = libc::iovec {
+                iov_base: frames[i].as_ptr() as *mut libc::c_void,
+                iov_len: 16,
+            };
+            hdrs[i].msg_hdr.msg_iov = &mut iovs[i];
+            hdrs[i].msg_hdr.msg_iovlen = 1;
+        }
+        let sent = libc::sendmmsg(fd, hdrs.as_mut_ptr(), n as u32, libc::MSG_DONTWAIT);
+        if sent < 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+        Ok(sent as usize)
+    }
+}
+
+/// [`Frame`] → `struct can_frame` bytes.
+fn raw_frame(f: &Frame) -> [u8; 16] {
+    let mut id = f.raw_id();
+    if f.is_extended() {
+        id |= libc::CAN_EFF_FLAG;
+    }
+    if f.is_remote_frame() {
+        id |= libc::CAN_RTR_FLAG;
+    }
+    let mut out = [0u8; 16];
+    out[..4].copy_from_slice(&id.to_ne_bytes());
+    out[4] = f.dlc() as u8;
+    out[8..8 + f.data().len()].copy_from_slice(f.data());
+    out
 }
 
 /// `struct can_frame` bytes → [`Frame`]; `None` for error frames.
@@ -177,40 +240,55 @@ fn parse(raw: &[u8; 16]) -> Option<Frame> {
 
 impl Transport for SocketCan {
     async fn send(&mut self, frame: &Frame) -> Result<(), BusError> {
-        let out = if frame.is_remote_frame() {
-            CanFrame::new_remote(frame.id(), frame.dlc())
-        } else {
-            CanFrame::new(frame.id(), frame.data())
+        self.send_all(std::slice::from_ref(frame)).await
+    }
+
+    async fn send_all(&mut self, frames: &[Frame]) -> Result<(), BusError> {
+        let raw: Vec<[u8; 16]> = frames.iter().map(raw_frame).collect();
+        let fd = self.fd.get_ref().as_raw_fd();
+        let (mut done, mut full) = (0, 0u32);
+        while done < raw.len() {
+            match self
+                .fd
+                .async_io(Interest::WRITABLE, |_| send_batch(fd, &raw[done..]))
+                .await
+            {
+                Ok(n) => {
+                    done += n;
+                    full = 0;
+                }
+                // The interface queue is full (CAN reports ENOBUFS rather than blocking): wait
+                // for it to drain, for up to about a second.
+                Err(e) if e.raw_os_error() == Some(libc::ENOBUFS) && full < 5000 => {
+                    full += 1;
+                    tokio::time::sleep(Duration::from_micros(200)).await;
+                }
+                Err(e) => return Err(BusError::Io(e)),
+            }
         }
-        .ok_or_else(|| {
-            BusError::Io(std::io::Error::new(
-                std::io::ErrorKind::InvalidInput,
-                "bad CAN frame",
-            ))
-        })?;
-        self.fd
-            .async_io(Interest::WRITABLE, |s| s.write_frame(&out))
-            .await?;
         Ok(())
     }
 
     async fn recv(&mut self) -> Result<Received, BusError> {
         loop {
+            if let Some(raw) = self.pending.pop_front() {
+                if let Some(total) = raw.overflow {
+                    // The kernel reports the socket's cumulative count.
+                    self.dropped = u64::from(total);
+                }
+                if let Some(frame) = parse(&raw.frame) {
+                    return Ok(Received {
+                        frame,
+                        timestamp: raw.timestamp.unwrap_or_else(wall_clock),
+                    });
+                }
+                continue;
+            }
             let fd = self.fd.get_ref().as_raw_fd();
-            let raw = self
-                .fd
-                .async_io(Interest::READABLE, |_| recv_raw(fd))
+            let pending = &mut self.pending;
+            self.fd
+                .async_io(Interest::READABLE, |_| recv_batch(fd, pending))
                 .await?;
-            if let Some(total) = raw.overflow {
-                // The kernel reports the socket's cumulative count.
-                self.dropped = u64::from(total);
-            }
-            if let Some(frame) = parse(&raw.frame) {
-                return Ok(Received {
-                    frame,
-                    timestamp: raw.timestamp.unwrap_or_else(wall_clock),
-                });
-            }
         }
     }
 
@@ -237,6 +315,13 @@ mod tests {
         assert!(parse(&raw).unwrap().is_remote_frame());
         raw[..4].copy_from_slice(&(libc::CAN_ERR_FLAG | 4).to_ne_bytes());
         assert!(parse(&raw).is_none());
+        for f in [
+            Frame::new(StandardId::new(0x7FF).unwrap(), &[9, 8, 7]).unwrap(),
+            Frame::new(ExtendedId::new(0x1ABC_DEF0).unwrap(), &[1; 8]).unwrap(),
+            Frame::new_remote(StandardId::new(0x12).unwrap(), 2).unwrap(),
+        ] {
+            assert_eq!(parse(&raw_frame(&f)), Some(f));
+        }
     }
 
     #[tokio::test]

@@ -21,8 +21,10 @@
 //! # Ok(()) }
 //! ```
 
+pub mod capture;
 pub mod clock;
 pub mod flash;
+pub mod motion;
 pub mod scenario;
 pub mod sim;
 
@@ -68,8 +70,6 @@ pub struct RunReport {
     pub simulated_s: f64,
     /// Wall-clock time taken.
     pub wall: Duration,
-    /// Send attempts that the interface refused for lack of buffer (retried).
-    pub send_retries: u64,
     /// Frames received from the bus.
     pub received: u64,
     /// Frames the transport says it dropped on receive.
@@ -83,14 +83,13 @@ impl std::fmt::Display for RunReport {
         let s = &self.stats;
         writeln!(
             f,
-            "simulated {:.3} s in {:.3} s wall ({:.1}x); frames sent {}, received {}, rx dropped {}, send retries {}",
+            "simulated {:.3} s in {:.3} s wall ({:.1}x); frames sent {}, received {}, rx dropped {}",
             self.simulated_s,
             self.wall.as_secs_f64(),
             self.simulated_s / self.wall.as_secs_f64().max(1e-9),
             s.frames_sent,
             self.received,
             self.rx_dropped,
-            self.send_retries
         )?;
         writeln!(
             f,
@@ -141,11 +140,12 @@ impl Hil {
     ) -> Result<RunReport, HilError> {
         let started = Instant::now();
         let end = self.suit.scenario().duration_s;
-        let (mut retries, mut received) = (0u64, 0u64);
+        let mut received = 0u64;
         loop {
             let now = clock.now_s().min(end);
-            for frame in self.suit.advance(now) {
-                retries += send(bus, &frame).await?;
+            let frames = self.suit.advance(now);
+            if !frames.is_empty() {
+                bus.send_all(&frames).await.map_err(HilError::Bus)?;
             }
             if now >= end {
                 break;
@@ -165,30 +165,10 @@ impl Hil {
         Ok(RunReport {
             simulated_s: end,
             wall: started.elapsed(),
-            send_retries: retries,
             received,
             rx_dropped: bus.dropped(),
             stats: self.suit.stats().clone(),
         })
-    }
-}
-
-/// Sends, retrying while the interface reports a full queue (ENOBUFS/EAGAIN); returns retries.
-async fn send<T: Transport>(bus: &mut T, frame: &exocal_bus::Frame) -> Result<u64, HilError> {
-    let mut retries = 0;
-    loop {
-        match bus.send(frame).await {
-            Ok(()) => return Ok(retries),
-            Err(BusError::Io(e))
-                if retries < 1000
-                    && (e.raw_os_error() == Some(105)
-                        || e.kind() == std::io::ErrorKind::WouldBlock) =>
-            {
-                retries += 1;
-                tokio::time::sleep(Duration::from_micros(200)).await;
-            }
-            Err(e) => return Err(HilError::Bus(e)),
-        }
     }
 }
 

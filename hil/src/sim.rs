@@ -6,20 +6,23 @@
 //! nodes (table transfers). Nothing here reads a clock: time is always an argument.
 //!
 //! Physics: the true joint angles follow a smooth random motion inside the scenario's ranges
-//! (calib-core's [`Motion`]). A joint node on link j reports `θ_j − Δθ_j + noise`, where Δθ_j is
-//! its Gauss-Markov drift stepped once per joint sample; its gyro reports the angular velocity
-//! of link j in the link frame plus a slowly drifting bias and noise; its accelerometer the
-//! specific force of the link origin (second difference of FK, plus gravity along −z of the base
-//! frame); its magnetometer a fixed earth field seen from the link frame. The end-effector node
+//! ([`Motion`], rates in closed form). A joint node on link j reports `θ_j − Δθ_j + noise` and
+//! the true rate plus noise, where Δθ_j is its Gauss-Markov drift stepped once per joint sample;
+//! its gyro reports the angular velocity of link j (`Σ z_{i−1} θ̇_i`) in the link frame plus a
+//! slowly drifting bias and noise; its accelerometer the specific force of the link origin (the
+//! second difference of its last three IMU-sample positions, so one IMU period late, plus
+//! gravity along −z of the base frame); its magnetometer a fixed earth field seen from the link
+//! frame. The end-effector node
 //! reports `FK(true table, true angles)` plus noise as a unit quaternion with w ≥ 0.
 //!
 //! Clocks: each node stamps frames with `offset + (t − boot)·(1 + skew) + jumps + jitter` in
 //! µs, wrapping at 2^32, and samples every `1/rate` of *its own* clock.
 
 use crate::flash::{self, FlashImage, NodeFlash};
+use crate::motion::{Chain, Motion};
 use crate::scenario::{Scenario, TransferBehaviour};
 use crate::HilError;
-use calib_core::{DhTable, Discretisation, Frame as Pose3, GaussMarkov, Motion, Rng};
+use calib_core::{DhTable, Discretisation, GaussMarkov, Rng};
 use exocal_bus::embedded_can::{ExtendedId, Frame as _, StandardId};
 use exocal_bus::Frame;
 use exocal_dbc::message::{
@@ -128,6 +131,8 @@ struct Node {
     bias: [f64; 3],
     bias_gm: GaussMarkov,
     pose_seq: u8,
+    /// Link origin at the last two IMU samples (time, position), for the accelerometer.
+    history: [Option<(f64, Vector3<f64>)>; 2],
     up: bool,
     boot_count: u32,
     transfer: NodeTransfer,
@@ -170,7 +175,8 @@ impl Ord for Pending {
 pub struct Suit {
     scenario: Scenario,
     arm: DhTable<7>,
-    motion: Motion<7>,
+    chain: Chain,
+    motion: Motion,
     nodes: Vec<Node>,
     events: Vec<(f64, Event)>,
     next_event: usize,
@@ -282,6 +288,7 @@ impl Suit {
                 bias,
                 bias_gm,
                 pose_seq: 0,
+                history: [None; 2],
                 up: true,
                 boot_count,
                 transfer: NodeTransfer::new(id, image.map(|i| i.table)),
@@ -311,6 +318,7 @@ impl Suit {
         };
         let babble_next = scenario.faults.babble.iter().map(|b| b.from_s).collect();
         Ok(Suit {
+            chain: Chain::new(&arm),
             arm,
             motion,
             nodes,
@@ -469,6 +477,7 @@ impl Suit {
                 n.clock.jump_us = 0.0;
                 n.clock.offset_us = 1000.0 * n.rng.uniform();
                 n.pose_seq = 0;
+                n.history = [None; 2];
                 n.rx_errors = 0;
                 n.tx_errors = 0;
                 // RAM is gone: the table comes back from flash.
@@ -492,17 +501,8 @@ impl Suit {
 
     fn stamp(&mut self, n: usize, t: f64) -> u32 {
         let node = &mut self.nodes[n];
-        let jitter = node.clock.jitter_us * node.rng.normal();
+        let jitter = gauss(&mut node.rng, node.clock.jitter_us);
         (node.clock.local_us(t) + jitter).rem_euclid(4294967296.0) as u64 as u32
-    }
-
-    /// Frames of links 1..=7 at angles `q` (index j = frame after joint j+1).
-    fn link_frames(&self, q: &[f64; 7]) -> [Pose3; 7] {
-        let mut t = Pose3::identity();
-        std::array::from_fn(|j| {
-            t = t.compose(&self.arm.rows[j].transform(q[j]));
-            t
-        })
     }
 
     fn sample(&mut self, n: usize, kind: Kind, t: f64) {
@@ -513,15 +513,13 @@ impl Suit {
         let nan_p = self.scenario.faults.nan;
         let messages: Vec<Message> = match kind {
             Kind::JointState => {
-                let q = self.motion.at(t);
-                let h = 1e-4;
-                let (qp, qm) = (self.motion.at(t + h), self.motion.at(t - h));
+                let (q, qd) = self.motion.joint(link, t);
                 let node = &mut self.nodes[n];
                 if let Some(gm) = node.gm {
                     node.drift = gm.step(node.drift, &mut node.rng);
                 }
-                let mut angle = q[link] - node.drift + noise.angle_rad * node.rng.normal();
-                let rate = (qp[link] - qm[link]) / (2.0 * h) + noise.rate_rad_s * node.rng.normal();
+                let mut angle = q - node.drift + gauss(&mut node.rng, noise.angle_rad);
+                let rate = qd + gauss(&mut node.rng, noise.rate_rad_s);
                 if nan_p > 0.0 && self.fault_rng.uniform() < nan_p {
                     angle = f64::NAN;
                     self.stats.nans += 1;
@@ -535,23 +533,29 @@ impl Suit {
                 })]
             }
             Kind::Imu => {
-                let q = self.motion.at(t);
-                let frames = self.link_frames(&q);
-                let r = frames[link].r;
+                let mut q = [0.0; 7];
+                let mut qd = [0.0; 7];
+                for j in 0..=link {
+                    (q[j], qd[j]) = self.motion.joint(j, t);
+                }
+                let frames = self.chain.frames(&q, link + 1);
+                let (r, p) = (frames[link].r, frames[link].p);
                 // Gyro: angular velocity of the link, Σ z_{i-1} q̇_i, seen from the link frame.
-                let h = 1e-4;
-                let (qp, qm) = (self.motion.at(t + h), self.motion.at(t - h));
                 let mut w = Vector3::zeros();
                 let mut z = Vector3::z();
                 for j in 0..=link {
-                    w += z * (qp[j] - qm[j]) / (2.0 * h);
+                    w += z * qd[j];
                     z = frames[j].r.column(2).into_owned();
                 }
-                // Accelerometer: specific force of the link origin (second difference of FK).
-                let h2 = 5e-3;
-                let p = |s: &Self, t: f64| s.link_frames(&s.motion.at(t))[link].p;
-                let a = (p(self, t + h2) - 2.0 * frames[link].p + p(self, t - h2)) / (h2 * h2);
                 let node = &mut self.nodes[n];
+                // Accelerometer: second difference over this node's last three IMU samples.
+                let a = match node.history {
+                    [Some((t1, p1)), Some((t2, p2))] => {
+                        2.0 * ((p - p1) / (t - t1) - (p1 - p2) / (t1 - t2)) / (t - t2)
+                    }
+                    _ => Vector3::zeros(),
+                };
+                node.history = [Some((t, p)), node.history[0]];
                 for b in node.bias.iter_mut() {
                     *b = node.bias_gm.step(*b, &mut node.rng);
                 }
@@ -581,7 +585,7 @@ impl Suit {
                     let node = &mut self.nodes[n];
                     for x in v.iter_mut() {
                         // Sensors saturate at their full scale.
-                        *x = (*x + sd * node.rng.normal()).clamp(-max, max);
+                        *x = (*x + gauss(&mut node.rng, sd)).clamp(-max, max);
                     }
                     let mut xyz = [v.x, v.y, v.z];
                     if nan_p > 0.0 && self.fault_rng.uniform() < nan_p {
@@ -598,7 +602,7 @@ impl Suit {
             }
             Kind::Pose => {
                 let q = self.motion.at(t);
-                let mut pose = self.arm.fk(&q);
+                let mut pose = self.chain.frames(&q, 7)[6];
                 let node = &mut self.nodes[n];
                 let (sp, sr) = (noise.pose_position_m, noise.pose_rotation_rad);
                 if sp > 0.0 {
@@ -791,6 +795,16 @@ impl Suit {
                 .expect("replies are always encodable");
             self.emit(t_s + REPLY_LATENCY_S + i as f64 * 20e-6, frame);
         }
+    }
+}
+
+/// A normal draw of deviation `sd`; no draw at all when `sd` is 0 (cheaper, and switching a
+/// noise off leaves the other random streams as they were).
+fn gauss(rng: &mut Rng, sd: f64) -> f64 {
+    if sd > 0.0 {
+        sd * rng.normal()
+    } else {
+        0.0
     }
 }
 
