@@ -3,8 +3,8 @@
 # --only ingest` calls it as `cargo xtask vcan -- sh benches/ingest.sh ...`). Only /tmp is
 # written (the guest's host root is read-only); results go to stdout as one line per run:
 #
-#   INGEST speed=S hil_wall_s=W hil_sent=N daemon_frames=D daemon_dropped=X daemon_cpu_s=C
-#          candump_frames=M candump_cpu_s=C2 daemon_rss_kb=R candump_rss_kb=R2
+#   INGEST speed=S hil_wall_s=W hil_sent=N daemon_cpu_s=C daemon_rss_kb=R daemon_exit=E
+#          candump_frames=M candump_cpu_s=C2 candump_rss_kb=R2
 #   INGEST_MCAP speed=S TOPIC=COUNT ...   (the daemon's log read back; BENCH_PYTHON has `mcap`)
 #   SESSION rss_kb=R wall_s=W exit=E window_end_s=T0 verified_s=T1 ...
 #
@@ -14,8 +14,9 @@
 #       but a collection window far longer than the run, so it only ingests: decode, clock
 #       model, MCAP write) and `candump -l` listen on vcan0 while `exocal-hil --speed SPEED`
 #       plays WALL_SECONDS × SPEED simulated seconds of the paper scenario; then the daemon gets
-#       SIGTERM (it finishes its MCAP). The CPU time of each listener is read from /proc once
-#       the hil has stopped sending, before either does anything else.
+#       SIGTERM (it finishes its MCAP, whose `/can/rx` count is the daemon's received frames).
+#       The CPU time of each listener is read from /proc just before the hil starts and once it
+#       has stopped sending: the difference is what the load cost it.
 #   ingest.sh session BIN_DIR
 #       One power-up session at speed 1: `exocald calibrate` (pushing to the hil's nodes) under
 #       /usr/bin/time (peak RSS), its stderr time-stamped to find the end of the collection
@@ -68,12 +69,15 @@ load)
         # Both sockets open (the daemon says so when it starts logging).
         wait_for "$w/daemon.err" 100 "logging to" || echo "ingest.sh: the daemon did not start: $(cat "$w/daemon.err")" >&2
         sleep 0.5
+        # CPU time spent while the hil plays: after minus before (start-up costs left out).
+        dcpu0=$(cpu_s "$dpid" 2>/dev/null || echo nan)
+        ccpu0=$(cpu_s "$cpid" 2>/dev/null || echo nan)
         "$bin/exocal-hil" --iface vcan0 --speed "$speed" --duration "$seconds" --flash-dir "$w/flash" \
             >"$w/hil.out" 2>"$w/hil.err"
         sleep 1
-        dcpu=$(cpu_s "$dpid" 2>/dev/null || echo nan)
+        dcpu=$(awk -v a="$dcpu0" -v b="$(cpu_s "$dpid" 2>/dev/null || echo nan)" 'BEGIN { printf "%.3f", b - a }')
         drss=$(rss_kb "$dpid" 2>/dev/null || echo nan)
-        ccpu=$(cpu_s "$cpid" 2>/dev/null || echo nan)
+        ccpu=$(awk -v a="$ccpu0" -v b="$(cpu_s "$cpid" 2>/dev/null || echo nan)" 'BEGIN { printf "%.3f", b - a }')
         crss=$(rss_kb "$cpid" 2>/dev/null || echo nan)
         kill -TERM "$dpid" 2>/dev/null
         kill -INT "$cpid" 2>/dev/null
@@ -82,12 +86,9 @@ load)
         wait "$cpid"
         sent=$(sed -n 's/.*frames sent \([0-9]*\).*/\1/p' "$w/hil.out" | head -n 1)
         hwall=$(sed -n 's/.*s in \([0-9.]*\) s wall.*/\1/p' "$w/hil.out" | head -n 1)
-        done_line=$(grep -m 1 "collection done\|frames (" "$w/daemon.err" | tr -s ' ')
-        dframes=$(echo "$done_line" | sed -n 's/.*: \([0-9]*\) frames.*/\1/p')
-        ddropped=$(echo "$done_line" | sed -n 's/.* \([0-9]*\) dropped by the receiver.*/\1/p')
         cframes=$(cat "$w"/candump/*.log 2>/dev/null | wc -l)
-        echo "INGEST speed=$speed hil_wall_s=${hwall:-nan} hil_sent=${sent:-nan} daemon_frames=${dframes:-nan}" \
-            "daemon_dropped=${ddropped:-nan} daemon_cpu_s=$dcpu daemon_rss_kb=$drss daemon_exit=$dexit" \
+        echo "INGEST speed=$speed hil_wall_s=${hwall:-nan} hil_sent=${sent:-nan}" \
+            "daemon_cpu_s=$dcpu daemon_rss_kb=$drss daemon_exit=$dexit" \
             "candump_frames=$cframes candump_cpu_s=$ccpu candump_rss_kb=$crss"
         # The daemon's MCAP log, read back with the python reader: messages per topic.
         for f in "$w"/log/*.mcap; do
@@ -96,8 +97,8 @@ load)
                 echo "INGEST_MCAP speed=$speed ${counts#MCAP }"
             fi
         done
-        if [ -z "$dframes" ]; then
-            echo "ingest.sh: speed $speed: no frame count from the daemon; its stderr ends with:" >&2
+        if [ "$dexit" != 75 ]; then
+            echo "ingest.sh: speed $speed: the daemon exited with $dexit, not 75 (interrupted); its stderr ends with:" >&2
             tail -n 5 "$w/daemon.err" >&2
         fi
     done
