@@ -1,0 +1,514 @@
+//! The report: one self-contained HTML file (inline CSS and SVG, no script, no external
+//! resource), readable offline and printable.
+//!
+//! Contract: [`render`] never fails. A chart that cannot be drawn (no EM, no held-out slice,
+//! nothing finite) is replaced by a visible note saying why, so a broken run still leaves a
+//! report. Every chart sits in a `<figure class="plot" id="fig-…">` (ids in [`FIGURES`]), which
+//! is what the browser test looks for.
+//!
+//! Errors shown are the paper's pose error in the model's tool frame: position error in mm and
+//! rotation error in mrad; "calibrated" is the static calibrated table (what is pushed), without
+//! the per-sample drift estimate.
+
+use std::fmt::Write as _;
+
+use calib_core::{pose_error, DhTable};
+
+use crate::input::{
+    excitation, param_name, param_value, Calibration, ReportInput, TimedSample, JOINTS, PARAMS,
+};
+use crate::plot::{
+    bars, histogram, line_panels, Distribution, Panel, PlotError, Series, ACTUAL, CALIBRATED,
+    JOINT_COLOURS, NOMINAL,
+};
+
+/// The figure ids, in page order.
+pub const FIGURES: [&str; 7] = [
+    "fig-trajectory-time",
+    "fig-trajectory-plane",
+    "fig-residual-position",
+    "fig-residual-rotation",
+    "fig-likelihood",
+    "fig-drift",
+    "fig-excitation",
+];
+
+const WIDE: u32 = 1040;
+const HALF: u32 = 515;
+
+/// Position (mm) and rotation (mrad) error of `table` on each sample.
+pub fn residuals(table: &DhTable<JOINTS>, samples: &[TimedSample]) -> Vec<(f64, f64)> {
+    samples
+        .iter()
+        .map(|s| {
+            let e = pose_error(&table.fk(&s.sample.joints), &s.sample.pose);
+            (
+                e.fixed_rows::<3>(0).norm() * 1e3,
+                e.fixed_rows::<3>(3).norm() * 1e3,
+            )
+        })
+        .collect()
+}
+
+fn mean(v: impl Iterator<Item = f64>) -> f64 {
+    let (s, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
+    if n == 0 {
+        f64::NAN
+    } else {
+        s / n as f64
+    }
+}
+
+fn esc(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
+fn figure(out: &mut String, id: &str, caption: &str, svg: Result<String, PlotError>) {
+    let _ = write!(out, "<figure class=\"plot\" id=\"{id}\">");
+    match svg {
+        Ok(svg) => out.push_str(&svg),
+        Err(e) => {
+            let _ = write!(out, "<div class=\"missing\">Not drawn: {}</div>", esc(&e.to_string()));
+        }
+    }
+    let _ = writeln!(out, "<figcaption>{caption}</figcaption></figure>");
+}
+
+fn all_samples(input: &ReportInput) -> Vec<TimedSample> {
+    input.fit.iter().chain(&input.held_out).copied().collect()
+}
+
+fn trajectories(input: &ReportInput) -> (Result<String, PlotError>, Result<String, PlotError>) {
+    let all = all_samples(input);
+    let shade = input.held_out.first().map(|s| s.t);
+    let fk = |table: &DhTable<JOINTS>| -> Vec<(f64, [f64; 3])> {
+        all.iter()
+            .map(|s| {
+                let p = table.fk(&s.sample.joints).p * 1e3;
+                (s.t, [p.x, p.y, p.z])
+            })
+            .collect()
+    };
+    let actual: Vec<(f64, [f64; 3])> = all
+        .iter()
+        .map(|s| {
+            let p = s.sample.pose.p * 1e3;
+            (s.t, [p.x, p.y, p.z])
+        })
+        .collect();
+    let nominal = fk(&input.nominal);
+    let calibrated = fk(&input.calibration.calibrated);
+    let lines = [
+        ("actual (measured)", ACTUAL, &actual),
+        ("nominal model", NOMINAL, &nominal),
+        ("calibrated model", CALIBRATED, &calibrated),
+    ];
+    let panels: Vec<Panel> = ["x", "y", "z"]
+        .iter()
+        .enumerate()
+        .map(|(axis, name)| Panel {
+            title: format!("end-effector {name}"),
+            x_label: "time (s)".into(),
+            y_label: format!("{name} (mm)"),
+            series: lines
+                .iter()
+                .map(|(label, colour, pts)| Series {
+                    name: (*label).into(),
+                    colour: *colour,
+                    points: pts.iter().map(|(t, p)| (*t, p[axis])).collect(),
+                    markers: false,
+                })
+                .collect(),
+            shade_from: shade,
+        })
+        .collect();
+    let time = line_panels(&panels, WIDE, 240);
+    let plane = |a: usize, b: usize, title: &str, xl: &str, yl: &str| Panel {
+        title: title.into(),
+        x_label: xl.into(),
+        y_label: yl.into(),
+        series: lines
+            .iter()
+            .map(|(label, colour, pts)| Series {
+                name: (*label).into(),
+                colour: *colour,
+                points: pts.iter().map(|(_, p)| (p[a], p[b])).collect(),
+                markers: false,
+            })
+            .collect(),
+        shade_from: None,
+    };
+    let top = plane(0, 1, "top view (x–y)", "x (mm)", "y (mm)");
+    let side = plane(0, 2, "side view (x–z)", "x (mm)", "z (mm)");
+    let plane = line_panels(&[top], HALF, 420)
+        .and_then(|a| line_panels(&[side], HALF, 420).map(|b| format!("<div class=\"pair\">{a}{b}</div>")));
+    (time, plane)
+}
+
+fn residual_charts(input: &ReportInput) -> (Result<String, PlotError>, Result<String, PlotError>, &'static str) {
+    let (samples, which) = if input.held_out.is_empty() {
+        (&input.fit, "fitted samples (no held-out slice)")
+    } else {
+        (&input.held_out, "held-out slice")
+    };
+    let before = residuals(&input.nominal, samples);
+    let after = residuals(&input.calibration.calibrated, samples);
+    let dist = |pick: fn(&(f64, f64)) -> f64| {
+        vec![
+            Distribution {
+                name: "nominal".into(),
+                colour: NOMINAL,
+                values: before.iter().map(pick).collect(),
+            },
+            Distribution {
+                name: "calibrated".into(),
+                colour: CALIBRATED,
+                values: after.iter().map(pick).collect(),
+            },
+        ]
+    };
+    (
+        histogram("position error", "‖Δp‖ (mm)", &dist(|r| r.0), 40, (HALF, 330)),
+        histogram("rotation error", "‖Δφ‖ (mrad)", &dist(|r| r.1), 40, (HALF, 330)),
+        which,
+    )
+}
+
+fn em_charts(input: &ReportInput) -> (Result<String, PlotError>, Result<String, PlotError>) {
+    let em = match &input.calibration.em {
+        Ok(em) => em,
+        Err(e) => {
+            let no = |chart: &str| {
+                Err(PlotError {
+                    chart: chart.into(),
+                    what: format!("the EM failed: {e}"),
+                })
+            };
+            return (no("log-likelihood"), no("drift"));
+        }
+    };
+    let ll = Panel {
+        title: "EM log-likelihood per iteration".into(),
+        x_label: "iteration".into(),
+        y_label: "log-likelihood".into(),
+        series: vec![Series {
+            name: "log p(poses | table, τ, σ)".into(),
+            colour: CALIBRATED,
+            points: em
+                .log_likelihood
+                .iter()
+                .enumerate()
+                .map(|(i, &l)| (i as f64, l))
+                .collect(),
+            markers: true,
+        }],
+        shade_from: None,
+    };
+    let times: Vec<f64> = input.fit.iter().map(|s| s.t).collect();
+    let drift = Panel {
+        title: "estimated joint drift (smoothed)".into(),
+        x_label: "time (s)".into(),
+        y_label: "drift (mrad)".into(),
+        series: (0..JOINTS)
+            .map(|j| Series {
+                name: format!("joint {} (τ {:.2} s)", j + 1, em.drift[j].tau),
+                colour: JOINT_COLOURS[j],
+                points: times
+                    .iter()
+                    .zip(&em.drift_series)
+                    .map(|(&t, d)| (t, d[j] * 1e3))
+                    .collect(),
+                markers: false,
+            })
+            .collect(),
+        shade_from: None,
+    };
+    (line_panels(&[ll], HALF, 330), line_panels(&[drift], WIDE, 380))
+}
+
+/// Value and standard deviation in display units: mm for lengths, degrees for angles.
+fn display(index: usize, v: f64) -> f64 {
+    if index < 2 * JOINTS {
+        v * 1e3
+    } else {
+        v.to_degrees()
+    }
+}
+
+fn parameter_table(out: &mut String, nominal: &DhTable<JOINTS>, c: &Calibration) {
+    out.push_str(
+        "<table class=\"params\"><thead><tr><th>parameter</th><th>unit</th><th>nominal</th>\
+         <th>least squares</th><th>± σ (LS)</th><th>calibrated</th><th>± σ (EM, CRB)</th>\
+         <th>change</th></tr></thead><tbody>\n",
+    );
+    let em_std = c.em.as_ref().ok().map(|em| em.std_errors);
+    for p in 0..PARAMS {
+        let unit = if p < 2 * JOINTS { "mm" } else { "°" };
+        let nom = display(p, param_value(nominal, p));
+        let ls = display(p, param_value(&c.ls.table, p));
+        let cal = display(p, param_value(&c.calibrated, p));
+        let ls_sd = display(p, c.ls.std_errors[p]);
+        let em_sd = em_std.map_or("—".to_string(), |s| format!("{:.3}", display(p, s[p])));
+        let change = cal - nom;
+        let strong = match em_std {
+            Some(s) if change.abs() > 3.0 * display(p, s[p]) => " class=\"sig\"",
+            _ => "",
+        };
+        let _ = writeln!(
+            out,
+            "<tr><td>{}</td><td>{unit}</td><td>{nom:.3}</td><td>{ls:.3}</td><td>{ls_sd:.3}</td>\
+             <td><b>{cal:.3}</b></td><td>{em_sd}</td><td{strong}>{change:+.3}</td></tr>",
+            param_name(p)
+        );
+    }
+    out.push_str("</tbody></table>\n");
+}
+
+fn correlation_table(out: &mut String, c: &Calibration) {
+    if c.correlations.is_empty() {
+        out.push_str("<p class=\"note\">No correlations: no parameter is identifiable.</p>");
+        return;
+    }
+    out.push_str("<table class=\"corr\"><thead><tr><th>pair</th><th>r</th><th></th></tr></thead><tbody>\n");
+    for k in &c.correlations {
+        let w = (k.r.abs() * 100.0).round();
+        let colour = if k.r >= 0.0 { "#1f77b4" } else { "#d62728" };
+        let _ = writeln!(
+            out,
+            "<tr><td>{} – {}</td><td>{:+.3}</td><td><span class=\"bar\" style=\"width:{w}px;background:{colour}\"></span></td></tr>",
+            param_name(k.first),
+            param_name(k.second),
+            k.r
+        );
+    }
+    out.push_str("</tbody></table>\n");
+}
+
+fn quality_section(out: &mut String, input: &ReportInput) -> Result<String, PlotError> {
+    let q = &input.quality;
+    let all = all_samples(input);
+    out.push_str("<div class=\"pair\"><table class=\"kv\"><tbody>\n");
+    let _ = writeln!(out, "<tr><th>session length</th><td>{:.1} s</td></tr>", q.duration_s);
+    let _ = writeln!(out, "<tr><th>grid rate</th><td>{:.1} Hz</td></tr>", q.grid_hz);
+    let _ = writeln!(
+        out,
+        "<tr><th>aligned samples</th><td>{} ({} fitted, {} held out)</td></tr>",
+        all.len(),
+        input.fit.len(),
+        input.held_out.len()
+    );
+    let _ = writeln!(out, "<tr><th>grid points excluded as gaps</th><td>{}</td></tr>", q.gaps);
+    for (k, v) in &q.counters {
+        let _ = writeln!(out, "<tr><th>{}</th><td>{v}</td></tr>", esc(k));
+    }
+    out.push_str("</tbody></table>\n");
+    let exc = excitation(&all, &q.joint_ranges);
+    let labels: Vec<String> = (1..=JOINTS).map(|j| format!("joint {j}")).collect();
+    let chart = bars("excitation", &labels, &exc, q.excitation_required, (HALF, 300));
+    out.push_str("</div>\n");
+    if !q.streams.is_empty() {
+        out.push_str(
+            "<table class=\"streams\"><thead><tr><th>stream</th><th>samples</th><th>rate</th>\
+             <th>loss</th><th>excluded</th><th>clock jumps</th><th>skew</th><th>clock jitter</th>\
+             </tr></thead><tbody>\n",
+        );
+        for s in &q.streams {
+            let opt = |v: Option<f64>, unit: &str, digits: usize| {
+                v.map_or("—".into(), |v| format!("{v:.digits$} {unit}"))
+            };
+            let _ = writeln!(
+                out,
+                "<tr><td>{}</td><td>{}</td><td>{:.1} Hz</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+                esc(&s.name),
+                s.samples,
+                s.rate_hz,
+                opt(s.loss.map(|l| l * 100.0), "%", 2),
+                s.excluded,
+                s.jumps,
+                opt(s.skew_ppm, "ppm", 1),
+                opt(s.jitter_us, "µs", 0),
+            );
+        }
+        out.push_str("</tbody></table>\n");
+    }
+    chart
+}
+
+const STYLE: &str = "
+:root { --ink:#1d2330; --muted:#5b6475; --line:#dfe3ea; --ok:#2c9c2c; --bad:#d62728; --blue:#1f77b4; }
+* { box-sizing: border-box; }
+body { margin:0; font:15px/1.5 system-ui,-apple-system,'Segoe UI',Roboto,sans-serif; color:var(--ink); background:#f4f6f9; }
+main { max-width:1100px; margin:0 auto; padding:24px 28px 60px; background:#fff; box-shadow:0 0 24px rgba(0,0,0,.06); }
+h1 { font-size:26px; margin:0 0 4px; }
+h2 { font-size:19px; margin:36px 0 10px; padding-bottom:6px; border-bottom:2px solid var(--line); }
+.sub { color:var(--muted); margin:0 0 16px; }
+.verdict { padding:12px 16px; border-radius:8px; margin:12px 0 18px; font-weight:600; }
+.verdict.ok { background:#e8f6e8; color:#1d6b1d; border:1px solid #b9e2b9; }
+.verdict.bad { background:#fdecec; color:#8d1a1a; border:1px solid #f3bcbc; }
+.verdict.none { background:#eef1f5; color:var(--muted); border:1px solid var(--line); }
+.verdict ul { margin:6px 0 0; font-weight:400; }
+.cards { display:grid; grid-template-columns:repeat(auto-fill,minmax(200px,1fr)); gap:12px; }
+.card { border:1px solid var(--line); border-radius:8px; padding:10px 14px; }
+.card .v { font-size:22px; font-weight:650; }
+.card .k { color:var(--muted); font-size:13px; }
+figure.plot { margin:14px 0; }
+figure.plot svg { display:block; max-width:100%; height:auto; }
+figcaption { color:var(--muted); font-size:13px; margin-top:4px; }
+.pair { display:flex; gap:10px; flex-wrap:wrap; align-items:flex-start; }
+.missing { padding:30px; border:2px dashed var(--bad); color:var(--bad); border-radius:8px; }
+table { border-collapse:collapse; font-size:13.5px; margin:8px 0; }
+th, td { padding:4px 10px; border-bottom:1px solid var(--line); text-align:right; }
+th:first-child, td:first-child { text-align:left; }
+thead th { background:#f7f8fa; }
+table.kv th { text-align:left; font-weight:500; color:var(--muted); }
+td.sig { color:var(--blue); font-weight:650; }
+.bar { display:inline-block; height:10px; border-radius:2px; }
+.note { color:var(--muted); font-size:13px; }
+footer { margin-top:40px; color:var(--muted); font-size:12.5px; }
+@media print { body { background:#fff; } main { box-shadow:none; } }
+";
+
+/// The report as one HTML document (see the module docs).
+pub fn render(input: &ReportInput) -> String {
+    let c = &input.calibration;
+    let mut out = String::with_capacity(1 << 20);
+    let _ = write!(
+        out,
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
+         <meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\
+         <title>{}</title><style>{STYLE}</style></head><body><main>\n",
+        esc(&input.title)
+    );
+    let _ = writeln!(out, "<h1>{}</h1><p class=\"sub\">{}</p>", esc(&input.title), esc(&input.source));
+    match &input.verdict {
+        Some(v) if v.accepted => out.push_str(
+            "<div class=\"verdict ok\">Validated: the calibrated table may be pushed.</div>\n",
+        ),
+        Some(v) => {
+            out.push_str("<div class=\"verdict bad\">Refused: the table is not pushed.<ul>");
+            for r in &v.reasons {
+                let _ = write!(out, "<li>{}</li>", esc(r));
+            }
+            out.push_str("</ul></div>\n");
+        }
+        None => out.push_str("<div class=\"verdict none\">Not validated (offline analysis).</div>\n"),
+    }
+
+    // Key numbers.
+    let eval = if input.held_out.is_empty() { &input.fit } else { &input.held_out };
+    let before = residuals(&input.nominal, eval);
+    let after = residuals(&c.calibrated, eval);
+    let (pb, pa) = (mean(before.iter().map(|r| r.0)), mean(after.iter().map(|r| r.0)));
+    let (rb, ra) = (mean(before.iter().map(|r| r.1)), mean(after.iter().map(|r| r.1)));
+    let slice = if input.held_out.is_empty() { "fitted" } else { "held-out" };
+    let card = |out: &mut String, v: String, k: String| {
+        let _ = write!(out, "<div class=\"card\"><div class=\"v\">{v}</div><div class=\"k\">{k}</div></div>");
+    };
+    out.push_str("<div class=\"cards\">");
+    card(&mut out, format!("{pb:.2} → {pa:.2} mm"), format!("mean position error, {slice}"));
+    card(&mut out, format!("{rb:.1} → {ra:.1} mrad"), format!("mean rotation error, {slice}"));
+    card(&mut out, format!("{:.0} %", 100.0 * (1.0 - pa / pb)), "position error removed".into());
+    card(&mut out, format!("{:.1}", c.ls.condition), format!("condition number (rank {}/{PARAMS})", c.ls.rank));
+    card(&mut out, format!("{} / {}", input.fit.len(), input.held_out.len()), "samples fitted / held out".into());
+    match &c.em {
+        Ok(em) => card(
+            &mut out,
+            format!("{} it.{}", em.iterations, if em.converged { "" } else { " (limit)" }),
+            "EM iterations".into(),
+        ),
+        Err(_) => card(&mut out, "failed".into(), "EM (LS table used)".into()),
+    }
+    out.push_str("</div>\n");
+
+    out.push_str("<h2>End-effector trajectories</h2>\n");
+    let (time, plane) = trajectories(input);
+    figure(
+        &mut out,
+        FIGURES[0],
+        "Measured end-effector position, and the nominal and calibrated models' forward kinematics \
+         of the same joint readings (cf. the paper's Figs. 3, 4 and 7). The shaded part is the \
+         held-out slice, not used for fitting.",
+        time,
+    );
+    figure(&mut out, FIGURES[1], "The same trajectories projected on two planes of the base frame.", plane);
+
+    let (pos, rot, which) = residual_charts(input);
+    let _ = writeln!(out, "<h2>Residuals before and after ({which})</h2>");
+    out.push_str("<div class=\"pair\">");
+    figure(&mut out, FIGURES[2], "Position error per sample (pose error in the model's tool frame).", pos);
+    figure(&mut out, FIGURES[3], "Rotation error per sample (rotation-vector norm).", rot);
+    out.push_str("</div>\n");
+
+    out.push_str("<h2>Drift EM</h2>\n");
+    let (ll, drift) = em_charts(input);
+    out.push_str("<div class=\"pair\">");
+    figure(
+        &mut out,
+        FIGURES[4],
+        "Log-likelihood at each EM iteration (cf. the paper's Figs. 5 and 8); it never decreases.",
+        ll,
+    );
+    if let Ok(em) = &c.em {
+        out.push_str("<table class=\"drift\"><thead><tr><th>joint</th><th>τ (s)</th><th>σ (mrad, stationary)</th><th>σ (paper, eq. 8)</th></tr></thead><tbody>");
+        for (j, d) in em.drift.iter().enumerate() {
+            let _ = write!(
+                out,
+                "<tr><td>{}</td><td>{:.3}</td><td>{:.2}</td><td>{:.3}</td></tr>",
+                j + 1,
+                d.tau,
+                d.stationary_sigma * 1e3,
+                d.paper_sigma
+            );
+        }
+        out.push_str("</tbody></table>");
+    }
+    out.push_str("</div>\n");
+    figure(
+        &mut out,
+        FIGURES[5],
+        "Each joint's smoothed drift estimate over the fitted part of the session (Gauss–Markov \
+         model, Kalman filter and RTS smoother).",
+        drift,
+    );
+
+    out.push_str("<h2>Parameters</h2>\n");
+    out.push_str(
+        "<p class=\"note\">Standard D-H parameters per joint. σ (LS) is the white-noise standard \
+         deviation from the least-squares information matrix; σ (EM, CRB) the Cramér–Rao bound \
+         under the fitted drift model. Changes larger than 3σ (EM) are highlighted.</p>\n",
+    );
+    parameter_table(&mut out, &input.nominal, c);
+    out.push_str("<h3>Strongest correlations</h3>\n");
+    correlation_table(&mut out, c);
+
+    out.push_str("<h2>Data quality</h2>\n");
+    let exc = quality_section(&mut out, input);
+    figure(
+        &mut out,
+        FIGURES[6],
+        "Share of each joint's anatomical range the session visited (excitation); the line is \
+         what the session rules require.",
+        exc,
+    );
+    let _ = writeln!(
+        out,
+        "<footer>LS: {} iterations, RMS residual {:.3e}. {}Generated by exocal-report {}.</footer>",
+        c.ls.iterations,
+        c.ls.rms,
+        match &c.em {
+            Ok(em) => format!(
+                "EM: {} iterations, log-likelihood {:.1} → {:.1}. ",
+                em.iterations,
+                em.log_likelihood.first().copied().unwrap_or(f64::NAN),
+                em.log_likelihood.last().copied().unwrap_or(f64::NAN)
+            ),
+            Err(e) => format!("EM failed ({}); the LS table is the result. ", esc(e)),
+        },
+        env!("CARGO_PKG_VERSION")
+    );
+    out.push_str("</main></body></html>\n");
+    out
+}

@@ -1,0 +1,25 @@
+//! exocal-report: the calibration report, the exports, and the offline session readers.
+//!
+//! | module | contract |
+//! |---|---|
+//! | [`input`] | [`ReportInput`]: plain data a live session and an offline run fill alike |
+//! | [`analysis`] | [`analysis::calibrate`]: calib-core LS then drift EM, keeping the detail a report shows |
+//! | [`plot`] | SVG charts (plotters), returned as strings |
+//! | [`html`] | [`html::render`]: one self-contained HTML file, no external resources |
+//! | [`export`] | the calibrated table as the daemon's TOML and as URDF; frames as `candump -L` |
+//! | [`readers`] | offline inputs: `candump -L` logs, the daemon's MCAP logs, CSV samples |
+//!
+//! Nothing here knows about CAN sockets or the daemon: the daemon's `offline` command replays
+//! recorded frames through its own ingest and alignment, and hands the result here.
+
+pub mod analysis;
+pub mod export;
+pub mod html;
+pub mod input;
+pub mod plot;
+pub mod readers;
+
+pub use input::{
+    Calibration, Correlation, EmDetail, LsDetail, Quality, ReportInput, StreamQuality,
+    TimedSample, VerdictSummary, JOINTS, PARAMS,
+};
