@@ -1368,7 +1368,7 @@ fn ingest(ctx: &Ctx) -> Result<Section> {
     let (wall, speeds): (&str, &[&str]) = if ctx.quick {
         ("5", &["1", "4", "16"])
     } else {
-        ("10", &["1", "2", "4", "8", "16", "32", "64"])
+        ("10", &["1", "2", "4", "8", "16"])
     };
     let mut args = vec!["load".to_string(), bin.clone(), wall.to_string()];
     args.extend(speeds.iter().map(|s| s.to_string()));
@@ -1414,6 +1414,10 @@ fn ingest(ctx: &Ctx) -> Result<Section> {
     );
     let mut best_zero_loss: Option<f64> = None;
     let mut ratio_at_best = f64::NAN;
+    let mut max_offered = 0.0f64;
+    let mut first_loss: Option<(f64, f64)> = None;
+    let mut ratios = Vec::new();
+    let mut candump_lossy = 0;
     for r in &rows {
         let sent = num(r, "hil_sent");
         let rate = sent / num(r, "hil_wall_s");
@@ -1428,6 +1432,14 @@ fn ingest(ctx: &Ctx) -> Result<Section> {
         let dcpu = num(r, "daemon_cpu_s") / got;
         let ccpu = num(r, "candump_cpu_s") / dumped;
         let ratio = dcpu / ccpu;
+        max_offered = max_offered.max(rate);
+        ratios.push(ratio);
+        if sent > dumped {
+            candump_lossy += 1;
+        }
+        if lost != 0.0 && first_loss.is_none_or(|(r0, _)| rate < r0) {
+            first_loss = Some((rate, lost));
+        }
         if lost == 0.0 && best_zero_loss.is_none_or(|b| rate > b) {
             best_zero_loss = Some(rate);
             ratio_at_best = ratio;
@@ -1462,18 +1474,30 @@ fn ingest(ctx: &Ctx) -> Result<Section> {
         Goal {
             what: "daemon ingest ≥ 50,000 frames/s with zero loss (decode, align, MCAP write)".into(),
             met: best_zero_loss.is_some_and(|b| b >= 50_000.0),
-            detail: match best_zero_loss {
-                Some(b) => format!(
-                    "highest zero-loss offered rate {b:.0} frames/s on the {} run; the offered rate is bounded by what the hil could send",
-                    if load_cmd.contains("vm path") { "emulated (QEMU TCG)" } else { "native" }
-                ),
-                None => "no load without loss".into(),
-            },
+            detail: format!(
+                "{}; {}. Bounded by the load generator: the hil (one process, emulating 8 nodes) sent at most {max_offered:.0} frames/s{}",
+                best_zero_loss.map_or("no load without loss".to_string(), |b| format!(
+                    "highest zero-loss offered rate {b:.0} frames/s"
+                )),
+                first_loss.map_or("no frame lost at any load".to_string(), |(r, n)| format!(
+                    "first loss at {r:.0} frames/s ({n} frames)"
+                )),
+                if load_cmd.contains("vm path") {
+                    " in the QEMU TCG guest (emulated CPU), the only vcan this kernel allows"
+                } else {
+                    ""
+                }
+            ),
         },
         Goal {
             what: "daemon CPU per frame ≤ 1.5× candump -l's at the same load".into(),
             met: ratio_at_best <= 1.5,
-            detail: format!("{ratio_at_best:.2}× at the highest zero-loss load"),
+            detail: format!(
+                "{ratio_at_best:.2}× at the highest zero-loss load ({:.2}× to {:.2}× over all loads; candump -l lost frames at {candump_lossy} of {} loads). The daemon decodes, models clocks and writes zstd MCAP where candump writes text lines",
+                ratios.iter().copied().fold(f64::INFINITY, f64::min),
+                ratios.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+                rows.len()
+            ),
         },
     ];
     // One power-up session: RSS and latency.
