@@ -9,6 +9,9 @@
 #   SESSION rss_kb=R wall_s=W exit=E window_end_s=T0 verified_s=T1 ...
 #
 # usage:
+#   ingest.sh ref BIN_DIR
+#       A CPU-bound reference run (`REF cpu_s=C`), here and (by `load`) in the guest: their ratio
+#       is the guest's slowdown, for an estimate of native figures.
 #   ingest.sh load BIN_DIR WALL_SECONDS SPEED...
 #       For each SPEED: the daemon (`exocald calibrate --dry-run` with the shipped configuration
 #       but a collection window far longer than the run, so it only ingests: decode, clock
@@ -51,12 +54,19 @@ wait_for() {
 }
 
 case "$mode" in
+ref)
+    # A CPU-bound reference (calib-core's LS on 200 samples, 40 processes) to compare this
+    # machine with the harness guest: prints `REF cpu_s=C` (user + system, children included).
+    t=$( { /usr/bin/time -f "%U %S" sh -c "i=0; while [ \$i -lt 40 ]; do '$bin/examples/export_dataset' --firmware-twin >/dev/null; i=\$((i + 1)); done"; } 2>&1 | tail -n 1)
+    echo "REF cpu_s=$(echo "$t" | awk '{ printf "%.3f", $1 + $2 }')"
+    ;;
 load)
     wall=$1
     shift
     config=/tmp/ingest-exocald.toml
     "$bin/exocald" check-config --print-default |
         sed 's/^min_duration_s = .*/min_duration_s = 100000.0/; s/^max_duration_s = .*/max_duration_s = 200000.0/' >"$config"
+    sh "$0" ref "$bin"
     for speed in "$@"; do
         w=/tmp/ingest-$speed
         rm -rf "$w"
