@@ -76,6 +76,8 @@ pub struct RunReport {
     pub rx_dropped: u64,
     /// The emulation's counters.
     pub stats: Stats,
+    /// CRC-32 of the table each joint node holds at the end (index = joint, 0-based).
+    pub held_crc: [Option<u32>; 7],
 }
 
 impl std::fmt::Display for RunReport {
@@ -104,6 +106,9 @@ impl std::fmt::Display for RunReport {
                 if c[k as usize] > 0 {
                     write!(f, " {k:?}={}", c[k as usize])?;
                 }
+            }
+            if let Some(Some(crc)) = node.joint_index().map(|j| self.held_crc[j]) {
+                write!(f, " table_crc={crc:#010x}")?;
             }
             writeln!(f)?;
         }
@@ -168,6 +173,9 @@ impl Hil {
             received,
             rx_dropped: bus.dropped(),
             stats: self.suit.stats().clone(),
+            held_crc: std::array::from_fn(|j| {
+                self.suit.held_table(NodeId::JOINTS[j]).map(|t| t.crc())
+            }),
         })
     }
 }
