@@ -90,7 +90,7 @@ load)
         ccpu=$(awk -v a="$ccpu0" -v b="$(cpu_s "$cpid" 2>/dev/null || echo nan)" 'BEGIN { printf "%.3f", b - a }')
         crss=$(rss_kb "$cpid" 2>/dev/null || echo nan)
         kill -TERM "$dpid" 2>/dev/null
-        kill -INT "$cpid" 2>/dev/null
+        kill -TERM "$cpid" 2>/dev/null
         wait "$dpid"
         dexit=$?
         wait "$cpid"
@@ -119,10 +119,12 @@ session)
     mkdir -p "$w/log" "$w/flash"
     t0=$(date +%s.%N)
     # Time-stamp every stderr line of the daemon (seconds since t0).
-    (/usr/bin/time -f "TIME %e %M" "$bin/exocald" calibrate -i vcan0 -o "$w/log" 2>&1 >"$w/daemon.out"; echo "EXIT $?") |
+    # (Also shown live on stderr; the daemon is stopped after ${SESSION_LIMIT_S:-600} s.)
+    (/usr/bin/time -f "TIME %e %M" timeout "${SESSION_LIMIT_S:-600}" "$bin/exocald" calibrate -i vcan0 -o "$w/log" 2>&1 >"$w/daemon.out"
+        echo "EXIT $?") |
         while IFS= read -r line; do
-            printf '%s %s\n' "$(date +%s.%N)" "$line"
-        done >"$w/daemon.err" &
+            printf '%s %s\n' "$(date +%s.%N)" "$line" | tee -a "$w/daemon.err" >&2
+        done &
     spid=$!
     wait_for "$w/daemon.err" 100 "logging to" || echo "ingest.sh: the daemon did not start" >&2
     sleep 0.5
@@ -130,17 +132,21 @@ session)
     "$bin/exocal-hil" --iface vcan0 --speed 1 --duration 600 --flash-dir "$w/flash" >"$w/hil.out" 2>"$w/hil.err" &
     hpid=$!
     wait "$spid"
-    kill -INT "$hpid" 2>/dev/null
+    kill -TERM "$hpid" 2>/dev/null
     wait "$hpid" 2>/dev/null
     rel() { awk -v t0="$t0" '{ printf "%.3f", $1 - t0 }'; }
-    window=$(grep -m 1 "collection done" "$w/daemon.err" | rel)
-    verified=$(grep -m 1 "every node holds its new table" "$w/daemon.err" | rel)
+    # The daemon's own record of the session: its /events, time-stamped in the log (ns).
+    for f in "$w"/log/*.mcap; do
+        [ -e "$f" ] && "${BENCH_PYTHON:-python3}" "$here/mcap_counts.py" --events "$f" >>"$w/events"
+    done
+    cat "$w/events" >&2
+    ev() { grep -m 1 "$1" "$w/events" | awk -v t0="$t0" '{ printf "%.3f", $2 / 1e9 - t0 }'; }
+    window=$(ev "collection done")
+    verified=$(ev "every node holds its new table")
     time_line=$(grep -m 1 " TIME " "$w/daemon.err")
     exit_code=$(grep -m 1 " EXIT " "$w/daemon.err" | awk '{ print $3 }')
     echo "SESSION exit=${exit_code:-nan} rss_kb=$(echo "$time_line" | awk '{ print $4 }') wall_s=$(echo "$time_line" | awk '{ print $3 }')" \
         "window_end_s=${window:-nan} verified_s=${verified:-nan}"
-    echo "ingest.sh: daemon stderr (time-stamped):" >&2
-    tail -n 30 "$w/daemon.err" >&2
     ;;
 *)
     echo "usage: ingest.sh load BIN_DIR SECONDS SPEED... | ingest.sh session BIN_DIR" >&2

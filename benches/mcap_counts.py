@@ -1,23 +1,41 @@
 #!/usr/bin/env python3
-"""Prints `topic=count` for every channel of an MCAP file (from its summary, CRC-checked by the
-reader), one line: `MCAP topic1=n1 topic2=n2 ...`. Used by `benches/ingest.sh` on the daemon's
-session log."""
+"""Reads back a daemon session log (MCAP) with the python `mcap` reader, for `benches/ingest.sh`.
 
+    mcap_counts.py FILE.mcap            one line `MCAP topic1=n1 topic2=n2 ...` (from the summary)
+    mcap_counts.py --events FILE.mcap   one line `EVENT <log_time_ns> <message>` per /events message
+"""
+
+import json
 import sys
 
 from mcap.reader import make_reader
 
 
-def main():
-    if len(sys.argv) != 2:
-        sys.exit("usage: mcap_counts.py FILE.mcap")
-    with open(sys.argv[1], "rb") as f:
+def counts(path):
+    with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
     if summary is None or summary.statistics is None:
-        sys.exit(f"mcap_counts.py: {sys.argv[1]} has no summary (not finished?)")
-    counts = summary.statistics.channel_message_counts
-    parts = [f"{summary.channels[cid].topic}={n}" for cid, n in sorted(counts.items())]
+        sys.exit(f"mcap_counts.py: {path} has no summary (not finished?)")
+    stats = summary.statistics.channel_message_counts
+    parts = [f"{summary.channels[cid].topic}={n}" for cid, n in sorted(stats.items())]
     print("MCAP " + " ".join(parts))
+
+
+def events(path):
+    with open(path, "rb") as f:
+        for _schema, _channel, message in make_reader(f).iter_messages(topics=["/events"]):
+            text = json.loads(message.data).get("message", "")
+            print(f"EVENT {message.log_time} {' '.join(text.split())}")
+
+
+def main():
+    args = sys.argv[1:]
+    if len(args) == 2 and args[0] == "--events":
+        events(args[1])
+    elif len(args) == 1:
+        counts(args[0])
+    else:
+        sys.exit(__doc__)
 
 
 if __name__ == "__main__":
