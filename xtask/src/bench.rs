@@ -1562,15 +1562,20 @@ fn ingest(ctx: &Ctx) -> Result<Section> {
             let rss = num(&line, "rss_kb") / 1024.0;
             let _ = writeln!(
                 body,
-                "\n**One power-up session** (`benches/ingest.sh session`: `exocald calibrate` \
+                "\n**One power-up session** (`benches/ingest.sh session`: `exocald calibrate` with a 60 s collection window, \
                  pushing to the hil's nodes, the hil at real time): exit status {}, peak RSS \
                  {rss:.1} MiB over {} s; collection window closed at {} s, every node's table \
                  verified (CRC read back) at {} s (times from the daemon's `/events` in its \
-                 MCAP log, relative to the daemon's start): power-up latency {latency:.2} s.\n",
+                 MCAP log, relative to the daemon's start): power-up latency {latency:.2} s, of \
+                 which alignment, calibration (LS + our EM) and validation {:.2} s (until the \
+                 held-out check at {} s) and the push with CRC read-back {:.2} s.\n",
                 line.get("exit").map_or("?", String::as_str),
                 line.get("wall_s").map_or("?", String::as_str),
                 line.get("window_end_s").map_or("?", String::as_str),
-                line.get("verified_s").map_or("?", String::as_str)
+                line.get("verified_s").map_or("?", String::as_str),
+                num(&line, "validated_s") - num(&line, "window_end_s"),
+                line.get("validated_s").map_or("?", String::as_str),
+                num(&line, "verified_s") - num(&line, "validated_s")
             );
             goals.push(Goal {
                 what: "daemon peak RSS for a 60 s session stated".into(),
