@@ -86,9 +86,33 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
             let config = session_config(cli.config.as_deref(), &args)?;
             runtime()?.block_on(serve_on_can(config, args.dry_run))
         }
-        Command::Demo(_) => Err(DaemonError::Unsupported(
-            "the demo needs the exocal-hil integration, not wired yet".into(),
-        )),
+        Command::Demo(args) => {
+            let (config, source) = resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
+            eprintln!("exocald: configuration from {source}");
+            let config = crate::demo::demo_config(config, &args.output, args.speed);
+            let opts = crate::demo::DemoOptions {
+                seed: args.seed,
+                speed: args.speed,
+                output: args.output.clone(),
+            };
+            runtime()?.block_on(async {
+                match crate::demo::run(&config, &opts).await {
+                    Ok(result) => {
+                        print_summary(&result.summary);
+                        let check = crate::demo::check_flash(&result);
+                        for (node, crc) in &result.flash_crc {
+                            let crc = crc.map_or_else(|| "none".into(), |c| format!("{c:#010x}"));
+                            println!("flash {node}: table CRC {crc}");
+                        }
+                        if check.is_ok() {
+                            println!("every node persisted the pushed table (CRC match)");
+                        }
+                        check
+                    }
+                    Err(e) => finish(Err(e)),
+                }
+            })
+        }
     }
 }
 

@@ -71,8 +71,11 @@ pub struct SessionArgs {
 #[derive(Debug, Args)]
 pub struct DemoArgs {
     /// Seed of the emulated suit (motion, drift, noise): the same seed gives the same table.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 2024)]
     pub seed: u64,
+    /// Simulated seconds per real second (the paper's 60 s scenario takes 60/speed s).
+    #[arg(long, default_value_t = 10.0)]
+    pub speed: f64,
     /// Folder for the session's MCAP log.
     #[arg(long, short = 'o', value_name = "DIR", default_value = "exocal-demo")]
     pub output: PathBuf,

@@ -740,7 +740,7 @@ mod tests {
 
     #[test]
     fn a_wrong_type_is_named_with_its_line() {
-        let text = edited("min_duration_s = 20.0", "min_duration_s = \"twenty\"");
+        let text = edited("min_duration_s = 60.0", "min_duration_s = \"sixty\"");
         let (key, line, _) = invalid(&text);
         assert_eq!(key, "session.min_duration_s");
         assert_eq!(line, Some(line_containing(&text, "min_duration_s =")));
@@ -767,7 +767,7 @@ mod tests {
 
     #[test]
     fn inverted_durations_are_rejected() {
-        let text = edited("max_duration_s = 120.0", "max_duration_s = 10.0");
+        let text = edited("max_duration_s = 180.0", "max_duration_s = 10.0");
         let (key, line, message) = invalid(&text);
         assert_eq!(key, "session.max_duration_s");
         assert_eq!(line, Some(line_containing(&text, "max_duration_s =")));

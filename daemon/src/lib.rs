@@ -13,6 +13,7 @@
 //! | [`validate`] | bounds, condition number and held-out accuracy before any push |
 //! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
 //! | [`runner`] | one session on any transport: collect, align, calibrate, validate, push, log |
+//! | [`demo`] | exocal-hil and the daemon in one process on the in-process bus |
 //! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
 //! | [`app`] | what each subcommand does |
 
@@ -21,6 +22,7 @@ pub mod app;
 pub mod calibrate;
 pub mod cli;
 pub mod config;
+pub mod demo;
 pub mod exit;
 pub mod ingest;
 pub mod mcaplog;

@@ -271,9 +271,15 @@ mod tests {
         assert_eq!(c.fraction(), 0.0);
     }
 
+    /// The default rules with a 20 s minimum and a 120 s maximum duration.
     fn session() -> Session {
         let c = Config::default_config();
-        Session::new(c.session.clone(), c.bounds.joint_range)
+        let rules = SessionRules {
+            min_duration_s: 20.0,
+            max_duration_s: 120.0,
+            ..c.session
+        };
+        Session::new(rules, c.bounds.joint_range)
     }
 
     /// Sweeps every joint over `fraction` of its range, `n` samples per joint, and as many poses.
