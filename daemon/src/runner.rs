@@ -534,3 +534,174 @@ pub fn write_summary(summary: &SessionSummary, out: &mut impl Write) -> std::io:
     serde_json::to_writer_pretty(&mut *out, summary)?;
     writeln!(out)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::app::Shutdown;
+    use exocal_bus::InProcessBus;
+    use exocal_hil::{Hil, Scenario, SimClock};
+
+    fn temp_dir(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("exocald-runner-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        d
+    }
+
+    /// Runs one session against the paper hil; `stop_after_s` raises the shutdown flag after
+    /// that much real time. Returns the result and the flash CRCs before and after.
+    async fn session(
+        config: Config,
+        dir: &std::path::Path,
+        stop_after_s: Option<f64>,
+    ) -> (
+        Result<SessionSummary, SessionError>,
+        Vec<Option<u32>>,
+        Vec<Option<u32>>,
+    ) {
+        let flash = dir.join("flash");
+        std::fs::create_dir_all(&flash).unwrap();
+        let mut scenario = Scenario::paper();
+        scenario.duration_s = 400.0;
+        let mut hil = Hil::new(scenario, &flash).unwrap();
+        let crcs = |flash: &std::path::Path| -> Vec<Option<u32>> {
+            NodeId::JOINTS
+                .iter()
+                .map(|&n| {
+                    exocal_hil::flash::read(flash, n)
+                        .unwrap()
+                        .map(|i| i.table.crc())
+                })
+                .collect()
+        };
+        let before = crcs(&flash);
+        let clock = SimClock::new(20.0).unwrap();
+        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+        let mut hil_end = bus.attach();
+        let mut daemon_end = bus.attach();
+        let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await });
+        let (stop, shutdown) = Shutdown::manual();
+        if let Some(s) = stop_after_s {
+            tokio::spawn(async move {
+                tokio::time::sleep(Duration::from_secs_f64(s)).await;
+                let _ = stop.send(true);
+            });
+        }
+        let mut notifier = Notifier::disabled();
+        let mut reporter = Reporter::Plain { last_line: None };
+        let result = run_session(
+            &mut daemon_end,
+            &clock.bus_clock(),
+            &config,
+            false,
+            shutdown.wait(),
+            &mut notifier,
+            &mut reporter,
+        )
+        .await;
+        hil_task.abort();
+        let _ = hil_task.await;
+        (result, before, crcs(&flash))
+    }
+
+    fn config(dir: &std::path::Path) -> Config {
+        let mut c = Config::default_config();
+        c.output.directory = dir.to_path_buf();
+        c.session.min_duration_s = 15.0;
+        c.push.timeout_ms = 400;
+        c
+    }
+
+    fn topic_count(summary: &SessionSummary, topic: &str) -> u64 {
+        summary
+            .log_counts
+            .iter()
+            .find(|(t, _)| t == topic)
+            .map_or(0, |c| c.1)
+    }
+
+    /// The file must be finished: a summary section with every channel.
+    fn assert_finished(path: &std::path::Path) -> mcap::Summary {
+        let bytes = std::fs::read(path).unwrap();
+        let summary = mcap::Summary::read(&bytes)
+            .unwrap()
+            .expect("a finished file");
+        assert_eq!(summary.channels.len(), crate::mcaplog::Topic::ALL.len());
+        summary
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn shutdown_during_collection_finishes_the_log_and_pushes_nothing() {
+        let dir = temp_dir("sigterm");
+        // 0.4 s real = ~8 s simulated: mid-collection (the minimum is 15 s).
+        let (result, before, after) = session(config(&dir), &dir, Some(0.4)).await;
+        let err = result.unwrap_err();
+        assert!(
+            matches!(err.error, DaemonError::Interrupted),
+            "{}",
+            err.error
+        );
+        assert_eq!(err.error.exit_code(), crate::exit::code::TEMPFAIL);
+        let summary = err.summary.unwrap();
+        assert!(summary.push.is_none());
+        assert_eq!(topic_count(&summary, "/can/tx"), 0);
+        assert!(topic_count(&summary, "/can/rx") > 1000);
+        let stats = assert_finished(&summary.log_path).stats.unwrap();
+        assert_eq!(
+            stats.message_count,
+            summary.log_counts.iter().map(|c| c.1).sum::<u64>()
+        );
+        assert_eq!(before, after, "no node's table changed");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_refused_calibration_pushes_nothing_and_says_why() {
+        let dir = temp_dir("refused");
+        let mut c = config(&dir);
+        // Nothing can be 100% better than nominal: validation must refuse.
+        c.validation.min_improvement = 1.0;
+        let (result, before, after) = session(c, &dir, None).await;
+        let err = result.unwrap_err();
+        match &err.error {
+            DaemonError::Validation(reasons) => {
+                assert!(
+                    reasons.iter().any(|r| r.contains("100.0% required")),
+                    "{reasons:?}"
+                );
+            }
+            other => panic!("{other}"),
+        }
+        assert_eq!(err.error.exit_code(), crate::exit::code::DATAERR);
+        let summary = err.summary.unwrap();
+        assert!(summary.outcome.is_some() && summary.push.is_none());
+        assert_eq!(topic_count(&summary, "/can/tx"), 0);
+        assert_eq!(topic_count(&summary, "/calibration"), 1);
+        assert_finished(&summary.log_path);
+        assert_eq!(before, after);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_session_without_enough_motion_fails_at_the_maximum_duration() {
+        let dir = temp_dir("short");
+        let mut c = config(&dir);
+        c.session.min_samples = 1_000_000;
+        c.session.max_duration_s = 16.0;
+        let (result, _, _) = session(c, &dir, None).await;
+        let err = result.unwrap_err();
+        assert!(
+            matches!(err.error, DaemonError::Session(_)),
+            "{}",
+            err.error
+        );
+        assert!(
+            err.error.to_string().contains("1000000 required"),
+            "{}",
+            err.error
+        );
+        assert_eq!(err.error.exit_code(), crate::exit::code::NOINPUT);
+        assert_finished(&err.summary.unwrap().log_path);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,67 @@
+//! The `exocald` binary as a user (or systemd) runs it: exit statuses and messages.
+
+use std::process::Command;
+
+fn exocald(args: &[&str]) -> (i32, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_exocald"))
+        .args(args)
+        .output()
+        .expect("run exocald");
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn temp(name: &str, text: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("exocald-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+#[test]
+fn a_bad_config_exits_78_naming_the_key_and_line() {
+    let text = exocald::config::DEFAULT_TOML.replace("retries = 3", "retries = 3\nretrys = 4");
+    let line = text.lines().position(|l| l.starts_with("retrys")).unwrap() + 1;
+    let path = temp("bad.toml", &text);
+    for cmd in ["check-config", "calibrate", "run"] {
+        let (code, _, err) = exocald(&["--config", path.to_str().unwrap(), cmd]);
+        assert_eq!(code, 78, "{cmd}: {err}");
+        assert!(
+            err.contains(&format!(":{line}: key `push.retrys`")),
+            "{cmd}: {err}"
+        );
+    }
+}
+
+#[test]
+fn a_missing_interface_is_a_clear_error() {
+    let (code, _, err) = exocald(&["calibrate", "--interface", "vcan93"]);
+    assert_eq!(code, 69, "{err}");
+    assert!(
+        err.contains("vcan93") && err.contains("ip link add"),
+        "{err}"
+    );
+}
+
+#[test]
+fn usage_errors_are_64_and_help_is_0() {
+    assert_eq!(exocald(&["calibrat"]).0, 64);
+    let (code, out, _) = exocald(&["--help"]);
+    assert_eq!(code, 0);
+    assert!(out.contains("exocald demo"), "{out}");
+}
+
+#[test]
+fn the_default_config_prints_and_checks() {
+    let (code, out, _) = exocald(&["check-config", "--print-default"]);
+    assert_eq!(code, 0);
+    assert_eq!(out, exocald::config::DEFAULT_TOML);
+    let path = temp("good.toml", &out);
+    let (code, out, err) = exocald(&["--config", path.to_str().unwrap(), "check-config"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("valid"), "{out}");
+}
