@@ -131,9 +131,11 @@ mod tests {
     async fn the_paper_scenario_calibrates_pushes_and_persists() {
         let dir = std::env::temp_dir().join(format!("exocald-demo-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
+        // Slow enough that the emulator keeps up on a loaded 2-core CI machine: when it lags, the
+        // bus stamps its frames late, and validation (rightly) refuses the misaligned result.
         let opts = DemoOptions {
             seed: 2024,
-            speed: 10.0,
+            speed: 4.0,
             output: dir.clone(),
         };
         let config = demo_config(Config::default_config(), &dir, opts.speed);

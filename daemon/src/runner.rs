@@ -35,6 +35,37 @@ use crate::session::{Phase, Session};
 
 /// Real time between two turns of the housekeeping tick.
 pub const TICK: Duration = Duration::from_millis(100);
+/// Bus-clock seconds between two estimates of the condition number during collection.
+pub const CONDITION_EVERY_S: f64 = 10.0;
+/// Samples (at most) the in-collection condition estimate runs LS on.
+pub const CONDITION_SAMPLES: usize = 600;
+
+/// Condition number of the identification problem on the data so far: the streams aligned,
+/// subsampled to at most [`CONDITION_SAMPLES`], one LS from nominal. `None` if too little data.
+pub fn condition_estimate(ingest: &Ingest, config: &Config) -> Option<f64> {
+    let (aligned, _) = ingest.align(
+        &AlignParams::default(),
+        config.session.grid_hz,
+        config.session.max_gap_s,
+    );
+    let n = aligned.samples.len();
+    if n < 50 {
+        return None;
+    }
+    let step = n.div_ceil(CONDITION_SAMPLES);
+    let samples: Vec<calib_core::Sample<JOINTS>> = aligned
+        .samples
+        .iter()
+        .step_by(step)
+        .map(calibrate::to_sample)
+        .collect();
+    let nominal = crate::validate::table_from_rows(&config.nominal);
+    let opts = calib_core::LsOptions::new();
+    calib_core::identify_ls::<JOINTS, { calib_core::SUIT_PARAMS }>(&nominal, &samples, &opts)
+        .ok()
+        .map(|r| r.condition)
+}
+
 /// Rate (Hz) at which the arm's frames are written to `/tf` for Foxglove.
 pub const TF_HZ: f64 = 20.0;
 
@@ -314,7 +345,9 @@ async fn session_body<T: Transport>(
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let required = config.session.excitation_required;
 
-    // 1. Collect.
+    // 1. Collect. The tick goes before the bus so a saturated bus cannot starve the watchdog.
+    let mut condition_job: Option<tokio::task::JoinHandle<Option<f64>>> = None;
+    let mut last_condition_s = 0.0;
     loop {
         tokio::select! {
             biased;
@@ -322,13 +355,16 @@ async fn session_body<T: Transport>(
                 summary.frames = ingest.stats().clone();
                 return Err(DaemonError::Interrupted);
             }
-            rx = bus.recv() => {
-                let rx = rx.map_err(|e| DaemonError::Io { what: "receiving CAN".into(), source: std::io::Error::other(e.to_string()) })?;
-                take_frame(&rx, &mut ingest, &mut session, io);
-            }
             _ = tick.tick() => {
                 io.housekeeping();
                 let elapsed = (clock().saturating_sub(start)).as_secs_f64();
+                if condition_job.is_none() && elapsed - last_condition_s >= CONDITION_EVERY_S {
+                    last_condition_s = elapsed;
+                    let (snapshot, cfg) = (ingest.clone(), config.clone());
+                    condition_job = Some(tokio::task::spawn_blocking(move || {
+                        condition_estimate(&snapshot, &cfg)
+                    }));
+                }
                 let progress = session.progress(elapsed);
                 io.reporter.update(&progress, required, io.notifier);
                 let r = io.log.write(crate::mcaplog::Topic::Progress, ns(clock()), &progress);
@@ -342,10 +378,23 @@ async fn session_body<T: Transport>(
                     }
                 }
             }
+            done = async { condition_job.as_mut().expect("guarded").await }, if condition_job.is_some() => {
+                condition_job = None;
+                if let Ok(Some(k)) = done {
+                    session.set_condition_number(k);
+                }
+            }
+            rx = bus.recv() => {
+                let rx = rx.map_err(|e| DaemonError::Io { what: "receiving CAN".into(), source: std::io::Error::other(e.to_string()) })?;
+                take_frame(&rx, &mut ingest, &mut session, io);
+            }
         }
         if let Some(e) = io.log_error.take() {
             return Err(io_err("writing the log", e));
         }
+    }
+    if let Some(job) = condition_job {
+        job.abort();
     }
     summary.frames = ingest.stats().clone();
     let s = ingest.stats();
@@ -409,12 +458,12 @@ async fn session_body<T: Transport>(
             biased;
             () = &mut shutdown => return Err(DaemonError::Interrupted),
             done = &mut job => break done,
+            _ = tick.tick() => io.housekeeping(),
             rx = bus.recv() => {
                 if let Ok(rx) = rx {
                     take_frame(&rx, &mut ingest, &mut session, io);
                 }
             }
-            _ = tick.tick() => io.housekeeping(),
         }
     };
     let outcome = outcome
