@@ -1441,7 +1441,7 @@ fn ingest(ctx: &Ctx) -> Result<Section> {
     let mut best_zero_loss: Option<f64> = None;
     let mut ratio_at_best = f64::NAN;
     let mut max_offered = 0.0f64;
-    let mut first_loss: Option<(f64, f64)> = None;
+    let mut first_loss: Option<(f64, f64, f64)> = None;
     let mut ratios = Vec::new();
     let mut candump_lossy = 0;
     for r in &rows {
@@ -1463,8 +1463,9 @@ fn ingest(ctx: &Ctx) -> Result<Section> {
         if sent > dumped {
             candump_lossy += 1;
         }
-        if lost != 0.0 && first_loss.is_none_or(|(r0, _)| rate < r0) {
-            first_loss = Some((rate, lost));
+        if lost != 0.0 && first_loss.is_none_or(|(r0, _, _)| rate < r0) {
+            // The daemon's share of a core at that load: near 1 means it, not the bus, saturated.
+            first_loss = Some((rate, lost, num(r, "daemon_cpu_s") / num(r, "hil_wall_s")));
         }
         if lost == 0.0 && best_zero_loss.is_none_or(|b| rate > b) {
             best_zero_loss = Some(rate);
@@ -1514,28 +1515,36 @@ fn ingest(ctx: &Ctx) -> Result<Section> {
          ref`: calib-core's LS on 200 samples, 40 times) took {host_ref:.2} s of CPU here and \
          {guest_ref:.2} s in the guest: the guest is {slowdown:.1}× slower. Dividing the daemon's \
          lowest CPU per frame above ({:.1} µs) by that gives about {:.2} µs per frame natively, \
-         i.e. roughly {native_estimate:.0} frames/s per core: an estimate, not a measurement \
+         i.e. roughly {:.0} frames/s per core: an estimate, not a measurement \
          (system calls and vcan delivery do not scale like pure computation under emulation).\n",
         best_cpu * 1e6,
-        best_cpu / slowdown * 1e6
+        best_cpu / slowdown * 1e6,
+        (native_estimate / 1000.0).round() * 1000.0
     );
     let mut goals = vec![
         Goal {
             what: "daemon ingest ≥ 50,000 frames/s with zero loss (decode, align, MCAP write)".into(),
             met: best_zero_loss.is_some_and(|b| b >= 50_000.0),
             detail: format!(
-                "{}; {}. Bounded by the load generator: the hil (one process, emulating 8 nodes) sent at most {max_offered:.0} frames/s{}; native capacity estimated at ~{native_estimate:.0} frames/s per core (guest CPU per frame ÷ guest slowdown)",
+                "{}; {}{}; native capacity estimated at ~{:.0} frames/s per core (guest CPU per frame ÷ guest slowdown)",
                 best_zero_loss.map_or("no load without loss".to_string(), |b| format!(
                     "highest zero-loss offered rate {b:.0} frames/s"
                 )),
-                first_loss.map_or("no frame lost at any load".to_string(), |(r, n)| format!(
-                    "first loss at {r:.0} frames/s ({n} frames)"
-                )),
+                match first_loss {
+                    Some((r, n, share)) => format!(
+                        "first loss at {r:.0} frames/s ({n} frames), where the daemon used {:.0} % of a core: it saturated",
+                        share * 100.0
+                    ),
+                    None => format!(
+                        "no frame lost at any load: bounded by the load generator, the hil (one process emulating 8 nodes), which sent at most {max_offered:.0} frames/s"
+                    ),
+                },
                 if load_cmd.contains("vm path") {
-                    " in the QEMU TCG guest (emulated CPU), the only vcan this kernel allows"
+                    ", all in the QEMU TCG guest (emulated CPU), the only vcan this kernel allows"
                 } else {
                     ""
-                }
+                },
+                (native_estimate / 1000.0).round() * 1000.0
             ),
         },
         Goal {
