@@ -35,6 +35,8 @@ use crate::session::{Phase, Session};
 
 /// Real time between two turns of the housekeeping tick.
 pub const TICK: Duration = Duration::from_millis(100);
+/// A clock fit whose residual exceeds this (µs RMS) is reported as unreliable.
+pub const CLOCK_RESIDUAL_WARN_US: f64 = 1000.0;
 /// Bus-clock seconds between two estimates of the condition number during collection.
 pub const CONDITION_EVERY_S: f64 = 10.0;
 /// Samples (at most) the in-collection condition estimate runs LS on.
@@ -421,6 +423,17 @@ async fn session_body<T: Transport>(
     summary.aligned_samples = aligned.samples.len();
     summary.gaps = aligned.gaps;
     for c in &summary.clocks {
+        if c.residual_rms_us
+            .is_some_and(|r| r > CLOCK_RESIDUAL_WARN_US)
+        {
+            let line = format!(
+                "{}: receive-time residual {:.0} µs RMS: timestamps are unreliable (a lagging \
+                 sender or a loaded receiver); expect a poor alignment",
+                c.node,
+                c.residual_rms_us.unwrap_or(f64::NAN)
+            );
+            io.event(clock(), Level::Warning, &line);
+        }
         if c.jumps > 0 || c.unmapped > 0 {
             let line = format!(
                 "{}: {} clock jump(s)/reboot(s), {} samples excluded",
