@@ -102,9 +102,70 @@ pub fn add_rust_target(triple: &str) -> Result<()> {
     Ok(())
 }
 
+/// The workspace root (xtask sits in it).
+pub fn workspace_root() -> std::path::PathBuf {
+    let here = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    here.parent().unwrap_or(here).to_path_buf()
+}
+
+/// The project's Python venv (`target/exocal-pyenv`, from `tests/requirements.txt`), made or
+/// updated when the requirements changed; returns its interpreter.
+pub fn python_env() -> Result<std::path::PathBuf> {
+    let root = workspace_root();
+    let venv = std::env::var_os("EXOCAL_PYENV")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| root.join("target/exocal-pyenv"));
+    let python = venv.join("bin/python");
+    let wanted = std::fs::read_to_string(root.join("tests/requirements.txt"))
+        .context("read tests/requirements.txt")?;
+    let stamp = venv.join("exocal-requirements.txt");
+    if python.exists() && std::fs::read_to_string(&stamp).ok().as_deref() == Some(&wanted) {
+        return Ok(python);
+    }
+    if !python.exists() {
+        if crate::vm::which("python3").is_none() {
+            bail!("python3 is needed for the cantools and mcap cross-checks: install python3");
+        }
+        let ok = Command::new("python3")
+            .args(["-m", "venv"])
+            .arg(&venv)
+            .stdin(Stdio::null())
+            .status()
+            .context("python3 -m venv")?
+            .success();
+        if !ok {
+            bail!("python3 -m venv failed: install python3-venv");
+        }
+    }
+    eprintln!(
+        "[setup] pip install -r tests/requirements.txt into {}",
+        venv.display()
+    );
+    let ok = Command::new(&python)
+        .args([
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--disable-pip-version-check",
+            "-r",
+        ])
+        .arg(root.join("tests/requirements.txt"))
+        .stdin(Stdio::null())
+        .status()
+        .context("pip install")?
+        .success();
+    if !ok {
+        bail!("pip install -r tests/requirements.txt failed (is PyPI reachable?)");
+    }
+    std::fs::write(&stamp, wanted)?;
+    Ok(python)
+}
+
 /// `cargo xtask setup`: everything, so that a fresh machine can build and test.
 pub fn install_all() -> Result<()> {
     add_rust_target(EMBEDDED_TARGET)?;
+    python_env()?;
     if crate::native::available().is_ok() {
         eprintln!("[setup] native vcan works here: no VM packages needed");
         return Ok(());

@@ -53,6 +53,38 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let mut host = Counts::default();
 
+    // The Python cross-checks (cantools, mcap) need their venv before any suite runs; the
+    // guest is offline, so it is made here, and every suite finds it through EXOCAL_PYTHON.
+    let python = crate::setup::python_env()?;
+    std::env::set_var("EXOCAL_PYTHON", &python);
+    std::env::set_var(
+        "EXOCAL_PYENV",
+        python.parent().and_then(|b| b.parent()).unwrap_or(&python),
+    );
+    // The end-to-end suites run the real binaries, optimised as shipped (in the TCG guest a
+    // debug emulator cannot keep its nodes' clocks in step with real time): build them, and
+    // tell the suites where.
+    let status = Command::new(&cargo)
+        .args([
+            "build",
+            "--release",
+            "--bins",
+            "-p",
+            "exocald",
+            "-p",
+            "exocal-hil",
+        ])
+        .stdin(Stdio::null())
+        .status()
+        .context("cargo build --bins")?;
+    if !status.success() {
+        bail!("building exocald and exocal-hil failed");
+    }
+    let target = std::env::var_os("CARGO_TARGET_DIR")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| crate::setup::workspace_root().join("target"));
+    std::env::set_var("EXOCAL_BIN_DIR", target.join("release"));
+
     println!("==> [1/2] cargo test --workspace (unit, integration and doc tests)");
     let ok_host = run_teed(
         Command::new(&cargo).args(["test", "--workspace", "--color", "never"]),
