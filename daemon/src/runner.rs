@@ -35,8 +35,10 @@ use crate::session::{Phase, Session};
 
 /// Real time between two turns of the housekeeping tick.
 pub const TICK: Duration = Duration::from_millis(100);
-/// A clock fit whose residual exceeds this (µs RMS) is reported as unreliable.
-pub const CLOCK_RESIDUAL_WARN_US: f64 = 1000.0;
+/// A clock fit whose residual exceeds this (µs RMS) is reported as unreliable. Receive jitter
+/// averages out in the fit (the in-process demo, whose bus stamps frames in ~10 ms batches, sees
+/// ~5 ms RMS and still aligns well); tens of ms mean the timestamps cannot be trusted.
+pub const CLOCK_RESIDUAL_WARN_US: f64 = 20_000.0;
 /// Bus-clock seconds between two estimates of the condition number during collection.
 pub const CONDITION_EVERY_S: f64 = 10.0;
 /// Samples (at most) the in-collection condition estimate runs LS on.
