@@ -11,7 +11,9 @@
 //! matrix `Σ JᵀJ` of the tool-frame pose Jacobian over the fitted samples, pseudo-inverted in
 //! column-scaled coordinates; directions outside the numerical rank are left out).
 
-use calib_core::{em_drift_vec, identify_ls, CalibError, DhTable, DriftEmOptions, LsOptions, Sample};
+use calib_core::{
+    em_drift_vec, identify_ls, CalibError, DhTable, DriftEmOptions, LsOptions, Sample,
+};
 use nalgebra::{DMatrix, SMatrix};
 
 use crate::input::{Calibration, Correlation, EmDetail, LsDetail, JOINTS, PARAMS};
@@ -149,11 +151,12 @@ mod tests {
 
     #[test]
     fn a_still_joint_shows_as_perfectly_correlated_parameters() {
-        // Joint 7 still: only a6 + a7 and α6 + α7 are identifiable (calib-core README), so
-        // the pseudo-inverse leaves each pair fully correlated.
+        // Joint 7 still at θ7 + offset7 = 0: Tx(a6) Rx(α6) Tx(a7) Rx(α7) = Tx(a6 + a7)
+        // Rx(α6 + α7), so only the sums are identifiable (calib-core README) and the
+        // pseudo-inverse leaves each pair fully correlated.
         let mut fit = samples(400, 5);
         for s in &mut fit {
-            s.joints[6] = 0.3;
+            s.joints[6] = 0.0;
         }
         let c = strongest_correlations(&DhTable::paper_nominal(), &fit, 3);
         assert!(c[0].r.abs() > 0.999, "{c:?}");

@@ -48,7 +48,12 @@ impl std::error::Error for ExportError {}
 
 fn check_finite(table: &DhTable<JOINTS>) -> Result<(), ExportError> {
     for (i, r) in table.rows.iter().enumerate() {
-        for (name, v) in [("a", r.a), ("alpha", r.alpha), ("d", r.d), ("offset", r.theta_offset)] {
+        for (name, v) in [
+            ("a", r.a),
+            ("alpha", r.alpha),
+            ("d", r.d),
+            ("offset", r.theta_offset),
+        ] {
             if !v.is_finite() {
                 return Err(ExportError::NotFinite(format!("{name}{}", i + 1)));
             }
@@ -67,7 +72,8 @@ pub fn config_toml(base: &str, table: &DhTable<JOINTS>) -> Result<String, Export
         .get_mut("nominal")
         .and_then(Item::as_table_like_mut)
         .ok_or(ExportError::NoNominal)?;
-    let columns: [(&str, fn(&calib_core::DhRow) -> f64); 4] = [
+    type Column = (&'static str, fn(&calib_core::DhRow) -> f64);
+    let columns: [Column; 4] = [
         ("a", |r| r.a),
         ("alpha_deg", |r| r.alpha.to_degrees()),
         ("d", |r| r.d),
@@ -244,8 +250,14 @@ mod tests {
     #[test]
     fn config_export_errors_name_the_problem() {
         let t = calibrated();
-        assert!(matches!(config_toml("a = [", &t), Err(ExportError::BaseToml(_))));
-        assert_eq!(config_toml("[can]\nx = 1\n", &t), Err(ExportError::NoNominal));
+        assert!(matches!(
+            config_toml("a = [", &t),
+            Err(ExportError::BaseToml(_))
+        ));
+        assert_eq!(
+            config_toml("[can]\nx = 1\n", &t),
+            Err(ExportError::NoNominal)
+        );
         let mut bad = t;
         bad.rows[2].d = f64::NAN;
         assert_eq!(
@@ -253,7 +265,9 @@ mod tests {
             Err(ExportError::NotFinite("d3".into()))
         );
         assert_eq!(
-            urdf("x", &bad, &[(-1.0, 1.0); JOINTS]).unwrap_err().to_string(),
+            urdf("x", &bad, &[(-1.0, 1.0); JOINTS])
+                .unwrap_err()
+                .to_string(),
             "parameter d3 is not finite"
         );
     }
@@ -308,7 +322,10 @@ mod tests {
             remote: false,
             data: vec![0xDE, 0xAD, 0xBE, 0xEF],
         };
-        assert_eq!(candump_line(&f, "vcan0"), "(1700000000.123456) vcan0 123#DEADBEEF");
+        assert_eq!(
+            candump_line(&f, "vcan0"),
+            "(1700000000.123456) vcan0 123#DEADBEEF"
+        );
         let e = RecordedFrame {
             id: 0x1ABCDE,
             extended: true,
@@ -316,7 +333,10 @@ mod tests {
             data: vec![],
             ..f.clone()
         };
-        assert_eq!(candump_line(&e, "can1"), "(1700000000.123456) can1 001ABCDE#R");
+        assert_eq!(
+            candump_line(&e, "can1"),
+            "(1700000000.123456) can1 001ABCDE#R"
+        );
         let mut out = Vec::new();
         write_candump(&[f.clone(), f], "vcan0", &mut out).unwrap();
         assert_eq!(String::from_utf8(out).unwrap().lines().count(), 2);

@@ -71,7 +71,11 @@ fn figure(out: &mut String, id: &str, caption: &str, svg: Result<String, PlotErr
     match svg {
         Ok(svg) => out.push_str(&svg),
         Err(e) => {
-            let _ = write!(out, "<div class=\"missing\">Not drawn: {}</div>", esc(&e.to_string()));
+            let _ = write!(
+                out,
+                "<div class=\"missing\">Not drawn: {}</div>",
+                esc(&e.to_string())
+            );
         }
     }
     let _ = writeln!(out, "<figcaption>{caption}</figcaption></figure>");
@@ -143,12 +147,19 @@ fn trajectories(input: &ReportInput) -> (Result<String, PlotError>, Result<Strin
     };
     let top = plane(0, 1, "top view (x–y)", "x (mm)", "y (mm)");
     let side = plane(0, 2, "side view (x–z)", "x (mm)", "z (mm)");
-    let plane = line_panels(&[top], HALF, 420)
-        .and_then(|a| line_panels(&[side], HALF, 420).map(|b| format!("<div class=\"pair\">{a}{b}</div>")));
+    let plane = line_panels(&[top], HALF, 420).and_then(|a| {
+        line_panels(&[side], HALF, 420).map(|b| format!("<div class=\"pair\">{a}{b}</div>"))
+    });
     (time, plane)
 }
 
-fn residual_charts(input: &ReportInput) -> (Result<String, PlotError>, Result<String, PlotError>, &'static str) {
+fn residual_charts(
+    input: &ReportInput,
+) -> (
+    Result<String, PlotError>,
+    Result<String, PlotError>,
+    &'static str,
+) {
     let (samples, which) = if input.held_out.is_empty() {
         (&input.fit, "fitted samples (no held-out slice)")
     } else {
@@ -171,8 +182,20 @@ fn residual_charts(input: &ReportInput) -> (Result<String, PlotError>, Result<St
         ]
     };
     (
-        histogram("position error", "‖Δp‖ (mm)", &dist(|r| r.0), 40, (HALF, 330)),
-        histogram("rotation error", "‖Δφ‖ (mrad)", &dist(|r| r.1), 40, (HALF, 330)),
+        histogram(
+            "position error",
+            "‖Δp‖ (mm)",
+            &dist(|r| r.0),
+            40,
+            (HALF, 330),
+        ),
+        histogram(
+            "rotation error",
+            "‖Δφ‖ (mrad)",
+            &dist(|r| r.1),
+            40,
+            (HALF, 330),
+        ),
         which,
     )
 }
@@ -226,7 +249,10 @@ fn em_charts(input: &ReportInput) -> (Result<String, PlotError>, Result<String, 
             .collect(),
         shade_from: None,
     };
-    (line_panels(&[ll], HALF, 330), line_panels(&[drift], WIDE, 380))
+    (
+        line_panels(&[ll], HALF, 330),
+        line_panels(&[drift], WIDE, 380),
+    )
 }
 
 /// Value and standard deviation in display units: mm for lengths, degrees for angles.
@@ -272,7 +298,9 @@ fn correlation_table(out: &mut String, c: &Calibration) {
         out.push_str("<p class=\"note\">No correlations: no parameter is identifiable.</p>");
         return;
     }
-    out.push_str("<table class=\"corr\"><thead><tr><th>pair</th><th>r</th><th></th></tr></thead><tbody>\n");
+    out.push_str(
+        "<table class=\"corr\"><thead><tr><th>pair</th><th>r</th><th></th></tr></thead><tbody>\n",
+    );
     for k in &c.correlations {
         let w = (k.r.abs() * 100.0).round();
         let colour = if k.r >= 0.0 { "#1f77b4" } else { "#d62728" };
@@ -291,8 +319,16 @@ fn quality_section(out: &mut String, input: &ReportInput) -> Result<String, Plot
     let q = &input.quality;
     let all = all_samples(input);
     out.push_str("<div class=\"pair\"><table class=\"kv\"><tbody>\n");
-    let _ = writeln!(out, "<tr><th>session length</th><td>{:.1} s</td></tr>", q.duration_s);
-    let _ = writeln!(out, "<tr><th>grid rate</th><td>{:.1} Hz</td></tr>", q.grid_hz);
+    let _ = writeln!(
+        out,
+        "<tr><th>session length</th><td>{:.1} s</td></tr>",
+        q.duration_s
+    );
+    let _ = writeln!(
+        out,
+        "<tr><th>grid rate</th><td>{:.1} Hz</td></tr>",
+        q.grid_hz
+    );
     let _ = writeln!(
         out,
         "<tr><th>aligned samples</th><td>{} ({} fitted, {} held out)</td></tr>",
@@ -300,14 +336,24 @@ fn quality_section(out: &mut String, input: &ReportInput) -> Result<String, Plot
         input.fit.len(),
         input.held_out.len()
     );
-    let _ = writeln!(out, "<tr><th>grid points excluded as gaps</th><td>{}</td></tr>", q.gaps);
+    let _ = writeln!(
+        out,
+        "<tr><th>grid points excluded as gaps</th><td>{}</td></tr>",
+        q.gaps
+    );
     for (k, v) in &q.counters {
         let _ = writeln!(out, "<tr><th>{}</th><td>{v}</td></tr>", esc(k));
     }
     out.push_str("</tbody></table>\n");
     let exc = excitation(&all, &q.joint_ranges);
     let labels: Vec<String> = (1..=JOINTS).map(|j| format!("joint {j}")).collect();
-    let chart = bars("excitation", &labels, &exc, q.excitation_required, (HALF, 300));
+    let chart = bars(
+        "excitation",
+        &labels,
+        &exc,
+        q.excitation_required,
+        (HALF, 300),
+    );
     out.push_str("</div>\n");
     if !q.streams.is_empty() {
         out.push_str(
@@ -382,7 +428,12 @@ pub fn render(input: &ReportInput) -> String {
          <title>{}</title><style>{STYLE}</style></head><body><main>\n",
         esc(&input.title)
     );
-    let _ = writeln!(out, "<h1>{}</h1><p class=\"sub\">{}</p>", esc(&input.title), esc(&input.source));
+    let _ = writeln!(
+        out,
+        "<h1>{}</h1><p class=\"sub\">{}</p>",
+        esc(&input.title),
+        esc(&input.source)
+    );
     match &input.verdict {
         Some(v) if v.accepted => out.push_str(
             "<div class=\"verdict ok\">Validated: the calibrated table may be pushed.</div>\n",
@@ -394,29 +445,72 @@ pub fn render(input: &ReportInput) -> String {
             }
             out.push_str("</ul></div>\n");
         }
-        None => out.push_str("<div class=\"verdict none\">Not validated (offline analysis).</div>\n"),
+        None => {
+            out.push_str("<div class=\"verdict none\">Not validated (offline analysis).</div>\n")
+        }
     }
 
     // Key numbers.
-    let eval = if input.held_out.is_empty() { &input.fit } else { &input.held_out };
+    let eval = if input.held_out.is_empty() {
+        &input.fit
+    } else {
+        &input.held_out
+    };
     let before = residuals(&input.nominal, eval);
     let after = residuals(&c.calibrated, eval);
-    let (pb, pa) = (mean(before.iter().map(|r| r.0)), mean(after.iter().map(|r| r.0)));
-    let (rb, ra) = (mean(before.iter().map(|r| r.1)), mean(after.iter().map(|r| r.1)));
-    let slice = if input.held_out.is_empty() { "fitted" } else { "held-out" };
+    let (pb, pa) = (
+        mean(before.iter().map(|r| r.0)),
+        mean(after.iter().map(|r| r.0)),
+    );
+    let (rb, ra) = (
+        mean(before.iter().map(|r| r.1)),
+        mean(after.iter().map(|r| r.1)),
+    );
+    let slice = if input.held_out.is_empty() {
+        "fitted"
+    } else {
+        "held-out"
+    };
     let card = |out: &mut String, v: String, k: String| {
-        let _ = write!(out, "<div class=\"card\"><div class=\"v\">{v}</div><div class=\"k\">{k}</div></div>");
+        let _ = write!(
+            out,
+            "<div class=\"card\"><div class=\"v\">{v}</div><div class=\"k\">{k}</div></div>"
+        );
     };
     out.push_str("<div class=\"cards\">");
-    card(&mut out, format!("{pb:.2} → {pa:.2} mm"), format!("mean position error, {slice}"));
-    card(&mut out, format!("{rb:.1} → {ra:.1} mrad"), format!("mean rotation error, {slice}"));
-    card(&mut out, format!("{:.0} %", 100.0 * (1.0 - pa / pb)), "position error removed".into());
-    card(&mut out, format!("{:.1}", c.ls.condition), format!("condition number (rank {}/{PARAMS})", c.ls.rank));
-    card(&mut out, format!("{} / {}", input.fit.len(), input.held_out.len()), "samples fitted / held out".into());
+    card(
+        &mut out,
+        format!("{pb:.2} → {pa:.2} mm"),
+        format!("mean position error, {slice}"),
+    );
+    card(
+        &mut out,
+        format!("{rb:.1} → {ra:.1} mrad"),
+        format!("mean rotation error, {slice}"),
+    );
+    card(
+        &mut out,
+        format!("{:.0} %", 100.0 * (1.0 - pa / pb)),
+        "position error removed".into(),
+    );
+    card(
+        &mut out,
+        format!("{:.1}", c.ls.condition),
+        format!("condition number (rank {}/{PARAMS})", c.ls.rank),
+    );
+    card(
+        &mut out,
+        format!("{} / {}", input.fit.len(), input.held_out.len()),
+        "samples fitted / held out".into(),
+    );
     match &c.em {
         Ok(em) => card(
             &mut out,
-            format!("{} it.{}", em.iterations, if em.converged { "" } else { " (limit)" }),
+            format!(
+                "{} it.{}",
+                em.iterations,
+                if em.converged { "" } else { " (limit)" }
+            ),
             "EM iterations".into(),
         ),
         Err(_) => card(&mut out, "failed".into(), "EM (LS table used)".into()),
@@ -433,13 +527,28 @@ pub fn render(input: &ReportInput) -> String {
          held-out slice, not used for fitting.",
         time,
     );
-    figure(&mut out, FIGURES[1], "The same trajectories projected on two planes of the base frame.", plane);
+    figure(
+        &mut out,
+        FIGURES[1],
+        "The same trajectories projected on two planes of the base frame.",
+        plane,
+    );
 
     let (pos, rot, which) = residual_charts(input);
     let _ = writeln!(out, "<h2>Residuals before and after ({which})</h2>");
     out.push_str("<div class=\"pair\">");
-    figure(&mut out, FIGURES[2], "Position error per sample (pose error in the model's tool frame).", pos);
-    figure(&mut out, FIGURES[3], "Rotation error per sample (rotation-vector norm).", rot);
+    figure(
+        &mut out,
+        FIGURES[2],
+        "Position error per sample (pose error in the model's tool frame).",
+        pos,
+    );
+    figure(
+        &mut out,
+        FIGURES[3],
+        "Rotation error per sample (rotation-vector norm).",
+        rot,
+    );
     out.push_str("</div>\n");
 
     out.push_str("<h2>Drift EM</h2>\n");

@@ -155,9 +155,11 @@ pub fn param_value(table: &DhTable<JOINTS>, index: usize) -> f64 {
 /// the range width, clamped to [0, 1]); 0 without samples or with an empty range.
 pub fn excitation(samples: &[TimedSample], ranges: &[(f64, f64); JOINTS]) -> [f64; JOINTS] {
     std::array::from_fn(|j| {
-        let (lo, hi) = samples.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), s| {
-            (lo.min(s.sample.joints[j]), hi.max(s.sample.joints[j]))
-        });
+        let (lo, hi) = samples
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), s| {
+                (lo.min(s.sample.joints[j]), hi.max(s.sample.joints[j]))
+            });
         let width = ranges[j].1 - ranges[j].0;
         if hi < lo || width <= 0.0 {
             0.0

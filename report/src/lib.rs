@@ -20,6 +20,6 @@ pub mod plot;
 pub mod readers;
 
 pub use input::{
-    Calibration, Correlation, EmDetail, LsDetail, Quality, ReportInput, StreamQuality,
-    TimedSample, VerdictSummary, JOINTS, PARAMS,
+    Calibration, Correlation, EmDetail, LsDetail, Quality, ReportInput, StreamQuality, TimedSample,
+    VerdictSummary, JOINTS, PARAMS,
 };

@@ -81,9 +81,7 @@ pub fn decimate(points: &[(f64, f64)], max: usize) -> Vec<(f64, f64)> {
         return points.to_vec();
     }
     let last = points.len() - 1;
-    (0..max)
-        .map(|i| points[i * last / (max - 1)])
-        .collect()
+    (0..max).map(|i| points[i * last / (max - 1)]).collect()
 }
 
 /// Bounds of the finite values, padded by 5 % (a flat series gets a unit-wide range).
@@ -103,7 +101,8 @@ fn padded(values: impl Iterator<Item = f64>) -> Option<Range<f64>> {
 /// Short tick labels for any magnitude.
 fn tick(v: &f64) -> String {
     let a = v.abs();
-    if a == 0.0 {
+    // Below 1e-12 is rounding noise of a range computation, not a value.
+    if a < 1e-12 {
         "0".into()
     } else if !(1e-3..1e5).contains(&a) {
         format!("{v:.1e}")
@@ -118,14 +117,29 @@ fn tick(v: &f64) -> String {
 
 fn draw_panel(area: &DrawingArea<SVGBackend<'_>, Shift>, panel: &Panel) -> Result<(), PlotError> {
     let e = |what: &dyn fmt::Display| err(&panel.title, what);
-    let xs = padded(panel.series.iter().flat_map(|s| s.points.iter().map(|p| p.0)))
-        .ok_or_else(|| e(&"no finite point to draw"))?;
-    let ys = padded(panel.series.iter().flat_map(|s| s.points.iter().map(|p| p.1)))
-        .ok_or_else(|| e(&"no finite point to draw"))?;
-    // Time axes start where the data starts, without padding.
+    let xs = padded(
+        panel
+            .series
+            .iter()
+            .flat_map(|s| s.points.iter().map(|p| p.0)),
+    )
+    .ok_or_else(|| e(&"no finite point to draw"))?;
+    let ys = padded(
+        panel
+            .series
+            .iter()
+            .flat_map(|s| s.points.iter().map(|p| p.1)),
+    )
+    .ok_or_else(|| e(&"no finite point to draw"))?;
+    // The x axis spans the data exactly (time starts where the session starts).
     let xs = {
         let pad = (xs.end - xs.start) / 1.1 * 0.05;
-        xs.start + pad..xs.end - pad
+        let (lo, hi) = (xs.start + pad, xs.end - pad);
+        if hi > lo {
+            lo..hi
+        } else {
+            xs
+        }
     };
     let mut chart = ChartBuilder::on(area)
         .margin(8)
@@ -155,7 +169,10 @@ fn draw_panel(area: &DrawingArea<SVGBackend<'_>, Shift>, panel: &Panel) -> Resul
             .map_err(|x| e(&x))?
             .label("held out")
             .legend(|(x, y)| {
-                Rectangle::new([(x, y - 5), (x + 18, y + 5)], RGBColor(255, 200, 80).mix(0.4).filled())
+                Rectangle::new(
+                    [(x, y - 5), (x + 18, y + 5)],
+                    RGBColor(255, 200, 80).mix(0.4).filled(),
+                )
             });
     }
     for s in &panel.series {
@@ -168,7 +185,9 @@ fn draw_panel(area: &DrawingArea<SVGBackend<'_>, Shift>, panel: &Panel) -> Resul
             .draw_series(LineSeries::new(pts.iter().copied(), colour.stroke_width(2)))
             .map_err(|x| e(&x))?
             .label(s.name.as_str())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(3)));
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(3))
+            });
         if s.markers {
             chart
                 .draw_series(pts.iter().map(|&p| Circle::new(p, 3, colour.filled())))
@@ -274,13 +293,20 @@ pub fn histogram(
         for (s, c) in series.iter().zip(&counts) {
             let colour = s.colour;
             chart
-                .draw_series(c.iter().enumerate().filter(|(_, &h)| h > 0.0).map(|(b, &h)| {
-                    let x0 = lo + b as f64 * width;
-                    Rectangle::new([(x0, 0.0), (x0 + width, h)], colour.mix(0.35).filled())
-                }))
+                .draw_series(
+                    c.iter()
+                        .enumerate()
+                        .filter(|(_, &h)| h > 0.0)
+                        .map(|(b, &h)| {
+                            let x0 = lo + b as f64 * width;
+                            Rectangle::new([(x0, 0.0), (x0 + width, h)], colour.mix(0.35).filled())
+                        }),
+                )
                 .map_err(|x| err(title, x))?
                 .label(s.name.as_str())
-                .legend(move |(x, y)| Rectangle::new([(x, y - 5), (x + 18, y + 5)], colour.mix(0.6).filled()));
+                .legend(move |(x, y)| {
+                    Rectangle::new([(x, y - 5), (x + 18, y + 5)], colour.mix(0.6).filled())
+                });
             // The outline, as a step line.
             let steps: Vec<(f64, f64)> = c
                 .iter()
@@ -316,7 +342,10 @@ pub fn bars(
     size: (u32, u32),
 ) -> Result<String, PlotError> {
     if labels.is_empty() || labels.len() != values.len() {
-        return Err(err(title, "labels and values differ in length or are empty"));
+        return Err(err(
+            title,
+            "labels and values differ in length or are empty",
+        ));
     }
     let n = labels.len();
     let mut svg = String::new();
@@ -358,7 +387,10 @@ pub fn bars(
                 let y = (n - 1 - i) as f64;
                 let ok = required.is_none_or(|r| v >= r);
                 let c = if ok { RGBColor(44, 160, 44) } else { NOMINAL };
-                Rectangle::new([(0.0, y + 0.2), (100.0 * v.clamp(0.0, 1.0), y + 0.8)], c.mix(0.75).filled())
+                Rectangle::new(
+                    [(0.0, y + 0.2), (100.0 * v.clamp(0.0, 1.0), y + 0.8)],
+                    c.mix(0.75).filled(),
+                )
             }))
             .map_err(|x| err(title, x))?;
         if let Some(r) = required {
@@ -369,7 +401,9 @@ pub fn bars(
                 ))
                 .map_err(|x| err(title, x))?
                 .label("required")
-                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], ACTUAL.stroke_width(2)));
+                .legend(|(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 18, y)], ACTUAL.stroke_width(2))
+                });
             chart
                 .configure_series_labels()
                 .position(SeriesLabelPosition::LowerRight)
@@ -389,7 +423,9 @@ mod tests {
     use super::*;
 
     fn sine(n: usize) -> Vec<(f64, f64)> {
-        (0..n).map(|i| (i as f64 * 0.01, (i as f64 * 0.01).sin())).collect()
+        (0..n)
+            .map(|i| (i as f64 * 0.01, (i as f64 * 0.01).sin()))
+            .collect()
     }
 
     #[test]
@@ -461,7 +497,14 @@ mod tests {
         };
         let svg = histogram("h", "x", &[d], 20, (500, 300)).unwrap();
         assert!(svg.matches("<rect").count() > 10);
-        let svg = bars("b", &["j1".into(), "j2".into()], &[0.3, 0.9], Some(0.5), (500, 200)).unwrap();
+        let svg = bars(
+            "b",
+            &["j1".into(), "j2".into()],
+            &[0.3, 0.9],
+            Some(0.5),
+            (500, 200),
+        )
+        .unwrap();
         assert!(svg.matches("<rect").count() >= 3);
     }
 }

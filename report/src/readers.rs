@@ -111,7 +111,7 @@ fn parse_time(s: &str) -> Option<Duration> {
 }
 
 fn parse_hex_bytes(s: &str) -> Option<Vec<u8>> {
-    if s.len() % 2 != 0 || !s.bytes().all(|b| b.is_ascii_hexdigit()) {
+    if !s.len().is_multiple_of(2) || !s.bytes().all(|b| b.is_ascii_hexdigit()) {
         return None;
     }
     (0..s.len())
@@ -149,11 +149,22 @@ pub fn parse_candump(text: &str) -> Result<Vec<RecordedFrame>, ReadError> {
         let extended = match id.len() {
             3 => false,
             8 => true,
-            _ => return Err(candump_err(n, format!("identifier {id:?} is neither 3 nor 8 hex digits"))),
+            _ => {
+                return Err(candump_err(
+                    n,
+                    format!("identifier {id:?} is neither 3 nor 8 hex digits"),
+                ))
+            }
         };
         let id_value = u32::from_str_radix(id, 16)
             .ok()
-            .filter(|&v| if extended { v <= 0x1FFF_FFFF } else { v <= 0x7FF })
+            .filter(|&v| {
+                if extended {
+                    v <= 0x1FFF_FFFF
+                } else {
+                    v <= 0x7FF
+                }
+            })
             .ok_or_else(|| candump_err(n, format!("bad identifier {id:?}")))?;
         let (remote, bytes) = if let Some(rest) = data.strip_prefix('R') {
             if !(rest.is_empty() || (rest.len() == 1 && rest.as_bytes()[0].is_ascii_digit())) {
@@ -164,7 +175,10 @@ pub fn parse_candump(text: &str) -> Result<Vec<RecordedFrame>, ReadError> {
             let bytes = parse_hex_bytes(data)
                 .ok_or_else(|| candump_err(n, format!("bad data {data:?}")))?;
             if bytes.len() > 8 {
-                return Err(candump_err(n, format!("{} data bytes, at most 8", bytes.len())));
+                return Err(candump_err(
+                    n,
+                    format!("{} data bytes, at most 8", bytes.len()),
+                ));
             }
             (false, bytes)
         };
@@ -215,7 +229,10 @@ pub fn read_mcap_frames(bytes: &[u8]) -> Result<Vec<RecordedFrame>, ReadError> {
         let f: CanFrameJson = serde_json::from_slice(&m.data)
             .map_err(|e| err(format!("message {i} on {MCAP_RX_TOPIC}: {e}")))?;
         if f.data.len() > 8 {
-            return Err(err(format!("message {i} on {MCAP_RX_TOPIC}: {} data bytes", f.data.len())));
+            return Err(err(format!(
+                "message {i} on {MCAP_RX_TOPIC}: {} data bytes",
+                f.data.len()
+            )));
         }
         out.push(RecordedFrame {
             t: Duration::from_nanos(f.kernel_ns.unwrap_or(f.host_ns)),
@@ -226,7 +243,9 @@ pub fn read_mcap_frames(bytes: &[u8]) -> Result<Vec<RecordedFrame>, ReadError> {
         });
     }
     if !seen_channel {
-        return Err(err(format!("no message on {MCAP_RX_TOPIC}: not an exocald session log?")));
+        return Err(err(format!(
+            "no message on {MCAP_RX_TOPIC}: not an exocald session log?"
+        )));
     }
     Ok(out)
 }
@@ -251,7 +270,11 @@ pub fn parse_csv(text: &str) -> Result<Vec<TimedSample>, ReadError> {
         line: None,
         what: "empty file: no header".into(),
     })?;
-    let header: String = header.split(',').map(str::trim).collect::<Vec<_>>().join(",");
+    let header: String = header
+        .split(',')
+        .map(str::trim)
+        .collect::<Vec<_>>()
+        .join(",");
     if header != CSV_HEADER {
         return Err(csv_err(n, format!("header must be `{CSV_HEADER}`")));
     }
@@ -260,7 +283,10 @@ pub fn parse_csv(text: &str) -> Result<Vec<TimedSample>, ReadError> {
     for (n, line) in lines {
         let fields: Vec<&str> = line.split(',').map(str::trim).collect();
         if fields.len() != names.len() {
-            return Err(csv_err(n, format!("{} columns, expected {}", fields.len(), names.len())));
+            return Err(csv_err(
+                n,
+                format!("{} columns, expected {}", fields.len(), names.len()),
+            ));
         }
         let mut v = [0.0; 15];
         for ((x, field), name) in v.iter_mut().zip(&fields).zip(&names) {
@@ -273,7 +299,10 @@ pub fn parse_csv(text: &str) -> Result<Vec<TimedSample>, ReadError> {
         let t = v[0];
         if let Some(prev) = out.last() {
             if t <= prev.t {
-                return Err(csv_err(n, format!("t = {t} does not increase (previous {})", prev.t)));
+                return Err(csv_err(
+                    n,
+                    format!("t = {t} does not increase (previous {})", prev.t),
+                ));
             }
         }
         let q = Quaternion::new(v[11], v[12], v[13], v[14]);
@@ -313,7 +342,11 @@ pub fn write_csv(samples: &[TimedSample], out: &mut impl std::io::Write) -> std:
         for j in s.sample.joints.iter().take(JOINTS) {
             write!(out, ",{j}")?;
         }
-        writeln!(out, ",{},{},{},{},{},{},{}", p.x, p.y, p.z, q.w, q.i, q.j, q.k)?;
+        writeln!(
+            out,
+            ",{},{},{},{},{},{},{}",
+            p.x, p.y, p.z, q.w, q.i, q.j, q.k
+        )?;
     }
     Ok(())
 }
@@ -393,9 +426,17 @@ mod tests {
         let cases = [
             (format!("t,q1\n{ok}"), 1, "header"),
             (format!("{CSV_HEADER}\n{ok},9"), 2, "16 columns"),
-            (format!("{CSV_HEADER}\n{}", ok.replace("0.2", "nan")), 2, "y = \"nan\""),
+            (
+                format!("{CSV_HEADER}\n{}", ok.replace("0.2", "nan")),
+                2,
+                "y = \"nan\"",
+            ),
             (format!("{CSV_HEADER}\n{ok}\n{ok}"), 3, "does not increase"),
-            (format!("{CSV_HEADER}\n{}", ok.replace(",1,0,0,0", ",2,0,0,0")), 2, "quaternion norm"),
+            (
+                format!("{CSV_HEADER}\n{}", ok.replace(",1,0,0,0", ",2,0,0,0")),
+                2,
+                "quaternion norm",
+            ),
         ];
         for (text, line, what) in cases {
             let e = parse_csv(&text).unwrap_err();
@@ -403,7 +444,10 @@ mod tests {
             assert!(e.to_string().contains(what), "{e}");
         }
         assert!(parse_csv("").unwrap_err().to_string().contains("no header"));
-        assert!(parse_csv(CSV_HEADER).unwrap_err().to_string().contains("no samples"));
+        assert!(parse_csv(CSV_HEADER)
+            .unwrap_err()
+            .to_string()
+            .contains("no samples"));
     }
 
     #[test]
@@ -411,11 +455,15 @@ mod tests {
         let mut buf = std::io::Cursor::new(Vec::new());
         {
             let mut w = mcap::Writer::new(&mut buf).unwrap();
-            let schema = w.add_schema("exocal.CanFrame", "jsonschema", b"{}").unwrap();
+            let schema = w
+                .add_schema("exocal.CanFrame", "jsonschema", b"{}")
+                .unwrap();
             let rx = w
                 .add_channel(schema, MCAP_RX_TOPIC, "json", &Default::default())
                 .unwrap();
-            let tx = w.add_channel(schema, "/can/tx", "json", &Default::default()).unwrap();
+            let tx = w
+                .add_channel(schema, "/can/tx", "json", &Default::default())
+                .unwrap();
             let msg = |id: u32, kernel: Option<u64>| {
                 serde_json::json!({"id": id, "extended": false, "dlc": 2, "data": [1, 2],
                     "host_ns": 5_000_000_007u64, "kernel_ns": kernel})
@@ -431,14 +479,18 @@ mod tests {
                     log_time: 1,
                     publish_time: 1,
                 };
-                w.write_to_known_channel(&header, msg(id, k).as_bytes()).unwrap();
+                w.write_to_known_channel(&header, msg(id, k).as_bytes())
+                    .unwrap();
             }
             w.finish().unwrap();
         }
         let f = read_mcap_frames(buf.get_ref()).unwrap();
         assert_eq!(f.len(), 2);
         assert_eq!((f[0].id, f[0].t), (0x10, Duration::from_nanos(7)));
-        assert_eq!((f[1].id, f[1].t), (0x12, Duration::from_nanos(5_000_000_007)));
+        assert_eq!(
+            (f[1].id, f[1].t),
+            (0x12, Duration::from_nanos(5_000_000_007))
+        );
         assert_eq!(f[1].data, vec![1, 2]);
         let e = read_mcap_frames(b"not mcap").unwrap_err();
         assert_eq!(e.kind, InputKind::Mcap);

@@ -1,0 +1,54 @@
+//! A report on the paper's simulated Section 4 session, without any CAN or daemon:
+//! `cargo run -p exocal-report --release --example paper_report -- [out.html] [seconds] [seed]`.
+
+use calib_core::{DhTable, DriftEmOptions, LsOptions, Scenario, ScenarioConfig};
+use exocal_report::{analysis, html, Quality, ReportInput, TimedSample};
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let out = args.first().map_or("paper_report.html", String::as_str);
+    let seconds: f64 = args.get(1).map_or(Ok(30.0), |s| s.parse())?;
+    let seed: u64 = args.get(2).map_or(Ok(1), |s| s.parse())?;
+
+    let cfg = ScenarioConfig::paper();
+    let k = (seconds / cfg.drift.dt).round() as usize;
+    let all: Vec<TimedSample> = Scenario::new(cfg, seed)
+        .take(k)
+        .enumerate()
+        .map(|(i, s)| TimedSample {
+            t: i as f64 * cfg.drift.dt,
+            sample: s.sample,
+        })
+        .collect();
+    let (fit, held) = all.split_at(all.len() * 4 / 5);
+    let nominal = DhTable::paper_nominal();
+    let fit_samples: Vec<_> = fit.iter().map(|s| s.sample).collect();
+    let started = std::time::Instant::now();
+    let calibration = analysis::calibrate(
+        &nominal,
+        &fit_samples,
+        &LsOptions::new(),
+        &DriftEmOptions::new(cfg.drift.dt),
+    )?;
+    eprintln!("calibrated in {:.1?}", started.elapsed());
+    let input = ReportInput {
+        title: format!("Paper scenario, {seconds} s, seed {seed}"),
+        source: "calib-core's simulated Section 4 session (Table 4 arm, Gauss-Markov drift)".into(),
+        nominal,
+        calibration,
+        fit: fit.to_vec(),
+        held_out: held.to_vec(),
+        quality: Quality {
+            duration_s: seconds,
+            grid_hz: 1.0 / cfg.drift.dt,
+            joint_ranges: calib_core::JointRanges::paper().limits,
+            excitation_required: Some(0.5),
+            ..Quality::default()
+        },
+        verdict: None,
+    };
+    let started = std::time::Instant::now();
+    std::fs::write(out, html::render(&input))?;
+    eprintln!("wrote {out} (rendered in {:.1?})", started.elapsed());
+    Ok(())
+}
