@@ -1,0 +1,201 @@
+//! The table transfer under an adversarial bus: a controller [`Upload`] of NEW to a node holding
+//! OLD, through a channel whose losses, duplicates, reorderings and delays are fuzzer-chosen, with
+//! node reboots (state rebuilt from storage), failing storage writes and injected foreign
+//! commands (arbitrary sessions, fields, CRCs).
+//!
+//! Invariants checked after every step: the node's held table is OLD or NEW, never anything
+//! else (never mixed); storage and the node agree; after a reboot the node holds what storage
+//! holds; an upload that reports `Ok(crc)` has crc = CRC(NEW) and the node holds NEW.
+#![no_main]
+
+use arbitrary::Arbitrary;
+use exocal_dbc::table::Table;
+use exocal_dbc::transfer::{NodeTransfer, RetryPolicy, StorageError, TableStorage, Upload};
+use exocal_dbc::{Command, Field, NodeId, TableCmd, TableReply};
+use libfuzzer_sys::fuzz_target;
+
+#[derive(Arbitrary, Debug)]
+enum Step {
+    /// Advance time by this many ms and let the controller send.
+    Tick(u16),
+    /// Deliver the oldest queued command / reply.
+    DeliverCmd,
+    DeliverReply,
+    /// Deliver the queued command / reply at this index (reordering).
+    DeliverCmdAt(u8),
+    DeliverReplyAt(u8),
+    /// Drop one queued command / reply.
+    DropCmd(u8),
+    DropReply(u8),
+    /// Duplicate one queued command / reply.
+    DupCmd(u8),
+    DupReply(u8),
+    /// Power-cycle the node.
+    Reboot,
+    /// Make the next storage writes fail (or not).
+    FlashFails(bool),
+    /// A foreign command reaches the node.
+    Foreign(Foreign),
+}
+
+#[derive(Arbitrary, Debug)]
+struct Foreign {
+    session: u8,
+    kind: u8,
+    field: u8,
+    raw: i64,
+    crc: u32,
+}
+
+#[derive(Arbitrary, Debug)]
+struct Input {
+    old: Option<[i32; 6]>,
+    new: [i32; 6],
+    session: u8,
+    steps: Vec<Step>,
+}
+
+struct Flash {
+    table: Option<Table>,
+    fail: bool,
+}
+
+impl TableStorage for Flash {
+    fn store(&mut self, t: &Table) -> Result<(), StorageError> {
+        if self.fail {
+            return Err(StorageError);
+        }
+        self.table = Some(*t);
+        Ok(())
+    }
+}
+
+/// A valid table near `raw` (values clamped into each field's bounds).
+fn table(raw: [i32; 6]) -> Table {
+    let mut v = [0i64; 6];
+    for f in Field::ALL {
+        let (lo, hi) = f.raw_bounds();
+        v[f.seq() as usize] = i64::from(raw[f.seq() as usize]).clamp(lo, hi);
+    }
+    Table::from_raw(v).expect("clamped values are in range")
+}
+
+fn pick<T>(q: &mut Vec<T>, i: u8) -> Option<T> {
+    if q.is_empty() {
+        None
+    } else {
+        Some(q.remove(usize::from(i) % q.len()))
+    }
+}
+
+fuzz_target!(|input: Input| {
+    let node = NodeId::JOINTS[2];
+    let old = input.old.map(table);
+    let new = table(input.new);
+    let policy = RetryPolicy {
+        timeout_us: 20_000,
+        max_attempts: 4,
+        max_restarts: 3,
+    };
+    let mut flash = Flash {
+        table: old,
+        fail: false,
+    };
+    let mut nt = NodeTransfer::new(node, flash.table);
+    let mut up = Upload::new(node, input.session, new, policy);
+    let mut now = 0u64;
+    let mut cmds: Vec<TableCmd> = Vec::new();
+    let mut replies: Vec<TableReply> = Vec::new();
+    let mut deliver = |nt: &mut NodeTransfer,
+                       flash: &mut Flash,
+                       cmd: TableCmd,
+                       now: u64,
+                       replies: &mut Vec<TableReply>| {
+        for r in nt.handle(&cmd, now, flash) {
+            replies.push(r);
+        }
+    };
+    for step in input.steps.into_iter().take(4096) {
+        match step {
+            Step::Tick(ms) => {
+                now += u64::from(ms) * 1000;
+                if let Some(c) = up.poll(now) {
+                    cmds.push(c);
+                }
+            }
+            Step::DeliverCmd => {
+                if let Some(c) = pick(&mut cmds, 0) {
+                    deliver(&mut nt, &mut flash, c, now, &mut replies);
+                }
+            }
+            Step::DeliverCmdAt(i) => {
+                if let Some(c) = pick(&mut cmds, i) {
+                    deliver(&mut nt, &mut flash, c, now, &mut replies);
+                }
+            }
+            Step::DeliverReply => {
+                if let Some(r) = pick(&mut replies, 0) {
+                    up.on_reply(&r);
+                }
+            }
+            Step::DeliverReplyAt(i) => {
+                if let Some(r) = pick(&mut replies, i) {
+                    up.on_reply(&r);
+                }
+            }
+            Step::DropCmd(i) => {
+                let _ = pick(&mut cmds, i);
+            }
+            Step::DropReply(i) => {
+                let _ = pick(&mut replies, i);
+            }
+            Step::DupCmd(i) => {
+                if !cmds.is_empty() && cmds.len() < 64 {
+                    let c = cmds[usize::from(i) % cmds.len()];
+                    cmds.push(c);
+                }
+            }
+            Step::DupReply(i) => {
+                if !replies.is_empty() && replies.len() < 64 {
+                    let r = replies[usize::from(i) % replies.len()];
+                    replies.push(r);
+                }
+            }
+            Step::Reboot => {
+                nt = NodeTransfer::new(node, flash.table);
+                assert_eq!(nt.held(), flash.table.as_ref(), "boot reads storage");
+            }
+            Step::FlashFails(f) => flash.fail = f,
+            Step::Foreign(f) => {
+                let field = Field::ALL[usize::from(f.field) % 6];
+                let cmd = match f.kind % 5 {
+                    0 => Command::Begin,
+                    1 => Command::Segment(field, f.raw),
+                    2 => Command::Commit { crc: f.crc },
+                    3 => Command::Readback,
+                    _ => Command::Abort,
+                };
+                let c = TableCmd {
+                    node,
+                    session: f.session,
+                    cmd,
+                };
+                deliver(&mut nt, &mut flash, c, now, &mut replies);
+            }
+        }
+        let held = nt.held().copied();
+        assert!(
+            held == old || held == Some(new),
+            "node holds a table that is neither the old nor the new one: {held:?}"
+        );
+        assert_eq!(held, flash.table, "node and storage disagree");
+        if let Some(Ok(crc)) = up.outcome() {
+            assert_eq!(crc, new.crc());
+            assert_eq!(
+                held,
+                Some(new),
+                "upload reported success but the node holds another table"
+            );
+        }
+    }
+});
