@@ -5,7 +5,8 @@
 //! stamps the bus, the daemon runs one ordinary session ([`crate::runner::run_session`]) on the
 //! other end of the bus, and when it is done the hil is stopped and each joint node's flash file
 //! is read back: the demo succeeds only if every node persisted exactly the table the daemon
-//! pushed (same CRC).
+//! pushed (same CRC). SIGTERM or SIGINT interrupts the session as in `calibrate`: the log is
+//! finished before the process exits.
 
 use std::path::{Path, PathBuf};
 
@@ -73,7 +74,8 @@ pub async fn run(config: &Config, opts: &DemoOptions) -> Result<DemoResult, Sess
     let mut hil_end = bus.attach();
     let mut daemon_end = bus.attach();
     let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await });
-    let (_stop, shutdown) = crate::app::Shutdown::manual();
+    // SIGTERM/SIGINT end the session like `calibrate`'s: the log is finished, nothing is lost.
+    let shutdown = crate::app::Shutdown::on_signals();
     let mut notifier = Notifier::disabled();
     let mut reporter = Reporter::detect(&notifier);
     let result = run_session(
