@@ -9,7 +9,6 @@ how many messages it kept and the log time of the last one.
 """
 import sys
 
-from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader
 from mcap.writer import CompressionType, Writer
 
@@ -21,7 +20,8 @@ def recover(src, dst):
         w.start(profile="", library="exocald recover_mcap.py")
         schemas, channels = {}, {}
         try:
-            for schema, channel, message in NonSeekingReader(f, validate_crcs=True).iter_messages():
+            reader = NonSeekingReader(f, validate_crcs=True)
+            for schema, channel, message in reader.iter_messages(log_time_order=False):
                 if schema is not None and schema.id not in schemas:
                     schemas[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
                 if channel.id not in channels:
@@ -32,7 +32,7 @@ def recover(src, dst):
                               message.publish_time, message.sequence)
                 kept += 1
                 last = message.log_time if last is None else max(last, message.log_time)
-        except (McapError, EOFError, ValueError, Exception) as e:  # the truncated tail
+        except Exception as e:  # noqa: BLE001 - any error here is the truncated tail
             print(f"stopped at the truncated tail: {type(e).__name__}: {e}", file=sys.stderr)
         w.finish()
     return kept, last

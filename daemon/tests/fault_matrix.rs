@@ -92,7 +92,7 @@ fn cases() -> Vec<Case> {
             apply: |s| s.faults.loss = 0.10,
         },
         Case {
-            name: "loss bursts (2%, 20 frames)",
+            name: "loss bursts (0.5% start, 20 frames)",
             ci: false,
             accuracy_bound: true,
             expect: Expect::Nothing,
