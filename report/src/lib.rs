@@ -23,3 +23,4 @@ pub use input::{
     Calibration, Correlation, EmDetail, LsDetail, Quality, ReportInput, StreamQuality, TimedSample,
     VerdictSummary, JOINTS, PARAMS,
 };
+pub use readers::{McapSession, ReadError, RecordedFrame};

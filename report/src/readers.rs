@@ -203,19 +203,47 @@ struct CanFrameJson {
     kernel_ns: Option<u64>,
 }
 
-/// The received raw frames (topic [`MCAP_RX_TOPIC`]) of a daemon session log, in file order;
-/// the time is the kernel receive timestamp where there is one, else the host's.
-pub fn read_mcap_frames(bytes: &[u8]) -> Result<Vec<RecordedFrame>, ReadError> {
+/// A daemon session log, as the offline replay needs it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct McapSession {
+    /// Received raw frames (topic [`MCAP_RX_TOPIC`]), in file order.
+    pub frames: Vec<RecordedFrame>,
+    /// Log time of the daemon's "collection done" event, if the session got that far: the live
+    /// run calibrated on the frames received up to then, so a replay that must agree with it
+    /// stops there (frames after it arrived during calibration and push).
+    pub collection_end: Option<Duration>,
+}
+
+/// The prefix of the daemon's event that ends the collection window.
+pub const COLLECTION_DONE: &str = "collection done";
+
+#[derive(Deserialize)]
+struct EventJson {
+    message: String,
+}
+
+/// Reads a daemon session log: its received raw frames (the time is the kernel receive
+/// timestamp where there is one, else the host's) and the end of its collection window.
+pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
     let err = |what: String| ReadError {
         kind: InputKind::Mcap,
         line: None,
         what,
     };
     let stream = mcap::MessageStream::new(bytes).map_err(|e| err(e.to_string()))?;
-    let mut out = Vec::new();
+    let mut frames = Vec::new();
+    let mut collection_end = None;
     let mut seen_channel = false;
     for (i, message) in stream.enumerate() {
         let m = message.map_err(|e| err(e.to_string()))?;
+        if m.channel.topic == "/events" && collection_end.is_none() {
+            if let Ok(e) = serde_json::from_slice::<EventJson>(&m.data) {
+                if e.message.starts_with(COLLECTION_DONE) {
+                    collection_end = Some(Duration::from_nanos(m.log_time));
+                }
+            }
+            continue;
+        }
         if m.channel.topic != MCAP_RX_TOPIC {
             continue;
         }
@@ -234,7 +262,7 @@ pub fn read_mcap_frames(bytes: &[u8]) -> Result<Vec<RecordedFrame>, ReadError> {
                 f.data.len()
             )));
         }
-        out.push(RecordedFrame {
+        frames.push(RecordedFrame {
             t: Duration::from_nanos(f.kernel_ns.unwrap_or(f.host_ns)),
             id: f.id,
             extended: f.extended,
@@ -247,7 +275,15 @@ pub fn read_mcap_frames(bytes: &[u8]) -> Result<Vec<RecordedFrame>, ReadError> {
             "no message on {MCAP_RX_TOPIC}: not an exocald session log?"
         )));
     }
-    Ok(out)
+    Ok(McapSession {
+        frames,
+        collection_end,
+    })
+}
+
+/// The received raw frames of a daemon session log (all of them; see [`read_mcap_session`]).
+pub fn read_mcap_frames(bytes: &[u8]) -> Result<Vec<RecordedFrame>, ReadError> {
+    read_mcap_session(bytes).map(|s| s.frames)
 }
 
 fn csv_err(line: usize, what: impl Into<String>) -> ReadError {
@@ -391,6 +427,29 @@ mod tests {
             assert!(e.to_string().contains(what), "{line}: {e}");
             assert!(e.to_string().starts_with("candump log, line 2: "), "{e}");
         }
+    }
+
+    #[test]
+    fn a_written_candump_log_reads_back_to_the_same_frames() {
+        let frames: Vec<RecordedFrame> = (0..100u32)
+            .map(|i| RecordedFrame {
+                t: Duration::new(1_700_000_000 + u64::from(i / 10), i * 9_876_000),
+                id: if i % 3 == 0 { 0x1000 + i } else { 0x100 + i },
+                extended: i % 3 == 0,
+                remote: i % 17 == 5,
+                data: if i % 17 == 5 {
+                    vec![]
+                } else {
+                    (0..(i % 9) as u8).collect()
+                },
+            })
+            .collect();
+        let mut out = Vec::new();
+        crate::export::write_candump(&frames, "vcan0", &mut out).unwrap();
+        assert_eq!(
+            parse_candump(&String::from_utf8(out).unwrap()).unwrap(),
+            frames
+        );
     }
 
     fn samples(k: usize) -> Vec<TimedSample> {

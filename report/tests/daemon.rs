@@ -1,0 +1,68 @@
+//! The exports and readers agree with the daemon's own code: the TOML export loads with the
+//! daemon's configuration parser, and the MCAP reader reads the daemon's session-log writer.
+
+use calib_core::DhTable;
+use exocal_report::export::config_toml;
+use exocal_report::readers::{read_mcap_frames, read_mcap_session};
+use exocald::config::{Config, DEFAULT_TOML};
+use exocald::mcaplog::{CanFrameRecord, Level, SessionLog};
+
+#[test]
+fn the_exported_configuration_loads_in_the_daemon_with_the_calibrated_table() {
+    let calibrated = DhTable::<7>::paper_actual();
+    let text = config_toml(DEFAULT_TOML, &calibrated).unwrap();
+    let loaded = Config::parse(&text).unwrap_or_else(|e| panic!("{e}\n{text}"));
+    let default = Config::parse(DEFAULT_TOML).unwrap();
+    for (row, want) in loaded.nominal.iter().zip(&calibrated.rows) {
+        assert!((row.a - want.a).abs() < 1e-15, "{row:?} vs {want:?}");
+        assert!((row.d - want.d).abs() < 1e-15);
+        assert!((row.alpha - want.alpha).abs() < 1e-12);
+        assert!((row.offset - want.theta_offset).abs() < 1e-12);
+    }
+    // Only the nominal table changed.
+    assert_ne!(loaded.nominal, default.nominal);
+    let mut same = loaded.clone();
+    same.nominal = default.nominal;
+    assert_eq!(same, default);
+    // The comments of the shipped file survive.
+    assert!(text.contains("# The paper's Table 1"));
+}
+
+#[test]
+fn the_mcap_reader_reads_the_frames_the_daemon_logged() {
+    let mut buf = std::io::Cursor::new(Vec::new());
+    let mut log = SessionLog::new(&mut buf, 500_000_000).unwrap();
+    let mut sent = Vec::new();
+    for i in 0..300u64 {
+        let record = CanFrameRecord {
+            id: 0x100 + (i % 7) as u32,
+            extended: false,
+            dlc: 8,
+            data: (0..8).map(|b| (i as u8).wrapping_mul(b)).collect(),
+            host_ns: 1_700_000_000_000_000_000 + i * 1_234_567,
+            kernel_ns: (i % 2 == 0).then_some(1_700_000_000_000_000_000 + i * 1_234_567 - 5),
+        };
+        log.can_frame(i % 50 == 49, &record).unwrap();
+        if i == 200 {
+            let msg = "collection done: 200 frames (0 unknown, 0 malformed)";
+            log.event(record.host_ns, Level::Info, msg).unwrap();
+        }
+        if i % 50 != 49 {
+            sent.push(record);
+        }
+    }
+    log.finish().unwrap();
+    let session = read_mcap_session(buf.get_ref()).unwrap();
+    assert_eq!(
+        session.collection_end.unwrap().as_nanos() as u64,
+        1_700_000_000_000_000_000 + 200 * 1_234_567
+    );
+    let frames = read_mcap_frames(buf.get_ref()).unwrap();
+    assert_eq!(frames, session.frames);
+    assert_eq!(frames.len(), sent.len());
+    for (f, r) in frames.iter().zip(&sent) {
+        assert_eq!(f.id, r.id);
+        assert_eq!(f.data, r.data);
+        assert_eq!(f.t.as_nanos() as u64, r.kernel_ns.unwrap_or(r.host_ns));
+    }
+}
