@@ -7,7 +7,7 @@
 //! flash: `New` ⇒ flash holds the new table, `Old` ⇒ the old one (`Unknown` is allowed only for
 //! a node that never answered).
 //!
-//! `cargo test -p exocald --test atomic_push` runs `EXOCAL_PUSH_RUNS` seeded runs (default 60,
+//! `cargo test -p exocald --test atomic_push` runs `EXOCAL_PUSH_RUNS` seeded runs (default 40,
 //! bounded for CI); the documented figure is `EXOCAL_PUSH_RUNS=1000`.
 
 use std::path::PathBuf;
@@ -16,7 +16,7 @@ use std::time::Duration;
 use exocal_bus::InProcessBus;
 use exocal_dbc::table::{Field, Table};
 use exocal_dbc::NodeId;
-use exocal_hil::scenario::{Reboot, Scenario};
+use exocal_hil::scenario::{Reboot, Scenario, TransferBehaviour, TransferFault};
 use exocal_hil::{Hil, SimClock};
 use exocald::config::PushPolicy;
 use exocald::push::{push_tables, Holds};
@@ -55,7 +55,7 @@ fn scenario(seed: u64) -> Scenario {
     s.rates.imu_hz = 1.0;
     s.rates.pose_hz = 1.0;
     let f = &mut s.faults;
-    f.loss = [0.0, 0.01, 0.05, 0.1, 0.2][(rng.next() % 5) as usize];
+    f.loss = [0.0, 0.01, 0.05, 0.1, 0.2, 0.4][(rng.next() % 6) as usize];
     f.burst_start = if rng.unit() < 0.3 { 0.02 } else { 0.0 };
     f.burst_len = 1 + (rng.next() % 8) as u32;
     f.duplicate = rng.range(0.0, 0.2);
@@ -69,6 +69,19 @@ fn scenario(seed: u64) -> Scenario {
             node: 1 + (rng.next() % 7) as u8,
             at_s: PUSH_AT_S + rng.range(0.0, 2.0),
             down_s: rng.range(0.01, 1.5),
+        });
+    }
+    // One run in five has a node that refuses (NACK) or ignores every transfer command, so the
+    // report's `Old` and `Unknown` verdicts are checked against flash too.
+    if rng.unit() < 0.2 {
+        let behaviour = if rng.unit() < 0.5 {
+            TransferBehaviour::Nack
+        } else {
+            TransferBehaviour::Silent
+        };
+        f.transfer.push(TransferFault {
+            node: 1 + (rng.next() % 7) as u8,
+            behaviour,
         });
     }
     s
@@ -186,7 +199,7 @@ async fn no_node_ever_holds_a_mixed_table_and_the_report_matches_flash() {
     let runs: u64 = std::env::var("EXOCAL_PUSH_RUNS")
         .ok()
         .and_then(|v| v.parse().ok())
-        .unwrap_or(60);
+        .unwrap_or(40);
     let mut tally = Tally::default();
     for seed in 0..runs {
         one_run(1000 + seed, &mut tally).await;
@@ -205,5 +218,5 @@ async fn no_node_ever_holds_a_mixed_table_and_the_report_matches_flash() {
         tally.report_mismatch.join("\n")
     );
     // The faults are survivable: most transfers must succeed.
-    assert!(tally.new * 10 >= tally.nodes * 8, "{tally:?}");
+    assert!(tally.new * 10 >= tally.nodes * 7, "{tally:?}");
 }
