@@ -18,6 +18,10 @@ pub const VM_PACKAGES: &[&str] = &[
     "cpio",
 ];
 
+/// Debian packages the test suites need on every machine: Chromium renders the calibration
+/// report in a test.
+pub const TEST_PACKAGES: &[&str] = &["chromium"];
+
 /// The no_std target calib-core is cross-built for.
 pub const EMBEDDED_TARGET: &str = "thumbv7em-none-eabihf";
 
@@ -166,6 +170,12 @@ pub fn python_env() -> Result<std::path::PathBuf> {
 pub fn install_all() -> Result<()> {
     add_rust_target(EMBEDDED_TARGET)?;
     python_env()?;
+    let missing: Vec<&str> = TEST_PACKAGES
+        .iter()
+        .copied()
+        .filter(|p| !installed(p))
+        .collect();
+    install_packages(&missing)?;
     if crate::native::available().is_ok() {
         eprintln!("[setup] native vcan works here: no VM packages needed");
         return Ok(());
