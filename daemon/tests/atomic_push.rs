@@ -137,7 +137,7 @@ async fn one_run(seed: u64, tally: &mut Tally) {
     let mut hil_end = bus.attach();
     let mut daemon_end = bus.attach();
     let mut hil = hil;
-    let hil_clock = clock.clone();
+    let hil_clock = clock;
     let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &hil_clock).await });
     tokio::time::sleep(Duration::from_secs_f64(PUSH_AT_S / SPEED)).await;
     let policy = PushPolicy {
