@@ -35,7 +35,7 @@ const MODULES: &[&str] = &[
 ];
 
 /// Bumped when the initramfs layout or `/init` changes, so cached images are rebuilt.
-const INITRAMFS_VERSION: u32 = 3;
+const INITRAMFS_VERSION: u32 = 4;
 
 const INIT: &str = r#"#!/bin/sh
 # exocal vcan harness: guest init (busybox). Never exits: it powers the guest off.
@@ -74,8 +74,14 @@ if [ "$mode" = systemd ]; then
 fi
 mkdir -p /host
 mount -t 9p -o trans=virtio,version=9p2000.L,msize=524288,cache=loose,ro hostroot /host || fail "mount host root"
-mount -t tmpfs -o mode=1777 tmpfs /host/tmp || fail "mount /tmp"
 mount -t tmpfs -o mode=755 tmpfs /host/run || fail "mount /run"
+mkdir -p /host/run/tmp && chmod 1777 /host/run/tmp
+# A fresh /tmp, unless the work (a clone under /tmp, as CI may make) lives there: then the
+# command writes to $TMPDIR=/run/tmp instead.
+case "$scratch" in
+  /tmp/*) ;;
+  *) mount -t tmpfs -o mode=1777 tmpfs /host/tmp || fail "mount /tmp" ;;
+esac
 mount -t proc proc /host/proc
 mount -t sysfs sysfs /host/sys
 mount -t devtmpfs devtmpfs /host/dev
@@ -292,6 +298,10 @@ fn write_run_script(req: &Request, scratch: &Path) -> Result<()> {
         }
     }
     script.push_str("export EXOCAL_VCAN_HARNESS=vm PYTHONDONTWRITEBYTECODE=1\n");
+    if !req.systemd {
+        // The host root is read-only in the guest; /run is a tmpfs.
+        script.push_str("export TMPDIR=/run/tmp\n");
+    }
     script.push_str(&format!(
         "cd {} || exit 125\n",
         shell_quote(&req.cwd.display().to_string())
