@@ -35,7 +35,7 @@ const MODULES: &[&str] = &[
 ];
 
 /// Bumped when the initramfs layout or `/init` changes, so cached images are rebuilt.
-const INITRAMFS_VERSION: u32 = 4;
+const INITRAMFS_VERSION: u32 = 5;
 
 const INIT: &str = r#"#!/bin/sh
 # exocal vcan harness: guest init (busybox). Never exits: it powers the guest off.
@@ -62,6 +62,8 @@ if [ "$mode" = systemd ]; then
   mount -t devtmpfs devtmpfs /newroot/dev
   # The host's own services and timers (databases, apt, man-db) are not the guest's business.
   rm -f /newroot/etc/systemd/system/multi-user.target.wants/* /newroot/etc/systemd/system/timers.target.wants/*
+  # Boot-time cleaning of /tmp (tmpfiles.d tmp.conf) would delete a checkout living there.
+  mkdir -p /newroot/etc/tmpfiles.d && : > /newroot/etc/tmpfiles.d/tmp.conf
   cp "/newroot$scratch/exocal-harness.service" /newroot/etc/systemd/system/ || fail "install harness unit"
   mkdir -p /newroot/etc/systemd/system/multi-user.target.wants
   ln -sf ../exocal-harness.service /newroot/etc/systemd/system/multi-user.target.wants/exocal-harness.service
