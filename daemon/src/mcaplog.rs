@@ -826,7 +826,7 @@ mod tests {
     /// Cross-check with another implementation: Python's `mcap`, every CRC validated.
     /// Run: `EXOCAL_PYTHON=<venv>/bin/python cargo test -p exocald -- --ignored python`.
     #[test]
-    #[ignore = "needs python3 with the `mcap` and `zstandard` packages (EXOCAL_PYTHON)"]
+    #[ignore = "needs the project venv (EXOCAL_PYTHON): `cargo xtask test` runs it"]
     fn python_mcap_reader_validates_crcs_and_counts() {
         let python = std::env::var("EXOCAL_PYTHON").unwrap_or_else(|_| "python3".into());
         let dir = std::env::temp_dir().join(format!("exocald-py-{}", std::process::id()));

@@ -85,9 +85,20 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
         .unwrap_or_else(|| crate::setup::workspace_root().join("target"));
     std::env::set_var("EXOCAL_BIN_DIR", target.join("release"));
 
-    println!("==> [1/2] cargo test --workspace (unit, integration and doc tests)");
+    println!(
+        "==> [1/2] cargo test --workspace -- --include-ignored (unit, integration and doc tests)"
+    );
     let ok_host = run_teed(
-        Command::new(&cargo).args(["test", "--workspace", "--color", "never"]),
+        // `--include-ignored`: tests ignored for plain `cargo test` because they need the
+        // project's Python venv (EXOCAL_PYTHON, made above) run here.
+        Command::new(&cargo).args([
+            "test",
+            "--workspace",
+            "--color",
+            "never",
+            "--",
+            "--include-ignored",
+        ]),
         &mut host,
     )?;
     if !ok_host && host.failed == 0 {
