@@ -1,7 +1,7 @@
 //! `cargo xtask`: exocal's long commands.
 //!
 //! ```text
-//! cargo xtask test                 everything: unit + doc tests, then the vcan suites in the harness
+//! cargo xtask test                 everything: unit + doc tests, vcan suites, power-up, cross-builds
 //! cargo xtask vcan -- CMD [ARG..]  run CMD with real vcan0 and vcan1 up (native netns or QEMU guest)
 //! cargo xtask setup                install what the harness and the cross-build need (root, Debian)
 //! ```
@@ -12,6 +12,7 @@
 mod bench;
 mod harness;
 mod native;
+mod powerup;
 mod setup;
 mod ship;
 mod suite;
@@ -28,8 +29,9 @@ pub const HARNESS_ENV: &str = "EXOCAL_VCAN_HARNESS";
 const USAGE: &str = "\
 usage:
   cargo xtask test [--mode auto|native|vm] [--timeout SECS]
-      Run every test: `cargo test --workspace` (unit, integration and doc tests), then the suites
-      that need real vcan (crate exocal-tests, feature `vcan`) inside the vcan harness.
+      Run every test: `cargo test --workspace` (unit, integration and doc tests), the suites
+      that need real vcan (crate exocal-tests, feature `vcan`) inside the vcan harness, the
+      power-up test under systemd (`powerup`), and the cross-builds under qemu-user (`cross`).
   cargo xtask vcan [--mode auto|native|vm] [--timeout SECS] [--mem MIB] [--verbose]
                    [--systemd [--setup SCRIPT]] -- CMD [ARG..]
       Run CMD with real vcan0 and vcan1 up. `native` uses this kernel's vcan in a private network
@@ -45,7 +47,15 @@ usage:
       busybox-static, cpio) and the thumbv7em-none-eabihf target. Needs root for apt.
   cargo xtask cross [--target TRIPLE]..
       Release-build exocald and exocal-hil for aarch64 and armv7 (or the given targets), run
-      --help and an in-process demo of each under qemu-user, and report binary sizes.
+      --help of each and `exocald offline` on a session the host's demo recorded under
+      qemu-user (the table must equal the host's), build their Debian packages, run lintian,
+      and report binary and package sizes.
+  cargo xtask powerup [--timeout SECS] [--verbose]
+      The power-up test: build this machine's Debian package, boot systemd as PID 1 in the
+      guest with the package installed (dpkg -i), vcan0 from systemd-networkd and exocal-hil as a
+      service, and check exocald.service's boot-time calibration from inside (READY, watchdog,
+      no capabilities, read-only system, every node holds the pushed table, MCAP in the
+      StateDirectory, systemctl stop mid-session). Part of `test`.
   cargo xtask deb [--target TRIPLE|ARCH]..
       Build the Debian package (default: this machine's arch) into target/debian/, run lintian.
   cargo xtask bench [--quick] [--only calib,firmware,ingest] [--out FILE]
@@ -84,6 +94,13 @@ fn run(args: Vec<String>) -> Result<u8> {
                 bail!("test: unexpected arguments {extra:?}");
             }
             suite::test_all(&opts)
+        }
+        "powerup" => {
+            let (opts, extra) = HarnessArgs::parse(rest)?;
+            if !extra.is_empty() {
+                bail!("powerup: unexpected arguments {extra:?}");
+            }
+            powerup::main(&opts)
         }
         "run-suites" => suite::run_suites(rest),
         "bench" => bench::bench(rest),

@@ -19,8 +19,8 @@ pub const VM_PACKAGES: &[&str] = &[
 ];
 
 /// Debian packages the test suites need on every machine: Chromium renders the calibration
-/// report in a test.
-pub const TEST_PACKAGES: &[&str] = &["chromium"];
+/// report in a test; lintian checks the Debian packages.
+pub const TEST_PACKAGES: &[&str] = &["chromium", "lintian"];
 
 /// The no_std target calib-core is cross-built for.
 pub const EMBEDDED_TARGET: &str = "thumbv7em-none-eabihf";
@@ -169,6 +169,8 @@ pub fn python_env() -> Result<std::path::PathBuf> {
 /// `cargo xtask setup`: everything, so that a fresh machine can build and test.
 pub fn install_all() -> Result<()> {
     add_rust_target(EMBEDDED_TARGET)?;
+    // The controller's targets: rustup targets, Debian's cross gcc and qemu-user-static.
+    crate::ship::ensure_toolchain(&crate::ship::parse_targets(&[], true)?)?;
     python_env()?;
     let missing: Vec<&str> = TEST_PACKAGES
         .iter()

@@ -8,7 +8,6 @@
 //! Cross-linking uses Debian's cross gcc (`.cargo/config.toml` names it), and the binaries are
 //! run with `qemu-<arch>-static -L /usr/<gnu triple>` directly, so no binfmt is needed.
 
-use std::fmt::Write as _;
 use std::fs;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -122,16 +121,28 @@ pub fn build(t: &Target) -> Result<Vec<PathBuf>> {
     let root = workspace_root();
     let mut cmd = Command::new(cargo());
     cmd.current_dir(&root)
-        .args(["build", "--release", "--target", t.triple])
+        .args(["build", "--release"])
         .stdin(Stdio::null());
+    // The build machine's own binaries live in target/release, shared with the tests.
+    let native = t.qemu.is_none();
+    if !native {
+        cmd.args(["--target", t.triple]);
+    }
+    // Each binary is its own package's; `-p` each, as `cargo xtask test` builds them: the same
+    // feature set, so no rebuild.
+    cmd.arg("--bins");
     for b in BINARIES {
-        cmd.args(["--bin", b]);
+        cmd.args(["-p", b]);
     }
     let status = cmd.status().context("cargo build")?;
     if !status.success() {
         bail!("cross-build for {} failed", t.triple);
     }
-    let dir = target_dir(&root).join(t.triple).join("release");
+    let dir = if native {
+        target_dir(&root).join("release")
+    } else {
+        target_dir(&root).join(t.triple).join("release")
+    };
     Ok(BINARIES.iter().map(|b| dir.join(b)).collect())
 }
 
@@ -153,52 +164,232 @@ pub fn runner(t: &Target, bin: &Path) -> Command {
     }
 }
 
-/// `cargo xtask cross`: build, then run `--help` and a short in-process demo under qemu-user.
-pub fn cross(args: &[String]) -> Result<u8> {
-    let targets = parse_targets(args, true)?;
-    ensure_toolchain(&targets)?;
-    let mut report = String::new();
-    for t in &targets {
-        println!("==> {}: release build", t.triple);
-        let bins = build(t)?;
-        for bin in &bins {
-            let out = runner(t, bin)
-                .arg("--help")
-                .stdin(Stdio::null())
-                .output()
-                .with_context(|| format!("run {} under {:?}", bin.display(), t.qemu))?;
-            if !out.status.success() || out.stdout.is_empty() {
-                bail!(
-                    "{} --help failed under {}: {}",
-                    bin.display(),
-                    t.qemu.unwrap_or("the host"),
-                    String::from_utf8_lossy(&out.stderr)
+/// Runs `cmd`, failing with its stderr unless it exits with one of `ok_codes`; returns stdout.
+fn run_checked(cmd: &mut Command, what: &str, ok_codes: &[i32]) -> Result<(i32, String)> {
+    let out = cmd
+        .stdin(Stdio::null())
+        .output()
+        .with_context(|| format!("run {what}"))?;
+    let code = out.status.code().unwrap_or(-1);
+    if !ok_codes.contains(&code) {
+        bail!(
+            "{what} exited {}:\n{}",
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    Ok((code, String::from_utf8_lossy(&out.stdout).into_owned()))
+}
+
+/// A recorded session for the offline runs: the host's own `exocald demo` (half a minute of the
+/// paper scenario's motion), and the host's offline result on it (exit status, TOML export).
+struct Recording {
+    mcap: PathBuf,
+    code: i32,
+    toml: String,
+}
+
+fn record(host_exocald: &Path, work: &Path) -> Result<Recording> {
+    let root = workspace_root();
+    let shipped = fs::read_to_string(root.join("daemon/exocald.toml"))?;
+    let config: String = shipped
+        .lines()
+        .map(|l| {
+            if l.starts_with("min_duration_s") {
+                "min_duration_s = 30.0".to_string()
+            } else {
+                l.to_string()
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("\n");
+    let cfg = work.join("exocald.toml");
+    fs::write(&cfg, config + "\n")?;
+    let demo = work.join("demo");
+    let _ = fs::remove_dir_all(&demo);
+    let mut cmd = Command::new(host_exocald);
+    cmd.arg("--config")
+        .arg(&cfg)
+        .args(["demo", "--speed", "4", "--output"])
+        .arg(&demo);
+    println!("==> recording a session: exocald demo (host)");
+    run_checked(&mut cmd, "exocald demo", &[0])?;
+    let mcap = fs::read_dir(&demo)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .find(|p| p.extension().is_some_and(|e| e == "mcap"))
+        .context("the demo wrote no MCAP")?;
+    let (code, toml) = offline(None, host_exocald, &cfg, &mcap, &work.join("host"))?;
+    Ok(Recording { mcap, code, toml })
+}
+
+/// `exocald offline` on `mcap` (under qemu-user for a cross target); returns its exit status and
+/// TOML export.
+fn offline(
+    t: Option<&Target>,
+    exocald: &Path,
+    cfg: &Path,
+    mcap: &Path,
+    out: &Path,
+) -> Result<(i32, String)> {
+    fs::create_dir_all(out)?;
+    let toml = out.join("calibrated.toml");
+    let _ = fs::remove_file(&toml);
+    let mut cmd = match t {
+        Some(t) => runner(t, exocald),
+        None => Command::new(exocald),
+    };
+    cmd.arg("--config")
+        .arg(cfg)
+        .args(["offline", "--input"])
+        .arg(mcap)
+        .arg("--report")
+        .arg(out.join("report.html"))
+        .arg("--export-toml")
+        .arg(&toml);
+    // 65: refused by validation, still a result to agree on.
+    let (code, _) = run_checked(
+        &mut cmd,
+        &format!("exocald offline ({})", out.display()),
+        &[0, 65],
+    )?;
+    Ok((code, fs::read_to_string(&toml).unwrap_or_default()))
+}
+
+/// Every number in the `[nominal]` section of a TOML export, in order.
+fn nominal_numbers(toml: &str) -> Vec<f64> {
+    let mut out = Vec::new();
+    let mut inside = false;
+    for line in toml.lines() {
+        let line = line.split('#').next().unwrap_or("").trim();
+        if line.starts_with('[')
+            && !line.starts_with("[[")
+            && line.ends_with(']')
+            && !line.contains('=')
+        {
+            inside = line == "[nominal]";
+            continue;
+        }
+        if inside {
+            if let Some((_, v)) = line.split_once('=') {
+                out.extend(
+                    v.split(['[', ']', ','])
+                        .filter_map(|x| x.trim().parse::<f64>().ok()),
                 );
             }
-            let size = fs::metadata(bin)?.len();
-            writeln!(
-                report,
-                "{:32} {:12} {:>6.2} MiB  --help ok",
-                t.triple,
-                bin.file_name().unwrap_or_default().to_string_lossy(),
-                size as f64 / (1 << 20) as f64
-            )?;
         }
-        let out_dir = std::env::temp_dir().join(format!("exocal-cross-demo-{}", t.deb_arch));
-        let _ = fs::remove_dir_all(&out_dir);
-        println!("==> {}: exocald demo under qemu-user", t.triple);
-        let status = runner(t, &bins[0])
-            .args(["demo", "--output"])
-            .arg(&out_dir)
-            .stdin(Stdio::null())
-            .status()?;
-        if !status.success() {
-            bail!("exocald demo failed for {} ({status})", t.triple);
-        }
-        writeln!(report, "{:32} exocald demo (in-process bus) ok", t.triple)?;
-        let _ = fs::remove_dir_all(&out_dir);
     }
-    println!("\ncross-builds (release, with line tables):\n{report}");
+    out
+}
+
+/// Checks one controller target: cross-build, `--help` of each binary and an offline
+/// calibration of `rec` under qemu-user that must agree with the host's, the Debian package and
+/// lintian. Returns report lines.
+fn check_target(t: &Target, rec: &Recording, cfg: &Path, work: &Path) -> Result<Vec<String>> {
+    println!("==> {}: release build", t.triple);
+    let bins = build(t)?;
+    let mut lines = Vec::new();
+    for bin in &bins {
+        let name = bin
+            .file_name()
+            .unwrap_or_default()
+            .to_string_lossy()
+            .into_owned();
+        let (_, help) = run_checked(
+            runner(t, bin).arg("--help"),
+            &format!("{name} --help"),
+            &[0],
+        )?;
+        if help.trim().is_empty() {
+            bail!("{name} --help printed nothing under {:?}", t.qemu);
+        }
+        lines.push(format!(
+            "{:30} {:11} {:>6.2} MiB (with line tables)  --help ok",
+            t.triple,
+            name,
+            fs::metadata(bin)?.len() as f64 / f64::from(1 << 20)
+        ));
+    }
+    println!(
+        "==> {}: exocald offline under {}",
+        t.triple,
+        t.qemu.unwrap_or("the host")
+    );
+    let started = std::time::Instant::now();
+    let (code, toml) = offline(Some(t), &bins[0], cfg, &rec.mcap, &work.join(t.deb_arch))?;
+    let (ours, host) = (nominal_numbers(&toml), nominal_numbers(&rec.toml));
+    if code != rec.code || ours.len() != host.len() {
+        bail!(
+            "{}: offline exited {code} with {} numbers, the host {} with {}",
+            t.triple,
+            ours.len(),
+            rec.code,
+            host.len()
+        );
+    }
+    let worst = ours
+        .iter()
+        .zip(&host)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    if worst > 1e-6 {
+        bail!(
+            "{}: the calibrated table differs from the host's by {worst:e}",
+            t.triple
+        );
+    }
+    lines.push(format!(
+        "{:30} exocald offline: exit {code}, table = host's to {worst:.1e} ({} values, {:.1} s)",
+        t.triple,
+        ours.len(),
+        started.elapsed().as_secs_f64()
+    ));
+    let deb = package(t, &bins)?;
+    let stripped: u64 = BINARIES
+        .iter()
+        .map(|b| {
+            let dir = deb.with_extension("");
+            fs::metadata(dir.join("usr/bin").join(b))
+                .map(|m| m.len())
+                .unwrap_or(0)
+        })
+        .sum();
+    lintian(&deb)?;
+    lines.push(format!(
+        "{:30} {} {:.2} MiB (binaries stripped: {:.2} MiB), lintian clean",
+        t.triple,
+        deb.file_name().unwrap_or_default().to_string_lossy(),
+        fs::metadata(&deb)?.len() as f64 / f64::from(1 << 20),
+        stripped as f64 / f64::from(1 << 20)
+    ));
+    Ok(lines)
+}
+
+/// Cross-checks `targets` (see [`check_target`]); returns the report, or the first failure.
+pub fn check(targets: &[Target]) -> Result<Vec<String>> {
+    ensure_toolchain(targets)?;
+    let root = workspace_root();
+    let work = target_dir(&root).join("xtask/cross");
+    fs::create_dir_all(&work)?;
+    let host = build(&TARGETS[0])?;
+    let rec = record(&host[0], &work)?;
+    println!(
+        "host offline on {}: exit {}, {} table values",
+        rec.mcap.display(),
+        rec.code,
+        nominal_numbers(&rec.toml).len()
+    );
+    let cfg = work.join("exocald.toml");
+    let mut lines = Vec::new();
+    for t in targets.iter().filter(|t| t.qemu.is_some()) {
+        lines.extend(check_target(t, &rec, &cfg, &work)?);
+    }
+    Ok(lines)
+}
+
+/// `cargo xtask cross`: build for the controller targets, run under qemu-user, package.
+pub fn cross(args: &[String]) -> Result<u8> {
+    let lines = check(&parse_targets(args, true)?)?;
+    println!("\ncross-builds:\n{}", lines.join("\n"));
     Ok(0)
 }
 
@@ -323,6 +514,12 @@ pub fn package(t: &Target, bins: &[PathBuf]) -> Result<PathBuf> {
         &read("systemd/exocald.service")?,
         0o644,
     )?;
+    // The emulated suit's unit ships for benches; nothing enables it.
+    put(
+        "lib/systemd/system/exocal-hil.service",
+        &read("systemd/exocal-hil.service")?,
+        0o644,
+    )?;
     put(
         "usr/lib/systemd/network/80-can0.network",
         &read("systemd/80-can0.network")?,
@@ -444,6 +641,51 @@ fn dir_size(dir: &Path) -> Result<u64> {
     Ok(total)
 }
 
+/// lintian tags we accept, and why. Everything else lintian reports fails `cargo xtask deb`.
+pub const LINTIAN_ACCEPTED: &[(&str, &str)] = &[
+    (
+        "no-manual-page",
+        "`exocald --help` and `exocal-hil --help` (clap's long help) are the manual",
+    ),
+    (
+        "initial-upload-closes-no-bugs",
+        "the package is built for the suit's controllers, never uploaded to Debian: no ITP bug",
+    ),
+];
+
+/// Runs lintian on `deb`; fails on any error or warning outside [`LINTIAN_ACCEPTED`].
+pub fn lintian(deb: &Path) -> Result<()> {
+    if crate::vm::which("lintian").is_none() {
+        bail!("lintian is not installed (cargo xtask setup installs it)");
+    }
+    let accepted: Vec<&str> = LINTIAN_ACCEPTED.iter().map(|(tag, _)| *tag).collect();
+    let out = Command::new("lintian")
+        .args(["--tag-display-limit", "0", "--fail-on", "error,warning"])
+        .arg("--suppress-tags")
+        .arg(accepted.join(","))
+        .arg(deb)
+        .stderr(Stdio::null())
+        .output()
+        .context("run lintian")?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    if !out.status.success() {
+        bail!("lintian on {}:\n{text}", deb.display());
+    }
+    println!(
+        "lintian {}: clean{}",
+        deb.file_name().unwrap_or_default().to_string_lossy(),
+        if text.trim().is_empty() {
+            String::new()
+        } else {
+            format!(" of errors and warnings; notes:\n{text}")
+        }
+    );
+    for (tag, why) in LINTIAN_ACCEPTED {
+        println!("  accepted {tag}: {why}");
+    }
+    Ok(())
+}
+
 /// `cargo xtask deb`: build the package(s) and run lintian on them.
 pub fn deb(args: &[String]) -> Result<u8> {
     let targets = parse_targets(args, false)?;
@@ -451,25 +693,12 @@ pub fn deb(args: &[String]) -> Result<u8> {
     for t in &targets {
         let bins = build(t)?;
         let deb = package(t, &bins)?;
-        println!("built {}", deb.display());
-        if crate::vm::which("lintian").is_some() {
-            let out = Command::new("lintian")
-                .args([
-                    "--no-tag-display-limit",
-                    "--suppress-tags",
-                    "no-manual-page",
-                ])
-                .arg(&deb)
-                .output()?;
-            let text = String::from_utf8_lossy(&out.stdout);
-            if text.trim().is_empty() {
-                println!(
-                    "lintian: clean (no-manual-page suppressed: exocald --help is the manual)"
-                );
-            } else {
-                println!("lintian:\n{text}");
-            }
-        }
+        println!(
+            "built {} ({} KiB)",
+            deb.display(),
+            fs::metadata(&deb)?.len() / 1024
+        );
+        lintian(&deb)?;
     }
     Ok(0)
 }

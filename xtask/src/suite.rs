@@ -4,6 +4,11 @@
 //! 2. The suites that need real vcan (`exocal-tests` built with `--features vcan`) are built on
 //!    the host, then run one after another inside the vcan harness (`run-suites`), one test
 //!    thread each, since they share the bus.
+//! 3. The power-up test ([`crate::powerup`]): the Debian package installed in a guest that boots
+//!    systemd as PID 1, checked from inside.
+//! 4. The cross-builds for the controller ([`crate::ship::check`]): aarch64 and armv7 binaries
+//!    run under qemu-user (`--help`, an offline calibration equal to the host's), their Debian
+//!    packages through lintian.
 //!
 //! Counts are read from libtest's `test result:` lines, and the last line is the total.
 
@@ -86,7 +91,7 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
     std::env::set_var("EXOCAL_BIN_DIR", target.join("release"));
 
     println!(
-        "==> [1/2] cargo test --workspace -- --include-ignored (unit, integration and doc tests)"
+        "==> [1/4] cargo test --workspace -- --include-ignored (unit, integration and doc tests)"
     );
     let ok_host = run_teed(
         // `--include-ignored`: tests ignored for plain `cargo test` because they need the
@@ -105,8 +110,8 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
         host.broken += 1;
     }
 
-    println!("==> [2/2] vcan suites (exocal-tests --features vcan) in the vcan harness");
-    let bins = build_vcan_suites(&cargo)?;
+    println!("==> [2/4] vcan suites (exocal-tests --features vcan) in the vcan harness");
+    let bins = build_suites(&cargo, "vcan")?;
     let mut vcan = Counts::default();
     if bins.is_empty() {
         bail!("no vcan suites were built: exocal-tests has no test targets with feature vcan");
@@ -125,11 +130,42 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
         vcan.broken += 1;
     }
 
+    println!("==> [3/4] the power-up test under systemd (cargo xtask powerup)");
+    let power = match crate::powerup::run(opts) {
+        Ok(p) => p,
+        Err(e) => {
+            eprintln!("power-up test could not run: {e:#}");
+            crate::powerup::PowerUp::broken()
+        }
+    };
+
+    println!(
+        "==> [4/4] cross-builds under qemu-user, Debian packages, lintian (cargo xtask cross)"
+    );
+    let mut cross = Counts::default();
+    let cross_lines =
+        match crate::ship::parse_targets(&[], true).and_then(|t| crate::ship::check(&t)) {
+            Ok(lines) => {
+                cross.passed = lines.len() as u64;
+                lines
+            }
+            Err(e) => {
+                cross.failed = 1;
+                vec![format!("FAILED: {e:#}")]
+            }
+        };
+
     let total = Counts {
-        passed: host.passed + vcan.passed,
-        failed: host.failed + vcan.failed + host.broken + vcan.broken,
-        ignored: host.ignored + vcan.ignored,
-        broken: host.broken + vcan.broken,
+        passed: host.passed + vcan.passed + power.counts.passed + cross.passed,
+        failed: host.failed
+            + vcan.failed
+            + host.broken
+            + vcan.broken
+            + power.counts.failed
+            + power.counts.broken
+            + cross.failed,
+        ignored: host.ignored + vcan.ignored + power.counts.ignored,
+        broken: host.broken + vcan.broken + power.counts.broken,
     };
     println!();
     println!(
@@ -156,6 +192,23 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
         }
     );
     println!(
+        "power-up under systemd ({:.1} s): {} passed, {} failed{}",
+        power.elapsed.as_secs_f64(),
+        power.counts.passed,
+        power.counts.failed,
+        if power.counts.broken > 0 {
+            format!(" (the guest run failed, exit {})", power.code)
+        } else {
+            String::new()
+        }
+    );
+    println!(
+        "cross-builds: {} checks passed, {} failed\n  {}",
+        cross.passed,
+        cross.failed,
+        cross_lines.join("\n  ")
+    );
+    println!(
         "exocal: {} passed, {} failed, {} skipped",
         total.passed, total.failed, total.ignored
     );
@@ -179,15 +232,16 @@ fn run_teed(cmd: &mut Command, counts: &mut Counts) -> Result<bool> {
     Ok(child.wait()?.success())
 }
 
-/// Builds the vcan suites on the host and returns their executables.
-fn build_vcan_suites(cargo: &str) -> Result<Vec<String>> {
+/// Builds the suites of exocal-tests that `feature` turns on (on the host); returns their
+/// executables.
+pub fn build_suites(cargo: &str, feature: &str) -> Result<Vec<String>> {
     let out = Command::new(cargo)
         .args([
             "test",
             "-p",
             "exocal-tests",
             "--features",
-            "vcan",
+            feature,
             "--tests",
             "--no-run",
             "--message-format=json-render-diagnostics",
@@ -197,7 +251,7 @@ fn build_vcan_suites(cargo: &str) -> Result<Vec<String>> {
         .output()
         .context("cargo test --no-run")?;
     if !out.status.success() {
-        bail!("building the vcan suites failed");
+        bail!("building the {feature} suites failed");
     }
     let mut bins = Vec::new();
     for line in String::from_utf8_lossy(&out.stdout).lines() {

@@ -1,0 +1,52 @@
+# Bench setup for the power-up test, run as root in the guest's root before systemd boots
+# (`cargo xtask powerup` prepends EXOCAL_DEB=<the package> and hands it to the harness).
+# It does what an engineer does to a bench controller: install the package, make vcan0 with
+# systemd-networkd, point the daemon at it, and run the emulated suit as a service.
+set -eu
+# The harness runs this from busybox init: give dpkg a root PATH.
+export PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin
+: "${EXOCAL_DEB:?the package to install}"
+
+# The package: binaries, units, config, DBC; its postinst enables exocald.service.
+dpkg -i "$EXOCAL_DEB"
+
+# vcan0 the way a bench makes it: the package's example .netdev/.network, networkd.
+cp /usr/share/exocal/examples/80-vcan0.netdev /usr/share/exocal/examples/80-vcan0.network \
+   /etc/systemd/network/
+systemctl enable systemd-networkd.service
+
+# The daemon listens on vcan0. Half a minute of motion on a 50 Hz grid is plenty for the
+# emulated suit, and floating point in the software-emulated (TCG) guest is ~200x slower than
+# native: calibration there takes minutes, not seconds.
+sed -i -e 's/^interface = .*/interface = "vcan0"/' -e 's/^min_duration_s = .*/min_duration_s = 30.0/' \
+    -e 's/^grid_hz = .*/grid_hz = 50.0/' /etc/exocal/exocald.toml
+grep -q '^min_duration_s = 30.0' /etc/exocal/exocald.toml
+grep -q '^grid_hz = 50.0' /etc/exocal/exocald.toml
+
+# The emulated suit, at 1x real time, its raw IMU channels at 10 Hz so the TCG guest keeps up.
+sed 's/^imu_hz = 100.0/imu_hz = 10.0/' /usr/share/exocal/scenarios/paper.toml \
+    > /etc/exocal/bench-scenario.toml
+grep -q '^imu_hz = 10.0' /etc/exocal/bench-scenario.toml
+mkdir -p /etc/systemd/system/exocal-hil.service.d
+cat > /etc/systemd/system/exocal-hil.service.d/bench.conf <<'UNIT'
+[Service]
+ExecStart=
+ExecStart=/usr/bin/exocal-hil --iface vcan0 --scenario /etc/exocal/bench-scenario.toml --speed 1 --flash-dir /var/lib/exocal-hil --duration 3600
+UNIT
+systemctl enable exocal-hil.service
+
+# exocald exactly as shipped, but a watchdog short enough to matter, and started once the
+# bench's vcan0 exists (on a controller, can0 comes from the hardware).
+mkdir -p /etc/systemd/system/exocald.service.d
+cat > /etc/systemd/system/exocald.service.d/bench.conf <<'UNIT'
+[Unit]
+Wants=sys-subsystem-net-devices-vcan0.device
+After=sys-subsystem-net-devices-vcan0.device
+
+[Service]
+WatchdogSec=3s
+UNIT
+
+# A directory every user may write to: only the unit's sandbox can keep it out.
+mkdir -p /srv/world-writable && chmod 1777 /srv/world-writable
+echo "bench setup done"

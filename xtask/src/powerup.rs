@@ -1,0 +1,108 @@
+//! `cargo xtask powerup`: the power-up test under a real systemd.
+//!
+//! 1. builds the Debian package for this machine from the release binaries (`ship::package`);
+//! 2. boots the harness's guest with systemd as PID 1 on a tmpfs overlay of the host root, after
+//!    `tests/powerup/bench-setup.sh` ran in that root: `dpkg -i` of the package, the bench's
+//!    `vcan0` through systemd-networkd, `exocal-hil.service` enabled, a short watchdog;
+//! 3. once multi-user.target is up, the harness's unit runs the `powerup_systemd` suite
+//!    (exocal-tests, feature `powerup`) as root in the guest; it watches exocald's boot-time
+//!    calibration and asserts on it. Its libtest output comes back; the boot's whole journal is
+//!    kept in `target/xtask/last-boot-journal.txt`.
+
+use std::path::Path;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+
+use crate::harness;
+use crate::suite::Counts;
+use crate::HarnessArgs;
+
+/// The suite's result, and how long the boot took.
+pub struct PowerUp {
+    pub counts: Counts,
+    pub code: u8,
+    pub elapsed: Duration,
+}
+
+impl PowerUp {
+    /// A run that could not happen (the build or the harness failed): one broken suite.
+    pub fn broken() -> Self {
+        PowerUp {
+            counts: Counts {
+                broken: 1,
+                ..Counts::default()
+            },
+            code: 2,
+            elapsed: Duration::ZERO,
+        }
+    }
+}
+
+/// Builds the package and the suite, boots, runs it. `opts` gives the time limit and verbosity.
+pub fn run(opts: &HarnessArgs) -> Result<PowerUp> {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let root = crate::setup::workspace_root();
+    let host = crate::ship::TARGETS[0];
+    println!("==> power-up: building the {} package", host.deb_arch);
+    let bins = crate::ship::build(&host)?;
+    let deb = crate::ship::package(&host, &bins)?;
+    let suites = crate::suite::build_suites(&cargo, "powerup")?;
+    let Some(suite) = suites.into_iter().find(|s| {
+        Path::new(s)
+            .file_name()
+            .is_some_and(|n| n.to_string_lossy().starts_with("powerup_systemd"))
+    }) else {
+        bail!("the powerup_systemd suite was not built");
+    };
+
+    let setup = root.join("target/xtask/powerup-setup.sh");
+    let bench = std::fs::read_to_string(root.join("tests/powerup/bench-setup.sh"))
+        .context("read tests/powerup/bench-setup.sh")?;
+    std::fs::write(
+        &setup,
+        format!(
+            "#!/bin/sh\nEXOCAL_DEB={}\n{bench}",
+            harness::shell_quote(&deb.display().to_string())
+        ),
+    )?;
+
+    let mut opts = opts.clone();
+    opts.systemd = true;
+    opts.setup = Some(setup);
+    let mut req = opts.request(vec![suite, "--test-threads=1".into(), "--nocapture".into()])?;
+    req.capture_stdout = true;
+    println!("==> power-up: booting systemd with {}", deb.display());
+    let outcome = harness::run(&req)?;
+    let mut counts = Counts::default();
+    counts.scan(&String::from_utf8_lossy(&outcome.stdout));
+    if outcome.code != 0 && counts.failed == 0 {
+        counts.broken += 1;
+    }
+    Ok(PowerUp {
+        counts,
+        code: outcome.code,
+        elapsed: outcome.elapsed,
+    })
+}
+
+/// `cargo xtask powerup`: exit 0 only if every power-up test passed.
+pub fn main(opts: &HarnessArgs) -> Result<u8> {
+    let r = run(opts)?;
+    println!(
+        "power-up ({:.1} s): {} passed, {} failed{}",
+        r.elapsed.as_secs_f64(),
+        r.counts.passed,
+        r.counts.failed,
+        if r.counts.broken > 0 {
+            format!(" (guest exited {})", r.code)
+        } else {
+            String::new()
+        }
+    );
+    Ok(if r.code == 0 && r.counts.failed == 0 {
+        0
+    } else {
+        1
+    })
+}
