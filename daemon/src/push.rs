@@ -12,10 +12,11 @@
 //! - a Commit sent by a failed attempt may still be processed after that attempt gave up (a
 //!   lagging node, a delayed frame), so a CRC the node reported earlier is not final. When a job
 //!   fails after sending any Commit, the push waits one `timeout_ms`, then *fences* the node:
-//!   a `Begin` in a fresh session (resent like any command), which discards every older staging
-//!   so that no stale Commit can install anything afterwards, and whose ACK or NACK carries the
-//!   CRC the node holds from then on; an `Abort` of that session follows. The report takes the
-//!   node's answer to the fence; with no answer it says `Unknown`;
+//!   a `Begin` in a fresh session, resent every `timeout_ms` up to `(1 + retries)` ×
+//!   `RetryPolicy::max_attempts` times (as many as one command over all attempts). It discards
+//!   every older staging, so no stale Commit can install anything afterwards, and its ACK or
+//!   NACK carries the CRC the node holds from then on; an `Abort` of that session follows. The
+//!   report takes the node's answer to the fence; with no answer it says `Unknown`;
 //! - time comes from the bus clock (simulated in the demo), never from the system directly.
 
 use std::time::Duration;
@@ -152,6 +153,9 @@ pub async fn push_tables<T: Transport>(
         ..RetryPolicy::default()
     };
     let mut session = first_session;
+    let fence_sends = retry
+        .max_attempts
+        .saturating_mul(policy.retries.saturating_add(1));
     let mut jobs: Vec<Job> = tables
         .iter()
         .map(|&(node, table)| Job {
@@ -181,7 +185,7 @@ pub async fn push_tables<T: Transport>(
                     job.held_crc = fence.answer;
                     job.done = true;
                 } else if now_us >= fence.next_send_us {
-                    if fence.sends >= retry.max_attempts {
+                    if fence.sends >= fence_sends {
                         job.held_crc = None;
                         job.done = true;
                     } else {
