@@ -5,6 +5,11 @@
 //!   unknown (an identifier the DBC does not define, extended or remote frames) or malformed
 //!   (a known identifier with a bad length, multiplexer or value), and the caller gets an
 //!   [`Event`] to log or act on. Invalid (NaN) angles are counted and kept out of the streams.
+//! - A babbling node is named: a timestamped frame (joint state, IMU vector, pose page) that
+//!   repeats its identifier's previous frame byte for byte is counted per node
+//!   ([`FrameStats::repeats`]); [`FrameStats::babbling`] names the nodes that repeat far more
+//!   than the others (bus-wide duplication spreads over every node and names none). A repeated
+//!   joint state is kept out of the streams.
 //! - Host time is the transport's receive timestamp (the kernel's on SocketCAN), in seconds
 //!   since the first frame of the session ([`Ingest::origin`]); node time is the node's µs
 //!   counter, unwrapped across its 2^32 rollover.
@@ -44,6 +49,33 @@ pub struct FrameStats {
     pub poses: u64,
     /// Heartbeats per node id 1..=8 (index 0 unused).
     pub heartbeats: [u64; 9],
+    /// Timestamped frames identical to the previous frame of their identifier, per node id
+    /// 1..=8 (index 0 unused): a genuine one carries a new timestamp or sequence number.
+    pub repeats: [u64; 9],
+}
+
+/// Fewest repeated frames for a node to be called babbling.
+pub const BABBLE_MIN_REPEATS: u64 = 100;
+/// A babbling node repeats at least this many times more frames than the median node.
+pub const BABBLE_FACTOR: u64 = 5;
+
+impl FrameStats {
+    /// Nodes whose repeated frames ([`FrameStats::repeats`]) number at least
+    /// [`BABBLE_MIN_REPEATS`] and [`BABBLE_FACTOR`] × the median over the eight nodes, with
+    /// their count.
+    pub fn babbling(&self) -> Vec<(NodeId, u64)> {
+        let mut counts: Vec<u64> = self.repeats[1..].to_vec();
+        counts.sort_unstable();
+        let median = counts[counts.len() / 2];
+        let bar = BABBLE_MIN_REPEATS.max(median.saturating_mul(BABBLE_FACTOR));
+        NodeId::ALL
+            .iter()
+            .filter_map(|&n| {
+                let r = self.repeats[usize::from(n.raw()).min(8)];
+                (r >= bar).then_some((n, r))
+            })
+            .collect()
+    }
 }
 
 /// What one frame was.
@@ -163,6 +195,8 @@ pub struct Ingest {
     pose: Stream<Pose>,
     assembler: PoseAssembler,
     stats: FrameStats,
+    /// The last payload seen per standard identifier (for [`FrameStats::repeats`]).
+    last_payload: std::collections::HashMap<u32, ([u8; 8], usize)>,
 }
 
 impl Ingest {
@@ -181,6 +215,7 @@ impl Ingest {
             pose: Stream::new(),
             assembler: PoseAssembler::new(),
             stats: FrameStats::default(),
+            last_payload: std::collections::HashMap::new(),
         }
     }
 
@@ -223,11 +258,16 @@ impl Ingest {
         };
         debug_assert!(!frame.is_extended());
         self.stats.decoded += 1;
+        let repeated = self.count_repeat(frame, &message);
         match message {
             Message::JointState(js) => {
                 let Some(joint) = self.joint_of_node[usize::from(js.node.raw())] else {
                     return Event::Message(message);
                 };
+                if repeated {
+                    // Carries nothing new; kept out of the streams (and the clock fit).
+                    return Event::Message(message);
+                }
                 self.stats.joint_frames[joint] += 1;
                 if js.angle.is_nan() {
                     self.stats.invalid_angles += 1;
@@ -263,6 +303,35 @@ impl Ingest {
             }
             other => Event::Message(other),
         }
+    }
+
+    /// Counts `frame` in [`FrameStats::repeats`] if it repeats its identifier's previous frame;
+    /// returns whether it did.
+    fn count_repeat(&mut self, frame: &exocal_bus::Frame, message: &Message) -> bool {
+        let timestamped = matches!(
+            message,
+            Message::JointState(_)
+                | Message::ImuGyro(_)
+                | Message::ImuAccel(_)
+                | Message::ImuMag(_)
+                | Message::EePose(_)
+        );
+        let (Some(node), true) = (message.node(), timestamped) else {
+            return false;
+        };
+        let id = match frame.id() {
+            exocal_bus::embedded_can::Id::Standard(s) => u32::from(s.as_raw()),
+            exocal_bus::embedded_can::Id::Extended(e) => e.as_raw(),
+        };
+        let data = frame.data();
+        let mut payload = [0u8; 8];
+        let len = data.len().min(8);
+        payload[..len].copy_from_slice(&data[..len]);
+        let repeated = self.last_payload.insert(id, (payload, len)) == Some((payload, len));
+        if repeated {
+            self.stats.repeats[usize::from(node.raw()).min(8)] += 1;
+        }
+        repeated
     }
 
     /// Joint samples received for joint `joint` (valid angles).
@@ -366,6 +435,34 @@ mod tests {
         );
         assert_eq!(s.joint_frames[2], 2);
         assert_eq!(ing.joint_samples(2), 1);
+    }
+
+    #[test]
+    fn a_node_repeating_its_frames_is_named_babbling_and_duplication_names_none() {
+        let mut ing = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
+        let mut t = 0.0;
+        // Every joint sends fresh frames; every 20th frame is duplicated on the bus.
+        for k in 0..400u32 {
+            for node in 1..=7u8 {
+                let f = joint_frame(node, 1000 * k, 0.1);
+                t += 1e-4;
+                ing.on_frame(&rx(f, t));
+                if k % 20 == 0 {
+                    ing.on_frame(&rx(f, t));
+                }
+            }
+        }
+        assert!(ing.stats().repeats[1..=7].iter().all(|&r| r == 20));
+        assert_eq!(ing.stats().babbling(), vec![]);
+        // Repeats carry nothing new: only the 400 genuine samples per joint are kept.
+        assert!((0..7).all(|j| ing.joint_samples(j) == 400));
+        // Node 6 repeats its last frame 500 times.
+        let last = joint_frame(6, 1000 * 399, 0.1);
+        for _ in 0..500 {
+            t += 1e-4;
+            ing.on_frame(&rx(last, t));
+        }
+        assert_eq!(ing.stats().babbling(), vec![(NodeId::JOINTS[5], 520)]);
     }
 
     fn embedded_can_id(id: u16) -> exocal_bus::embedded_can::StandardId {

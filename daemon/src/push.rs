@@ -7,12 +7,22 @@
 //!   after an exponential backoff ([`crate::config::PushPolicy::backoff_ms`]);
 //! - the node-side state machine installs a table only whole, at a Commit whose CRC matches, so
 //!   a node is never left with a partial table; the [`NodeReport`] says which table each node
-//!   holds afterwards, by CRC: the new one (verified by readback), the old one, or unknown;
+//!   holds afterwards, by CRC: the new one (verified by readback), the old one, or unknown —
+//!   never a wrong `New` or `Old`;
+//! - a Commit sent by a failed attempt may still be processed after that attempt gave up (a
+//!   lagging node, a delayed frame), so a CRC the node reported earlier is not final. When a job
+//!   fails after sending any Commit, the push waits one `timeout_ms`, then *fences* the node:
+//!   a `Begin` in a fresh session, resent every `timeout_ms` up to `(1 + retries)` ×
+//!   `RetryPolicy::max_attempts` times (as many as one command over all attempts). It discards
+//!   every older staging, so no stale Commit can install anything afterwards, and its ACK or
+//!   NACK carries the CRC the node holds from then on; an `Abort` of that session follows. The
+//!   report takes the node's answer to the fence; with no answer it says `Unknown`;
 //! - time comes from the bus clock (simulated in the demo), never from the system directly.
 
 use std::time::Duration;
 
 use exocal_bus::{Clock, Frame, Received, Transport};
+use exocal_dbc::message::{CmdCode, Command, Reply, TableCmd};
 use exocal_dbc::table::Table;
 use exocal_dbc::transfer::{RetryPolicy, Upload};
 use exocal_dbc::{Message, NodeId};
@@ -25,9 +35,11 @@ use crate::config::PushPolicy;
 pub enum Holds {
     /// The new table, committed and read back identical.
     New,
-    /// Its previous table (the CRC it reported is not the new one).
+    /// Its previous table (the CRC it reported last, after which no Commit of this push can
+    /// land, is not the new one).
     Old,
-    /// The node never answered: nothing is known.
+    /// Nothing is known: the node never answered, or did not answer the final CRC query
+    /// after a Commit was sent.
     Unknown,
 }
 
@@ -103,8 +115,23 @@ struct Job {
     next_start_us: u64,
     last_error: Option<String>,
     held_crc: Option<u32>,
+    /// Whether any attempt sent a Commit (the node may then hold the new table even if the
+    /// job failed).
+    commit_sent: bool,
+    /// The final CRC query of a failed job that sent a Commit (see the module doc).
+    fence: Option<Fence>,
     done: bool,
     ok: bool,
+}
+
+/// The fence of a failed job: `Begin` in its own session until answered, then `Abort`.
+struct Fence {
+    session: u8,
+    /// When the next `Begin` is due (µs on the bus clock).
+    next_send_us: u64,
+    sends: u32,
+    /// The CRC from the node's answer, once answered.
+    answer: Option<u32>,
 }
 
 fn micros(d: Duration) -> u64 {
@@ -126,6 +153,9 @@ pub async fn push_tables<T: Transport>(
         ..RetryPolicy::default()
     };
     let mut session = first_session;
+    let fence_sends = retry
+        .max_attempts
+        .saturating_mul(policy.retries.saturating_add(1));
     let mut jobs: Vec<Job> = tables
         .iter()
         .map(|&(node, table)| Job {
@@ -136,6 +166,8 @@ pub async fn push_tables<T: Transport>(
             next_start_us: 0,
             last_error: None,
             held_crc: None,
+            commit_sent: false,
+            fence: None,
             done: false,
             ok: false,
         })
@@ -144,6 +176,27 @@ pub async fn push_tables<T: Transport>(
         let now = clock();
         let now_us = micros(now);
         for job in jobs.iter_mut().filter(|j| !j.done) {
+            if let Some(fence) = job.fence.as_mut() {
+                if fence.answer.is_some() {
+                    // Best effort: an unanswered Abort only leaves an empty staging, which the
+                    // node drops on its own timeout.
+                    let abort = fence_cmd(job.node, fence.session, Command::Abort);
+                    send(bus, &abort, now, observer).await?;
+                    job.held_crc = fence.answer;
+                    job.done = true;
+                } else if now_us >= fence.next_send_us {
+                    if fence.sends >= fence_sends {
+                        job.held_crc = None;
+                        job.done = true;
+                    } else {
+                        fence.sends += 1;
+                        fence.next_send_us = now_us + retry.timeout_us;
+                        let begin = fence_cmd(job.node, fence.session, Command::Begin);
+                        send(bus, &begin, now, observer).await?;
+                    }
+                }
+                continue;
+            }
             if job.upload.is_none() && now_us >= job.next_start_us {
                 job.attempts += 1;
                 job.upload = Some(Upload::new(job.node, session, job.table, retry));
@@ -153,12 +206,8 @@ pub async fn push_tables<T: Transport>(
                 continue;
             };
             if let Some(cmd) = up.poll(now_us) {
-                // Encoding a TableCmd built from a valid Table cannot fail; if it ever did,
-                // the upload times out and is reported, never panics.
-                if let Ok(frame) = Message::TableCmd(cmd).to_frame::<Frame>() {
-                    bus.send(&frame).await?;
-                    observer.frame(true, &frame, now);
-                }
+                job.commit_sent |= matches!(cmd.cmd, Command::Commit { .. });
+                send(bus, &cmd, now, observer).await?;
             }
             if let Some(result) = up.outcome() {
                 job.held_crc = up.held_crc().or(job.held_crc);
@@ -172,7 +221,17 @@ pub async fn push_tables<T: Transport>(
                     Err(e) => {
                         job.last_error = Some(e.to_string());
                         if job.attempts > policy.retries {
-                            job.done = true;
+                            if job.commit_sent {
+                                job.fence = Some(Fence {
+                                    session,
+                                    next_send_us: now_us + retry.timeout_us,
+                                    sends: 0,
+                                    answer: None,
+                                });
+                                session = session.wrapping_add(1);
+                            } else {
+                                job.done = true;
+                            }
                         } else {
                             job.next_start_us = now_us + policy.backoff_ms(job.attempts) * 1000;
                         }
@@ -196,6 +255,8 @@ pub async fn push_tables<T: Transport>(
             .iter()
             .map(|j| {
                 let new_crc = j.table.crc();
+                // After a fence, `held_crc` is the fence's answer (or None); without one, no
+                // Commit was ever sent, so the node's last reported CRC cannot change.
                 let holds = if j.ok {
                     Holds::New
                 } else {
@@ -205,17 +266,46 @@ pub async fn push_tables<T: Transport>(
                         None => Holds::Unknown,
                     }
                 };
+                let error = if j.ok {
+                    None
+                } else if j.fence.is_some() && j.held_crc.is_none() {
+                    Some(format!(
+                        "{}; no answer to the final CRC query",
+                        j.last_error.as_deref().unwrap_or("failed")
+                    ))
+                } else {
+                    j.last_error.clone()
+                };
                 NodeReport {
                     node: j.node.name().to_string(),
                     new_crc,
                     held_crc: j.held_crc,
                     holds,
                     attempts: j.attempts,
-                    error: if j.ok { None } else { j.last_error.clone() },
+                    error,
                 }
             })
             .collect(),
     })
+}
+
+fn fence_cmd(node: NodeId, session: u8, cmd: Command) -> TableCmd {
+    TableCmd { node, session, cmd }
+}
+
+async fn send<T: Transport>(
+    bus: &mut T,
+    cmd: &TableCmd,
+    now: Duration,
+    observer: &mut dyn PushObserver,
+) -> Result<(), exocal_bus::BusError> {
+    // Encoding a TableCmd built from a valid Table cannot fail; if it ever did, the command
+    // counts as lost (the upload times out and is reported), never panics.
+    if let Ok(frame) = Message::TableCmd(*cmd).to_frame::<Frame>() {
+        bus.send(&frame).await?;
+        observer.frame(true, &frame, now);
+    }
+    Ok(())
 }
 
 fn on_received(rx: &Received, jobs: &mut [Job], observer: &mut dyn PushObserver) {
@@ -224,6 +314,22 @@ fn on_received(rx: &Received, jobs: &mut [Job], observer: &mut dyn PushObserver)
         for job in jobs.iter_mut().filter(|j| j.node == reply.node) {
             if let Some(up) = job.upload.as_mut() {
                 up.on_reply(&reply);
+            }
+            if let Some(fence) = job.fence.as_mut() {
+                if reply.session == fence.session {
+                    if let Reply::Ack {
+                        cmd: CmdCode::Begin,
+                        held_crc,
+                    }
+                    | Reply::Nack {
+                        cmd: CmdCode::Begin,
+                        held_crc,
+                        ..
+                    } = reply.reply
+                    {
+                        fence.answer.get_or_insert(held_crc);
+                    }
+                }
             }
         }
     }
@@ -378,6 +484,124 @@ mod tests {
         let lines = report.lines();
         assert!(lines[3].starts_with("Joint4: Unknown table"), "{lines:?}");
         nodes.abort();
+    }
+
+    /// One emulated node that lags at its first Commit: it installs the table only after
+    /// `lag` more commands have queued up behind it, and every reply to the Commit and to the
+    /// queued commands is lost (a node too slow to answer in time). Commands after that are
+    /// handled normally.
+    fn spawn_lagging_node(
+        bus: &InProcessBus,
+        node: NodeId,
+        flash: Flash,
+        lag: usize,
+    ) -> tokio::task::JoinHandle<()> {
+        let mut ep = bus.attach();
+        tokio::spawn(async move {
+            let mut flash = flash;
+            let held = *flash.0.lock().unwrap();
+            let mut nt = NodeTransfer::new(node, held);
+            let mut queued: Option<Vec<(TableCmd, u64)>> = None;
+            let mut lagged = false;
+            while let Ok(rx) = ep.recv().await {
+                let Ok(Message::TableCmd(cmd)) = exocal_dbc::decode_frame(&rx.frame) else {
+                    continue;
+                };
+                let now_us = micros(rx.timestamp);
+                if let Some(q) = queued.as_mut() {
+                    q.push((cmd, now_us));
+                    if q.len() > lag {
+                        for (c, t) in queued.take().unwrap() {
+                            let _ = nt.handle(&c, t, &mut flash);
+                        }
+                    }
+                    continue;
+                }
+                if !lagged && matches!(cmd.cmd, Command::Commit { .. }) {
+                    lagged = true;
+                    queued = Some(vec![(cmd, now_us)]);
+                    continue;
+                }
+                for reply in nt.handle(&cmd, now_us, &mut flash) {
+                    let f: Frame = Message::TableReply(reply).to_frame().unwrap();
+                    ep.send_now(&f);
+                }
+            }
+        })
+    }
+
+    /// Regression: a Commit of an earlier attempt that the node processes after the last
+    /// attempt gave up installed the new table while the report said `Old` (11–18 of 7,000
+    /// transfers in the atomic-push campaign). The node here holds back its first Commit
+    /// until every command of all later attempts has arrived, then installs the new table
+    /// silently; the report must say `New` (learnt from the final CRC query), matching flash.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_late_commit_after_the_last_attempt_is_not_reported_old() {
+        let bus = InProcessBus::new();
+        let node = NodeId::JOINTS[2];
+        let flash = Flash::default();
+        *flash.0.lock().unwrap() = Some(table(0.0));
+        let policy = policy();
+        let sends = RetryPolicy::default().max_attempts as usize;
+        // The Commit's own resends, then every Begin of the later attempts (each unanswered).
+        let lag = (sends - 1) + policy.retries as usize * sends;
+        let emulated = spawn_lagging_node(&bus, node, flash.clone(), lag);
+        let mut ep = bus.attach();
+        let clock: Clock = Arc::new(|| {
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap()
+        });
+        let new = table(3.0);
+        let mut sink = |_: bool, _: &Frame, _: Duration| {};
+        let report = push_tables(&mut ep, &clock, &[(node, new)], &policy, 7, &mut sink)
+            .await
+            .unwrap();
+        emulated.abort();
+        let held = flash.0.lock().unwrap().unwrap();
+        assert_eq!(held, new, "the late Commit installed the new table");
+        let r = &report.nodes[0];
+        assert_eq!(r.attempts, policy.retries + 1, "{r:?}");
+        assert!(r.error.is_some(), "every attempt failed: {r:?}");
+        assert_eq!(r.holds, Holds::New, "{r:?}");
+        assert_eq!(r.held_crc, Some(new.crc()), "{r:?}");
+    }
+
+    /// A failed job that sent a Commit and then gets no answer to the final CRC query is
+    /// reported `Unknown`, not `Old` from the CRC the node sent before the Commit.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn an_unanswered_final_crc_query_is_reported_unknown() {
+        let bus = InProcessBus::new();
+        let node = NodeId::JOINTS[0];
+        let flash = Flash::default();
+        *flash.0.lock().unwrap() = Some(table(0.0));
+        // The node never gets past its first Commit.
+        let emulated = spawn_lagging_node(&bus, node, flash.clone(), usize::MAX);
+        let mut ep = bus.attach();
+        let clock: Clock = Arc::new(|| {
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap()
+        });
+        let mut sink = |_: bool, _: &Frame, _: Duration| {};
+        let report = push_tables(
+            &mut ep,
+            &clock,
+            &[(node, table(2.0))],
+            &policy(),
+            9,
+            &mut sink,
+        )
+        .await
+        .unwrap();
+        emulated.abort();
+        let r = &report.nodes[0];
+        assert_eq!(r.holds, Holds::Unknown, "{r:?}");
+        assert_eq!(r.held_crc, None, "{r:?}");
+        assert!(
+            r.error.as_deref().unwrap().contains("final CRC query"),
+            "{r:?}"
+        );
     }
 
     #[test]

@@ -414,6 +414,13 @@ async fn session_body<T: Transport>(
             bus.dropped()
         ),
     );
+    for (node, repeats) in s.babbling() {
+        io.event(
+            clock(),
+            Level::Warning,
+            &format!("{node} is babbling: {repeats} frames repeated verbatim"),
+        );
+    }
 
     // 2. Align.
     let (aligned, clocks) = ingest.align(

@@ -1,0 +1,419 @@
+//! Reliability subsets on real vcan (issue 7): the daemon's code and the emulated suit
+//! (exocal-hil: node state machines and flash files) in this process, each on its own SocketCAN
+//! socket on vcan0, so every frame crosses the kernel's CAN stack.
+//!
+//! - atomic push: seeded runs of `push_tables` with loss, duplication, reordering, delay and node
+//!   reboots on the transfer path; every joint node's flash holds the old or the new table (by
+//!   CRC), and the daemon's report says which (`Unknown` claims nothing and is counted);
+//! - fault-matrix rows: short `run_session` sessions (the code of `exocald calibrate`) with 1 %
+//!   loss and a node that never answers transfers, a babbling node, malformed frames and NaN
+//!   values; no panic, the degraded node reported, no table that fails validation pushed, every
+//!   flash the factory table or exactly the pushed one, agreeing with the report.
+//!
+//! Sized for the harness's TCG guest (~80× slower than native): the suit plays at real time
+//! with low IMU rates, and sessions are a few seconds long. Needs vcan0: run through
+//! `cargo xtask test`, or `cargo xtask vcan -- <test binary> --test-threads=1 --nocapture`.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use exocal_bus::SocketCan;
+use exocal_dbc::table::{Field, Table};
+use exocal_dbc::NodeId;
+use exocal_hil::scenario::{Babble, Reboot, Scenario, TransferBehaviour, TransferFault};
+use exocal_hil::{Hil, SimClock};
+use exocald::config::{Config, PushPolicy};
+use exocald::push::{push_tables, Holds};
+use exocald::report::{Notifier, Reporter};
+use exocald::runner::{run_session, SessionSummary};
+
+/// Seeded atomic-push runs on vcan0.
+const PUSH_RUNS: u64 = 10;
+/// Simulated time before the push starts (the nodes boot and stream).
+const PUSH_AT_S: f64 = 0.3;
+
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        // splitmix64
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+    fn unit(&mut self) -> f64 {
+        (self.next() >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn range(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.unit()
+    }
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("exocal-rel-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// A quiet suit (1 Hz streams) with transfer-path faults drawn from `seed`.
+fn push_scenario(seed: u64) -> Scenario {
+    let mut rng = Rng(seed);
+    let mut s = Scenario::paper();
+    s.seed = seed;
+    s.duration_s = 600.0;
+    s.rates.joint_state_hz = 1.0;
+    s.rates.imu_hz = 1.0;
+    s.rates.pose_hz = 1.0;
+    let f = &mut s.faults;
+    f.loss = [0.0, 0.02, 0.05, 0.1, 0.2][(rng.next() % 5) as usize];
+    f.duplicate = rng.range(0.0, 0.2);
+    f.reorder = rng.range(0.0, 0.2);
+    f.reorder_max_ms = rng.range(1.0, 100.0);
+    f.delay = rng.range(0.0, 0.1);
+    f.delay_ms = rng.range(1.0, 150.0);
+    for _ in 0..rng.next() % 3 {
+        f.reboots.push(Reboot {
+            node: 1 + (rng.next() % 7) as u8,
+            at_s: PUSH_AT_S + rng.range(0.0, 0.5),
+            down_s: rng.range(0.05, 0.5),
+        });
+    }
+    if rng.unit() < 0.2 {
+        f.transfer.push(TransferFault {
+            node: 1 + (rng.next() % 7) as u8,
+            behaviour: TransferBehaviour::Silent,
+        });
+    }
+    s
+}
+
+/// A new table near `old`: every field moved by a few hundred raw units, kept in bounds.
+fn perturbed(old: &Table, rng: &mut Rng) -> Table {
+    let mut raw = old.raw_values();
+    for f in Field::ALL {
+        let (lo, hi) = f.raw_bounds();
+        let k = f.seq() as usize;
+        raw[k] = (raw[k] + 1 + (rng.next() % 500) as i64).clamp(lo, hi);
+    }
+    Table::from_raw(raw).expect("in bounds")
+}
+
+#[derive(Default, Debug)]
+struct Tally {
+    nodes: u64,
+    new: u64,
+    old: u64,
+    unknown: u64,
+    problems: Vec<String>,
+}
+
+async fn push_run(seed: u64, tally: &mut Tally) {
+    let dir = scratch(&format!("push-{seed}"));
+    let scenario = push_scenario(seed);
+    let mut hil = Hil::new(scenario.clone(), &dir).expect("hil");
+    let old: Vec<(NodeId, Table)> = NodeId::JOINTS
+        .iter()
+        .map(|&n| (n, hil.suit().held_table(n).expect("factory table")))
+        .collect();
+    let mut rng = Rng(seed ^ 0xa5a5);
+    let tables: Vec<(NodeId, Table)> = old
+        .iter()
+        .map(|(n, t)| (*n, perturbed(t, &mut rng)))
+        .collect();
+    let clock = SimClock::new(1.0).expect("speed");
+    let mut hil_sock = SocketCan::open("vcan0").expect("hil socket on vcan0");
+    let mut daemon_sock = SocketCan::open("vcan0").expect("daemon socket on vcan0");
+    let hil_task = tokio::spawn(async move { hil.run(&mut hil_sock, &clock).await });
+    tokio::time::sleep(Duration::from_secs_f64(PUSH_AT_S)).await;
+    let policy = PushPolicy {
+        retries: 3,
+        backoff_initial_ms: 50,
+        backoff_max_ms: 400,
+        timeout_ms: 200,
+    };
+    let mut ignore = |_: bool, _: &exocal_bus::Frame, _: Duration| {};
+    let report = push_tables(
+        &mut daemon_sock,
+        &exocald::app::wall_clock(),
+        &tables,
+        &policy,
+        (seed * 40 % 256) as u8,
+        &mut ignore,
+    )
+    .await
+    .expect("push over vcan0");
+    // Let delayed and duplicated frames drain (≤ 150 ms hold-back), then stop the suit.
+    tokio::time::sleep(Duration::from_millis(400)).await;
+    hil_task.abort();
+    let _ = hil_task.await;
+    for (((node, old_t), (_, new_t)), rep) in old.iter().zip(&tables).zip(&report.nodes) {
+        tally.nodes += 1;
+        let held = exocal_hil::flash::read(&dir, *node)
+            .expect("flash readable")
+            .map_or(old_t.crc(), |img| img.table.crc());
+        let (holds_new, holds_old) = (held == new_t.crc(), held == old_t.crc());
+        let agrees = match rep.holds {
+            Holds::New => {
+                tally.new += 1;
+                holds_new
+            }
+            Holds::Old => {
+                tally.old += 1;
+                holds_old
+            }
+            Holds::Unknown => {
+                tally.unknown += 1;
+                true
+            }
+        };
+        if !(holds_new || holds_old) || !agrees {
+            tally.problems.push(format!(
+                "seed {seed} {node}: report {:?}, flash {held:#010x} (old {:#010x}, new {:#010x}), faults {:?}",
+                rep.holds,
+                old_t.crc(),
+                new_t.crc(),
+                scenario.faults
+            ));
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn atomic_push_over_vcan0_leaves_old_or_new_and_the_report_says_which() {
+    exocal_tests::require_vcan("vcan0");
+    let started = Instant::now();
+    let mut tally = Tally::default();
+    for run in 0..PUSH_RUNS {
+        push_run(7000 + run, &mut tally).await;
+    }
+    println!(
+        "atomic push on vcan0: {PUSH_RUNS} runs, {} node transfers: New {}, Old {}, Unknown {}; problems {} ({:.1} s)",
+        tally.nodes,
+        tally.new,
+        tally.old,
+        tally.unknown,
+        tally.problems.len(),
+        started.elapsed().as_secs_f64()
+    );
+    assert!(
+        tally.problems.is_empty(),
+        "mixed tables or reports disagreeing with flash:\n{}",
+        tally.problems.join("\n")
+    );
+    assert_eq!(tally.nodes, PUSH_RUNS * 7);
+    // The faults are survivable: most transfers must succeed.
+    assert!(tally.new * 10 >= tally.nodes * 7, "{tally:?}");
+}
+
+/// What one fault row expects the daemon to report.
+#[derive(Clone, Copy, Debug)]
+enum Expect {
+    /// This node does not hold the new table and the push report says so (if anything was
+    /// pushed).
+    PushFails(u8),
+    /// This node, and only it, named babbling.
+    Babbling(u8),
+    /// Malformed/unknown frames and invalid angles counted.
+    MalformedAndNan,
+}
+
+struct Row {
+    name: &'static str,
+    expect: Expect,
+    apply: fn(&mut Scenario),
+}
+
+fn rows() -> Vec<Row> {
+    vec![
+        Row {
+            name: "loss 1%, node 7 never answers transfers",
+            expect: Expect::PushFails(7),
+            apply: |s| {
+                s.faults.loss = 0.01;
+                s.faults.transfer.push(TransferFault {
+                    node: 7,
+                    behaviour: TransferBehaviour::Silent,
+                });
+            },
+        },
+        Row {
+            name: "babbling node 6 (500 Hz, 2 s)",
+            expect: Expect::Babbling(6),
+            apply: |s| {
+                s.faults.babble.push(Babble {
+                    node: 6,
+                    from_s: 2.0,
+                    to_s: 4.0,
+                    rate_hz: 500.0,
+                });
+            },
+        },
+        Row {
+            name: "malformed frames 20/s, NaN values 1%",
+            expect: Expect::MalformedAndNan,
+            apply: |s| {
+                s.faults.malformed_hz = 20.0;
+                s.faults.nan = 0.01;
+            },
+        },
+    ]
+}
+
+/// Runs one row's session; returns the problems found and a one-line outcome.
+async fn run_row(row: &Row) -> (Vec<String>, String) {
+    let dir = scratch(&row.name.replace([' ', ',', '%', '(', ')', '/'], "_"));
+    let flash_dir = dir.join("flash");
+    std::fs::create_dir_all(&flash_dir).unwrap();
+    let mut scenario = Scenario::paper();
+    scenario.seed = 7;
+    scenario.rates.imu_hz = 10.0;
+    (row.apply)(&mut scenario);
+    scenario.validate().expect("row scenario is valid");
+    let mut config = Config::default_config();
+    config.interface = "vcan0".into();
+    config.output.directory = dir.join("out");
+    config.session.min_duration_s = 6.0;
+    config.session.max_duration_s = 12.0;
+    config.session.min_samples = 300;
+    config.session.excitation_required = 0.1;
+    config.push.timeout_ms = 200;
+    config.push.backoff_initial_ms = 50;
+    config.push.backoff_max_ms = 200;
+    scenario.duration_s = 600.0;
+    let mut hil = Hil::new(scenario, &flash_dir).expect("hil");
+    let factory: Vec<u32> = NodeId::JOINTS
+        .iter()
+        .map(|&n| hil.suit().held_table(n).map_or(0, |t| t.crc()))
+        .collect();
+    let clock = SimClock::new(1.0).unwrap();
+    let mut hil_sock = SocketCan::open("vcan0").expect("hil socket on vcan0");
+    let mut daemon_sock = SocketCan::open("vcan0").expect("daemon socket on vcan0");
+    let hil_task = tokio::spawn(async move { hil.run(&mut hil_sock, &clock).await });
+    let (_stop, shutdown) = exocald::app::Shutdown::manual();
+    let mut notifier = Notifier::disabled();
+    let mut reporter = Reporter::detect(&notifier);
+    let started = Instant::now();
+    let result = run_session(
+        &mut daemon_sock,
+        &exocald::app::wall_clock(),
+        &config,
+        false,
+        shutdown.wait(),
+        &mut notifier,
+        &mut reporter,
+    )
+    .await;
+    let wall_s = started.elapsed().as_secs_f64();
+    hil_task.abort();
+    let _ = hil_task.await;
+    let flash: Vec<Option<u32>> = NodeId::JOINTS
+        .iter()
+        .map(|&n| {
+            exocal_hil::flash::read(&flash_dir, n)
+                .expect("flash readable")
+                .map(|i| i.table.crc())
+        })
+        .collect();
+    let _ = std::fs::remove_dir_all(&dir);
+    let (summary, session): (Option<&SessionSummary>, String) = match &result {
+        Ok(s) => (Some(s), "ok".into()),
+        Err(e) => (e.summary.as_ref(), e.error.to_string()),
+    };
+    let mut bad = Vec::new();
+    let Some(s) = summary else {
+        return (vec![format!("no session summary: {session}")], session);
+    };
+    let accepted = s.outcome.as_ref().map(|c| c.verdict.accepted());
+    let push = s.push.as_ref();
+    if accepted != Some(true) && push.is_some() {
+        bad.push("pushed although validation refused".into());
+    }
+    for (i, &node) in NodeId::JOINTS.iter().enumerate() {
+        let held = flash[i].unwrap_or(factory[i]);
+        let rep = push.and_then(|p| p.nodes.iter().find(|r| r.node == node.name()));
+        let sent = rep.map(|r| r.new_crc);
+        if held != factory[i] && Some(held) != sent {
+            bad.push(format!(
+                "{node} flash {held:#010x} is neither factory nor pushed"
+            ));
+        }
+        if let Some(r) = rep {
+            let agrees = match r.holds {
+                Holds::New => Some(held) == sent,
+                Holds::Old => held == factory[i],
+                Holds::Unknown => true,
+            };
+            if !agrees {
+                bad.push(format!(
+                    "{node}: report {:?} but flash {held:#010x}",
+                    r.holds
+                ));
+            }
+        }
+    }
+    let noticed = match row.expect {
+        Expect::PushFails(n) => {
+            let name = NodeId::ALL[usize::from(n) - 1].name();
+            match push.and_then(|p| p.nodes.iter().find(|r| r.node == name)) {
+                Some(r) if r.holds != Holds::New => format!("{name}: push {:?}", r.holds),
+                Some(r) => {
+                    bad.push(format!("{name} reported {:?}", r.holds));
+                    format!("{name}: {:?}", r.holds)
+                }
+                None => "nothing pushed".into(),
+            }
+        }
+        Expect::Babbling(n) => {
+            let named = s.frames.babbling();
+            if named.iter().map(|(node, _)| node.raw()).ne([n]) {
+                bad.push(format!("babbling node {n} not named alone: {named:?}"));
+            }
+            format!("babbling: {named:?}")
+        }
+        Expect::MalformedAndNan => {
+            let m = s.frames.malformed + s.frames.unknown;
+            if m == 0 || s.frames.invalid_angles == 0 {
+                bad.push(format!(
+                    "malformed/unknown {m}, invalid angles {}",
+                    s.frames.invalid_angles
+                ));
+            }
+            format!(
+                "{m} malformed/unknown, {} invalid angles",
+                s.frames.invalid_angles
+            )
+        }
+    };
+    let verdict = match s.outcome.as_ref() {
+        Some(c) if c.verdict.accepted() => "accepted".to_string(),
+        Some(c) => format!("refused ({})", c.verdict.reasons.join("; ")),
+        None => "no calibration".into(),
+    };
+    let pushed = push.map_or("none".into(), |p| {
+        let new = p.nodes.iter().filter(|r| r.holds == Holds::New).count();
+        format!("{new}/{} New", p.nodes.len())
+    });
+    (
+        bad,
+        format!(
+            "{}: session {session}; verdict {verdict}; push {pushed}; noticed {noticed}; {wall_s:.0} s",
+            row.name
+        ),
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fault_rows_on_vcan0_report_the_degraded_node_and_push_nothing_invalid() {
+    exocal_tests::require_vcan("vcan0");
+    let mut failures = Vec::new();
+    for row in rows() {
+        let (bad, line) = run_row(&row).await;
+        println!("{line}");
+        failures.extend(bad.into_iter().map(|b| format!("{}: {b}", row.name)));
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
