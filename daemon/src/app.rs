@@ -106,7 +106,7 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
                 export_urdf: args.export_urdf,
                 export_candump: args.export_candump,
             };
-            finish(crate::offline::run(&config, &text, &opts))
+            finish(crate::offline::run(&config, &text, &opts).map_err(|e| *e))
         }
         Command::Demo(args) => {
             let (config, source) = resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;

@@ -35,7 +35,7 @@ use crate::calibrate::{self, Outcome};
 use crate::config::Config;
 use crate::exit::DaemonError;
 use crate::ingest::{ClockReport, FrameStats, Ingest};
-use crate::runner::SessionSummary;
+use crate::runner::{SessionError, SessionSummary};
 
 /// What the input file is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -270,12 +270,13 @@ fn write_file(path: &Path, what: &str, bytes: &[u8]) -> Result<(), DaemonError> 
 
 /// `exocald offline`: reads, recalibrates, writes the report and the exports. `config_text`
 /// is the configuration file the daemon runs with (the TOML export rewrites its `[nominal]`).
-/// Returns the summary (printed by the caller) or the session's error with what was done.
+/// Returns the summary (printed by the caller) or the error with what was done (boxed: it
+/// carries the whole summary).
 pub fn run(
     config: &Config,
     config_text: &str,
     opts: &OfflineOptions,
-) -> Result<SessionSummary, crate::runner::SessionError> {
+) -> Result<SessionSummary, Box<SessionError>> {
     let path = &opts.input;
     let bytes = std::fs::read(path).map_err(|source| DaemonError::Io {
         what: format!("reading {}", path.display()),
@@ -372,9 +373,9 @@ pub fn run(
             .as_ref()
             .map(|o| o.verdict.reasons.clone())
             .unwrap_or_default();
-        Err(crate::runner::SessionError {
+        Err(Box::new(SessionError {
             error: DaemonError::Validation(reasons),
             summary: Some(summary),
-        })
+        }))
     }
 }

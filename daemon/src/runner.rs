@@ -111,6 +111,12 @@ impl From<DaemonError> for SessionError {
     }
 }
 
+impl From<DaemonError> for Box<SessionError> {
+    fn from(error: DaemonError) -> Self {
+        Box::new(SessionError::from(error))
+    }
+}
+
 fn io_err(what: &str, e: LogError) -> DaemonError {
     DaemonError::Io {
         what: what.to_string(),

@@ -68,7 +68,7 @@ fn offline_outcome(
     config: &Config,
     opts: &OfflineOptions,
 ) -> Result<(SessionSummary, Outcome), DaemonError> {
-    let summary = match offline::run(config, exocald::config::DEFAULT_TOML, opts) {
+    let summary = match offline::run(config, exocald::config::DEFAULT_TOML, opts).map_err(|e| *e) {
         Ok(s) => s,
         Err(SessionError {
             error: DaemonError::Validation(_),
@@ -222,8 +222,7 @@ fn run_bad(dir: &Path, name: &str, bytes: &[u8], format: Option<Format>) -> Daem
         ..OfflineOptions::default()
     };
     let err = offline::run(&Config::default_config(), "", &opts)
-        .err()
-        .expect("bad input is an error")
+        .expect_err("bad input is an error")
         .error;
     assert!(!dir.join("never.html").exists(), "a report for bad input");
     err
@@ -288,8 +287,7 @@ fn bad_inputs_are_errors_naming_the_file_line_and_problem() {
         ..OfflineOptions::default()
     };
     let err = offline::run(&Config::default_config(), "", &opts)
-        .err()
-        .unwrap()
+        .expect_err("a missing file is an error")
         .error;
     assert_eq!(err.exit_code(), code::IOERR);
     assert!(err.to_string().contains("missing.mcap"), "{err}");
