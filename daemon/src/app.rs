@@ -86,6 +86,28 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
             let config = session_config(cli.config.as_deref(), &args)?;
             runtime()?.block_on(serve_on_can(config, args.dry_run))
         }
+        Command::Offline(args) => {
+            let (config, source) = resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
+            eprintln!("exocald: configuration from {source}");
+            let text = match &source {
+                ConfigSource::File(p) => {
+                    std::fs::read_to_string(p).map_err(|source| DaemonError::Io {
+                        what: format!("reading {}", p.display()),
+                        source,
+                    })?
+                }
+                ConfigSource::BuiltIn => DEFAULT_TOML.to_string(),
+            };
+            let opts = crate::offline::OfflineOptions {
+                input: args.input,
+                format: args.format,
+                report: args.report,
+                export_toml: args.export_toml,
+                export_urdf: args.export_urdf,
+                export_candump: args.export_candump,
+            };
+            finish(crate::offline::run(&config, &text, &opts).map_err(|e| *e))
+        }
         Command::Demo(args) => {
             let (config, source) = resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
             eprintln!("exocald: configuration from {source}");
@@ -235,6 +257,9 @@ pub fn print_summary(summary: &SessionSummary) {
         for line in p.lines() {
             println!("push {line}");
         }
+    }
+    if let Some(r) = &summary.report_path {
+        println!("report: {}", r.display());
     }
 }
 

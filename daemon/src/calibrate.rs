@@ -5,16 +5,16 @@
 //! nominal table (calib-core `identify_ls`), refines them with calib-core's drift EM (Kalman +
 //! RTS smoother; it also yields each joint's drift τ and σ), and validates the EM table — or the
 //! LS table if the EM fails — with [`crate::validate::validate`]. The per-node tables to push are
-//! in [`Outcome::node_rows`]; whether they may be pushed is [`Outcome::verdict`].
+//! in [`Outcome::node_rows`]; whether they may be pushed is [`Outcome::verdict`]. LS and EM run
+//! through [`exocal_report::analysis::calibrate`], so the HTML report shows exactly what was
+//! computed ([`run_detailed`]).
 //!
 //! The EM models the drift at a constant step `1 / session.grid_hz`; grid points dropped as
 //! gaps are skipped, so a gap shortens the step sequence slightly (gaps are rare and short: a
 //! session with many is refused earlier for lack of samples).
 
-use calib_core::{
-    em_drift, identify_ls, DhTable, DriftEmOptions, DriftSlot, Frame, InputChecks, JointRanges,
-    LsOptions, Sample, SUIT_PARAMS,
-};
+use calib_core::{DhTable, DriftEmOptions, Frame, InputChecks, JointRanges, LsOptions, Sample};
+use exocal_report::{analysis, Calibration};
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use serde::Serialize;
 
@@ -123,6 +123,17 @@ fn rows_of(table: &DhTable<JOINTS>, tau: [f64; JOINTS], sigma: [f64; JOINTS]) ->
 
 /// Runs LS, EM and validation on `samples` (time-ordered, on the grid).
 pub fn run(samples: &[AlignedSample], config: &Config) -> Result<Outcome, CalibrateError> {
+    run_detailed(samples, config).map(|(outcome, _)| outcome)
+}
+
+/// [`run`], also returning the detail the HTML report shows (likelihood history, smoothed
+/// drift, standard deviations, correlations). The tables are the same: both come from one call
+/// of [`exocal_report::analysis::calibrate`], which runs calib-core's `identify_ls` and
+/// `em_drift` with the options below.
+pub fn run_detailed(
+    samples: &[AlignedSample],
+    config: &Config,
+) -> Result<(Outcome, Calibration), CalibrateError> {
     let need = config.session.min_samples;
     if samples.len() < need {
         return Err(CalibrateError::TooFewSamples {
@@ -133,54 +144,36 @@ pub fn run(samples: &[AlignedSample], config: &Config) -> Result<Outcome, Calibr
     let all: Vec<Sample<JOINTS>> = samples.iter().map(to_sample).collect();
     let (fit, held) = split_holdout(&all, config.validation.holdout_fraction);
     let nominal = table_from_rows(&config.nominal);
-    let ranges = JointRanges {
-        limits: config.bounds.joint_range.map(|r| (r.min, r.max)),
-    };
-    let checks = InputChecks::new(Some(ranges));
-    let ls_opts = LsOptions {
-        checks,
-        ..LsOptions::new()
-    };
-    let ls = identify_ls::<JOINTS, SUIT_PARAMS>(&nominal, fit, &ls_opts)
+    let (ls_opts, em_opts) = options(config);
+    let detail = analysis::calibrate(&nominal, fit, &ls_opts, &em_opts)
         .map_err(|e| CalibrateError::Ls(e.to_string()))?;
+    let ls = &detail.ls;
     let ls_summary = LsSummary {
         iterations: ls.iterations,
         rank: ls.rank,
         condition_number: ls.condition,
         rms: ls.rms,
     };
-
-    let em_opts = DriftEmOptions {
-        checks,
-        ..DriftEmOptions::new(1.0 / config.session.grid_hz)
+    let (em, em_error, tau, sigma) = match &detail.em {
+        Ok(r) => {
+            let tau = r.drift.map(|d| d.tau);
+            let sigma = r.drift.map(|d| d.paper_sigma);
+            let summary = EmSummary {
+                iterations: r.iterations,
+                converged: r.converged,
+                tau,
+                sigma_paper: sigma,
+                sigma_stationary: r.drift.map(|d| d.stationary_sigma),
+                log_likelihood_first: r.log_likelihood.first().copied().unwrap_or(f64::NAN),
+                log_likelihood_last: r.log_likelihood.last().copied().unwrap_or(f64::NAN),
+            };
+            (Some(summary), None, tau, sigma)
+        }
+        Err(e) => (None, Some(e.clone()), [0.0; JOINTS], [0.0; JOINTS]),
     };
-    let mut workspace = vec![DriftSlot::<JOINTS>::default(); fit.len()];
-    let (table, em, em_error, tau, sigma) =
-        match em_drift::<JOINTS, SUIT_PARAMS>(&ls.table, fit, &em_opts, &mut workspace) {
-            Ok(r) => {
-                let tau = r.drift.map(|d| d.tau);
-                let sigma = r.drift.map(|d| d.paper_sigma);
-                let summary = EmSummary {
-                    iterations: r.iterations,
-                    converged: r.converged,
-                    tau,
-                    sigma_paper: sigma,
-                    sigma_stationary: r.drift.map(|d| d.stationary_sigma),
-                    log_likelihood_first: r.log_likelihood.first().copied().unwrap_or(f64::NAN),
-                    log_likelihood_last: r.log_likelihood.last().copied().unwrap_or(f64::NAN),
-                };
-                (r.table, Some(summary), None, tau, sigma)
-            }
-            Err(e) => (
-                ls.table,
-                None,
-                Some(e.to_string()),
-                [0.0; JOINTS],
-                [0.0; JOINTS],
-            ),
-        };
+    let table = detail.calibrated;
     let verdict = validate(&table, ls.condition, held, config);
-    Ok(Outcome {
+    let outcome = Outcome {
         fit_samples: fit.len(),
         heldout_samples: held.len(),
         ls: ls_summary,
@@ -189,14 +182,33 @@ pub fn run(samples: &[AlignedSample], config: &Config) -> Result<Outcome, Calibr
         before: rows_of(&nominal, [0.0; JOINTS], [0.0; JOINTS]),
         node_rows: rows_of(&table, tau, sigma),
         verdict,
-    })
+    };
+    Ok((outcome, detail))
+}
+
+/// The LS and EM options the daemon calibrates with: input checks against the configured
+/// joint ranges, the EM step `1 / session.grid_hz`.
+pub fn options(config: &Config) -> (LsOptions<JOINTS>, DriftEmOptions<JOINTS>) {
+    let ranges = JointRanges {
+        limits: config.bounds.joint_range.map(|r| (r.min, r.max)),
+    };
+    let checks = InputChecks::new(Some(ranges));
+    let ls_opts = LsOptions {
+        checks,
+        ..LsOptions::new()
+    };
+    let em_opts = DriftEmOptions {
+        checks,
+        ..DriftEmOptions::new(1.0 / config.session.grid_hz)
+    };
+    (ls_opts, em_opts)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::align::Pose;
-    use calib_core::{Scenario, ScenarioConfig};
+    use calib_core::{Scenario, ScenarioConfig, SUIT_PARAMS};
     use nalgebra::Rotation3;
 
     /// Aligned samples from calib-core's Section 4 scenario (Table 4 arm, drift, noise).

@@ -51,6 +51,37 @@ pub enum Command {
     Demo(DemoArgs),
     /// Check a configuration file: print what was understood, or the error (exit 78).
     CheckConfig(CheckConfigArgs),
+    /// Recalibrate from a recorded session (MCAP log, candump log or CSV samples), no bus.
+    ///
+    /// Frames are replayed through the daemon's own ingest, alignment and calibration (an MCAP
+    /// log up to the end of its collection window), so the same data gives the live run's
+    /// table. Writes the HTML report and, for a validated table, the requested exports.
+    /// Exit status: 0 validated; 65 refused by validation, or the input does not parse;
+    /// 66 too few samples; 74 I/O error; 78 bad configuration.
+    Offline(OfflineArgs),
+}
+
+/// Options of `offline`.
+#[derive(Debug, Args)]
+pub struct OfflineArgs {
+    /// The recorded session: an exocald MCAP log, a `candump -L` log, or CSV samples.
+    #[arg(long, short = 'i', value_name = "FILE")]
+    pub input: PathBuf,
+    /// Input format; detected from the extension or the content when omitted.
+    #[arg(long, value_enum)]
+    pub format: Option<crate::offline::Format>,
+    /// HTML report. Default: `<input>.offline.html` next to the input.
+    #[arg(long, value_name = "OUT.html")]
+    pub report: Option<PathBuf>,
+    /// Write the calibrated table as the daemon's configuration (a copy of --config's file).
+    #[arg(long, value_name = "OUT.toml")]
+    pub export_toml: Option<PathBuf>,
+    /// Write the calibrated table as URDF joint origins.
+    #[arg(long, value_name = "OUT.urdf")]
+    pub export_urdf: Option<PathBuf>,
+    /// Write the replayed frames as a `candump -L` log (frame inputs only).
+    #[arg(long, value_name = "OUT.log")]
+    pub export_candump: Option<PathBuf>,
 }
 
 /// Options shared by `calibrate` and `run`.
@@ -120,6 +151,37 @@ mod tests {
             }
             other => panic!("{other:?}"),
         }
+    }
+
+    #[test]
+    fn offline_takes_an_input_a_format_and_outputs() {
+        let cli = Cli::try_parse_from([
+            "exocald",
+            "offline",
+            "--input",
+            "s.mcap",
+            "--format",
+            "candump",
+            "--report",
+            "r.html",
+            "--export-urdf",
+            "a.urdf",
+        ])
+        .unwrap();
+        match cli.command {
+            Command::Offline(a) => {
+                assert_eq!(a.input, PathBuf::from("s.mcap"));
+                assert_eq!(a.format, Some(crate::offline::Format::Candump));
+                assert_eq!(a.report, Some(PathBuf::from("r.html")));
+                assert_eq!(a.export_urdf, Some(PathBuf::from("a.urdf")));
+                assert_eq!(a.export_toml, None);
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(Cli::try_parse_from(["exocald", "offline"]).is_err());
+        assert!(
+            Cli::try_parse_from(["exocald", "offline", "-i", "x", "--format", "pcap"]).is_err()
+        );
     }
 
     #[test]

@@ -14,7 +14,8 @@ pub mod code {
     pub const OK: u8 = 0;
     /// EX_USAGE: the command line is wrong.
     pub const USAGE: u8 = 64;
-    /// EX_DATAERR: the calibration failed validation; nothing was pushed.
+    /// EX_DATAERR: the calibration failed validation; nothing was pushed. For `offline`, also:
+    /// the input file does not parse.
     pub const DATAERR: u8 = 65;
     /// EX_NOINPUT: the session ended without enough motion or samples to calibrate.
     pub const NOINPUT: u8 = 66;
@@ -52,6 +53,10 @@ pub enum DaemonError {
     Interrupted,
     /// A feature this build cannot perform (70).
     Unsupported(String),
+    /// An offline input that does not parse (65): the file, the line, the problem.
+    Input(String),
+    /// Options that do not go together (64).
+    Usage(String),
 }
 
 impl DaemonError {
@@ -65,6 +70,8 @@ impl DaemonError {
             DaemonError::Io { .. } => code::IOERR,
             DaemonError::Interrupted => code::TEMPFAIL,
             DaemonError::Unsupported(_) => code::SOFTWARE,
+            DaemonError::Input(_) => code::DATAERR,
+            DaemonError::Usage(_) => code::USAGE,
         }
     }
 }
@@ -88,6 +95,8 @@ impl fmt::Display for DaemonError {
             DaemonError::Io { what, source } => write!(f, "{what}: {source}"),
             DaemonError::Interrupted => write!(f, "interrupted before pushing; nothing pushed"),
             DaemonError::Unsupported(what) => write!(f, "not supported by this build: {what}"),
+            DaemonError::Input(what) => write!(f, "bad input: {what}"),
+            DaemonError::Usage(what) => write!(f, "usage: {what}"),
         }
     }
 }
@@ -129,9 +138,11 @@ mod tests {
             },
             DaemonError::Interrupted,
             DaemonError::Unsupported("x".into()),
+            DaemonError::Input("s.csv: CSV samples, line 3: bad".into()),
+            DaemonError::Usage("x".into()),
         ];
         let codes: Vec<u8> = errors.iter().map(DaemonError::exit_code).collect();
-        assert_eq!(codes, [78, 69, 66, 65, 74, 75, 70]);
+        assert_eq!(codes, [78, 69, 66, 65, 74, 75, 70, 65, 64]);
         assert!(errors[1].to_string().contains("can9"));
     }
 }

@@ -10,8 +10,9 @@
 //!   ([`FrameStats::repeats`]); [`FrameStats::babbling`] names the nodes that repeat far more
 //!   than the others (bus-wide duplication spreads over every node and names none). A repeated
 //!   joint state is kept out of the streams.
-//! - Host time is the transport's receive timestamp (the kernel's on SocketCAN), in seconds
-//!   since the first frame of the session ([`Ingest::origin`]); node time is the node's µs
+//! - Host time is the transport's receive timestamp (the kernel's on SocketCAN) truncated to
+//!   whole µs ([`whole_micros`]), in seconds since the first frame of the session
+//!   ([`Ingest::origin`]); node time is the node's µs
 //!   counter, unwrapped across its 2^32 rollover.
 //! - [`Ingest::align`] fits each node's clock ([`crate::align::track_clock`]), maps every
 //!   sample to host time and resamples all streams onto one grid ([`crate::align::align`]).
@@ -29,6 +30,15 @@ use crate::config::JOINTS;
 
 /// Node clocks are 32-bit microsecond counters.
 pub const NODE_CLOCK_MODULUS: u64 = 1 << 32;
+
+/// `t` truncated to whole microseconds: the resolution of receive times in ingest.
+///
+/// Sub-µs digits are noise against CAN's frame times (≥ 47 µs at 1 Mbit/s) and receive jitter,
+/// and µs is what `candump -L` logs and `SO_TIMESTAMP` delivers: a candump log of a session
+/// then replays through `exocald offline` to exactly the live result.
+pub fn whole_micros(t: Duration) -> Duration {
+    Duration::new(t.as_secs(), t.subsec_micros() * 1_000)
+}
 
 /// Frame counters of a session.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize)]
@@ -240,8 +250,9 @@ impl Ingest {
 
     /// Takes one received frame.
     pub fn on_frame(&mut self, rx: &Received) -> Event {
-        self.origin.get_or_insert(rx.timestamp);
-        let host_s = self.host_s(rx.timestamp);
+        let t = whole_micros(rx.timestamp);
+        self.origin.get_or_insert(t);
+        let host_s = self.host_s(t);
         self.stats.received += 1;
         let frame = &rx.frame;
         let decoded = exocal_dbc::decode_frame(frame);
@@ -342,6 +353,32 @@ impl Ingest {
     /// Poses received.
     pub fn pose_samples(&self) -> usize {
         self.pose.values.len()
+    }
+
+    /// Receive-side rate of each stream (joints 1–7, then the end-effector pose): the mean rate
+    /// (Hz) over the stream's span, and the estimated fraction lost (1 − samples / (span /
+    /// median interval + 1), at least 0), both `None` with fewer than 3 samples.
+    pub fn stream_rates(&self) -> Vec<(Option<f64>, Option<f64>)> {
+        let host = |clock: &[(f64, f64)]| -> (Option<f64>, Option<f64>) {
+            let n = clock.len();
+            if n < 3 {
+                return (None, None);
+            }
+            let mut times: Vec<f64> = clock.iter().map(|c| c.1).collect();
+            times.sort_by(f64::total_cmp);
+            let span = times[n - 1] - times[0];
+            let mut steps: Vec<f64> = times.windows(2).map(|w| w[1] - w[0]).collect();
+            steps.sort_by(f64::total_cmp);
+            let median = steps[steps.len() / 2];
+            let rate = (span > 0.0).then(|| (n - 1) as f64 / span);
+            let loss = (median > 0.0).then(|| (1.0 - n as f64 / (span / median + 1.0)).max(0.0));
+            (rate, loss)
+        };
+        self.joints
+            .iter()
+            .map(|s| host(&s.clock))
+            .chain(std::iter::once(host(&self.pose.clock)))
+            .collect()
     }
 
     /// Fits the clocks and resamples everything onto one grid at `hz` (host s since origin).

@@ -14,18 +14,22 @@
 //! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
 //! | [`runner`] | one session on any transport: collect, align, calibrate, validate, push, log |
 //! | [`demo`] | exocal-hil and the daemon in one process on the in-process bus |
+//! | [`offline`] | recalibration from a recorded MCAP, candump or CSV file, through the same pipeline |
+//! | [`calreport`] | the HTML calibration report of a session (live or offline) |
 //! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
 //! | [`app`] | what each subcommand does |
 
 pub mod align;
 pub mod app;
 pub mod calibrate;
+pub mod calreport;
 pub mod cli;
 pub mod config;
 pub mod demo;
 pub mod exit;
 pub mod ingest;
 pub mod mcaplog;
+pub mod offline;
 pub mod push;
 pub mod report;
 pub mod runner;

@@ -23,7 +23,7 @@ use exocal_dbc::table::Table;
 use exocal_dbc::NodeId;
 use serde::Serialize;
 
-use crate::align::AlignParams;
+use crate::align::{AlignParams, Aligned};
 use crate::calibrate::{self, Outcome};
 use crate::config::{Config, JOINTS};
 use crate::exit::DaemonError;
@@ -47,11 +47,7 @@ pub const CONDITION_SAMPLES: usize = 600;
 /// Condition number of the identification problem on the data so far: the streams aligned,
 /// subsampled to at most [`CONDITION_SAMPLES`], one LS from nominal. `None` if too little data.
 pub fn condition_estimate(ingest: &Ingest, config: &Config) -> Option<f64> {
-    let (aligned, _) = ingest.align(
-        &AlignParams::default(),
-        config.session.grid_hz,
-        config.session.max_gap_s,
-    );
+    let (aligned, _) = align_session(ingest, config);
     let n = aligned.samples.len();
     if n < 50 {
         return None;
@@ -70,6 +66,17 @@ pub fn condition_estimate(ingest: &Ingest, config: &Config) -> Option<f64> {
         .map(|r| r.condition)
 }
 
+/// Aligns a session's streams for calibration: every node's clock fitted, all streams
+/// resampled onto the `session.grid_hz` grid, gaps longer than `session.max_gap_s` excluded.
+/// The live session and `exocald offline` both align through here.
+pub fn align_session(ingest: &Ingest, config: &Config) -> (Aligned, Vec<ClockReport>) {
+    ingest.align(
+        &AlignParams::default(),
+        config.session.grid_hz,
+        config.session.max_gap_s,
+    )
+}
+
 /// Rate (Hz) at which the arm's frames are written to `/tf` for Foxglove.
 pub const TF_HZ: f64 = 20.0;
 
@@ -84,6 +91,8 @@ pub struct SessionSummary {
     pub gaps: usize,
     pub outcome: Option<Outcome>,
     pub push: Option<PushReport>,
+    /// The HTML calibration report, once written (next to the log for a live session).
+    pub report_path: Option<PathBuf>,
 }
 
 /// A failed session: why, and what it did up to then (the log is finished).
@@ -99,6 +108,12 @@ impl From<DaemonError> for SessionError {
             error,
             summary: None,
         }
+    }
+}
+
+impl From<DaemonError> for Box<SessionError> {
+    fn from(error: DaemonError) -> Self {
+        Box::new(SessionError::from(error))
     }
 }
 
@@ -293,6 +308,7 @@ pub async fn run_session<T: Transport>(
         gaps: 0,
         outcome: None,
         push: None,
+        report_path: None,
     };
     let result = session_body(
         bus,
@@ -402,6 +418,9 @@ async fn session_body<T: Transport>(
     }
     summary.frames = ingest.stats().clone();
     let s = ingest.stats();
+    // The marker `exocald offline` honours: a replay of this log calibrates on the first
+    // `received` frames of /can/rx (those logged before this event), as this session did.
+    // Keep the prefix `collection done: N frames` (exocal_report::readers::COLLECTION_DONE).
     io.event(
         clock(),
         Level::Info,
@@ -423,11 +442,7 @@ async fn session_body<T: Transport>(
     }
 
     // 2. Align.
-    let (aligned, clocks) = ingest.align(
-        &AlignParams::default(),
-        config.session.grid_hz,
-        config.session.max_gap_s,
-    );
+    let (aligned, clocks) = align_session(&ingest, config);
     summary.clocks = clocks;
     summary.aligned_samples = aligned.samples.len();
     summary.gaps = aligned.gaps;
@@ -473,7 +488,34 @@ async fn session_body<T: Transport>(
     io.reporter.message("calibrating (least squares, then EM)");
     let samples = aligned.samples.clone();
     let cfg = config.clone();
-    let job = tokio::task::spawn_blocking(move || calibrate::run(&samples, &cfg));
+    let quality = crate::calreport::frame_quality(
+        config,
+        ingest.stats(),
+        &summary.clocks,
+        &ingest.stream_rates(),
+        &aligned.samples,
+        aligned.gaps,
+    );
+    let log_name = summary
+        .log_path
+        .file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    let title = format!("exocald calibration — {log_name}");
+    let source = format!(
+        "live session on {}, logged to {}",
+        config.interface,
+        summary.log_path.display()
+    );
+    // The report is rendered on the blocking thread too: it is a few hundred ms of SVG.
+    let job = tokio::task::spawn_blocking(move || {
+        calibrate::run_detailed(&samples, &cfg).map(|(outcome, detail)| {
+            let input = crate::calreport::report_input(
+                title, source, &cfg, &samples, &outcome, detail, quality,
+            );
+            let html = exocal_report::html::render(&input);
+            (outcome, html)
+        })
+    });
     tokio::pin!(job);
     let outcome = loop {
         tokio::select! {
@@ -488,10 +530,26 @@ async fn session_body<T: Transport>(
             }
         }
     };
-    let outcome = outcome
+    let (outcome, html) = outcome
         .map_err(|e| DaemonError::Unsupported(format!("calibration task failed: {e}")))?
         .map_err(|e| DaemonError::Session(e.to_string()))?;
     summary.frames = ingest.stats().clone();
+    let report_path = crate::calreport::report_path_for_log(&summary.log_path);
+    match std::fs::write(&report_path, html) {
+        Ok(()) => {
+            io.event(
+                clock(),
+                Level::Info,
+                &format!("calibration report: {}", report_path.display()),
+            );
+            summary.report_path = Some(report_path);
+        }
+        Err(e) => io.event(
+            clock(),
+            Level::Warning,
+            &format!("cannot write the report {}: {e}", report_path.display()),
+        ),
+    }
 
     // The arm for Foxglove, on the calibrated table.
     let calibrated = calib_core::DhTable {

@@ -208,10 +208,14 @@ struct CanFrameJson {
 pub struct McapSession {
     /// Received raw frames (topic [`MCAP_RX_TOPIC`]), in file order.
     pub frames: Vec<RecordedFrame>,
-    /// Log time of the daemon's "collection done" event, if the session got that far: the live
-    /// run calibrated on the frames received up to then, so a replay that must agree with it
-    /// stops there (frames after it arrived during calibration and push).
+    /// Log time of the daemon's "collection done" event, if the session got that far.
     pub collection_end: Option<Duration>,
+    /// How many received frames the live session had ingested when collection ended (the `N`
+    /// of the event's `collection done: N frames`): it calibrated on exactly the first `N`
+    /// frames of `frames`, so a replay that must agree with it stops there. Frames after them
+    /// arrived during calibration and push. (A cut by time would not do: frames still queued
+    /// in the receiver at the end carry earlier timestamps but were not used.)
+    pub collection_frames: Option<u64>,
 }
 
 /// The prefix of the daemon's event that ends the collection window.
@@ -233,13 +237,18 @@ pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
     let stream = mcap::MessageStream::new(bytes).map_err(|e| err(e.to_string()))?;
     let mut frames = Vec::new();
     let mut collection_end = None;
+    let mut collection_frames = None;
     let mut seen_channel = false;
     for (i, message) in stream.enumerate() {
         let m = message.map_err(|e| err(e.to_string()))?;
         if m.channel.topic == "/events" && collection_end.is_none() {
             if let Ok(e) = serde_json::from_slice::<EventJson>(&m.data) {
-                if e.message.starts_with(COLLECTION_DONE) {
+                if let Some(rest) = e.message.strip_prefix(COLLECTION_DONE) {
                     collection_end = Some(Duration::from_nanos(m.log_time));
+                    collection_frames = rest
+                        .strip_prefix(": ")
+                        .and_then(|r| r.split_once(" frames"))
+                        .and_then(|(n, _)| n.parse().ok());
                 }
             }
             continue;
@@ -278,6 +287,7 @@ pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
     Ok(McapSession {
         frames,
         collection_end,
+        collection_frames,
     })
 }
 

@@ -57,6 +57,7 @@ fn the_mcap_reader_reads_the_frames_the_daemon_logged() {
         session.collection_end.unwrap().as_nanos() as u64,
         1_700_000_000_000_000_000 + 200 * 1_234_567
     );
+    assert_eq!(session.collection_frames, Some(200));
     let frames = read_mcap_frames(buf.get_ref()).unwrap();
     assert_eq!(frames, session.frames);
     assert_eq!(frames.len(), sent.len());

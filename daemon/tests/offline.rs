@@ -1,0 +1,324 @@
+//! `exocald offline` against a live session: one in-process session (the emulated suit and the
+//! daemon on the in-process bus, as `exocald demo` runs them) is recalibrated offline from its
+//! MCAP log, from that log exported as candump, and from its aligned samples as CSV; the report
+//! the live run wrote, the exports, and bad inputs are checked on the way.
+
+use std::path::{Path, PathBuf};
+
+use exocal_report::html::FIGURES;
+use exocal_report::readers::{read_mcap_session, write_csv};
+use exocald::calibrate::Outcome;
+use exocald::config::Config;
+use exocald::exit::{code, DaemonError};
+use exocald::offline::{self, Format, OfflineOptions};
+use exocald::runner::{SessionError, SessionSummary};
+
+fn temp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("exocald-offline-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// One live session of the paper scenario, 20 s of collection at 5× real time.
+async fn live_session(dir: &Path) -> (Config, SessionSummary) {
+    let opts = exocald::demo::DemoOptions {
+        seed: 7,
+        speed: 5.0,
+        output: dir.to_path_buf(),
+    };
+    let mut config = exocald::demo::demo_config(Config::default_config(), dir, opts.speed);
+    config.session.min_duration_s = 20.0;
+    let summary = match exocald::demo::run(&config, &opts).await {
+        Ok(r) => r.summary,
+        // A refused table or a failed push (a loaded machine can make the emulator lag) still
+        // leaves a calibration to compare.
+        Err(SessionError {
+            error: DaemonError::Validation(_) | DaemonError::Push(_),
+            summary: Some(s),
+        }) => s,
+        Err(SessionError { error, summary }) => panic!("{error}\n{summary:#?}"),
+    };
+    (config, summary)
+}
+
+/// Largest difference between two outcomes' D-H rows (m and rad), and largest relative
+/// difference of their drift τ and σ.
+fn table_and_drift_difference(a: &Outcome, b: &Outcome) -> (f64, f64) {
+    let mut geometry = 0.0f64;
+    let mut drift = 0.0f64;
+    for (x, y) in a.node_rows.iter().zip(&b.node_rows) {
+        for d in [
+            x.a - y.a,
+            x.alpha - y.alpha,
+            x.d - y.d,
+            x.theta_offset - y.theta_offset,
+        ] {
+            geometry = geometry.max(d.abs());
+        }
+        for (p, q) in [(x.tau, y.tau), (x.sigma, y.sigma)] {
+            drift = drift.max((p - q).abs() / q.abs().max(1e-12));
+        }
+    }
+    (geometry, drift)
+}
+
+/// The summary and outcome of an offline run, whether validation accepted it or not.
+fn offline_outcome(
+    config: &Config,
+    opts: &OfflineOptions,
+) -> Result<(SessionSummary, Outcome), DaemonError> {
+    let summary = match offline::run(config, exocald::config::DEFAULT_TOML, opts).map_err(|e| *e) {
+        Ok(s) => s,
+        Err(SessionError {
+            error: DaemonError::Validation(_),
+            summary: Some(s),
+        }) => s,
+        Err(e) => return Err(e.error),
+    };
+    let outcome = summary.outcome.clone().expect("an outcome");
+    Ok((summary, outcome))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn offline_recalibration_agrees_with_the_live_session() {
+    let dir = temp_dir("agree");
+    let (config, live) = live_session(&dir).await;
+    let live_outcome = live.outcome.clone().expect("the live session calibrated");
+    let accepted = live_outcome.verdict.accepted();
+
+    // (d) The live session wrote its report next to its log, with every figure drawn.
+    let report = live.report_path.clone().expect("a report path");
+    assert_eq!(report, live.log_path.with_extension("html"));
+    let html = std::fs::read_to_string(&report).unwrap();
+    for id in FIGURES {
+        let at = html
+            .find(&format!("id=\"{id}\""))
+            .unwrap_or_else(|| panic!("figure {id} missing from {}", report.display()));
+        let end = html[at..].find("</figure>").unwrap() + at;
+        assert!(html[at..end].contains("<svg"), "{id} has no SVG");
+    }
+    assert!(
+        !html.contains("class=\"missing\""),
+        "a figure was not drawn"
+    );
+    assert!(html.contains("Joint7") && html.contains("EndEffector"));
+
+    // (a) The MCAP log, replayed offline up to its collection end: the same table, bit for bit.
+    let session = read_mcap_session(&std::fs::read(&live.log_path).unwrap()).unwrap();
+    let used = session
+        .collection_frames
+        .expect("the collection-done marker") as usize;
+    assert!(
+        used < session.frames.len(),
+        "frames arrived after collection"
+    );
+    let candump = dir.join("session.log");
+    let (toml_out, urdf_out) = (dir.join("calibrated.toml"), dir.join("calibrated.urdf"));
+    let from_mcap = OfflineOptions {
+        input: live.log_path.clone(),
+        format: None,
+        report: Some(dir.join("offline.html")),
+        export_toml: Some(toml_out.clone()),
+        export_urdf: Some(urdf_out.clone()),
+        export_candump: Some(candump.clone()),
+    };
+    let (summary, outcome) = offline_outcome(&config, &from_mcap).unwrap();
+    assert_eq!(summary.frames.received, used as u64);
+    assert_eq!(summary.aligned_samples, live.aligned_samples);
+    assert_eq!(summary.clocks, live.clocks);
+    assert_eq!(
+        outcome.node_rows, live_outcome.node_rows,
+        "not bit-identical"
+    );
+    assert_eq!(
+        outcome.verdict.improvement,
+        live_outcome.verdict.improvement
+    );
+    assert_eq!(outcome.verdict.reasons, live_outcome.verdict.reasons);
+    assert!(std::fs::metadata(dir.join("offline.html")).unwrap().len() > 10_000);
+
+    // (b) Its frames as candump replay to the same table, bit for bit: `candump -L` keeps µs,
+    // and ingest reads receive times at µs resolution.
+    let lines = std::fs::read_to_string(&candump).unwrap().lines().count();
+    assert_eq!(lines, used);
+    let from_candump = OfflineOptions {
+        input: candump.clone(),
+        report: Some(dir.join("candump.html")),
+        ..OfflineOptions::default()
+    };
+    let (summary_c, outcome_c) = offline_outcome(&config, &from_candump).unwrap();
+    assert_eq!(summary_c.frames, summary.frames);
+    assert_eq!(summary_c.aligned_samples, live.aligned_samples);
+    assert_eq!(
+        outcome_c.node_rows, live_outcome.node_rows,
+        "not bit-identical"
+    );
+    assert_eq!(
+        outcome_c.verdict.improvement,
+        live_outcome.verdict.improvement
+    );
+
+    // (c) The aligned samples as CSV bypass alignment and give the same table to rounding.
+    let samples: Vec<_> = exocald::calreport::timed(
+        &offline::recalibrate(
+            &offline::read_input(
+                &live.log_path,
+                &std::fs::read(&live.log_path).unwrap(),
+                Format::Mcap,
+            )
+            .unwrap(),
+            &config,
+        )
+        .unwrap()
+        .samples,
+    );
+    let csv = dir.join("samples.csv");
+    let mut text = Vec::new();
+    write_csv(&samples, &mut text).unwrap();
+    std::fs::write(&csv, text).unwrap();
+    let from_csv = OfflineOptions {
+        input: csv,
+        report: Some(dir.join("csv.html")),
+        ..OfflineOptions::default()
+    };
+    let (summary_s, outcome_s) = offline_outcome(&config, &from_csv).unwrap();
+    assert_eq!(summary_s.aligned_samples, live.aligned_samples);
+    // The CSV's orientation is a quaternion, the aligned sample's went through a rotation
+    // matrix: poses differ by rounding (1e-16), which moves the D-H table by ~1e-10 and the
+    // EM's converged τ and σ by ~1e-6 of themselves (its stopping tolerance).
+    let (d_geometry, d_drift) = table_and_drift_difference(&outcome_s, &live_outcome);
+    eprintln!("CSV samples vs live: D-H {d_geometry:.3e} (m, rad), τ/σ {d_drift:.3e} (relative)");
+    assert!(d_geometry < 1e-8, "{d_geometry}");
+    assert!(d_drift < 1e-4, "{d_drift}");
+
+    // (e) The exports load: the URDF parses with a URDF crate, the TOML in the daemon.
+    if accepted {
+        let robot = urdf_rs::read_from_string(&std::fs::read_to_string(&urdf_out).unwrap())
+            .unwrap_or_else(|e| panic!("URDF does not parse: {e}"));
+        assert_eq!(robot.joints.len(), 8);
+        assert_eq!(robot.links.len(), 9);
+        let loaded = Config::load(&toml_out).unwrap();
+        for (row, want) in loaded.nominal.iter().zip(&outcome.node_rows) {
+            assert!((row.a - want.a).abs() < 1e-12, "{row:?} vs {want:?}");
+            assert!((row.alpha - want.alpha).abs() < 1e-9);
+        }
+    } else {
+        assert!(
+            !urdf_out.exists() && !toml_out.exists(),
+            "refused but exported"
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+fn run_bad(dir: &Path, name: &str, bytes: &[u8], format: Option<Format>) -> DaemonError {
+    let path = dir.join(name);
+    std::fs::write(&path, bytes).unwrap();
+    let opts = OfflineOptions {
+        input: path,
+        format,
+        report: Some(dir.join("never.html")),
+        ..OfflineOptions::default()
+    };
+    let err = offline::run(&Config::default_config(), "", &opts)
+        .expect_err("bad input is an error")
+        .error;
+    assert!(!dir.join("never.html").exists(), "a report for bad input");
+    err
+}
+
+#[test]
+fn bad_inputs_are_errors_naming_the_file_line_and_problem() {
+    let dir = temp_dir("bad");
+    let header = exocal_report::readers::CSV_HEADER;
+    let cases: [(&str, Vec<u8>, Option<Format>, &str); 6] = [
+        (
+            "s.csv",
+            format!("{header}\n0.0,1,2,3,4,5,6,7,0,0,0,2,0,0,0\n").into_bytes(),
+            None,
+            "s.csv: CSV samples, line 2: quaternion norm 2.000000",
+        ),
+        (
+            "h.csv",
+            b"t,q1,q2\n".to_vec(),
+            None,
+            "h.csv: CSV samples, line 1: header must be",
+        ),
+        (
+            "c.log",
+            b"(1.000000) can0 101#00\n(1.000100) can0 800#00\n".to_vec(),
+            None,
+            "c.log: candump log, line 2: bad identifier \"800\"",
+        ),
+        (
+            "m.mcap",
+            b"\x89MCAP0\r\nnot really".to_vec(),
+            None,
+            "m.mcap: MCAP log:",
+        ),
+        (
+            "binary.bin",
+            vec![0xff, 0xfe, 0x00, 0x01],
+            Some(Format::Csv),
+            "binary.bin: not UTF-8 text",
+        ),
+        (
+            "what.txt",
+            b"hello\n".to_vec(),
+            None,
+            "what.txt: cannot tell the format",
+        ),
+    ];
+    for (name, bytes, format, want) in cases {
+        let err = run_bad(&dir, name, &bytes, format);
+        assert_eq!(err.exit_code(), code::DATAERR, "{name}: {err}");
+        assert!(err.to_string().contains(want), "{name}: {err}");
+    }
+    // Well-formed but too short to calibrate: the live rule, "not enough samples" (66).
+    let few = format!(
+        "{header}\n0.00,0,0,0,0,0,0,0,0.4,0,0,1,0,0,0\n0.01,0,0,0,0,0,0,0,0.4,0,0,1,0,0,0\n"
+    );
+    let err = run_bad(&dir, "few.csv", few.as_bytes(), None);
+    assert_eq!(err.exit_code(), code::NOINPUT, "{err}");
+    // A missing file is an I/O error naming it.
+    let opts = OfflineOptions {
+        input: dir.join("missing.mcap"),
+        ..OfflineOptions::default()
+    };
+    let err = offline::run(&Config::default_config(), "", &opts)
+        .expect_err("a missing file is an error")
+        .error;
+    assert_eq!(err.exit_code(), code::IOERR);
+    assert!(err.to_string().contains("missing.mcap"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn the_binary_exits_65_on_a_bad_csv_and_64_on_a_csv_candump_export() {
+    let dir = temp_dir("cli");
+    let csv = dir.join("bad.csv");
+    std::fs::write(&csv, "t,q1\n").unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_exocald"))
+        .args(["offline", "--input"])
+        .arg(&csv)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(65), "{err}");
+    assert!(err.contains("bad.csv: CSV samples, line 1"), "{err}");
+
+    let header = exocal_report::readers::CSV_HEADER;
+    std::fs::write(&csv, format!("{header}\n0,0,0,0,0,0,0,0,0,0,0,1,0,0,0\n")).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_exocald"))
+        .args(["offline", "--input"])
+        .arg(&csv)
+        .arg("--export-candump")
+        .arg(dir.join("x.log"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(64), "{err}");
+    assert!(err.contains("--export-candump"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
