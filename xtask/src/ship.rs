@@ -184,12 +184,15 @@ fn run_checked(cmd: &mut Command, what: &str, ok_codes: &[i32]) -> Result<(i32, 
 /// A recorded session for the offline runs: the host's own `exocald demo` (half a minute of the
 /// paper scenario's motion), and the host's offline result on it (exit status, TOML export).
 struct Recording {
+    /// The host's exocal-hil, for comparisons.
+    host_hil: PathBuf,
     mcap: PathBuf,
     code: i32,
     toml: String,
 }
 
-fn record(host_exocald: &Path, work: &Path) -> Result<Recording> {
+fn record(host: &[PathBuf], work: &Path) -> Result<Recording> {
+    let host_exocald = &host[0];
     let root = workspace_root();
     let shipped = fs::read_to_string(root.join("daemon/exocald.toml"))?;
     let config: String = shipped
@@ -219,7 +222,12 @@ fn record(host_exocald: &Path, work: &Path) -> Result<Recording> {
         .find(|p| p.extension().is_some_and(|e| e == "mcap"))
         .context("the demo wrote no MCAP")?;
     let (code, toml) = offline(None, host_exocald, &cfg, &mcap, &work.join("host"))?;
-    Ok(Recording { mcap, code, toml })
+    Ok(Recording {
+        host_hil: host[1].clone(),
+        mcap,
+        code,
+        toml,
+    })
 }
 
 /// `exocald offline` on `mcap` (under qemu-user for a cross target); returns its exit status and
@@ -309,6 +317,21 @@ fn check_target(t: &Target, rec: &Recording, cfg: &Path, work: &Path) -> Result<
             fs::metadata(bin)?.len() as f64 / f64::from(1 << 20)
         ));
     }
+    // The emulated suit's scenario, parsed and written back: the same TOML as the host's.
+    let scenario = |cmd: &mut Command| -> Result<String> {
+        cmd.args(["--iface", "vcan0", "--print-scenario"]);
+        Ok(run_checked(cmd, "exocal-hil --print-scenario", &[0])?.1)
+    };
+    if scenario(&mut runner(t, &bins[1]))? != scenario(&mut Command::new(&rec.host_hil))? {
+        bail!(
+            "{}: exocal-hil --print-scenario differs from the host's",
+            t.triple
+        );
+    }
+    lines.push(format!(
+        "{:30} exocal-hil --print-scenario = host's",
+        t.triple
+    ));
     println!(
         "==> {}: exocald offline under {}",
         t.triple,
@@ -371,7 +394,7 @@ pub fn check(targets: &[Target]) -> Result<Vec<String>> {
     let work = target_dir(&root).join("xtask/cross");
     fs::create_dir_all(&work)?;
     let host = build(&TARGETS[0])?;
-    let rec = record(&host[0], &work)?;
+    let rec = record(&host, &work)?;
     println!(
         "host offline on {}: exit {}, {} table values",
         rec.mcap.display(),

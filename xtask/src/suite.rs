@@ -58,6 +58,9 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let mut host = Counts::default();
 
+    // Everything the suites need (Chromium, lintian, the cross toolchain, the VM packages when
+    // this kernel has no vcan): installed when missing, as root on Debian.
+    crate::setup::install_all()?;
     // The Python cross-checks (cantools, mcap) need their venv before any suite runs; the
     // guest is offline, so it is made here, and every suite finds it through EXOCAL_PYTHON.
     let python = crate::setup::python_env()?;
