@@ -550,10 +550,11 @@ async fn every_fault_class_is_survived_reported_and_never_pushes_a_bad_table() {
 /// The closing paragraph of `docs/faults.md`: where the vcan subset is.
 const VCAN_NOTE: &str =
     "\nOn real vcan: `tests/tests/reliability_vcan.rs` (run through `cargo xtask vcan` or \
-     `cargo xtask test`) plays three rows as 6-s real-time sessions on vcan0 with the daemon and \
+     `cargo xtask test`) plays six rows as 6-s real-time sessions on vcan0 with the daemon and \
      the emulated suit on separate SocketCAN sockets — 1% loss with node 7 silent to transfers, \
-     a babbling node, malformed frames with 1% NaN values — with the same checks except the \
-     accuracy bound; figures in `docs/reliability.md`.\n";
+     a babbling node, 10% loss, a node reboot, a node clock jump, malformed frames with 1% NaN \
+     values — with the same checks except the accuracy bound; figures in \
+     `docs/reliability.md`.\n";
 
 fn write_doc(path: &Path, rows: &[String]) -> std::io::Result<()> {
     let mut text = String::from(

@@ -392,6 +392,42 @@ fn calibrate_on_vcan0_pushes_a_table_every_node_holds_and_logs_every_frame() {
         "MCAP: {} raw frames = the bus over the session; channels {counts:?}",
         rx.len()
     );
+
+    // The live run left its report next to the log, and the recorded session recalibrates
+    // offline (no bus) to the same result: the same samples, the same held-out errors.
+    let log = mcap_file(&out);
+    assert!(
+        log.with_extension("html").is_file(),
+        "no report next to {}",
+        log.display()
+    );
+    let offline = Command::new(bin("exocald"))
+        .arg("--config")
+        .arg(&cfg)
+        .args(["offline", "--input"])
+        .arg(&log)
+        .arg("--report")
+        .arg(dir.join("offline.html"))
+        .stdin(Stdio::null())
+        .output()
+        .expect("run exocald offline");
+    let replayed = String::from_utf8_lossy(&offline.stdout);
+    assert_eq!(
+        offline.status.code(),
+        Some(0),
+        "exocald offline failed:\n{replayed}\n{}",
+        String::from_utf8_lossy(&offline.stderr)
+    );
+    for key in ["aligned samples:", "held-out mean pose error:"] {
+        let line = |text: &str| {
+            text.lines()
+                .find(|l| l.starts_with(key))
+                .map(str::to_owned)
+                .unwrap_or_else(|| panic!("no {key:?} line in:\n{text}"))
+        };
+        assert_eq!(line(&replayed), line(&stdout), "offline and live disagree");
+        println!("offline = live: {}", line(&replayed));
+    }
 }
 
 #[test]

@@ -6,9 +6,10 @@
 //!   reboots on the transfer path; every joint node's flash holds the old or the new table (by
 //!   CRC), and the daemon's report says which (`Unknown` claims nothing and is counted);
 //! - fault-matrix rows: short `run_session` sessions (the code of `exocald calibrate`) with 1 %
-//!   loss and a node that never answers transfers, a babbling node, malformed frames and NaN
-//!   values; no panic, the degraded node reported, no table that fails validation pushed, every
-//!   flash the factory table or exactly the pushed one, agreeing with the report.
+//!   loss and a node that never answers transfers, a babbling node, 10 % loss, a node reboot, a
+//!   node clock jump, malformed frames and NaN values; no panic, the degraded node reported, no
+//!   table that fails validation pushed, every flash the factory table or exactly the pushed
+//!   one, agreeing with the report.
 //!
 //! Sized for the harness's TCG guest (~80× slower than native): the suit plays at real time
 //! with low IMU rates, and sessions are a few seconds long. Needs vcan0: run through
@@ -20,7 +21,7 @@ use std::time::{Duration, Instant};
 use exocal_bus::SocketCan;
 use exocal_dbc::table::{Field, Table};
 use exocal_dbc::NodeId;
-use exocal_hil::scenario::{Babble, Reboot, Scenario, TransferBehaviour, TransferFault};
+use exocal_hil::scenario::{Babble, ClockJump, Reboot, Scenario, TransferBehaviour, TransferFault};
 use exocal_hil::{Hil, SimClock};
 use exocald::config::{Config, PushPolicy};
 use exocald::push::{push_tables, Holds};
@@ -219,6 +220,10 @@ enum Expect {
     Babbling(u8),
     /// Malformed/unknown frames and invalid angles counted.
     MalformedAndNan,
+    /// This node's clock report shows more jumps/reboots than any other node's.
+    ClockEvent(u8),
+    /// Nothing to name: the generic checks (nothing invalid pushed, reports match flash).
+    Survives,
 }
 
 struct Row {
@@ -249,6 +254,33 @@ fn rows() -> Vec<Row> {
                     from_s: 2.0,
                     to_s: 4.0,
                     rate_hz: 500.0,
+                });
+            },
+        },
+        Row {
+            name: "loss 10%",
+            expect: Expect::Survives,
+            apply: |s| s.faults.loss = 0.10,
+        },
+        Row {
+            name: "node 3 reboots mid-session (down 0.5 s)",
+            expect: Expect::ClockEvent(3),
+            apply: |s| {
+                s.faults.reboots.push(Reboot {
+                    node: 3,
+                    at_s: 4.0,
+                    down_s: 0.5,
+                });
+            },
+        },
+        Row {
+            name: "node 5 clock jumps +80 ms mid-session",
+            expect: Expect::ClockEvent(5),
+            apply: |s| {
+                s.faults.clock_jumps.push(ClockJump {
+                    node: 5,
+                    at_s: 4.0,
+                    jump_us: 80_000.0,
                 });
             },
         },
@@ -387,6 +419,25 @@ async fn run_row(row: &Row) -> (Vec<String>, String) {
                 s.frames.invalid_angles
             )
         }
+        Expect::ClockEvent(n) => {
+            let name = NodeId::ALL[usize::from(n) - 1].name();
+            let jumps = |pred: &dyn Fn(&str) -> bool| {
+                s.clocks
+                    .iter()
+                    .filter(|c| pred(&c.node))
+                    .map(|c| c.jumps)
+                    .max()
+                    .unwrap_or(0)
+            };
+            let (ours, others) = (jumps(&|c| c == name), jumps(&|c| c != name));
+            if ours <= others {
+                bad.push(format!(
+                    "{name}: {ours} clock jump(s), not more than another node's {others}"
+                ));
+            }
+            format!("{name}: {ours} clock jump(s)/reboot(s), others at most {others}")
+        }
+        Expect::Survives => format!("{} aligned samples, {} gap(s)", s.aligned_samples, s.gaps),
     };
     let verdict = match s.outcome.as_ref() {
         Some(c) if c.verdict.accepted() => "accepted".to_string(),

@@ -47,6 +47,7 @@ pub fn run(opts: &HarnessArgs) -> Result<PowerUp> {
     println!("==> power-up: building the {} package", host.deb_arch);
     let bins = crate::ship::build(&host)?;
     let deb = crate::ship::package(&host, &bins)?;
+    crate::ship::lintian(&deb)?;
     let suites = crate::suite::build_suites(&cargo, "powerup")?;
     let Some(suite) = suites.into_iter().find(|s| {
         Path::new(s)
