@@ -35,6 +35,13 @@ fn run(cmd: &str, args: &[&str]) -> String {
     String::from_utf8_lossy(&out.stdout).trim().to_string()
 }
 
+/// This boot's journal, monotonic timestamps, filtered by `args` (units, line count).
+fn journal(args: &[&str]) -> String {
+    let mut all = vec!["-b", "--no-pager", "-o", "short-monotonic"];
+    all.extend_from_slice(args);
+    run("journalctl", &all)
+}
+
 /// CLOCK_MONOTONIC in µs: the clock of systemd's `*TimestampMonotonic` properties.
 fn monotonic_us() -> u64 {
     let mut ts = libc::timespec {
@@ -240,21 +247,14 @@ fn boot_run() -> &'static BootRun {
         let held = held_crcs();
         println!(
             "--- journal: exocald, exocal-hil, systemd-networkd (boot) ---\n{}\n---",
-            run(
-                "journalctl",
-                &[
-                    "-b",
-                    "--no-pager",
-                    "-o",
-                    "short-monotonic",
-                    "-u",
-                    "exocald",
-                    "-u",
-                    "exocal-hil",
-                    "-u",
-                    "systemd-networkd",
-                ]
-            )
+            journal(&[
+                "-u",
+                "exocald",
+                "-u",
+                "exocal-hil",
+                "-u",
+                "systemd-networkd"
+            ])
         );
         let run = BootRun {
             enabled,
@@ -454,18 +454,6 @@ fn stop_mid_session_leaves_a_finished_log_and_no_partial_table() {
     assert_eq!(held_crcs(), before, "a node's table changed");
     println!(
         "--- journal: the stopped session ---\n{}\n---",
-        run(
-            "journalctl",
-            &[
-                "-b",
-                "--no-pager",
-                "-o",
-                "short-monotonic",
-                "-u",
-                "exocald",
-                "-n",
-                "30"
-            ]
-        )
+        journal(&["-u", "exocald", "-n", "30"])
     );
 }

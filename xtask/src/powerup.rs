@@ -26,6 +26,21 @@ pub struct PowerUp {
 }
 
 impl PowerUp {
+    /// One line: time, passed, failed, and the guest's exit status if the run itself failed.
+    pub fn summary(&self) -> String {
+        format!(
+            "power-up under systemd ({:.1} s): {} passed, {} failed{}",
+            self.elapsed.as_secs_f64(),
+            self.counts.passed,
+            self.counts.failed,
+            if self.counts.broken > 0 {
+                format!(" (the guest run failed, exit {})", self.code)
+            } else {
+                String::new()
+            }
+        )
+    }
+
     /// A run that could not happen (the build or the harness failed): one broken suite.
     pub fn broken() -> Self {
         PowerUp {
@@ -90,17 +105,7 @@ pub fn run(opts: &HarnessArgs) -> Result<PowerUp> {
 /// `cargo xtask powerup`: exit 0 only if every power-up test passed.
 pub fn main(opts: &HarnessArgs) -> Result<u8> {
     let r = run(opts)?;
-    println!(
-        "power-up ({:.1} s): {} passed, {} failed{}",
-        r.elapsed.as_secs_f64(),
-        r.counts.passed,
-        r.counts.failed,
-        if r.counts.broken > 0 {
-            format!(" (guest exited {})", r.code)
-        } else {
-            String::new()
-        }
-    );
+    println!("{}", r.summary());
     Ok(if r.code == 0 && r.counts.failed == 0 {
         0
     } else {

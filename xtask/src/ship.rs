@@ -136,7 +136,7 @@ pub fn build(t: &Target) -> Result<Vec<PathBuf>> {
     }
     let status = cmd.status().context("cargo build")?;
     if !status.success() {
-        bail!("cross-build for {} failed", t.triple);
+        bail!("release build for {} failed", t.triple);
     }
     let dir = if native {
         target_dir(&root).join("release")

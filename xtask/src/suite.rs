@@ -72,26 +72,9 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
     // The end-to-end suites run the real binaries, optimised as shipped (in the TCG guest a
     // debug emulator cannot keep its nodes' clocks in step with real time): build them, and
     // tell the suites where.
-    let status = Command::new(&cargo)
-        .args([
-            "build",
-            "--release",
-            "--bins",
-            "-p",
-            "exocald",
-            "-p",
-            "exocal-hil",
-        ])
-        .stdin(Stdio::null())
-        .status()
-        .context("cargo build --bins")?;
-    if !status.success() {
-        bail!("building exocald and exocal-hil failed");
-    }
-    let target = std::env::var_os("CARGO_TARGET_DIR")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| crate::setup::workspace_root().join("target"));
-    std::env::set_var("EXOCAL_BIN_DIR", target.join("release"));
+    let bins = crate::ship::build(&crate::ship::TARGETS[0])?;
+    let bin_dir = bins[0].parent().context("binary directory")?;
+    std::env::set_var("EXOCAL_BIN_DIR", bin_dir);
 
     println!(
         "==> [1/4] cargo test --workspace -- --include-ignored (unit, integration and doc tests)"
@@ -194,17 +177,7 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
             String::new()
         }
     );
-    println!(
-        "power-up under systemd ({:.1} s): {} passed, {} failed{}",
-        power.elapsed.as_secs_f64(),
-        power.counts.passed,
-        power.counts.failed,
-        if power.counts.broken > 0 {
-            format!(" (the guest run failed, exit {})", power.code)
-        } else {
-            String::new()
-        }
-    );
+    println!("{}", power.summary());
     println!(
         "cross-builds: {} checks passed, {} failed\n  {}",
         cross.passed,
