@@ -3,14 +3,17 @@
 //! ```text
 //! cargo xtask test                 everything: unit + doc tests, vcan suites, power-up, cross-builds
 //! cargo xtask vcan -- CMD [ARG..]  run CMD with real vcan0 and vcan1 up (native netns or QEMU guest)
-//! cargo xtask setup                install what the harness and the cross-build need (root, Debian)
+//! cargo xtask setup [--check]      install what `test` needs (root, Debian), then self-check
+//! cargo xtask clean-root           run `setup` in a freshly bootstrapped Debian root
 //! ```
 //!
 //! Exit status: `vcan` returns the command's own status (128 + signal if it was killed); `test`
 //! returns 0 only when every suite passed; 2 means the harness itself could not run.
 
 mod bench;
+mod cleanroot;
 mod harness;
+mod host;
 mod native;
 mod powerup;
 mod setup;
@@ -42,9 +45,16 @@ usage:
       runs SCRIPT as root in that root before boot (install units, enable services; vcan0/vcan1
       are then the script's to create, e.g. with a .netdev), and runs CMD from a unit once
       multi-user.target is up; the boot's journal is kept for the caller (--verbose shows where).
-  cargo xtask setup
-      Install the Debian packages the harness needs (qemu-system-x86, linux-image-amd64,
-      busybox-static, cpio) and the thumbv7em-none-eabihf target. Needs root for apt.
+  cargo xtask setup [--check]
+      Install everything `test` needs on a fresh Debian machine (as root): the Debian packages
+      (cross gcc and the target C libraries, qemu-user-static, Chromium, lintian, python3-venv,
+      systemd, and where this kernel has no vcan QEMU, Debian's kernel, busybox-static, cpio),
+      the rustup targets and the Python venv; then the self-check: C and Rust hello-worlds
+      built for every cross target and run under qemu-user, headless Chromium, lintian, the
+      venv's modules, the guest's kernel, modules and busybox. --check runs the self-check only.
+  cargo xtask clean-root
+      Prove setup's package list complete: bootstrap a minimal Debian root of this release
+      (mmdebstrap, this machine's apt sources) and run `setup` inside it (as root).
   cargo xtask cross [--target TRIPLE]..
       Release-build exocald and exocal-hil for aarch64 and armv7 (or the given targets), run
       --help of each and `exocald offline` on a session the host's demo recorded under
@@ -106,10 +116,8 @@ fn run(args: Vec<String>) -> Result<u8> {
         "bench" => bench::bench(rest),
         "cross" => ship::cross(rest),
         "deb" => ship::deb(rest),
-        "setup" => {
-            setup::install_all()?;
-            Ok(0)
-        }
+        "setup" => setup::main(rest),
+        "clean-root" => cleanroot::main(rest),
         "help" | "--help" | "-h" => {
             println!("{USAGE}");
             Ok(0)

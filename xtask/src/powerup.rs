@@ -57,7 +57,7 @@ impl PowerUp {
 /// Builds the package and the suite, boots, runs it. `opts` gives the time limit and verbosity.
 pub fn run(opts: &HarnessArgs) -> Result<PowerUp> {
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-    let root = crate::setup::workspace_root();
+    let root = crate::host::workspace_root();
     let host = crate::ship::TARGETS[0];
     println!("==> power-up: building the {} package", host.deb_arch);
     let bins = crate::ship::build(&host)?;

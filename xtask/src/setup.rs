@@ -1,133 +1,337 @@
-//! Installing what the project needs on a fresh Debian machine.
+//! `cargo xtask setup [--check]`: install what the project needs on a fresh Debian machine, then
+//! prove it usable.
 //!
-//! Nothing here is needed on a box with native vcan except the rustup target. As root on Debian
-//! the packages are installed with apt; otherwise the error says what to install.
+//! The contract: on a Debian 12 machine with nothing but a Rust toolchain (rustup), run as root,
+//! `cargo xtask setup` installs every Debian package, rustup target and Python package that
+//! `cargo xtask test` uses, and ends with a self-check ([`check`]) that compiles, links and runs
+//! what the suites will, naming the package when something is missing. Packages are installed
+//! with `--no-install-recommends`, so every one the project needs is named here, never reached
+//! through a recommendation (Debian's cross gcc only *recommends* the target's C library).
+//! `cargo xtask clean-root` proves the list complete in a freshly bootstrapped Debian root.
+//!
+//! Not root, or not Debian: nothing is installed and the error says what to install.
 
+use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
 use anyhow::{bail, Context, Result};
 
-/// Where Debian's busybox-static puts its binary.
-pub const BUSYBOX: &str = "/bin/busybox";
+use crate::host;
 
-/// The Debian packages the QEMU path needs.
-pub const VM_PACKAGES: &[&str] = &[
-    "qemu-system-x86",
-    "linux-image-amd64",
-    "busybox-static",
-    "cpio",
+/// Debian packages every machine that runs `cargo xtask test` needs, with what needs each. The
+/// cross targets' packages are in [`crate::ship::TARGETS`], the QEMU guest's in
+/// [`crate::vm::PACKAGES`] (needed only where this kernel has no vcan).
+pub const PACKAGES: &[(&str, &str)] = &[
+    (
+        "gcc",
+        "cc for the host build of C in -sys crates (zstd-sys)",
+    ),
+    ("libc6-dev", "the host's C headers and crt files"),
+    (
+        "chromium",
+        "renders the calibration report (report/tests/browser.rs)",
+    ),
+    ("lintian", "checks every Debian package the project builds"),
+    ("python3", "runs the cantools and mcap cross-checks"),
+    ("python3-venv", "the project's venv for those cross-checks"),
+    (
+        "systemd",
+        "PID 1 of the power-up guest (the host root is its root), systemd-analyze",
+    ),
+    ("dbus", "the power-up guest's system bus"),
+    ("iproute2", "`ip link` makes vcan0/vcan1 in the harness"),
+    ("kmod", "modprobe vcan on a kernel that has CAN"),
+    (
+        "util-linux",
+        "unshare, nsenter and taskset in the harness and the benches",
+    ),
 ];
-
-/// Debian packages the test suites need on every machine: Chromium renders the calibration
-/// report in a test; lintian checks the Debian packages.
-pub const TEST_PACKAGES: &[&str] = &["chromium", "lintian"];
 
 /// The no_std target calib-core is cross-built for.
 pub const EMBEDDED_TARGET: &str = "thumbv7em-none-eabihf";
 
-/// Whether a Debian package is installed.
-pub fn installed(package: &str) -> bool {
-    Command::new("dpkg-query")
-        .args(["-W", "-f=${Status}", package])
-        .stderr(Stdio::null())
-        .output()
-        .map(|o| String::from_utf8_lossy(&o.stdout).contains("install ok installed"))
-        .unwrap_or(false)
+/// `cargo xtask setup [--check]`.
+pub fn main(args: &[String]) -> Result<u8> {
+    match args {
+        [] => install_all()?,
+        [flag] if flag == "--check" => report(check())?,
+        other => bail!("setup: unexpected arguments {other:?} (only --check)"),
+    }
+    Ok(0)
 }
 
-/// The VM packages that are not installed.
-pub fn missing_vm_packages() -> Vec<&'static str> {
-    VM_PACKAGES
+/// Every Debian package this machine needs: [`PACKAGES`], the cross targets' and, where this
+/// kernel has no vcan, the QEMU guest's. Sorted, without repeats.
+pub fn packages() -> Vec<&'static str> {
+    let mut all: Vec<&str> = PACKAGES.iter().map(|(p, _)| *p).collect();
+    for t in cross_targets() {
+        all.extend(t.packages);
+    }
+    if !native_vcan() {
+        all.extend(crate::vm::PACKAGES);
+    }
+    all.sort();
+    all.dedup();
+    all
+}
+
+fn cross_targets() -> impl Iterator<Item = crate::ship::Target> {
+    crate::ship::TARGETS
         .iter()
         .copied()
-        .filter(|p| !installed(p))
-        .collect()
+        .filter(|t| t.qemu.is_some())
 }
 
-/// Installs Debian packages with apt when we are root; otherwise says what to install.
-pub fn install_packages(packages: &[&str]) -> Result<()> {
-    if packages.is_empty() {
-        return Ok(());
+fn native_vcan() -> bool {
+    crate::native::available().is_ok()
+}
+
+/// Installs everything (rustup targets, Debian packages, the Python venv), then runs [`check`].
+pub fn install_all() -> Result<()> {
+    host::add_rust_target(EMBEDDED_TARGET)?;
+    for t in cross_targets() {
+        host::add_rust_target(t.triple)?;
     }
-    // SAFETY: geteuid has no preconditions.
-    if unsafe { libc::geteuid() } != 0 {
+    host::install_packages(&host::missing(packages()))?;
+    python_env()?;
+    report(check())
+}
+
+/// Prints the self-check's lines; fails naming every failed check.
+fn report(lines: Vec<Result<String>>) -> Result<()> {
+    let mut failed = 0;
+    for line in lines {
+        match line {
+            Ok(ok) => eprintln!("[setup] ok: {ok}"),
+            Err(e) => {
+                eprintln!("[setup] FAILED: {e:#}");
+                failed += 1;
+            }
+        }
+    }
+    if failed > 0 {
         bail!(
-            "not root, so not installing: run `sudo apt-get install -y {}`",
-            packages.join(" ")
+            "setup self-check: {} check(s) failed, each named above with what to install",
+            failed
         );
-    }
-    if crate::vm::which("apt-get").is_none() {
-        bail!(
-            "no apt-get (not Debian): install the equivalents of {}",
-            packages.join(", ")
-        );
-    }
-    eprintln!("[setup] apt-get install {}", packages.join(" "));
-    let update = Command::new("apt-get")
-        .args(["update", "-qq"])
-        .stdin(Stdio::null())
-        .status()
-        .context("apt-get update")?;
-    if !update.success() {
-        bail!("apt-get update failed");
-    }
-    let status = Command::new("apt-get")
-        .args(["install", "-y", "-qq", "--no-install-recommends"])
-        .args(packages)
-        .env("DEBIAN_FRONTEND", "noninteractive")
-        .stdin(Stdio::null())
-        .status()
-        .context("apt-get install")?;
-    if !status.success() {
-        bail!("apt-get install {} failed", packages.join(" "));
     }
     Ok(())
 }
 
-/// Adds a rustup target if it is missing.
-pub fn add_rust_target(triple: &str) -> Result<()> {
-    let list = Command::new("rustup")
-        .args(["target", "list", "--installed"])
-        .output()
-        .context("rustup (cross-builds need rustup)")?;
-    if String::from_utf8_lossy(&list.stdout)
-        .lines()
-        .any(|l| l.trim() == triple)
-    {
-        return Ok(());
+/// The self-check: uses every tool the way the suites will, and names the Debian package to
+/// install when one fails. Installs nothing.
+pub fn check() -> Vec<Result<String>> {
+    let scratch = std::env::temp_dir().join(format!("exocal-setup-check-{}", std::process::id()));
+    let mut lines = vec![check_packages()];
+    match std::fs::create_dir_all(&scratch) {
+        Ok(()) => {
+            for t in cross_targets() {
+                lines.push(check_cross_c(&t, &scratch));
+                lines.push(check_cross_rust(&t, &scratch));
+            }
+            lines.push(check_chromium(&scratch));
+        }
+        Err(e) => lines.push(Err(anyhow::anyhow!("create {}: {e}", scratch.display()))),
     }
-    let status = Command::new("rustup")
-        .args(["target", "add", triple])
-        .stdin(Stdio::null())
-        .status()?;
-    if !status.success() {
-        bail!("rustup target add {triple} failed");
+    lines.push(check_embedded_target());
+    lines.push(check_program(&["lintian", "--version"], "lintian"));
+    lines.push(check_program(&["systemd-analyze", "--version"], "systemd"));
+    lines.push(check_python());
+    if native_vcan() {
+        lines.push(Ok(
+            "native vcan works here: the QEMU guest is not needed".into()
+        ));
+    } else {
+        lines.push(crate::vm::check_parts().context("the QEMU guest (this kernel has no vcan)"));
+    }
+    let _ = std::fs::remove_dir_all(&scratch);
+    lines
+}
+
+fn check_packages() -> Result<String> {
+    let all = packages();
+    let missing = host::missing(all.iter().copied());
+    if !missing.is_empty() {
+        bail!(
+            "Debian packages not installed: {} (cargo xtask setup installs them as root)",
+            missing.join(" ")
+        );
+    }
+    Ok(format!("{} Debian packages installed", all.len()))
+}
+
+/// A package hint for a failed check of `t`: the target's packages that are missing, or all.
+fn hint(t: &crate::ship::Target) -> String {
+    let missing = host::missing(t.packages.iter().copied());
+    let named = if missing.is_empty() {
+        t.packages.to_vec()
+    } else {
+        missing
+    };
+    format!("needs the Debian packages {}", named.join(" "))
+}
+
+/// Runs `bin` for `t` under qemu-user and expects `want` on its stdout.
+fn run_under_qemu(t: &crate::ship::Target, bin: &Path, want: &str) -> Result<()> {
+    let out = host::output(
+        &mut crate::ship::runner(t, bin),
+        &format!("run {} under qemu-user", bin.display()),
+    )?;
+    if out.trim() != want {
+        bail!("{} printed {out:?}, expected {want:?}", bin.display());
     }
     Ok(())
 }
 
-/// The workspace root (xtask sits in it).
-pub fn workspace_root() -> std::path::PathBuf {
-    let here = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
-    here.parent().unwrap_or(here).to_path_buf()
+/// A C hello-world that includes libc headers, cross-compiled and linked with the target's gcc
+/// (as the cc crate does for zstd-sys), run under qemu-user.
+fn check_cross_c(t: &crate::ship::Target, dir: &Path) -> Result<String> {
+    let src = dir.join("hello.c");
+    std::fs::write(
+        &src,
+        "#include <stdint.h>\n#include <stdio.h>\nint main(void) { uint8_t x = 42; \
+         printf(\"hello %u\\n\", x); return 0; }\n",
+    )?;
+    let bin = dir.join(format!("hello-c-{}", t.deb_arch));
+    let gcc = format!("{}-gcc", t.gnu);
+    host::output(
+        Command::new(&gcc).arg(&src).arg("-o").arg(&bin),
+        &format!("{gcc} hello.c"),
+    )
+    .and_then(|_| run_under_qemu(t, &bin, "hello 42"))
+    .with_context(|| format!("C for {} ({})", t.triple, hint(t)))?;
+    Ok(format!("C hello-world for {} builds and runs", t.triple))
 }
 
-/// The project's Python venv (`target/exocal-pyenv`, from `tests/requirements.txt`), made or
-/// updated when the requirements changed; returns its interpreter.
-pub fn python_env() -> Result<std::path::PathBuf> {
-    let root = workspace_root();
-    let venv = std::env::var_os("EXOCAL_PYENV")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| root.join("target/exocal-pyenv"));
-    let python = venv.join("bin/python");
-    let wanted = std::fs::read_to_string(root.join("tests/requirements.txt"))
-        .context("read tests/requirements.txt")?;
+/// A Rust hello-world for the target, linked by its gcc (as `.cargo/config.toml` says), run
+/// under qemu-user.
+fn check_cross_rust(t: &crate::ship::Target, dir: &Path) -> Result<String> {
+    let src = dir.join("hello.rs");
+    std::fs::write(&src, "fn main() { println!(\"hello {}\", 6 * 7); }\n")?;
+    let bin = dir.join(format!("hello-rs-{}", t.deb_arch));
+    host::output(
+        Command::new(rustc())
+            .args(["--edition", "2021", "--target", t.triple])
+            .arg(format!("-Clinker={}-gcc", t.gnu))
+            .arg(&src)
+            .arg("-o")
+            .arg(&bin),
+        &format!("rustc --target {}", t.triple),
+    )
+    .and_then(|_| run_under_qemu(t, &bin, "hello 42"))
+    .with_context(|| {
+        format!(
+            "Rust for {} (rustup target add {}; {})",
+            t.triple,
+            t.triple,
+            hint(t)
+        )
+    })?;
+    Ok(format!("Rust hello-world for {} builds and runs", t.triple))
+}
+
+fn rustc() -> String {
+    std::env::var("RUSTC").unwrap_or_else(|_| "rustc".into())
+}
+
+/// The embedded target's standard library is there (`rustc --print sysroot` has it).
+fn check_embedded_target() -> Result<String> {
+    let sysroot = host::output(
+        Command::new(rustc()).args(["--print", "sysroot"]),
+        "rustc --print sysroot",
+    )?;
+    let lib = Path::new(sysroot.trim()).join(format!("lib/rustlib/{EMBEDDED_TARGET}/lib"));
+    if !lib.is_dir() {
+        bail!("no standard library for {EMBEDDED_TARGET}: rustup target add {EMBEDDED_TARGET}");
+    }
+    Ok(format!("rustup target {EMBEDDED_TARGET} installed"))
+}
+
+fn check_program(argv: &[&str], package: &str) -> Result<String> {
+    let out = host::output(
+        Command::new(argv[0]).args(&argv[1..]),
+        &format!("{} (package {package})", argv.join(" ")),
+    )?;
+    Ok(format!(
+        "{}: {}",
+        argv[0],
+        out.lines().next().unwrap_or("").trim()
+    ))
+}
+
+/// Headless Chromium renders a page with an SVG, as the report test does.
+fn check_chromium(dir: &Path) -> Result<String> {
+    let page = dir.join("page.html");
+    std::fs::write(
+        &page,
+        "<html><body><svg id=\"plot\" width=\"10\" height=\"10\"><polyline points=\"0,0 5,5\"/>\
+         </svg><script>document.body.dataset.drawn = \
+         document.getElementById('plot').getBBox().width;</script></body></html>",
+    )?;
+    let chromium = host::which("chromium").context("chromium is not on PATH (package chromium)")?;
+    let dom = host::output(
+        Command::new(chromium)
+            .args([
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--disable-background-networking",
+                "--no-first-run",
+                "--disable-component-update",
+                "--disable-sync",
+            ])
+            .arg(format!("--user-data-dir={}", dir.join("profile").display()))
+            .arg("--dump-dom")
+            .arg(format!("file://{}", page.display())),
+        "headless chromium --dump-dom (package chromium)",
+    )?;
+    if !dom.contains("data-drawn=\"5\"") {
+        bail!("headless chromium did not draw the test SVG (package chromium): {dom:?}");
+    }
+    Ok("headless chromium renders SVG".into())
+}
+
+/// The venv has every module the cross-checks import.
+fn check_python() -> Result<String> {
+    let python = venv_python();
+    host::output(
+        Command::new(&python).args(["-c", "import cantools, mcap, zstandard"]),
+        &format!(
+            "{} imports cantools, mcap, zstandard (cargo xtask setup makes the venv)",
+            python.display()
+        ),
+    )?;
+    Ok(format!(
+        "python venv {} has the cross-check modules",
+        python.display()
+    ))
+}
+
+/// The project's Python venv: `$EXOCAL_PYENV`, or `target/exocal-pyenv`.
+fn venv_dir() -> PathBuf {
+    std::env::var_os("EXOCAL_PYENV")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| host::workspace_root().join("target/exocal-pyenv"))
+}
+
+fn venv_python() -> PathBuf {
+    venv_dir().join("bin/python")
+}
+
+/// The project's Python venv (from `tests/requirements.txt`), made or updated when the
+/// requirements changed; returns its interpreter.
+pub fn python_env() -> Result<PathBuf> {
+    let venv = venv_dir();
+    let python = venv_python();
+    let requirements = host::workspace_root().join("tests/requirements.txt");
+    let wanted = std::fs::read_to_string(&requirements)
+        .with_context(|| format!("read {}", requirements.display()))?;
     let stamp = venv.join("exocal-requirements.txt");
     if python.exists() && std::fs::read_to_string(&stamp).ok().as_deref() == Some(&wanted) {
         return Ok(python);
     }
     if !python.exists() {
-        if crate::vm::which("python3").is_none() {
+        if host::which("python3").is_none() {
             bail!("python3 is needed for the cantools and mcap cross-checks: install python3");
         }
         let ok = Command::new("python3")
@@ -154,7 +358,7 @@ pub fn python_env() -> Result<std::path::PathBuf> {
             "--disable-pip-version-check",
             "-r",
         ])
-        .arg(root.join("tests/requirements.txt"))
+        .arg(&requirements)
         .stdin(Stdio::null())
         .status()
         .context("pip install")?
@@ -166,21 +370,42 @@ pub fn python_env() -> Result<std::path::PathBuf> {
     Ok(python)
 }
 
-/// `cargo xtask setup`: everything, so that a fresh machine can build and test.
-pub fn install_all() -> Result<()> {
-    add_rust_target(EMBEDDED_TARGET)?;
-    // The controller's targets: rustup targets, Debian's cross gcc and qemu-user-static.
-    crate::ship::ensure_toolchain(&crate::ship::parse_targets(&[], true)?)?;
-    python_env()?;
-    let missing: Vec<&str> = TEST_PACKAGES
-        .iter()
-        .copied()
-        .filter(|p| !installed(p))
-        .collect();
-    install_packages(&missing)?;
-    if crate::native::available().is_ok() {
-        eprintln!("[setup] native vcan works here: no VM packages needed");
-        return Ok(());
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Debian's cross gcc only recommends the target's C library, and setup installs without
+    /// recommendations: every cross target must name its libc explicitly (issue: a fresh
+    /// machine could not build zstd-sys for aarch64).
+    #[test]
+    fn every_cross_target_names_its_c_library_and_qemu() {
+        let all = packages();
+        for t in cross_targets() {
+            let libc = t
+                .packages
+                .iter()
+                .find(|p| p.starts_with("libc6-dev-") && p.ends_with("-cross"))
+                .unwrap_or_else(|| panic!("{} names no libc6-dev-*-cross", t.triple));
+            assert!(all.contains(libc), "{libc} is not in setup's list");
+            assert!(t.packages.contains(&"qemu-user-static"), "{}", t.triple);
+            let gcc = format!("gcc-{}", t.gnu.replace('_', "-"));
+            assert!(
+                t.packages.contains(&gcc.as_str()),
+                "{} lacks {gcc}",
+                t.triple
+            );
+        }
     }
-    install_packages(&missing_vm_packages())
+
+    #[test]
+    fn the_list_is_sorted_without_repeats_and_has_every_named_package() {
+        let all = packages();
+        let mut sorted = all.clone();
+        sorted.sort();
+        sorted.dedup();
+        assert_eq!(all, sorted);
+        for (p, why) in PACKAGES {
+            assert!(all.contains(p) && !why.is_empty(), "{p}");
+        }
+    }
 }

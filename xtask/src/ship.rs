@@ -20,8 +20,10 @@ pub struct Target {
     pub triple: &'static str,
     /// Debian's architecture name.
     pub deb_arch: &'static str,
-    /// Debian's cross gcc package, `None` for the build machine itself.
-    pub gcc_package: Option<&'static str>,
+    /// The Debian packages that cross-compile and link C and Rust for it: the cross gcc and the
+    /// target's C library (only *recommended* by the gcc, so named here), qemu-user to run the
+    /// result. Empty for the build machine itself.
+    pub packages: &'static [&'static str],
     /// Debian's multiarch triple: the cross sysroot is `/usr/<gnu>`.
     pub gnu: &'static str,
     /// The qemu-user binary (`None`: runs natively).
@@ -32,21 +34,29 @@ pub const TARGETS: &[Target] = &[
     Target {
         triple: "x86_64-unknown-linux-gnu",
         deb_arch: "amd64",
-        gcc_package: None,
+        packages: &[],
         gnu: "x86_64-linux-gnu",
         qemu: None,
     },
     Target {
         triple: "aarch64-unknown-linux-gnu",
         deb_arch: "arm64",
-        gcc_package: Some("gcc-aarch64-linux-gnu"),
+        packages: &[
+            "gcc-aarch64-linux-gnu",
+            "libc6-dev-arm64-cross",
+            "qemu-user-static",
+        ],
         gnu: "aarch64-linux-gnu",
         qemu: Some("qemu-aarch64-static"),
     },
     Target {
         triple: "armv7-unknown-linux-gnueabihf",
         deb_arch: "armhf",
-        gcc_package: Some("gcc-arm-linux-gnueabihf"),
+        packages: &[
+            "gcc-arm-linux-gnueabihf",
+            "libc6-dev-armhf-cross",
+            "qemu-user-static",
+        ],
         gnu: "arm-linux-gnueabihf",
         qemu: Some("qemu-arm-static"),
     },
@@ -90,26 +100,12 @@ pub fn parse_targets(args: &[String], default_cross: bool) -> Result<Vec<Target>
 pub fn ensure_toolchain(targets: &[Target]) -> Result<()> {
     let mut packages: Vec<&str> = Vec::new();
     for t in targets {
-        if let Some(gcc) = t.gcc_package {
-            packages.push(gcc);
-            packages.push("qemu-user-static");
-        }
-        crate::setup::add_rust_target(t.triple)?;
+        packages.extend(t.packages);
+        crate::host::add_rust_target(t.triple)?;
     }
     packages.sort();
     packages.dedup();
-    let missing: Vec<&str> = packages
-        .into_iter()
-        .filter(|p| !crate::setup::installed(p))
-        .collect();
-    crate::setup::install_packages(&missing)
-}
-
-fn workspace_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("xtask sits in the workspace")
-        .to_path_buf()
+    crate::host::install_packages(&crate::host::missing(packages))
 }
 
 fn cargo() -> String {
@@ -118,7 +114,7 @@ fn cargo() -> String {
 
 /// Release-builds the shipped binaries for `t`; returns their paths.
 pub fn build(t: &Target) -> Result<Vec<PathBuf>> {
-    let root = workspace_root();
+    let root = crate::host::workspace_root();
     let mut cmd = Command::new(cargo());
     cmd.current_dir(&root)
         .args(["build", "--release"])
@@ -193,7 +189,7 @@ struct Recording {
 
 fn record(host: &[PathBuf], work: &Path) -> Result<Recording> {
     let host_exocald = &host[0];
-    let root = workspace_root();
+    let root = crate::host::workspace_root();
     let shipped = fs::read_to_string(root.join("daemon/exocald.toml"))?;
     let config: String = shipped
         .lines()
@@ -390,7 +386,7 @@ fn check_target(t: &Target, rec: &Recording, cfg: &Path, work: &Path) -> Result<
 /// Cross-checks `targets` (see [`check_target`]); returns the report, or the first failure.
 pub fn check(targets: &[Target]) -> Result<Vec<String>> {
     ensure_toolchain(targets)?;
-    let root = workspace_root();
+    let root = crate::host::workspace_root();
     let work = target_dir(&root).join("xtask/cross");
     fs::create_dir_all(&work)?;
     let host = build(&TARGETS[0])?;
@@ -492,7 +488,7 @@ License: MIT or Apache-2.0
 
 /// Builds the Debian package for `t` from already-built binaries; returns its path.
 pub fn package(t: &Target, bins: &[PathBuf]) -> Result<PathBuf> {
-    let root = workspace_root();
+    let root = crate::host::workspace_root();
     let out = target_dir(&root).join("debian");
     let name = format!("exocal_{}_{}", package_version(), t.deb_arch);
     let stage = out.join(&name);
@@ -678,7 +674,7 @@ pub const LINTIAN_ACCEPTED: &[(&str, &str)] = &[
 
 /// Runs lintian on `deb`; fails on any error or warning outside [`LINTIAN_ACCEPTED`].
 pub fn lintian(deb: &Path) -> Result<()> {
-    if crate::vm::which("lintian").is_none() {
+    if crate::host::which("lintian").is_none() {
         bail!("lintian is not installed (cargo xtask setup installs it)");
     }
     let accepted: Vec<&str> = LINTIAN_ACCEPTED.iter().map(|(tag, _)| *tag).collect();

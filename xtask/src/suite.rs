@@ -103,7 +103,7 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
         bail!("no vcan suites were built: exocal-tests has no test targets with feature vcan");
     }
     // `cargo test` may have rebuilt xtask's own binary under us: run a copy of this one.
-    let exe = crate::setup::workspace_root().join("target/xtask/suite-runner");
+    let exe = crate::host::workspace_root().join("target/xtask/suite-runner");
     std::fs::create_dir_all(exe.parent().context("target/xtask")?)?;
     std::fs::copy("/proc/self/exe", &exe).context("copy the running xtask")?;
     let mut argv = vec![exe.display().to_string(), "run-suites".to_string()];

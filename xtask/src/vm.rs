@@ -360,11 +360,25 @@ fn show_console(console: &Path) {
     }
 }
 
+/// The Debian packages the guest is made of: QEMU, Debian's kernel (with its CAN, virtio and 9p
+/// modules), a static busybox for the initramfs, cpio to pack it. qemu-system-x86's
+/// recommendations (GUI, OVMF, block drivers) are not needed: the guest boots `-kernel` directly,
+/// with no display and no disk.
+pub const PACKAGES: &[&str] = &[
+    "qemu-system-x86",
+    "linux-image-amd64",
+    "busybox-static",
+    "cpio",
+];
+
+/// Where Debian's busybox-static puts its binary.
+pub const BUSYBOX: &str = "/bin/busybox";
+
 /// Finds QEMU and busybox, installing them (as root on Debian) when missing.
 fn ensure_tools() -> Result<PathBuf> {
-    let missing = crate::setup::missing_vm_packages();
+    let missing = crate::host::missing(PACKAGES.iter().copied());
     if !missing.is_empty() {
-        crate::setup::install_packages(&missing).with_context(|| {
+        crate::host::install_packages(&missing).with_context(|| {
             format!(
                 "the QEMU path needs the Debian packages {}: install them \
                  (`sudo apt-get install {}`) or run on a kernel with vcan",
@@ -373,14 +387,45 @@ fn ensure_tools() -> Result<PathBuf> {
             )
         })?;
     }
-    let qemu = which("qemu-system-x86_64").context("qemu-system-x86_64 not found on PATH")?;
-    if !is_static_elf(Path::new(crate::setup::BUSYBOX))? {
-        bail!(
-            "{} is not statically linked: install busybox-static",
-            crate::setup::BUSYBOX
-        );
+    let qemu =
+        crate::host::which("qemu-system-x86_64").context("qemu-system-x86_64 not found on PATH")?;
+    if !is_static_elf(Path::new(BUSYBOX))? {
+        bail!("{BUSYBOX} is not statically linked: install busybox-static");
     }
     Ok(qemu)
+}
+
+/// Checks, without installing or booting anything, that every part of the guest is usable:
+/// QEMU starts, busybox is static and runs, the kernel resolves and has every module the guest
+/// loads. Returns a one-line summary.
+pub fn check_parts() -> Result<String> {
+    let qemu = crate::host::which("qemu-system-x86_64")
+        .context("qemu-system-x86_64 is not on PATH (package qemu-system-x86)")?;
+    let version = crate::host::output(
+        Command::new(&qemu).arg("--version"),
+        "qemu-system-x86_64 --version (package qemu-system-x86)",
+    )?;
+    if !is_static_elf(Path::new(BUSYBOX)).unwrap_or(false) {
+        bail!("{BUSYBOX} is missing or not statically linked (package busybox-static)");
+    }
+    crate::host::output(
+        Command::new(BUSYBOX).arg("true"),
+        "busybox true (package busybox-static)",
+    )?;
+    crate::host::which("cpio").context("cpio is not on PATH (package cpio)")?;
+    let kernel = find_kernel()?;
+    let modules = module_order(&kernel.modules).with_context(|| {
+        format!(
+            "modules of kernel {} (package linux-image-amd64)",
+            kernel.version
+        )
+    })?;
+    Ok(format!(
+        "{}; kernel {} with {} modules to load; static busybox",
+        version.lines().next().unwrap_or("QEMU").trim(),
+        kernel.version,
+        modules.len()
+    ))
 }
 
 /// Resolves the kernel through the `linux-image-amd64` metapackage.
@@ -440,7 +485,7 @@ fn build_initramfs(kernel: &Kernel, cache: &Path) -> Result<PathBuf> {
     for dir in ["bin", "modules", "proc", "sys", "dev", "host", "tmp"] {
         fs::create_dir_all(root.join(dir))?;
     }
-    fs::copy(crate::setup::BUSYBOX, root.join("bin/busybox"))?;
+    fs::copy(BUSYBOX, root.join("bin/busybox"))?;
     for applet in [
         "sh",
         "mount",
@@ -623,14 +668,6 @@ fn target_dir(cwd: &Path) -> Result<PathBuf> {
         .parent()
         .context("workspace root")?;
     Ok(root.join("target"))
-}
-
-pub fn which(program: &str) -> Option<PathBuf> {
-    let path = std::env::var_os("PATH")?;
-    std::env::split_paths(&path)
-        .chain(["/usr/sbin", "/sbin"].map(PathBuf::from))
-        .map(|d| d.join(program))
-        .find(|p| p.is_file())
 }
 
 #[cfg(test)]
