@@ -104,7 +104,9 @@ pub struct DemoArgs {
     /// Seed of the emulated suit (motion, drift, noise): the same seed gives the same table.
     #[arg(long, default_value_t = 2024)]
     pub seed: u64,
-    /// Simulated seconds per real second (the paper's 60 s scenario takes 60/speed s).
+    /// At most this many simulated seconds per real second (the paper's 60 s scenario takes at
+    /// least 60/speed s). The run is on simulated time: the result depends on the seed and the
+    /// configuration only, never on the speed or the machine.
     #[arg(long, default_value_t = 10.0)]
     pub speed: f64,
     /// Folder for the session's MCAP log.

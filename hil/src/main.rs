@@ -2,8 +2,8 @@
 
 use anyhow::Context;
 use clap::Parser;
-use exocal_bus::SocketCan;
-use exocal_hil::{Hil, Scenario, SimClock};
+use exocal_bus::{SimClock, SocketCan};
+use exocal_hil::{Hil, Scenario};
 use std::path::PathBuf;
 
 /// Emulates the exocal suit's IMU nodes (7 joints + end-effector reference) on a CAN interface.
