@@ -326,7 +326,9 @@ pub async fn run_session<T: Transport>(
     .await;
     io.reporter.finish();
     if let Err(e) = &result {
-        io.event(clock.now(), Level::Error, &e.to_string());
+        // Into the log only: the caller reports the error (the binary prints it once).
+        let r = io.log.event(ns(clock.now()), Level::Error, &e.to_string());
+        io.check(r);
     }
     io.notifier.stopping();
     let counts: Counts = io.log.counts();
