@@ -5,8 +5,8 @@
 //!
 //! - [`InProcessBus`] / [`Endpoint`]: every frame an endpoint sends is delivered to every other
 //!   attached endpoint (not to itself), like a CAN bus with SocketCAN's default loopback.
-//!   Timestamps come from the bus clock (wall clock by default, or any clock given to
-//!   [`InProcessBus::with_clock`], e.g. a simulated one). An endpoint that falls more than
+//!   Timestamps come from the bus's [`Clock`]: the wall clock by default, or a [`SimClock`]
+//!   given to [`InProcessBus::with_clock`]. An endpoint that falls more than
 //!   the bus capacity behind loses the newest frames (as a full socket buffer would) and
 //!   counts them in [`Transport::dropped`].
 //! - `SocketCan` (feature `socketcan`): a raw CAN socket with an 8 MiB receive buffer, kernel
@@ -14,11 +14,20 @@
 //!   sends and receives in batches (`sendmmsg`/`recvmmsg`), one system call per up to 64 frames.
 //!
 //! Both `recv` futures are cancel-safe, so they can sit in a `tokio::select!` next to a timer.
+//!
+//! [`Clock`] is the one notion of time shared by the bus, the emulator and the daemon: the wall
+//! clock, or simulated time ([`SimClock`], `speed` × the tokio runtime's clock). On a paused
+//! tokio runtime simulated time is virtual — it advances only when every task waits — so a
+//! session on the in-process bus is reproducible bit for bit. On SocketCAN the kernel stamps
+//! frames and reproducibility is up to the kernel.
 
 use std::future::Future;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
+
+mod clock;
+pub use clock::{Clock, SimClock};
 
 pub use embedded_can;
 use embedded_can::{Frame as _, Id};
@@ -172,15 +181,6 @@ pub trait Transport: Send {
     fn dropped(&self) -> u64;
 }
 
-/// A clock for bus timestamps.
-pub type Clock = Arc<dyn Fn() -> Duration + Send + Sync>;
-
-fn wall_clock() -> Duration {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .unwrap_or_default()
-}
-
 struct Port {
     id: u64,
     tx: tokio::sync::mpsc::Sender<Received>,
@@ -215,7 +215,7 @@ impl InProcessBus {
 
     /// A bus stamping frames with the wall clock.
     pub fn new() -> Self {
-        Self::with_clock(Self::DEFAULT_CAPACITY, Arc::new(wall_clock))
+        Self::with_clock(Self::DEFAULT_CAPACITY, Clock::Wall)
     }
 
     /// A bus with its own per-endpoint receive-queue capacity and timestamp clock.
@@ -274,7 +274,7 @@ impl Endpoint {
     pub fn send_now(&self, frame: &Frame) {
         let rx = Received {
             frame: *frame,
-            timestamp: (self.shared.clock)(),
+            timestamp: self.shared.clock.now(),
         };
         let mut ports = self.shared.ports.lock().unwrap_or_else(|e| e.into_inner());
         ports.retain(|p| {
@@ -339,9 +339,10 @@ mod tests {
         assert!(a.try_recv().is_none(), "the sender does not hear itself");
     }
 
-    #[tokio::test]
+    #[tokio::test(start_paused = true)]
     async fn a_slow_endpoint_counts_what_it_lost() {
-        let bus = InProcessBus::with_clock(4, Arc::new(|| Duration::from_micros(42)));
+        let clock = SimClock::new(1.0).unwrap().bus_clock();
+        let bus = InProcessBus::with_clock(4, clock);
         let tx = bus.attach();
         let mut rx = bus.attach();
         for i in 0..10 {
@@ -350,7 +351,7 @@ mod tests {
         assert_eq!(rx.dropped(), 6);
         let first = rx.recv().await.unwrap();
         assert_eq!(first.frame, frame(0x100, 0));
-        assert_eq!(first.timestamp, Duration::from_micros(42));
+        assert_eq!(first.timestamp, clock.now(), "stamped in simulated time");
         assert_eq!(tx.dropped(), 0, "the sender queues nothing for itself");
     }
 

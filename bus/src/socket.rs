@@ -9,7 +9,7 @@
 //! to 64 per system call (`recvmmsg`, `sendmmsg`); a full interface queue (`ENOBUFS`) is waited
 //! out for up to about a second before it is reported.
 
-use crate::{wall_clock, BusError, Frame, Received, Transport};
+use crate::{BusError, Clock, Frame, Received, Transport};
 use embedded_can::{ExtendedId, Frame as _, Id, StandardId};
 use socketcan::{Socket, SocketOptions};
 use std::collections::VecDeque;
@@ -279,7 +279,7 @@ impl Transport for SocketCan {
                 if let Some(frame) = parse(&raw.frame) {
                     return Ok(Received {
                         frame,
-                        timestamp: raw.timestamp.unwrap_or_else(wall_clock),
+                        timestamp: raw.timestamp.unwrap_or_else(|| Clock::Wall.now()),
                     });
                 }
                 continue;

@@ -2,8 +2,6 @@
 //! it to an exit status).
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
-use std::time::{SystemTime, UNIX_EPOCH};
 
 use exocal_bus::{Clock, SocketCan, Transport};
 use tokio::signal::unix::{signal, SignalKind};
@@ -111,29 +109,27 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
         Command::Demo(args) => {
             let (config, source) = resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
             eprintln!("exocald: configuration from {source}");
-            let config = crate::demo::demo_config(config, &args.output, args.speed);
+            let config = crate::demo::demo_config(config, &args.output, 1.0);
             let opts = crate::demo::DemoOptions {
                 seed: args.seed,
                 speed: args.speed,
                 output: args.output.clone(),
             };
-            runtime()?.block_on(async {
-                match crate::demo::run(&config, &opts).await {
-                    Ok(result) => {
-                        print_summary(&result.summary);
-                        let check = crate::demo::check_flash(&result);
-                        for (node, crc) in &result.flash_crc {
-                            let crc = crc.map_or_else(|| "none".into(), |c| format!("{c:#010x}"));
-                            println!("flash {node}: table CRC {crc}");
-                        }
-                        if check.is_ok() {
-                            println!("every node persisted the pushed table (CRC match)");
-                        }
-                        check
+            match crate::demo::run(&config, &opts).map_err(|e| *e) {
+                Ok(result) => {
+                    print_summary(&result.summary);
+                    let check = crate::demo::check_flash(&result);
+                    for (node, crc) in &result.flash_crc {
+                        let crc = crc.map_or_else(|| "none".into(), |c| format!("{c:#010x}"));
+                        println!("flash {node}: table CRC {crc}");
                     }
-                    Err(e) => finish(Err(e)),
+                    if check.is_ok() {
+                        println!("every node persisted the pushed table (CRC match)");
+                    }
+                    check
                 }
-            })
+                Err(e) => finish(Err(e)),
+            }
         }
     }
 }
@@ -155,15 +151,6 @@ fn runtime() -> Result<tokio::runtime::Runtime, DaemonError> {
             what: "starting the async runtime".into(),
             source,
         })
-}
-
-/// The wall clock as a bus clock (SocketCAN timestamps are wall-clock time).
-pub fn wall_clock() -> Clock {
-    Arc::new(|| {
-        SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .unwrap_or_default()
-    })
 }
 
 /// A flag raised by SIGTERM or SIGINT; [`Shutdown::wait`] completes once it is.
@@ -269,7 +256,7 @@ pub async fn calibrate_on_can(config: Config, dry_run: bool) -> Result<(), Daemo
     let mut bus = open_can(&config)?;
     let mut notifier = Notifier::from_env();
     let mut reporter = Reporter::detect(&notifier);
-    let clock = wall_clock();
+    let clock = Clock::Wall;
     let result = run_session(
         &mut bus,
         &clock,
@@ -307,7 +294,7 @@ pub async fn serve_on_can(config: Config, dry_run: bool) -> Result<(), DaemonErr
     let mut bus = open_can(&config)?;
     let mut notifier = Notifier::from_env();
     let mut reporter = Reporter::detect(&notifier);
-    let clock = wall_clock();
+    let clock = Clock::Wall;
     let mut usr1 = signal(SignalKind::user_defined1()).map_err(|source| DaemonError::Io {
         what: "installing the SIGUSR1 handler".into(),
         source,

@@ -104,10 +104,12 @@ pub struct DemoArgs {
     /// Seed of the emulated suit (motion, drift, noise): the same seed gives the same table.
     #[arg(long, default_value_t = 2024)]
     pub seed: u64,
-    /// Simulated seconds per real second (the paper's 60 s scenario takes 60/speed s).
+    /// At most this many simulated seconds per real second (the paper's 60 s scenario takes at
+    /// least 60/speed s). The run is on simulated time: the speed and the machine's load never
+    /// change the result; the same seed and configuration give the same table every run.
     #[arg(long, default_value_t = 10.0)]
     pub speed: f64,
-    /// Folder for the session's MCAP log.
+    /// Folder for the session's MCAP log and report, and the emulated nodes' flash (DIR/flash).
     #[arg(long, short = 'o', value_name = "DIR", default_value = "exocal-demo")]
     pub output: PathBuf,
 }

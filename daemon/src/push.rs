@@ -173,7 +173,7 @@ pub async fn push_tables<T: Transport>(
         })
         .collect();
     while jobs.iter().any(|j| !j.done) {
-        let now = clock();
+        let now = clock.now();
         let now_us = micros(now);
         for job in jobs.iter_mut().filter(|j| !j.done) {
             if let Some(fence) = job.fence.as_mut() {
@@ -243,7 +243,8 @@ pub async fn push_tables<T: Transport>(
         if jobs.iter().all(|j| j.done) {
             break;
         }
-        // Wait a little for replies (real time; the logic runs on the bus clock).
+        // Wait a little for replies (a tokio timer: real time, or simulated on the demo's paused
+        // runtime; the logic runs on the bus clock).
         match tokio::time::timeout(Duration::from_millis(1), bus.recv()).await {
             Ok(Ok(rx)) => on_received(&rx, &mut jobs, observer),
             Ok(Err(e)) => return Err(e),
@@ -432,11 +433,7 @@ mod tests {
         let (flashes, tables) = setup(true);
         let nodes = spawn_nodes(&bus, flashes.clone(), |_| false, vec![]);
         let mut ep = bus.attach();
-        let clock: Clock = Arc::new(|| {
-            std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .unwrap()
-        });
+        let clock = Clock::Wall;
         let mut sent = 0;
         let mut sink = |tx: bool, _: &Frame, _: Duration| sent += usize::from(tx);
         let report = push_tables(&mut ep, &clock, &tables, &policy(), 1, &mut sink)
@@ -459,11 +456,7 @@ mod tests {
         let silent = NodeId::JOINTS[3];
         let nodes = spawn_nodes(&bus, flashes.clone(), |n| n % 5 == 0, vec![silent]);
         let mut ep = bus.attach();
-        let clock: Clock = Arc::new(|| {
-            std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .unwrap()
-        });
+        let clock = Clock::Wall;
         let mut sink = |_: bool, _: &Frame, _: Duration| {};
         let report = push_tables(&mut ep, &clock, &tables, &policy(), 200, &mut sink)
             .await
@@ -547,11 +540,7 @@ mod tests {
         let lag = (sends - 1) + policy.retries as usize * sends;
         let emulated = spawn_lagging_node(&bus, node, flash.clone(), lag);
         let mut ep = bus.attach();
-        let clock: Clock = Arc::new(|| {
-            std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .unwrap()
-        });
+        let clock = Clock::Wall;
         let new = table(3.0);
         let mut sink = |_: bool, _: &Frame, _: Duration| {};
         let report = push_tables(&mut ep, &clock, &[(node, new)], &policy, 7, &mut sink)
@@ -578,11 +567,7 @@ mod tests {
         // The node never gets past its first Commit.
         let emulated = spawn_lagging_node(&bus, node, flash.clone(), usize::MAX);
         let mut ep = bus.attach();
-        let clock: Clock = Arc::new(|| {
-            std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .unwrap()
-        });
+        let clock = Clock::Wall;
         let mut sink = |_: bool, _: &Frame, _: Duration| {};
         let report = push_tables(
             &mut ep,

@@ -8,8 +8,11 @@
 //!   interrupted, and `dry_run` is off; a shutdown (the `shutdown` future completing) before the
 //!   push starts ends the session with [`DaemonError::Interrupted`]; once started, the push runs
 //!   to its end (it is bounded by the push policy, and every node transfer is atomic);
-//! - session time (durations, push timeouts) is the bus clock, so a simulated suit at any speed
-//!   sees the same behaviour; the watchdog and the log's flush cadence use real time;
+//! - session time (durations, push timeouts, log times) is `clock` — the wall clock on SocketCAN,
+//!   a [`exocal_bus::SimClock`] on the in-process bus — so a simulated suit at any speed sees the
+//!   same behaviour; the housekeeping tick and the push's wait for replies are tokio timers (on
+//!   the demo's paused runtime they are simulated too, which makes the demo reproducible);
+//!   the watchdog and the log's flush cadence use real time and never decide what is collected;
 //! - the heavy calibration runs on a blocking thread while the loop keeps draining (and
 //!   logging) the bus, feeding the watchdog and flushing the log.
 
@@ -36,8 +39,8 @@ use crate::session::{Phase, Session};
 /// Real time between two turns of the housekeeping tick.
 pub const TICK: Duration = Duration::from_millis(100);
 /// A clock fit whose residual exceeds this (µs RMS) is reported as unreliable. Receive jitter
-/// averages out in the fit (the in-process demo, whose bus stamps frames in ~10 ms batches, sees
-/// ~5 ms RMS and still aligns well); tens of ms mean the timestamps cannot be trusted.
+/// averages out in the fit (an in-process bus whose hil sends frames in ~10 ms batches sees ~5 ms
+/// RMS and still aligns well); tens of ms mean the timestamps cannot be trusted.
 pub const CLOCK_RESIDUAL_WARN_US: f64 = 20_000.0;
 /// Bus-clock seconds between two estimates of the condition number during collection.
 pub const CONDITION_EVERY_S: f64 = 10.0;
@@ -273,7 +276,7 @@ pub async fn run_session<T: Transport>(
     notifier: &mut Notifier,
     reporter: &mut Reporter,
 ) -> Result<SessionSummary, SessionError> {
-    let start = clock();
+    let start = clock.now();
     let flush_ns = (config.output.flush_interval_s * 1e9) as u64;
     let (log_path, log) = SessionLog::create_in(&config.output.directory, ns(start), flush_ns)
         .map_err(|e| {
@@ -323,7 +326,9 @@ pub async fn run_session<T: Transport>(
     .await;
     io.reporter.finish();
     if let Err(e) = &result {
-        io.event(clock(), Level::Error, &e.to_string());
+        // Into the log only: the caller reports the error (the binary prints it once).
+        let r = io.log.event(ns(clock.now()), Level::Error, &e.to_string());
+        io.check(r);
     }
     io.notifier.stopping();
     let counts: Counts = io.log.counts();
@@ -377,7 +382,7 @@ async fn session_body<T: Transport>(
             }
             _ = tick.tick() => {
                 io.housekeeping();
-                let elapsed = (clock().saturating_sub(start)).as_secs_f64();
+                let elapsed = (clock.now().saturating_sub(start)).as_secs_f64();
                 if condition_job.is_none() && elapsed - last_condition_s >= CONDITION_EVERY_S {
                     last_condition_s = elapsed;
                     let (snapshot, cfg) = (ingest.clone(), config.clone());
@@ -387,7 +392,7 @@ async fn session_body<T: Transport>(
                 }
                 let progress = session.progress(elapsed);
                 io.reporter.update(&progress, required, io.notifier);
-                let r = io.log.write(crate::mcaplog::Topic::Progress, ns(clock()), &progress);
+                let r = io.log.write(crate::mcaplog::Topic::Progress, ns(clock.now()), &progress);
                 io.check(r);
                 match session.phase(elapsed) {
                     Phase::Collecting => {}
@@ -422,7 +427,7 @@ async fn session_body<T: Transport>(
     // `received` frames of /can/rx (those logged before this event), as this session did.
     // Keep the prefix `collection done: N frames` (exocal_report::readers::COLLECTION_DONE).
     io.event(
-        clock(),
+        clock.now(),
         Level::Info,
         &format!(
             "collection done: {} frames ({} unknown, {} malformed, {} invalid angles, {} dropped by the receiver)",
@@ -435,7 +440,7 @@ async fn session_body<T: Transport>(
     );
     for (node, repeats) in s.babbling() {
         io.event(
-            clock(),
+            clock.now(),
             Level::Warning,
             &format!("{node} is babbling: {repeats} frames repeated verbatim"),
         );
@@ -456,14 +461,14 @@ async fn session_body<T: Transport>(
                 c.node,
                 c.residual_rms_us.unwrap_or(f64::NAN)
             );
-            io.event(clock(), Level::Warning, &line);
+            io.event(clock.now(), Level::Warning, &line);
         }
         if c.jumps > 0 || c.unmapped > 0 {
             let line = format!(
                 "{}: {} clock jump(s)/reboot(s), {} samples excluded",
                 c.node, c.jumps, c.unmapped
             );
-            io.event(clock(), Level::Warning, &line);
+            io.event(clock.now(), Level::Warning, &line);
         }
     }
     let origin = ingest.origin().unwrap_or(start);
@@ -473,7 +478,7 @@ async fn session_body<T: Transport>(
         io.check(r);
     }
     io.event(
-        clock(),
+        clock.now(),
         Level::Info,
         &format!(
             "aligned {} samples on a {} Hz grid, {} grid points excluded as gaps",
@@ -538,14 +543,14 @@ async fn session_body<T: Transport>(
     match std::fs::write(&report_path, html) {
         Ok(()) => {
             io.event(
-                clock(),
+                clock.now(),
                 Level::Info,
                 &format!("calibration report: {}", report_path.display()),
             );
             summary.report_path = Some(report_path);
         }
         Err(e) => io.event(
-            clock(),
+            clock.now(),
             Level::Warning,
             &format!("cannot write the report {}: {e}", report_path.display()),
         ),
@@ -580,11 +585,11 @@ async fn session_body<T: Transport>(
     });
     let r = io
         .log
-        .write(crate::mcaplog::Topic::Calibration, ns(clock()), &report);
+        .write(crate::mcaplog::Topic::Calibration, ns(clock.now()), &report);
     io.check(r);
     let v = &outcome.verdict;
     io.event(
-        clock(),
+        clock.now(),
         Level::Info,
         &format!(
             "held-out pose error {:.3e} → {:.3e} ({:.1}% better than nominal), condition number {:.3e}",
@@ -601,7 +606,7 @@ async fn session_body<T: Transport>(
         return Err(DaemonError::Validation(reasons));
     }
     if dry_run {
-        io.event(clock(), Level::Info, "dry run: nothing pushed");
+        io.event(clock.now(), Level::Info, "dry run: nothing pushed");
         return Ok(());
     }
     if let Some(e) = io.log_error.take() {
@@ -625,11 +630,11 @@ async fn session_body<T: Transport>(
             source: std::io::Error::other(e.to_string()),
         })?;
     for line in report.lines() {
-        io.event(clock(), Level::Info, &line);
+        io.event(clock.now(), Level::Info, &line);
     }
     let r = io
         .log
-        .write(crate::mcaplog::Topic::Calibration, ns(clock()), &report);
+        .write(crate::mcaplog::Topic::Calibration, ns(clock.now()), &report);
     io.check(r);
     let complete = report.complete();
     let failed: Vec<String> = report
@@ -644,7 +649,7 @@ async fn session_body<T: Transport>(
         return Err(DaemonError::Push(failed.join("; ")));
     }
     io.event(
-        clock(),
+        clock.now(),
         Level::Info,
         "every node holds its new table (CRC read back)",
     );
@@ -669,7 +674,8 @@ mod tests {
     use super::*;
     use crate::app::Shutdown;
     use exocal_bus::InProcessBus;
-    use exocal_hil::{Hil, Scenario, SimClock};
+    use exocal_bus::SimClock;
+    use exocal_hil::{Hil, Scenario};
 
     fn temp_dir(name: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("exocald-runner-{}-{name}", std::process::id()));

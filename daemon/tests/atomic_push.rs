@@ -15,10 +15,11 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use exocal_bus::InProcessBus;
+use exocal_bus::SimClock;
 use exocal_dbc::table::{Field, Table};
 use exocal_dbc::NodeId;
 use exocal_hil::scenario::{Reboot, Scenario, TransferBehaviour, TransferFault};
-use exocal_hil::{Hil, SimClock};
+use exocal_hil::Hil;
 use exocald::config::PushPolicy;
 use exocald::push::{push_tables, Holds};
 

@@ -16,11 +16,12 @@
 use std::path::{Path, PathBuf};
 
 use exocal_bus::InProcessBus;
+use exocal_bus::SimClock;
 use exocal_dbc::NodeId;
 use exocal_hil::scenario::{
     Babble, ClockJump, NodeClockSpec, Reboot, Scenario, TransferBehaviour, TransferFault,
 };
-use exocal_hil::{Hil, SimClock};
+use exocal_hil::Hil;
 use exocald::config::{Config, Interval};
 use exocald::push::Holds;
 use exocald::report::{Notifier, Reporter};

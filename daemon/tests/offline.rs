@@ -3,6 +3,8 @@
 //! MCAP log, from that log exported as candump, and from its aligned samples as CSV; the report
 //! the live run wrote, the exports, and bad inputs are checked on the way.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 
 use exocal_report::html::FIGURES;
@@ -13,33 +15,13 @@ use exocald::exit::{code, DaemonError};
 use exocald::offline::{self, Format, OfflineOptions};
 use exocald::runner::{SessionError, SessionSummary};
 
+use common::live_session;
+
 fn temp_dir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("exocald-offline-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d
-}
-
-/// One live session of the paper scenario, 20 s of collection at 5× real time.
-async fn live_session(dir: &Path) -> (Config, SessionSummary) {
-    let opts = exocald::demo::DemoOptions {
-        seed: 7,
-        speed: 5.0,
-        output: dir.to_path_buf(),
-    };
-    let mut config = exocald::demo::demo_config(Config::default_config(), dir, opts.speed);
-    config.session.min_duration_s = 20.0;
-    let summary = match exocald::demo::run(&config, &opts).await {
-        Ok(r) => r.summary,
-        // A refused table or a failed push (a loaded machine can make the emulator lag) still
-        // leaves a calibration to compare.
-        Err(SessionError {
-            error: DaemonError::Validation(_) | DaemonError::Push(_),
-            summary: Some(s),
-        }) => s,
-        Err(SessionError { error, summary }) => panic!("{error}\n{summary:#?}"),
-    };
-    (config, summary)
 }
 
 /// Largest difference between two outcomes' D-H rows (m and rad), and largest relative
@@ -80,10 +62,10 @@ fn offline_outcome(
     Ok((summary, outcome))
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn offline_recalibration_agrees_with_the_live_session() {
+#[test]
+fn offline_recalibration_agrees_with_the_live_session() {
     let dir = temp_dir("agree");
-    let (config, live) = live_session(&dir).await;
+    let (config, live) = live_session(&dir, 7);
     let live_outcome = live.outcome.clone().expect("the live session calibrated");
     let accepted = live_outcome.verdict.accepted();
 

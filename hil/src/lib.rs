@@ -4,12 +4,13 @@
 //! joint nodes and the end-effector reference node, with per-node clocks, table storage in
 //! emulated flash files ([`flash`]) behind the `no_std` transfer state machine of `exocal-dbc`,
 //! and injected faults, all described by a TOML [`Scenario`]. [`Hil`] plays it on any
-//! [`exocal_bus::Transport`] (SocketCAN or the in-process bus) at `speed` × real time:
+//! [`exocal_bus::Transport`] (SocketCAN or the in-process bus) at `speed` × the tokio runtime's
+//! time ([`exocal_bus::SimClock`]: real time, or virtual time on a paused runtime):
 //!
 //! ```no_run
 //! # async fn demo() -> Result<(), exocal_hil::HilError> {
-//! use exocal_bus::InProcessBus;
-//! use exocal_hil::{Hil, Scenario, SimClock};
+//! use exocal_bus::{InProcessBus, SimClock};
+//! use exocal_hil::{Hil, Scenario};
 //! let mut hil = Hil::new(Scenario::paper(), std::path::Path::new("/tmp/exocal-flash"))?;
 //! // Simulated time starts with the clock: make it right before `run`.
 //! let clock = SimClock::new(20.0).expect("positive speed");
@@ -22,17 +23,15 @@
 //! ```
 
 pub mod capture;
-pub mod clock;
 pub mod flash;
 pub mod motion;
 pub mod scenario;
 pub mod sim;
 
-pub use clock::SimClock;
 pub use scenario::{Scenario, ScenarioError};
 pub use sim::{Kind, Stats, Suit};
 
-use exocal_bus::{BusError, Transport};
+use exocal_bus::{BusError, SimClock, Transport};
 use exocal_dbc::NodeId;
 use std::path::Path;
 use std::time::{Duration, Instant};

@@ -2,8 +2,8 @@
 
 use anyhow::Context;
 use clap::Parser;
-use exocal_bus::SocketCan;
-use exocal_hil::{Hil, Scenario, SimClock};
+use exocal_bus::{SimClock, SocketCan};
+use exocal_hil::{Hil, Scenario};
 use std::path::PathBuf;
 
 /// Emulates the exocal suit's IMU nodes (7 joints + end-effector reference) on a CAN interface.
@@ -14,9 +14,9 @@ use std::path::PathBuf;
 #[derive(Parser, Debug)]
 #[command(version, about)]
 struct Cli {
-    /// CAN interface (e.g. vcan0, can0).
-    #[arg(long)]
-    iface: String,
+    /// CAN interface (e.g. vcan0, can0); not needed with --print-scenario.
+    #[arg(long, required_unless_present = "print_scenario")]
+    iface: Option<String>,
     /// Scenario TOML file (default: the paper's Section 4, scenarios/paper.toml).
     #[arg(long)]
     scenario: Option<PathBuf>,
@@ -54,19 +54,20 @@ fn main() -> anyhow::Result<()> {
         print!("{}", toml::to_string(&scenario)?);
         return Ok(());
     }
+    let iface = cli.iface.context("--iface is required")?;
     let clock = SimClock::new(cli.speed)
         .with_context(|| format!("--speed must be positive, got {}", cli.speed))?;
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
     rt.block_on(async {
-        let mut bus = SocketCan::open(&cli.iface)?;
+        let mut bus = SocketCan::open(&iface)?;
         let mut hil = Hil::new(scenario, &cli.flash_dir)?;
         let clock = SimClock::new(clock.speed()).expect("checked above");
         eprintln!(
             "exocal-hil: playing {} on {} at {}x",
             hil.suit().scenario().name,
-            cli.iface,
+            iface,
             clock.speed()
         );
         let report = hil.run(&mut bus, &clock).await?;

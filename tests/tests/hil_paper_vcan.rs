@@ -5,9 +5,10 @@
 //! Needs vcan0 (run through `cargo xtask vcan -- <this binary>`), and the cantools venv made on
 //! the host beforehand by `sh dbc/tools/pyenv.sh` (the guest has no network).
 
+use exocal_bus::SimClock;
 use exocal_bus::{SocketCan, Transport};
 use exocal_hil::capture::{candump_line, record};
-use exocal_hil::{Hil, Scenario, SimClock};
+use exocal_hil::{Hil, Scenario};
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::process::Command;

@@ -18,11 +18,12 @@
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
+use exocal_bus::SimClock;
 use exocal_bus::SocketCan;
 use exocal_dbc::table::{Field, Table};
 use exocal_dbc::NodeId;
 use exocal_hil::scenario::{Babble, ClockJump, Reboot, Scenario, TransferBehaviour, TransferFault};
-use exocal_hil::{Hil, SimClock};
+use exocal_hil::Hil;
 use exocald::config::{Config, PushPolicy};
 use exocald::push::{push_tables, Holds};
 use exocald::report::{Notifier, Reporter};
@@ -138,7 +139,7 @@ async fn push_run(seed: u64, tally: &mut Tally) {
     let mut ignore = |_: bool, _: &exocal_bus::Frame, _: Duration| {};
     let report = push_tables(
         &mut daemon_sock,
-        &exocald::app::wall_clock(),
+        &exocal_bus::Clock::Wall,
         &tables,
         &policy,
         (seed * 40 % 256) as u8,
@@ -331,7 +332,7 @@ async fn run_row(row: &Row) -> (Vec<String>, String) {
     let started = Instant::now();
     let result = run_session(
         &mut daemon_sock,
-        &exocald::app::wall_clock(),
+        &exocal_bus::Clock::Wall,
         &config,
         false,
         shutdown.wait(),
