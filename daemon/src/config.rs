@@ -24,6 +24,33 @@ pub const JOINTS: usize = 7;
 /// The configuration shipped with the daemon (`daemon/exocald.toml`).
 pub const DEFAULT_TOML: &str = include_str!("../exocald.toml");
 
+/// Upper bounds of the numeric keys: beyond them a value is a typo or an attack, never a suit's
+/// setting, and some would exhaust memory or overflow arithmetic downstream (`grid_hz = 1e12`
+/// asked an offline run for 480 TB). `check-config` rejects them, naming the key and its line.
+pub mod limits {
+    /// Longest collection window, s: a day (the ingest benchmark's endless session fits; a suit
+    /// collects a minute or two).
+    pub const MAX_DURATION_S: f64 = 86_400.0;
+    /// Fastest resampling grid, Hz: a 1 Mbit/s bus carries at most about 1 kHz per node.
+    pub const MAX_GRID_HZ: f64 = 1_000.0;
+    /// Longest tolerated hole in a stream, s.
+    pub const MAX_GAP_S: f64 = 10.0;
+    /// Largest |a|, |d| and bound on them, m: an arm, not a crane.
+    pub const MAX_LENGTH_M: f64 = 10.0;
+    /// Largest |angle| anywhere in the file, degrees.
+    pub const MAX_ANGLE_DEG: f64 = 360.0;
+    /// Largest deviation bound of alpha or the joint offset from nominal, degrees.
+    pub const MAX_DEVIATION_DEG: f64 = 180.0;
+    /// Largest acceptable condition number.
+    pub const MAX_CONDITION_NUMBER: f64 = 1.0e12;
+    /// Most push attempts after the first.
+    pub const MAX_RETRIES: u32 = 100;
+    /// Longest wait for a node's answer, ms (also keeps `timeout_ms * 1000` far from overflow).
+    pub const MAX_TIMEOUT_MS: u64 = 60_000;
+    /// Longest backoff between push attempts, ms.
+    pub const MAX_BACKOFF_MS: u64 = 600_000;
+}
+
 /// One row of a D-H table, SI units (metres, radians).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct DhRow {
@@ -452,6 +479,38 @@ impl Checker<'_> {
         }
     }
 
+    /// `0 < x <= max`.
+    fn positive_at_most(&self, key: &str, x: f64, max: f64) -> Result<f64, ConfigError> {
+        if self.positive(key, x)? <= max {
+            Ok(x)
+        } else {
+            Err(self.err(key, format!("{x} is above the limit {max}")))
+        }
+    }
+
+    /// `|x| <= max`.
+    fn magnitude_at_most(&self, key: &str, x: f64, max: f64) -> Result<f64, ConfigError> {
+        if self.finite(key, x)?.abs() <= max {
+            Ok(x)
+        } else {
+            Err(self.err(key, format!("{x} is outside the limit ±{max}")))
+        }
+    }
+
+    /// `x <= max` for an integer key.
+    fn count_at_most<T: PartialOrd + fmt::Display>(
+        &self,
+        key: &str,
+        x: T,
+        max: T,
+    ) -> Result<T, ConfigError> {
+        if x <= max {
+            Ok(x)
+        } else {
+            Err(self.err(key, format!("{x} is above the limit {max}")))
+        }
+    }
+
     /// `lo < x <= hi` (`lo_open`) or `lo <= x <= hi`.
     fn fraction(&self, key: &str, x: f64, hi_inclusive: bool) -> Result<f64, ConfigError> {
         let ok = self.finite(key, x)? > 0.0 && (x < 1.0 || (hi_inclusive && x == 1.0));
@@ -468,12 +527,13 @@ impl Checker<'_> {
         key: &str,
         pairs: &[Pair; JOINTS],
         scale: f64,
+        limit: f64,
     ) -> Result<[Interval; JOINTS], ConfigError> {
         let mut out = [Interval { min: 0.0, max: 0.0 }; JOINTS];
         for (i, [lo, hi]) in pairs.iter().copied().enumerate() {
             let k = format!("{key}[{i}]");
-            self.finite(&k, lo)?;
-            self.finite(&k, hi)?;
+            self.magnitude_at_most(&k, lo, limit)?;
+            self.magnitude_at_most(&k, hi, limit)?;
             if lo >= hi {
                 return Err(self.err(k, format!("min {lo} must be below max {hi}")));
             }
@@ -486,6 +546,7 @@ impl Checker<'_> {
     }
 
     fn build(&self, raw: RawConfig) -> Result<Config, ConfigError> {
+        use limits::*;
         let deg = std::f64::consts::PI / 180.0;
 
         let interface = raw.can.interface;
@@ -528,22 +589,40 @@ impl Checker<'_> {
         for (i, row) in nominal.iter_mut().enumerate() {
             *row = DhRow {
                 a: self.finite(&format!("nominal.a[{i}]"), n.a[i])?,
-                alpha: self.finite(&format!("nominal.alpha_deg[{i}]"), n.alpha_deg[i])? * deg,
+                alpha: self.magnitude_at_most(
+                    &format!("nominal.alpha_deg[{i}]"),
+                    n.alpha_deg[i],
+                    MAX_ANGLE_DEG,
+                )? * deg,
                 d: self.finite(&format!("nominal.d[{i}]"), n.d[i])?,
-                offset: self.finite(&format!("nominal.offset_deg[{i}]"), n.offset_deg[i])? * deg,
+                offset: self.magnitude_at_most(
+                    &format!("nominal.offset_deg[{i}]"),
+                    n.offset_deg[i],
+                    MAX_ANGLE_DEG,
+                )? * deg,
             };
         }
 
         let b = &raw.bounds;
         let bounds = Bounds {
-            a: self.intervals("bounds.a", &b.a, 1.0)?,
-            d: self.intervals("bounds.d", &b.d, 1.0)?,
-            alpha_deviation: self.positive("bounds.alpha_deviation_deg", b.alpha_deviation_deg)?
-                * deg,
-            offset_deviation: self
-                .positive("bounds.offset_deviation_deg", b.offset_deviation_deg)?
-                * deg,
-            joint_range: self.intervals("bounds.joint_range_deg", &b.joint_range_deg, deg)?,
+            a: self.intervals("bounds.a", &b.a, 1.0, MAX_LENGTH_M)?,
+            d: self.intervals("bounds.d", &b.d, 1.0, MAX_LENGTH_M)?,
+            alpha_deviation: self.positive_at_most(
+                "bounds.alpha_deviation_deg",
+                b.alpha_deviation_deg,
+                MAX_DEVIATION_DEG,
+            )? * deg,
+            offset_deviation: self.positive_at_most(
+                "bounds.offset_deviation_deg",
+                b.offset_deviation_deg,
+                MAX_DEVIATION_DEG,
+            )? * deg,
+            joint_range: self.intervals(
+                "bounds.joint_range_deg",
+                &b.joint_range_deg,
+                deg,
+                MAX_ANGLE_DEG,
+            )?,
         };
         for (i, row) in nominal.iter().enumerate() {
             if !bounds.a[i].contains(row.a) {
@@ -562,16 +641,24 @@ impl Checker<'_> {
 
         let s = &raw.session;
         let session = SessionRules {
-            min_duration_s: self.positive("session.min_duration_s", s.min_duration_s)?,
-            max_duration_s: self.positive("session.max_duration_s", s.max_duration_s)?,
+            min_duration_s: self.positive_at_most(
+                "session.min_duration_s",
+                s.min_duration_s,
+                MAX_DURATION_S,
+            )?,
+            max_duration_s: self.positive_at_most(
+                "session.max_duration_s",
+                s.max_duration_s,
+                MAX_DURATION_S,
+            )?,
             excitation_required: self.fraction(
                 "session.excitation_required",
                 s.excitation_required,
                 true,
             )?,
             min_samples: s.min_samples,
-            grid_hz: self.positive("session.grid_hz", s.grid_hz)?,
-            max_gap_s: self.positive("session.max_gap_s", s.max_gap_s)?,
+            grid_hz: self.positive_at_most("session.grid_hz", s.grid_hz, MAX_GRID_HZ)?,
+            max_gap_s: self.positive_at_most("session.max_gap_s", s.max_gap_s, MAX_GAP_S)?,
         };
         if session.max_duration_s < session.min_duration_s {
             return Err(self.err(
@@ -585,6 +672,18 @@ impl Checker<'_> {
         if session.min_samples == 0 {
             return Err(self.err("session.min_samples", "must be at least 1"));
         }
+        // The grid holds at most grid_hz × max_duration_s samples: more can never be collected.
+        let reachable = session.grid_hz * session.max_duration_s;
+        if session.min_samples as f64 > reachable {
+            return Err(self.err(
+                "session.min_samples",
+                format!(
+                    "{} can never be collected: at most session.grid_hz × session.max_duration_s \
+                     = {reachable:.0} samples",
+                    session.min_samples
+                ),
+            ));
+        }
         if session.max_gap_s * session.grid_hz < 1.0 {
             return Err(self.err(
                 "session.max_gap_s",
@@ -597,8 +696,11 @@ impl Checker<'_> {
 
         let v = &raw.validation;
         let validation = ValidationRules {
-            max_condition_number: self
-                .positive("validation.max_condition_number", v.max_condition_number)?,
+            max_condition_number: self.positive_at_most(
+                "validation.max_condition_number",
+                v.max_condition_number,
+                MAX_CONDITION_NUMBER,
+            )?,
             holdout_fraction: self.fraction(
                 "validation.holdout_fraction",
                 v.holdout_fraction,
@@ -634,27 +736,35 @@ impl Checker<'_> {
         };
 
         let p = raw.push;
-        if p.backoff_initial_ms == 0 {
+        let push = PushPolicy {
+            retries: self.count_at_most("push.retries", p.retries, MAX_RETRIES)?,
+            backoff_initial_ms: self.count_at_most(
+                "push.backoff_initial_ms",
+                p.backoff_initial_ms,
+                MAX_BACKOFF_MS,
+            )?,
+            backoff_max_ms: self.count_at_most(
+                "push.backoff_max_ms",
+                p.backoff_max_ms,
+                MAX_BACKOFF_MS,
+            )?,
+            timeout_ms: self.count_at_most("push.timeout_ms", p.timeout_ms, MAX_TIMEOUT_MS)?,
+        };
+        if push.backoff_initial_ms == 0 {
             return Err(self.err("push.backoff_initial_ms", "must be at least 1"));
         }
-        if p.backoff_max_ms < p.backoff_initial_ms {
+        if push.backoff_max_ms < push.backoff_initial_ms {
             return Err(self.err(
                 "push.backoff_max_ms",
                 format!(
                     "{} is below push.backoff_initial_ms = {}",
-                    p.backoff_max_ms, p.backoff_initial_ms
+                    push.backoff_max_ms, push.backoff_initial_ms
                 ),
             ));
         }
-        if p.timeout_ms == 0 {
+        if push.timeout_ms == 0 {
             return Err(self.err("push.timeout_ms", "must be at least 1"));
         }
-        let push = PushPolicy {
-            retries: p.retries,
-            backoff_initial_ms: p.backoff_initial_ms,
-            backoff_max_ms: p.backoff_max_ms,
-            timeout_ms: p.timeout_ms,
-        };
 
         Ok(Config {
             interface,
@@ -878,6 +988,86 @@ mod tests {
             [1, 2, 3, 4, 5, 6, 60].map(|r| p.backoff_ms(r)),
             [100, 200, 400, 800, 1600, 2000, 2000]
         );
+    }
+
+    /// Every numeric key has an upper bound: just past it, the key is named with its line.
+    #[test]
+    fn every_numeric_key_has_an_upper_bound() {
+        let cases = [
+            (
+                "min_duration_s = 60.0",
+                "min_duration_s = 90000.0",
+                "session.min_duration_s",
+            ),
+            (
+                "max_duration_s = 180.0",
+                "max_duration_s = 86401.0",
+                "session.max_duration_s",
+            ),
+            ("grid_hz = 100.0", "grid_hz = 1e12", "session.grid_hz"),
+            ("max_gap_s = 0.05", "max_gap_s = 11.0", "session.max_gap_s"),
+            (
+                "min_samples = 1000",
+                "min_samples = 18001",
+                "session.min_samples",
+            ),
+            (
+                "max_condition_number = 1.0e4",
+                "max_condition_number = 1.0e13",
+                "validation.max_condition_number",
+            ),
+            ("retries = 3", "retries = 4294967295", "push.retries"),
+            (
+                "timeout_ms = 500",
+                "timeout_ms = 9223372036854775807",
+                "push.timeout_ms",
+            ),
+            (
+                "backoff_max_ms = 2000",
+                "backoff_max_ms = 600001",
+                "push.backoff_max_ms",
+            ),
+            (
+                "backoff_initial_ms = 100",
+                "backoff_initial_ms = 600001",
+                "push.backoff_initial_ms",
+            ),
+            (
+                "alpha_deviation_deg = 10.0",
+                "alpha_deviation_deg = 181.0",
+                "bounds.alpha_deviation_deg",
+            ),
+            (
+                "offset_deviation_deg = 15.0",
+                "offset_deviation_deg = 1e300",
+                "bounds.offset_deviation_deg",
+            ),
+            (
+                "joint_range_deg = [[-90.0, 90.0],",
+                "joint_range_deg = [[-90.0, 361.0],",
+                "bounds.joint_range_deg[0]",
+            ),
+        ];
+        for (from, to, want) in cases {
+            let text = edited(from, to);
+            let (key, line, message) = invalid(&text);
+            assert_eq!(key, want, "{to}: {message}");
+            assert!(
+                message.contains("limit") || message.contains("never"),
+                "{message}"
+            );
+            let needle = to.split(" = ").next().unwrap();
+            assert_eq!(
+                line,
+                Some(line_containing(&text, &format!("{needle} ="))),
+                "{to}"
+            );
+        }
+        // At the limits themselves the file is valid.
+        let at = edited("grid_hz = 100.0", "grid_hz = 1000.0");
+        let at = at.replace("retries = 3", "retries = 100");
+        let at = at.replace("timeout_ms = 500", "timeout_ms = 60000");
+        assert!(Config::parse(&at).is_ok());
     }
 
     #[test]

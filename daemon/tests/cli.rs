@@ -37,6 +37,29 @@ fn a_bad_config_exits_78_naming_the_key_and_line() {
     }
 }
 
+/// A value past its key's upper bound is refused before anything allocates for it (`grid_hz =
+/// 1e12` once made `offline` ask for 480 TB and abort with 134).
+#[test]
+fn an_absurd_value_exits_78_before_any_work() {
+    let text = exocald::config::DEFAULT_TOML.replace("grid_hz = 100.0", "grid_hz = 1e12");
+    let line = text.lines().position(|l| l.starts_with("grid_hz")).unwrap() + 1;
+    let path = temp("huge.toml", &text);
+    let csv = temp("samples.csv", "t,q1,q2,q3,q4,q5,q6,q7,x,y,z,qw,qx,qy,qz\n");
+    let config = path.to_str().unwrap();
+    for args in [
+        vec!["--config", config, "check-config"],
+        vec!["--config", config, "offline", "--input", csv.to_str().unwrap()],
+    ] {
+        let (code, _, err) = exocald(&args);
+        assert_eq!(code, 78, "{args:?}: {err}");
+        assert!(
+            err.contains(&format!(":{line}: key `session.grid_hz`"))
+                && err.contains("above the limit 1000"),
+            "{args:?}: {err}"
+        );
+    }
+}
+
 #[test]
 fn a_missing_interface_is_a_clear_error() {
     let (code, _, err) = exocald(&["calibrate", "--interface", "vcan93"]);
