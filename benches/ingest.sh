@@ -66,7 +66,7 @@ load)
     shift
     config=/tmp/ingest-exocald.toml
     "$bin/exocald" check-config --print-default |
-        sed 's/^min_duration_s = .*/min_duration_s = 100000.0/; s/^max_duration_s = .*/max_duration_s = 200000.0/' >"$config"
+        sed 's/^min_duration_s = .*/min_duration_s = 86000.0/; s/^max_duration_s = .*/max_duration_s = 86400.0/' >"$config"
     sh "$0" ref "$bin"
     for speed in "$@"; do
         w=/tmp/ingest-$speed
