@@ -1,4 +1,4 @@
-//! The first-order Gauss-Markov drift model of eqs. (7)–(8) (ERRATA item 6).
+//! The first-order Gauss-Markov drift model of eqs. (7)–(8) (paper note 6).
 //!
 //! The joint-angle error follows `x_{k+1} = φ x_k + ρ_k`, `φ = e^{−Δt/τ}`, with
 //! * [`Discretisation::Paper`] (default, the paper's eq. 8): `Var ρ = Δt²·σ²·(1 − φ)`, whose

@@ -1,5 +1,5 @@
 //! calib-core: D-H kinematics, least-squares identification and EM drift calibration for the
-//! exocal 7-DoF upper-limb exoskeleton (after Qin et al. 2024, with the fixes of ERRATA.md).
+//! exocal 7-DoF upper-limb exoskeleton (after Qin et al. 2024, with the corrections of docs/paper.md).
 //!
 //! `no_std` without the default `std` feature, no `unsafe`, no allocation: every buffer is a
 //! const-generic array or a caller-provided slice. All arithmetic is `f64`.

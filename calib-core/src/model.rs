@@ -202,7 +202,7 @@ fn paper_table(a: [f64; 7], alpha_deg: [f64; 7], d: [f64; 7]) -> DhTable<7> {
 }
 
 impl DhTable<7> {
-    /// The paper's Table 1 (nominal suit). `α_1 = 270°` is stored as `−90°` (ERRATA item 5).
+    /// The paper's Table 1 (nominal suit). `α_1 = 270°` is stored as `−90°` (paper note 5).
     pub fn paper_nominal() -> Self {
         paper_table(
             [0.04, 0.04, 0.431, 0.244, 0.0, 0.0, 0.0],
@@ -285,7 +285,7 @@ impl<const N: usize> DhTable<N> {
             let (sa, ca) = libm::sincos(row.alpha);
             let ex = Vector3::new(1.0, 0.0, 0.0);
             let z_local = Vector3::new(0.0, sa, ca);
-            // Local twists in frame i (post-multiplied), see ERRATA items 1-2.
+            // Local twists in frame i (post-multiplied), see paper notes 1-2.
             let twists: [(Vector3<f64>, Vector3<f64>); 4] = [
                 (ex, Vector3::zeros()),
                 (z_local, Vector3::zeros()),
@@ -455,7 +455,7 @@ pub struct JointRanges<const N: usize> {
 }
 
 impl JointRanges<7> {
-    /// The paper's Table 3, with ERRATA item 5 (θ5 ∈ [−20°, 30°], θ6 ∈ [−30°, 40°]).
+    /// The paper's Table 3, with paper note 5 (θ5 ∈ [−20°, 30°], θ6 ∈ [−30°, 40°]).
     pub fn paper() -> Self {
         let deg = [
             (-90.0, 90.0),

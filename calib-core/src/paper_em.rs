@@ -1,4 +1,4 @@
-//! The paper's EM (eqs. 11, 33–36), literally, with the fixes of ERRATA items 7–8.
+//! The paper's EM (eqs. 11, 33–36), literally, with the fixes of paper notes 7–8.
 //!
 //! After LS, the geometric errors Δζ (a, d, α) are compensated and the remaining pose error of
 //! eq. (37), `z_k = pose_error(FK(ζ + Δζ, θ_k), measured_k)`, is modelled as a mixture over the
@@ -8,7 +8,7 @@
 //! * [`PaperEmForm::Vector`]: the whole 6-vector with a full 6 × 6 Σ_i.
 //!
 //! E-step: responsibilities (33). M-step: π_i = N_i / K (36); the mean uses the exact
-//! weighted-least-squares update of ERRATA item 8, `μ_i = Σγ κᵀ W z / Σγ κᵀ W κ` with `W = 1`
+//! weighted-least-squares update of paper note 8, `μ_i = Σγ κᵀ W z / Σγ κᵀ W κ` with `W = 1`
 //! (scalar) or `W = Σ_i⁻¹` of the previous iteration (vector form: an ECM step, still
 //! monotone); Σ_i from (35) with the new mean, its eigenvalues floored at `variance_floor`
 //! times the data variance. The initial means are the LS Δθ, the final estimate is the paper's
