@@ -48,7 +48,13 @@ fn an_absurd_value_exits_78_before_any_work() {
     let config = path.to_str().unwrap();
     for args in [
         vec!["--config", config, "check-config"],
-        vec!["--config", config, "offline", "--input", csv.to_str().unwrap()],
+        vec![
+            "--config",
+            config,
+            "offline",
+            "--input",
+            csv.to_str().unwrap(),
+        ],
     ] {
         let (code, _, err) = exocald(&args);
         assert_eq!(code, 78, "{args:?}: {err}");
