@@ -352,8 +352,9 @@ fn check_config(path: Option<&Path>, args: &CheckConfigArgs) -> Result<(), Daemo
         return Ok(());
     }
     let (config, source) = resolve_config(path, Path::new(SYSTEM_CONFIG))?;
-    println!("configuration from {source}: valid");
-    println!("{config:#?}");
+    println!("# configuration from {source}: valid");
+    println!("# the effective values, in the file's units (degrees, seconds, metres):");
+    print!("{}", config.to_toml());
     Ok(())
 }
 

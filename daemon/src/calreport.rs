@@ -15,7 +15,7 @@
 use std::path::{Path, PathBuf};
 
 use exocal_report::{
-    Calibration, Quality, ReportInput, StreamQuality, TimedSample, VerdictSummary,
+    Calibration, Quality, ReportInput, SessionInput, StreamQuality, TimedSample, VerdictSummary,
 };
 
 use crate::align::AlignedSample;
@@ -158,4 +158,22 @@ pub fn sample_quality(config: &Config, samples: &[AlignedSample]) -> Quality {
 /// Renders `input` and writes it to `path`.
 pub fn write(path: &Path, input: &ReportInput) -> std::io::Result<()> {
     std::fs::write(path, exocal_report::html::render(input))
+}
+
+/// The report of a session that was not calibrated (`reasons`: the session rules it did not
+/// meet), with the data it had.
+pub fn session_input(
+    title: String,
+    source: String,
+    samples: &[AlignedSample],
+    reasons: Vec<String>,
+    quality: Quality,
+) -> SessionInput {
+    SessionInput {
+        title,
+        source,
+        reasons,
+        samples: timed(samples),
+        quality,
+    }
 }

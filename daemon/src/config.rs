@@ -779,14 +779,104 @@ impl Checker<'_> {
     }
 }
 
+// ---- writing ----------------------------------------------------------------------------------
+
+impl Config {
+    /// The configuration as a TOML file in the file's own units (degrees, seconds, metres),
+    /// the sections and keys in the order of [`DEFAULT_TOML`], without comments: what
+    /// `check-config` prints, and what [`Config::parse`] reads back to the same configuration.
+    pub fn to_toml(&self) -> String {
+        use std::fmt::Write as _;
+        // Radians back to the file's degrees, rounded to 1e-9 degrees so that a value written as
+        // 90.0 prints as 90 and not as 90.00000000000001.
+        let deg = |r: f64| ((r / (std::f64::consts::PI / 180.0)) * 1e9).round() / 1e9;
+        let list = |v: &mut dyn Iterator<Item = String>| v.collect::<Vec<_>>().join(", ");
+        let num = |x: f64| format!("{x:?}");
+        let pairs = |v: &[Interval; JOINTS], scale: &dyn Fn(f64) -> f64| {
+            list(
+                &mut v
+                    .iter()
+                    .map(|i| format!("[{}, {}]", num(scale(i.min)), num(scale(i.max)))),
+            )
+        };
+        let text = |s: &str| toml::Value::String(s.to_string()).to_string();
+        let n = &self.nominal;
+        let b = &self.bounds;
+        let s = &self.session;
+        let v = &self.validation;
+        let p = &self.push;
+        let mut out = String::new();
+        let w = &mut out;
+        // Writing into a String cannot fail.
+        let _ = writeln!(w, "[can]\ninterface = {}\n", text(&self.interface));
+        let _ = writeln!(
+            w,
+            "[nodes]\njoints = [{}]\n",
+            list(&mut self.joint_nodes.iter().map(|j| j.to_string()))
+        );
+        let _ = writeln!(
+            w,
+            "[nominal]\na = [{}]\nalpha_deg = [{}]\nd = [{}]\noffset_deg = [{}]\n",
+            list(&mut n.iter().map(|r| num(r.a))),
+            list(&mut n.iter().map(|r| num(deg(r.alpha)))),
+            list(&mut n.iter().map(|r| num(r.d))),
+            list(&mut n.iter().map(|r| num(deg(r.offset)))),
+        );
+        let _ = writeln!(
+            w,
+            "[bounds]\na = [{}]\nd = [{}]\nalpha_deviation_deg = {}\noffset_deviation_deg = {}\n\
+             joint_range_deg = [{}]\n",
+            pairs(&b.a, &|x| x),
+            pairs(&b.d, &|x| x),
+            num(deg(b.alpha_deviation)),
+            num(deg(b.offset_deviation)),
+            pairs(&b.joint_range, &deg),
+        );
+        let _ = writeln!(
+            w,
+            "[session]\nmin_duration_s = {}\nmax_duration_s = {}\nexcitation_required = {}\n\
+             min_samples = {}\ngrid_hz = {}\nmax_gap_s = {}\n",
+            num(s.min_duration_s),
+            num(s.max_duration_s),
+            num(s.excitation_required),
+            s.min_samples,
+            num(s.grid_hz),
+            num(s.max_gap_s),
+        );
+        let _ = writeln!(
+            w,
+            "[validation]\nmax_condition_number = {}\nholdout_fraction = {}\nmin_improvement = {}\n",
+            num(v.max_condition_number),
+            num(v.holdout_fraction),
+            num(v.min_improvement),
+        );
+        let _ = writeln!(
+            w,
+            "[output]\ndirectory = {}\nflush_interval_s = {}\n",
+            text(&self.output.directory.to_string_lossy()),
+            num(self.output.flush_interval_s),
+        );
+        let _ = write!(
+            w,
+            "[push]\nretries = {}\nbackoff_initial_ms = {}\nbackoff_max_ms = {}\ntimeout_ms = {}\n",
+            p.retries, p.backoff_initial_ms, p.backoff_max_ms, p.timeout_ms,
+        );
+        out
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     /// The default text with `from` replaced by `to` (which must occur exactly once).
     fn edited(from: &str, to: &str) -> String {
-        assert_eq!(DEFAULT_TOML.matches(from).count(), 1, "`{from}` not unique");
-        DEFAULT_TOML.replace(from, to)
+        edited_in(DEFAULT_TOML, from, to)
+    }
+
+    fn edited_in(text: &str, from: &str, to: &str) -> String {
+        assert_eq!(text.matches(from).count(), 1, "`{from}` not unique");
+        text.replace(from, to)
     }
 
     fn line_containing(text: &str, needle: &str) -> usize {
@@ -821,6 +911,43 @@ mod tests {
         assert!((c.bounds.joint_range[4].min + 20f64.to_radians()).abs() < 1e-12);
         assert_eq!(c.push.retries, 3);
         assert_eq!(Config::default_config(), c);
+    }
+
+    #[test]
+    fn to_toml_speaks_degrees_and_reads_back_to_the_same_configuration() {
+        let edits = [
+            ("alpha_deviation_deg = 10.0", "alpha_deviation_deg = 7.25"),
+            ("interface = \"can0\"", "interface = \"vcan0\""),
+            (
+                "max_condition_number = 1.0e4",
+                "max_condition_number = 2.5e11",
+            ),
+            ("d          = [0.0,", "d          = [1.0e-7,"),
+            (
+                "directory = \"/var/lib/exocald\"",
+                "directory = 'C:\\odd \"dir\"'",
+            ),
+        ];
+        let mut text = DEFAULT_TOML.to_string();
+        for (from, to) in edits {
+            text = edited_in(&text, from, to);
+        }
+        for source in [DEFAULT_TOML, text.as_str()] {
+            let c = Config::parse(source).unwrap();
+            let written = c.to_toml();
+            assert_eq!(Config::parse(&written).unwrap(), c, "{written}");
+            assert_eq!(Config::parse(&written).unwrap().to_toml(), written);
+        }
+        let shown = Config::default_config().to_toml();
+        assert!(
+            shown.contains("alpha_deg = [-90.0, 90.0, 90.0, -90.0, 90.0, 90.0, 90.0]"),
+            "{shown}"
+        );
+        assert!(
+            shown.contains("joint_range_deg = [[-90.0, 90.0], [-120.0, 30.0]"),
+            "{shown}"
+        );
+        assert!(shown.contains("offset_deviation_deg = 15.0"), "{shown}");
     }
 
     #[test]

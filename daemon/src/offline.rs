@@ -15,12 +15,17 @@
 //! - CSV samples (`t,q1,…,q7,x,y,z,qw,qx,qy,qz`, see [`exocal_report::readers`]) bypass
 //!   alignment; the EM steps at the file's median sample interval (`session.grid_hz` when they
 //!   agree to [`CSV_RATE_TOLERANCE`]);
+//! - the recording is judged by the live session's rules (`[session]`: `min_duration_s`, give or
+//!   take [`DURATION_SLACK_S`], every joint's excitation, `min_samples`): one the live daemon
+//!   would not have calibrated is not calibrated here either ([`replay`] names what it misses);
 //! - the outcome is judged as live: [`DaemonError::Validation`] (65) if validation refuses,
-//!   [`DaemonError::Session`] (66) if there are too few samples; unreadable input is
+//!   [`DaemonError::Session`] (66) if the session rules are not met; unreadable input is
 //!   [`DaemonError::Io`] (74), bad input [`DaemonError::Input`] (65) naming the file, the line
 //!   and the problem. Nothing here panics on any input;
-//! - the report is always written (also for a refused table, which it shows as refused); the
-//!   TOML and URDF exports only for a validated table.
+//! - the report is always written once the input is read: for a refused table it shows the
+//!   table as refused, for a recording that misses the session rules (66) it says which and
+//!   shows the data's quality and excitation; the TOML and URDF exports only for a validated
+//!   table.
 
 use std::path::{Path, PathBuf};
 
@@ -34,8 +39,9 @@ use crate::align::{AlignedSample, Pose};
 use crate::calibrate::{self, Outcome};
 use crate::config::Config;
 use crate::exit::DaemonError;
-use crate::ingest::{ClockReport, FrameStats, Ingest};
+use crate::ingest::{ClockReport, Event, FrameStats, Ingest};
 use crate::runner::{SessionError, SessionSummary};
+use crate::session::{Phase, Session};
 
 /// What the input file is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -157,6 +163,29 @@ pub fn received(f: &RecordedFrame) -> Option<Received> {
     })
 }
 
+/// How much shorter than `session.min_duration_s` a recording may be and still count as that
+/// long: a live window runs from the daemon's start to the tick that ends it, a recording from
+/// its first to its last frame (or CSV sample), which starts a little later.
+pub const DURATION_SLACK_S: f64 = 1.0;
+
+/// The input as the live session would have collected it, before calibrating.
+#[derive(Debug, Clone)]
+pub struct Replay {
+    pub frames: FrameStats,
+    pub clocks: Vec<ClockReport>,
+    /// The samples the calibration runs on (aligned, or the CSV's).
+    pub samples: Vec<AlignedSample>,
+    pub gaps: usize,
+    /// The configuration the calibration runs with (for CSV, `session.grid_hz` is the file's).
+    pub config: Config,
+    pub quality: Quality,
+    /// First to last frame (or CSV sample), seconds.
+    pub duration_s: f64,
+    /// The session rules (`[session]`) the recording does not meet, one line each: empty when
+    /// the live daemon would have calibrated it.
+    pub shortfalls: Vec<String>,
+}
+
 /// What a recalibration produced.
 #[derive(Debug, Clone)]
 pub struct Recalibration {
@@ -185,27 +214,71 @@ fn aligned_of(s: &TimedSample) -> AlignedSample {
     }
 }
 
-/// Runs the pipeline on `input` (see the module docs).
-pub fn recalibrate(input: &Input, config: &Config) -> Result<Recalibration, DaemonError> {
+/// The session rules `session` (fed with the whole recording, `duration_s` long) does not
+/// meet, as the live session would judge them when the recording ends.
+fn shortfalls(session: &Session, config: &Config, duration_s: f64) -> Vec<String> {
+    let rules = &config.session;
+    match session.phase(duration_s + DURATION_SLACK_S) {
+        Phase::Ready => Vec::new(),
+        Phase::Failed(why) => why,
+        Phase::Collecting => {
+            let mut why = session.shortfalls();
+            if duration_s + DURATION_SLACK_S < rules.min_duration_s {
+                why.insert(
+                    0,
+                    format!(
+                        "the recording is {duration_s:.1} s long; session.min_duration_s is {} s \
+                         (a live session would still be collecting)",
+                        rules.min_duration_s
+                    ),
+                );
+            }
+            why
+        }
+    }
+}
+
+/// Replays `input` through ingest and alignment (frames) or takes its samples (CSV), and
+/// judges it by the session rules (see the module docs).
+pub fn replay(input: &Input, config: &Config) -> Result<Replay, DaemonError> {
     let mut config = config.clone();
-    let (samples, frames, clocks, gaps, rates) = match input {
+    let mut session = Session::new(config.session.clone(), config.bounds.joint_range);
+    match input {
         Input::Frames(recorded) => {
             let mut ingest = Ingest::new(config.joint_nodes);
             for (i, f) in recorded.iter().enumerate() {
                 let rx = received(f).ok_or_else(|| {
                     DaemonError::Input(format!("frame {}: identifier {:#x} invalid", i + 1, f.id))
                 })?;
-                ingest.on_frame(&rx);
+                match ingest.on_frame(&rx) {
+                    Event::Joint { joint, angle, .. } => session.joint_sample(joint, angle),
+                    Event::Pose(_) => session.pose_sample(),
+                    _ => {}
+                }
             }
+            let duration_s = match (recorded.first(), recorded.last()) {
+                (Some(a), Some(b)) => b.t.saturating_sub(a.t).as_secs_f64(),
+                _ => 0.0,
+            };
             let (aligned, clocks) = crate::runner::align_session(&ingest, &config);
-            let rates = ingest.stream_rates();
-            (
-                aligned.samples,
-                ingest.stats().clone(),
-                clocks,
+            let quality = crate::calreport::frame_quality(
+                &config,
+                ingest.stats(),
+                &clocks,
+                &ingest.stream_rates(),
+                &aligned.samples,
                 aligned.gaps,
-                Some(rates),
-            )
+            );
+            Ok(Replay {
+                frames: ingest.stats().clone(),
+                clocks,
+                samples: aligned.samples,
+                gaps: aligned.gaps,
+                shortfalls: shortfalls(&session, &config, duration_s),
+                config,
+                quality,
+                duration_s,
+            })
         }
         Input::Samples(csv) => {
             let mut steps: Vec<f64> = csv.windows(2).map(|w| w[1].t - w[0].t).collect();
@@ -218,27 +291,54 @@ pub fn recalibrate(input: &Input, config: &Config) -> Result<Recalibration, Daem
                     config.session.grid_hz = hz;
                 }
             }
+            for s in csv {
+                for (j, &q) in s.sample.joints.iter().enumerate() {
+                    session.joint_sample(j, q);
+                }
+                session.pose_sample();
+            }
+            let duration_s = match (csv.first(), csv.last()) {
+                (Some(a), Some(b)) => (b.t - a.t).max(0.0),
+                _ => 0.0,
+            };
             let samples: Vec<AlignedSample> = csv.iter().map(aligned_of).collect();
-            (samples, FrameStats::default(), Vec::new(), 0, None)
+            let quality = crate::calreport::sample_quality(&config, &samples);
+            Ok(Replay {
+                frames: FrameStats::default(),
+                clocks: Vec::new(),
+                samples,
+                gaps: 0,
+                shortfalls: shortfalls(&session, &config, duration_s),
+                config,
+                quality,
+                duration_s,
+            })
         }
-    };
-    let (outcome, detail) = calibrate::run_detailed(&samples, &config)
+    }
+}
+
+/// Runs the pipeline on `input` (see the module docs): [`replay`], then, if the recording meets
+/// the session rules, the calibration; [`DaemonError::Session`] naming every rule it misses
+/// otherwise.
+pub fn recalibrate(input: &Input, config: &Config) -> Result<Recalibration, DaemonError> {
+    calibrate_replay(replay(input, config)?)
+}
+
+fn calibrate_replay(r: Replay) -> Result<Recalibration, DaemonError> {
+    if !r.shortfalls.is_empty() {
+        return Err(DaemonError::Session(r.shortfalls.join("; ")));
+    }
+    let (outcome, detail) = calibrate::run_detailed(&r.samples, &r.config)
         .map_err(|e| DaemonError::Session(e.to_string()))?;
-    let quality = match rates {
-        Some(rates) => {
-            crate::calreport::frame_quality(&config, &frames, &clocks, &rates, &samples, gaps)
-        }
-        None => crate::calreport::sample_quality(&config, &samples),
-    };
     Ok(Recalibration {
-        frames,
-        clocks,
-        samples,
-        gaps,
-        config,
+        frames: r.frames,
+        clocks: r.clocks,
+        samples: r.samples,
+        gaps: r.gaps,
+        config: r.config,
         outcome,
         detail,
-        quality,
+        quality: r.quality,
     })
 }
 
@@ -300,7 +400,7 @@ pub fn run(
             path.display()
         );
     }
-    let r = recalibrate(&input, config)?;
+    let replayed = replay(&input, config)?;
     let report_path = opts
         .report
         .clone()
@@ -308,6 +408,48 @@ pub fn run(
     let name = path
         .file_name()
         .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    let write_report = |html: String| {
+        std::fs::write(&report_path, html).map_err(|source| DaemonError::Io {
+            what: format!("writing the report {}", report_path.display()),
+            source,
+        })
+    };
+    let unfinished = |r: &Replay| SessionSummary {
+        log_path: path.clone(),
+        log_counts: Vec::new(),
+        frames: r.frames.clone(),
+        clocks: r.clocks.clone(),
+        aligned_samples: r.samples.len(),
+        gaps: r.gaps,
+        outcome: None,
+        push: None,
+        report_path: Some(report_path.clone()),
+    };
+    let r = match calibrate_replay(replayed.clone()) {
+        Ok(r) => r,
+        Err(DaemonError::Session(why)) => {
+            // Not calibrated (the session rules, or too few samples): the report says why and
+            // shows the data, as a live session's would.
+            let reasons = if replayed.shortfalls.is_empty() {
+                vec![why.clone()]
+            } else {
+                replayed.shortfalls.clone()
+            };
+            let input = crate::calreport::session_input(
+                format!("exocald offline recalibration — {name}"),
+                format!("offline: {} ({format})", path.display()),
+                &replayed.samples,
+                reasons,
+                replayed.quality.clone(),
+            );
+            write_report(exocal_report::html::render_session(&input))?;
+            return Err(Box::new(SessionError {
+                error: DaemonError::Session(why),
+                summary: Some(unfinished(&replayed)),
+            }));
+        }
+        Err(e) => return Err(e.into()),
+    };
     let report = crate::calreport::report_input(
         format!("exocald offline recalibration — {name}"),
         format!("offline: {} ({format})", path.display()),
@@ -317,10 +459,7 @@ pub fn run(
         r.detail.clone(),
         r.quality.clone(),
     );
-    crate::calreport::write(&report_path, &report).map_err(|source| DaemonError::Io {
-        what: format!("writing the report {}", report_path.display()),
-        source,
-    })?;
+    write_report(exocal_report::html::render(&report))?;
     if let (Input::Frames(frames), Some(out)) = (&input, &opts.export_candump) {
         let mut text = Vec::new();
         exocal_report::export::write_candump(frames, &config.interface, &mut text).map_err(

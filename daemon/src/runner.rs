@@ -88,6 +88,9 @@ pub const TF_HZ: f64 = 20.0;
 pub struct SessionSummary {
     pub log_path: PathBuf,
     pub log_counts: Vec<(String, u64)>,
+    /// Frames received in the collection window: those the calibration used (frames that
+    /// arrive while calibrating and pushing are not counted), as an offline replay of the log
+    /// counts them.
     pub frames: FrameStats,
     pub clocks: Vec<ClockReport>,
     pub aligned_samples: usize,
@@ -229,6 +232,61 @@ fn take_frame(rx: &Received, ingest: &mut Ingest, session: &mut Session, io: &mu
         }
         Event::Message(_) | Event::Partial => {}
     }
+}
+
+/// The report of a session that ends without a calibration (`why`: the session rules it did
+/// not meet), next to its log as a calibrated session's would be: what the motion lacked.
+fn session_report(
+    ingest: &Ingest,
+    config: &Config,
+    why: &[String],
+    io: &mut Io<'_>,
+    clock: &Clock,
+    summary: &mut SessionSummary,
+) {
+    let (aligned, clocks) = align_session(ingest, config);
+    let quality = crate::calreport::frame_quality(
+        config,
+        ingest.stats(),
+        &clocks,
+        &ingest.stream_rates(),
+        &aligned.samples,
+        aligned.gaps,
+    );
+    let name = summary
+        .log_path
+        .file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    let input = crate::calreport::session_input(
+        format!("exocald session — {name}"),
+        format!(
+            "live session on {}, logged to {}",
+            config.interface,
+            summary.log_path.display()
+        ),
+        &aligned.samples,
+        why.to_vec(),
+        quality,
+    );
+    let path = crate::calreport::report_path_for_log(&summary.log_path);
+    match std::fs::write(&path, exocal_report::html::render_session(&input)) {
+        Ok(()) => {
+            io.event(
+                clock.now(),
+                Level::Info,
+                &format!("session report: {}", path.display()),
+            );
+            summary.report_path = Some(path);
+        }
+        Err(e) => io.event(
+            clock.now(),
+            Level::Warning,
+            &format!("cannot write the report {}: {e}", path.display()),
+        ),
+    }
+    summary.clocks = clocks;
+    summary.aligned_samples = aligned.samples.len();
+    summary.gaps = aligned.gaps;
 }
 
 /// The arm's link frames for Foxglove, from `table` at joint angles `q`.
@@ -399,6 +457,7 @@ async fn session_body<T: Transport>(
                     Phase::Ready => break,
                     Phase::Failed(why) => {
                         summary.frames = ingest.stats().clone();
+                        session_report(&ingest, config, &why, io, clock, summary);
                         return Err(DaemonError::Session(why.join("; ")));
                     }
                 }
@@ -538,7 +597,6 @@ async fn session_body<T: Transport>(
     let (outcome, html) = outcome
         .map_err(|e| DaemonError::Unsupported(format!("calibration task failed: {e}")))?
         .map_err(|e| DaemonError::Session(e.to_string()))?;
-    summary.frames = ingest.stats().clone();
     let report_path = crate::calreport::report_path_for_log(&summary.log_path);
     match std::fs::write(&report_path, html) {
         Ok(()) => {
@@ -836,7 +894,21 @@ mod tests {
             err.error
         );
         assert_eq!(err.error.exit_code(), crate::exit::code::NOINPUT);
-        assert_finished(&err.summary.unwrap().log_path);
+        let summary = err.summary.unwrap();
+        assert_finished(&summary.log_path);
+        // The report says why and shows the data the session had.
+        let report = summary
+            .report_path
+            .expect("a report for the failed session");
+        let html = std::fs::read_to_string(&report).unwrap();
+        assert!(html.contains("Not calibrated"), "{html}");
+        assert!(html.contains("1000000 required"));
+        assert!(
+            summary.aligned_samples > 1000,
+            "{}",
+            summary.aligned_samples
+        );
+        assert!(html.contains(&format!("<td>{}</td>", summary.aligned_samples)));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

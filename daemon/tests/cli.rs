@@ -93,4 +93,11 @@ fn the_default_config_prints_and_checks() {
     let (code, out, err) = exocald(&["--config", path.to_str().unwrap(), "check-config"]);
     assert_eq!(code, 0, "{err}");
     assert!(out.contains("valid"), "{out}");
+    // What it prints is the effective configuration in the file's units, and is itself a valid
+    // file that reads back to the same configuration.
+    assert!(out.contains("alpha_deg = [-90.0, 90.0,"), "{out}");
+    assert_eq!(
+        exocald::config::Config::parse(&out).unwrap(),
+        exocald::config::Config::parse(exocald::config::DEFAULT_TOML).unwrap()
+    );
 }

@@ -107,6 +107,8 @@ fn offline_recalibration_agrees_with_the_live_session() {
     };
     let (summary, outcome) = offline_outcome(&config, &from_mcap).unwrap();
     assert_eq!(summary.frames.received, used as u64);
+    // The live summary counts the same frames: those of its collection window.
+    assert_eq!(summary.frames, live.frames);
     assert_eq!(summary.aligned_samples, live.aligned_samples);
     assert_eq!(summary.clocks, live.clocks);
     assert_eq!(
@@ -257,12 +259,6 @@ fn bad_inputs_are_errors_naming_the_file_line_and_problem() {
         assert_eq!(err.exit_code(), code::DATAERR, "{name}: {err}");
         assert!(err.to_string().contains(want), "{name}: {err}");
     }
-    // Well-formed but too short to calibrate: the live rule, "not enough samples" (66).
-    let few = format!(
-        "{header}\n0.00,0,0,0,0,0,0,0,0.4,0,0,1,0,0,0\n0.01,0,0,0,0,0,0,0,0.4,0,0,1,0,0,0\n"
-    );
-    let err = run_bad(&dir, "few.csv", few.as_bytes(), None);
-    assert_eq!(err.exit_code(), code::NOINPUT, "{err}");
     // A missing file is an I/O error naming it.
     let opts = OfflineOptions {
         input: dir.join("missing.mcap"),
@@ -273,6 +269,83 @@ fn bad_inputs_are_errors_naming_the_file_line_and_problem() {
         .error;
     assert_eq!(err.exit_code(), code::IOERR);
     assert!(err.to_string().contains("missing.mcap"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `seconds` of the paper scenario (seed 5) as CSV samples at its 100 Hz.
+fn scenario_csv(path: &Path, seconds: f64) {
+    let cfg = calib_core::ScenarioConfig::paper();
+    let n = (seconds / cfg.drift.dt).round() as usize + 1;
+    let samples: Vec<_> = calib_core::Scenario::new(cfg, 5)
+        .take(n)
+        .enumerate()
+        .map(|(i, s)| exocal_report::TimedSample {
+            t: i as f64 * cfg.drift.dt,
+            sample: s.sample,
+        })
+        .collect();
+    let mut text = Vec::new();
+    write_csv(&samples, &mut text).unwrap();
+    std::fs::write(path, text).unwrap();
+}
+
+#[test]
+fn a_recording_the_live_daemon_would_not_calibrate_is_not_calibrated_and_the_report_says_why() {
+    let dir = temp_dir("short");
+    let header = exocal_report::readers::CSV_HEADER;
+    let few = dir.join("few.csv");
+    std::fs::write(
+        &few,
+        format!(
+            "{header}\n0.00,0,0,0,0,0,0,0,0.4,0,0,1,0,0,0\n0.01,0,0,0,0,0,0,0,0.4,0,0,1,0,0,0\n"
+        ),
+    )
+    .unwrap();
+    let short = dir.join("short.csv");
+    scenario_csv(&short, 30.0);
+    let run = |input: &Path, config: &Config| {
+        let report = input.with_extension("html");
+        let opts = OfflineOptions {
+            input: input.to_path_buf(),
+            report: Some(report.clone()),
+            ..OfflineOptions::default()
+        };
+        (offline::run(config, "", &opts).map_err(|e| *e), report)
+    };
+    let default = Config::default_config();
+    for (input, want) in [
+        (&few, "joint 1 covered 0% of its range, 50% required"),
+        (
+            &short,
+            "the recording is 30.0 s long; session.min_duration_s is 60 s",
+        ),
+    ] {
+        let (result, report) = run(input, &default);
+        let err = result.expect_err("not calibrated");
+        assert_eq!(err.error.exit_code(), code::NOINPUT, "{}", err.error);
+        assert!(err.error.to_string().contains(want), "{}", err.error);
+        let summary = err.summary.expect("a summary");
+        assert!(summary.outcome.is_none());
+        assert_eq!(summary.report_path.as_deref(), Some(report.as_path()));
+        let html = std::fs::read_to_string(&report).expect("the report of a refused recording");
+        assert!(
+            html.contains("Not calibrated") && html.contains(want),
+            "{want}"
+        );
+    }
+    // The same 30 s under a configuration whose window is 30 s: calibrated (whatever the
+    // validation then says).
+    let mut shorter = default.clone();
+    shorter.session.min_duration_s = 30.0;
+    let (result, _) = run(&short, &shorter);
+    match result {
+        Ok(s) => assert!(s.outcome.is_some()),
+        Err(SessionError {
+            error: DaemonError::Validation(_),
+            summary: Some(s),
+        }) => assert!(s.outcome.is_some()),
+        Err(e) => panic!("{}", e.error),
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

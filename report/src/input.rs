@@ -134,6 +134,21 @@ pub struct ReportInput {
     pub verdict: Option<VerdictSummary>,
 }
 
+/// A session that ended without a calibration — too short, too little motion, too few samples —
+/// as its report shows it: why, and the data it had.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SessionInput {
+    /// Headline, as [`ReportInput::title`].
+    pub title: String,
+    /// Where the data came from, as [`ReportInput::source`].
+    pub source: String,
+    /// Why no table was calibrated, one line per rule not met.
+    pub reasons: Vec<String>,
+    /// The aligned samples the session had, time-ordered (may be empty).
+    pub samples: Vec<TimedSample>,
+    pub quality: Quality,
+}
+
 /// Name of parameter `index` (`kind·7 + joint`), e.g. `a3`, `θ7`.
 pub fn param_name(index: usize) -> String {
     let kind = ["a", "d", "α", "θ"][(index / JOINTS).min(3)];

@@ -20,7 +20,7 @@ pub mod plot;
 pub mod readers;
 
 pub use input::{
-    Calibration, Correlation, EmDetail, LsDetail, Quality, ReportInput, StreamQuality, TimedSample,
-    VerdictSummary, JOINTS, PARAMS,
+    Calibration, Correlation, EmDetail, LsDetail, Quality, ReportInput, SessionInput,
+    StreamQuality, TimedSample, VerdictSummary, JOINTS, PARAMS,
 };
 pub use readers::{McapSession, ReadError, RecordedFrame};
