@@ -218,10 +218,6 @@ fn json_lines(text: &str) -> Vec<Value> {
         .collect()
 }
 
-fn cargo() -> String {
-    std::env::var("CARGO").unwrap_or_else(|_| "cargo".into())
-}
-
 /// A command pinned to CPU 0 (when taskset exists).
 fn pinned(ctx: &Ctx, program: impl AsRef<std::ffi::OsStr>) -> Command {
     match ctx.pin.split_first() {
@@ -354,7 +350,7 @@ fn calib(ctx: &Ctx) -> Result<Section> {
     } else {
         ("1000,6000,20000", "7", "3", "5")
     };
-    let mut build = Command::new(cargo());
+    let mut build = Command::new(crate::host::cargo());
     build.current_dir(&ctx.root).args([
         "build",
         "--release",
@@ -1174,7 +1170,7 @@ fn firmware(ctx: &Ctx) -> Result<Section> {
     let cost = u64::from_str_radix(run.cost_bits.trim_start_matches("0x"), 16)
         .map(f64::from_bits)
         .unwrap_or(f64::NAN);
-    let mut twin = Command::new(cargo());
+    let mut twin = Command::new(crate::host::cargo());
     twin.current_dir(&ctx.root).args([
         "run",
         "-q",
@@ -1357,13 +1353,13 @@ fn in_harness(ctx: &Ctx, args: &[String], python: &Path) -> Result<(String, Stri
 
 /// The daemon against candump on vcan: offered load, CPU per frame, RSS, power-up latency.
 fn ingest(ctx: &Ctx) -> Result<Section> {
-    let mut build = Command::new(cargo());
+    let mut build = Command::new(crate::host::cargo());
     build
         .current_dir(&ctx.root)
         .args(["build", "--release", "-p", "exocald", "-p", "exocal-hil"]);
     let build_cmd = show(&build);
     run(&mut build).context("building exocald and exocal-hil")?;
-    let mut build_ref = Command::new(cargo());
+    let mut build_ref = Command::new(crate::host::cargo());
     build_ref.current_dir(&ctx.root).args([
         "build",
         "--release",

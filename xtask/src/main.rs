@@ -1,10 +1,12 @@
 //! `cargo xtask`: exocal's long commands.
 //!
 //! ```text
-//! cargo xtask test                 everything: unit + doc tests, vcan suites, power-up, cross-builds
+//! cargo xtask test                 everything: unit + doc tests, vcan suites, power-up, cross-builds,
+//!                                  README figures
 //! cargo xtask vcan -- CMD [ARG..]  run CMD with real vcan0 and vcan1 up (native netns or QEMU guest)
 //! cargo xtask setup [--check]      install what `test` needs (root, Debian), then self-check
 //! cargo xtask clean-root           run `setup` in a freshly bootstrapped Debian root
+//! cargo xtask figures [--write]    check (or regenerate) every figure the READMEs quote
 //! ```
 //!
 //! Exit status: `vcan` returns the command's own status (128 + signal if it was killed); `test`
@@ -12,6 +14,7 @@
 
 mod bench;
 mod cleanroot;
+mod figures;
 mod harness;
 mod host;
 mod native;
@@ -34,7 +37,8 @@ usage:
   cargo xtask test [--mode auto|native|vm] [--timeout SECS]
       Run every test: `cargo test --workspace` (unit, integration and doc tests), the suites
       that need real vcan (crate exocal-tests, feature `vcan`) inside the vcan harness, the
-      power-up test under systemd (`powerup`), and the cross-builds under qemu-user (`cross`).
+      power-up test under systemd (`powerup`), the cross-builds under qemu-user (`cross`), and
+      the README figures (`figures`).
   cargo xtask vcan [--mode auto|native|vm] [--timeout SECS] [--mem MIB] [--verbose]
                    [--systemd [--setup SCRIPT]] -- CMD [ARG..]
       Run CMD with real vcan0 and vcan1 up. `native` uses this kernel's vcan in a private network
@@ -55,6 +59,11 @@ usage:
   cargo xtask clean-root
       Prove setup's package list complete: bootstrap a minimal Debian root of this release
       (mmdebstrap, this machine's apt sources) and run `setup` inside it (as root).
+  cargo xtask figures [--write]
+      Regenerate every figure the READMEs quote (the demo's summary for its seeds, the paper
+      example's tables, the config-error example, the unit's security deductions) from the
+      command that prints it, and fail naming each block that differs (`--write`: rewrite them
+      in place). Part of `test`.
   cargo xtask cross [--target TRIPLE]..
       Release-build exocald and exocal-hil for aarch64 and armv7 (or the given targets), run
       --help of each and `exocald offline` on a session the host's demo recorded under
@@ -118,6 +127,7 @@ fn run(args: Vec<String>) -> Result<u8> {
         "deb" => ship::deb(rest),
         "setup" => setup::main(rest),
         "clean-root" => cleanroot::main(rest),
+        "figures" => figures::main(rest),
         "help" | "--help" | "-h" => {
             println!("{USAGE}");
             Ok(0)

@@ -108,14 +108,10 @@ pub fn ensure_toolchain(targets: &[Target]) -> Result<()> {
     crate::host::install_packages(&crate::host::missing(packages))
 }
 
-fn cargo() -> String {
-    std::env::var("CARGO").unwrap_or_else(|_| "cargo".into())
-}
-
 /// Release-builds the shipped binaries for `t`; returns their paths.
 pub fn build(t: &Target) -> Result<Vec<PathBuf>> {
     let root = crate::host::workspace_root();
-    let mut cmd = Command::new(cargo());
+    let mut cmd = Command::new(crate::host::cargo());
     cmd.current_dir(&root)
         .args(["build", "--release"])
         .stdin(Stdio::null());

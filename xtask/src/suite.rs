@@ -77,7 +77,7 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
     std::env::set_var("EXOCAL_BIN_DIR", bin_dir);
 
     println!(
-        "==> [1/4] cargo test --workspace -- --include-ignored (unit, integration and doc tests)"
+        "==> [1/5] cargo test --workspace -- --include-ignored (unit, integration and doc tests)"
     );
     let ok_host = run_teed(
         // `--include-ignored`: tests ignored for plain `cargo test` because they need the
@@ -96,7 +96,7 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
         host.broken += 1;
     }
 
-    println!("==> [2/4] vcan suites (exocal-tests --features vcan) in the vcan harness");
+    println!("==> [2/5] vcan suites (exocal-tests --features vcan) in the vcan harness");
     let bins = build_suites(&cargo, "vcan")?;
     let mut vcan = Counts::default();
     if bins.is_empty() {
@@ -116,7 +116,7 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
         vcan.broken += 1;
     }
 
-    println!("==> [3/4] the power-up test under systemd (cargo xtask powerup)");
+    println!("==> [3/5] the power-up test under systemd (cargo xtask powerup)");
     let power = match crate::powerup::run(opts) {
         Ok(p) => p,
         Err(e) => {
@@ -126,7 +126,7 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
     };
 
     println!(
-        "==> [4/4] cross-builds under qemu-user, Debian packages, lintian (cargo xtask cross)"
+        "==> [4/5] cross-builds under qemu-user, Debian packages, lintian (cargo xtask cross)"
     );
     let mut cross = Counts::default();
     let cross_lines =
@@ -141,15 +141,36 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
             }
         };
 
+    println!("==> [5/5] every figure the READMEs quote, from its command (cargo xtask figures)");
+    let mut figures = Counts::default();
+    let figures_line = match crate::figures::run(&crate::host::workspace_root(), false) {
+        Ok(stale) if stale.is_empty() => {
+            figures.passed = 1;
+            "every quoted block matches its command's output".to_string()
+        }
+        Ok(stale) => {
+            figures.failed = stale.len() as u64;
+            format!(
+                "stale: {} (`cargo xtask figures --write` regenerates them)",
+                stale.join(", ")
+            )
+        }
+        Err(e) => {
+            figures.failed = 1;
+            format!("FAILED: {e:#}")
+        }
+    };
+
     let total = Counts {
-        passed: host.passed + vcan.passed + power.counts.passed + cross.passed,
+        passed: host.passed + vcan.passed + power.counts.passed + cross.passed + figures.passed,
         failed: host.failed
             + vcan.failed
             + host.broken
             + vcan.broken
             + power.counts.failed
             + power.counts.broken
-            + cross.failed,
+            + cross.failed
+            + figures.failed,
         ignored: host.ignored + vcan.ignored + power.counts.ignored,
         broken: host.broken + vcan.broken + power.counts.broken,
     };
@@ -184,6 +205,7 @@ pub fn test_all(opts: &HarnessArgs) -> Result<u8> {
         cross.failed,
         cross_lines.join("\n  ")
     );
+    println!("README figures: {figures_line}");
     println!(
         "exocal: {} passed, {} failed, {} skipped",
         total.passed, total.failed, total.ignored
