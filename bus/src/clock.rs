@@ -23,13 +23,28 @@ pub enum Clock {
 }
 
 impl Clock {
-    /// Now, since the clock's epoch.
+    /// Now, since the clock's epoch: what frames and log records are stamped with.
     pub fn now(&self) -> Duration {
         match self {
             Clock::Wall => SystemTime::now()
                 .duration_since(UNIX_EPOCH)
                 .unwrap_or_default(),
             Clock::Simulated(c) => c.epoch + Duration::from_secs_f64(c.now_s()),
+        }
+    }
+
+    /// A monotonic reading, for timeouts, deadlines and elapsed times: never goes back when
+    /// the host's wall clock is stepped (NTP, a manual `date`, an RTC read at boot). For
+    /// [`Clock::Wall`] it is the time since the first call in this process
+    /// ([`std::time::Instant`], `CLOCK_MONOTONIC`); simulated time is monotonic already and
+    /// is returned as seconds since its start. Only differences of two readings mean anything.
+    pub fn monotonic(&self) -> Duration {
+        match self {
+            Clock::Wall => {
+                static ANCHOR: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
+                ANCHOR.get_or_init(std::time::Instant::now).elapsed()
+            }
+            Clock::Simulated(c) => Duration::from_secs_f64(c.now_s()),
         }
     }
 }
@@ -78,6 +93,17 @@ impl SimClock {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_monotonic_reading_never_goes_back() {
+        let c = Clock::Wall;
+        let mut last = c.monotonic();
+        for _ in 0..1000 {
+            let now = c.monotonic();
+            assert!(now >= last);
+            last = now;
+        }
+    }
 
     #[tokio::test(start_paused = true)]
     async fn runs_speed_times_faster_than_the_runtime() {

@@ -17,7 +17,9 @@
 //!   every older staging, so no stale Commit can install anything afterwards, and its ACK or
 //!   NACK carries the CRC the node holds from then on; an `Abort` of that session follows. The
 //!   report takes the node's answer to the fence; with no answer it says `Unknown`;
-//! - time comes from the bus clock (simulated in the demo), never from the system directly.
+//! - time comes from the bus clock (simulated in the demo), never from the system directly;
+//!   timeouts and backoffs run on its monotonic reading ([`Clock::monotonic`]), so a step of
+//!   the wall clock cannot stall or hurry a push.
 
 use std::time::Duration;
 
@@ -173,8 +175,10 @@ pub async fn push_tables<T: Transport>(
         })
         .collect();
     while jobs.iter().any(|j| !j.done) {
+        // Frames are stamped with the bus clock; deadlines run on its monotonic reading, so a
+        // step of the host's wall clock neither stalls nor hurries a push.
         let now = clock.now();
-        let now_us = micros(now);
+        let now_us = micros(clock.monotonic());
         for job in jobs.iter_mut().filter(|j| !j.done) {
             if let Some(fence) = job.fence.as_mut() {
                 if fence.answer.is_some() {

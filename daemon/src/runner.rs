@@ -422,6 +422,9 @@ async fn session_body<T: Transport>(
     start: Duration,
 ) -> Result<(), DaemonError> {
     tokio::pin!(shutdown);
+    // The window is timed on the clock's monotonic reading: a step of the host's wall clock
+    // (NTP at boot) neither stretches nor cuts it.
+    let started = clock.monotonic();
     let mut ingest = Ingest::new(config.joint_nodes);
     let mut session = Session::new(config.session.clone(), config.bounds.joint_range);
     let mut tick = tokio::time::interval(TICK);
@@ -440,7 +443,7 @@ async fn session_body<T: Transport>(
             }
             _ = tick.tick() => {
                 io.housekeeping();
-                let elapsed = (clock.now().saturating_sub(start)).as_secs_f64();
+                let elapsed = clock.monotonic().saturating_sub(started).as_secs_f64();
                 if condition_job.is_none() && elapsed - last_condition_s >= CONDITION_EVERY_S {
                     last_condition_s = elapsed;
                     let (snapshot, cfg) = (ingest.clone(), config.clone());
