@@ -309,9 +309,9 @@ pub async fn serve_on_can(config: Config, dry_run: bool) -> Result<(), DaemonErr
             () = &mut stop => return Ok(()),
             _ = usr1.recv() => true,
             rx = bus.recv() => {
-                let rx = rx.map_err(|e| DaemonError::Io {
+                let rx = rx.map_err(|source| DaemonError::Bus {
                     what: "receiving CAN".into(),
-                    source: std::io::Error::other(e.to_string()),
+                    source,
                 })?;
                 matches!(
                     exocal_dbc::decode_frame(&rx.frame),

@@ -72,12 +72,12 @@ pub struct Outcome {
 }
 
 /// Why no calibration could be computed at all.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum CalibrateError {
     /// Fewer samples than the configuration requires.
     TooFewSamples { have: usize, need: usize },
-    /// The least-squares identification failed.
-    Ls(String),
+    /// The least-squares identification failed (calib-core's reason).
+    Ls(calib_core::CalibError),
 }
 
 impl std::fmt::Display for CalibrateError {
@@ -91,7 +91,14 @@ impl std::fmt::Display for CalibrateError {
     }
 }
 
-impl std::error::Error for CalibrateError {}
+impl std::error::Error for CalibrateError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            CalibrateError::Ls(e) => Some(e),
+            CalibrateError::TooFewSamples { .. } => None,
+        }
+    }
+}
 
 /// A calib-core sample from an aligned one (quaternion normalised).
 pub fn to_sample(s: &AlignedSample) -> Sample<JOINTS> {
@@ -145,8 +152,8 @@ pub fn run_detailed(
     let (fit, held) = split_holdout(&all, config.validation.holdout_fraction);
     let nominal = table_from_rows(&config.nominal);
     let (ls_opts, em_opts) = options(config);
-    let detail = analysis::calibrate(&nominal, fit, &ls_opts, &em_opts)
-        .map_err(|e| CalibrateError::Ls(e.to_string()))?;
+    let detail =
+        analysis::calibrate(&nominal, fit, &ls_opts, &em_opts).map_err(CalibrateError::Ls)?;
     let ls = &detail.ls;
     let ls_summary = LsSummary {
         iterations: ls.iterations,

@@ -60,7 +60,7 @@ pub fn demo_config(base: Config, output: &Path, speed: f64) -> Config {
 /// Runs the demo on its own paused runtime (see the module docs); call it outside any runtime.
 pub fn run(config: &Config, opts: &DemoOptions) -> Result<DemoResult, Box<SessionError>> {
     if !(opts.speed.is_finite() && opts.speed > 0.0) {
-        return Err(DaemonError::Unsupported(format!(
+        return Err(DaemonError::Usage(format!(
             "speed {} (must be finite and positive)",
             opts.speed
         ))

@@ -6,7 +6,10 @@
 
 use std::fmt;
 
+use crate::calibrate::CalibrateError;
 use crate::config::ConfigError;
+use crate::mcaplog::LogError;
+use exocal_bus::BusError;
 
 /// sysexits(3) statuses used by exocald.
 pub mod code {
@@ -42,6 +45,8 @@ pub enum DaemonError {
     Push(String),
     /// Not enough motion/samples before the session's maximum duration (66).
     Session(String),
+    /// The samples could not be calibrated at all (66): too few, or calib-core's reason.
+    Calibration(CalibrateError),
     /// The calibration was refused by validation (65): the reasons.
     Validation(Vec<String>),
     /// I/O failure (74): what was being done, and the error.
@@ -49,10 +54,17 @@ pub enum DaemonError {
         what: String,
         source: std::io::Error,
     },
+    /// The CAN bus failed (74): what was being done, and the error.
+    Bus { what: String, source: BusError },
+    /// The session log could not be written (74).
+    Log { what: String, source: LogError },
     /// Interrupted by a signal before anything was pushed (75).
     Interrupted,
-    /// A feature this build cannot perform (70).
-    Unsupported(String),
+    /// A bug (70): a task panicked or was cancelled; what it was doing, and the runtime's error.
+    Internal {
+        what: String,
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
     /// An offline input that does not parse (65): the file, the line, the problem.
     Input(String),
     /// Options that do not go together (64).
@@ -65,11 +77,13 @@ impl DaemonError {
         match self {
             DaemonError::Config(_) => code::CONFIG,
             DaemonError::Interface { .. } | DaemonError::Push(_) => code::UNAVAILABLE,
-            DaemonError::Session(_) => code::NOINPUT,
+            DaemonError::Session(_) | DaemonError::Calibration(_) => code::NOINPUT,
             DaemonError::Validation(_) => code::DATAERR,
-            DaemonError::Io { .. } => code::IOERR,
+            DaemonError::Io { .. } | DaemonError::Bus { .. } | DaemonError::Log { .. } => {
+                code::IOERR
+            }
             DaemonError::Interrupted => code::TEMPFAIL,
-            DaemonError::Unsupported(_) => code::SOFTWARE,
+            DaemonError::Internal { .. } => code::SOFTWARE,
             DaemonError::Input(_) => code::DATAERR,
             DaemonError::Usage(_) => code::USAGE,
         }
@@ -85,6 +99,7 @@ impl fmt::Display for DaemonError {
             }
             DaemonError::Push(why) => write!(f, "push failed: {why}"),
             DaemonError::Session(why) => write!(f, "session incomplete: {why}"),
+            DaemonError::Calibration(e) => write!(f, "session incomplete: {e}"),
             DaemonError::Validation(reasons) => {
                 write!(
                     f,
@@ -93,8 +108,15 @@ impl fmt::Display for DaemonError {
                 )
             }
             DaemonError::Io { what, source } => write!(f, "{what}: {source}"),
+            DaemonError::Bus { what, source } => write!(f, "{what}: {source}"),
+            DaemonError::Log { what, source } => write!(f, "{what}: {source}"),
             DaemonError::Interrupted => write!(f, "interrupted before pushing; nothing pushed"),
-            DaemonError::Unsupported(what) => write!(f, "not supported by this build: {what}"),
+            DaemonError::Internal { what, source } => {
+                write!(
+                    f,
+                    "internal error (a bug; please report it) {what}: {source}"
+                )
+            }
             DaemonError::Input(what) => write!(f, "bad input: {what}"),
             DaemonError::Usage(what) => write!(f, "usage: {what}"),
         }
@@ -105,7 +127,11 @@ impl std::error::Error for DaemonError {
     fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
         match self {
             DaemonError::Config(e) => Some(e),
+            DaemonError::Calibration(e) => Some(e),
             DaemonError::Io { source, .. } => Some(source),
+            DaemonError::Bus { source, .. } => Some(source),
+            DaemonError::Log { source, .. } => Some(source),
+            DaemonError::Internal { source, .. } => Some(source.as_ref()),
             _ => None,
         }
     }
@@ -114,6 +140,12 @@ impl std::error::Error for DaemonError {
 impl From<ConfigError> for DaemonError {
     fn from(e: ConfigError) -> Self {
         DaemonError::Config(e)
+    }
+}
+
+impl From<CalibrateError> for DaemonError {
+    fn from(e: CalibrateError) -> Self {
+        DaemonError::Calibration(e)
     }
 }
 
@@ -137,12 +169,36 @@ mod tests {
                 source: std::io::Error::other("disk full"),
             },
             DaemonError::Interrupted,
-            DaemonError::Unsupported("x".into()),
+            DaemonError::Internal {
+                what: "calibrating".into(),
+                source: "task panicked".into(),
+            },
             DaemonError::Input("s.csv: CSV samples, line 3: bad".into()),
             DaemonError::Usage("x".into()),
+            DaemonError::Bus {
+                what: "receiving CAN".into(),
+                source: BusError::Closed,
+            },
+            DaemonError::Calibration(CalibrateError::TooFewSamples { have: 3, need: 5 }),
+            DaemonError::Log {
+                what: "writing the log".into(),
+                source: LogError::Io(std::io::Error::other("disk full")),
+            },
         ];
         let codes: Vec<u8> = errors.iter().map(DaemonError::exit_code).collect();
-        assert_eq!(codes, [78, 69, 66, 65, 74, 75, 70, 65, 64]);
+        assert_eq!(codes, [78, 69, 66, 65, 74, 75, 70, 65, 64, 74, 66, 74]);
         assert!(errors[1].to_string().contains("can9"));
+        // The causes are kept, not flattened to strings: a caller can walk to the root.
+        use std::error::Error as _;
+        let io = errors[11]
+            .source()
+            .and_then(|e| e.source())
+            .expect("the io error");
+        assert_eq!(io.to_string(), "disk full");
+        let calib = DaemonError::from(CalibrateError::Ls(calib_core::CalibError::NoExcitation {
+            joint: 3,
+            range: 0.0,
+        }));
+        assert!(calib.source().and_then(|e| e.source()).is_some());
     }
 }

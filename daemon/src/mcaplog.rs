@@ -294,7 +294,15 @@ impl std::fmt::Display for LogError {
     }
 }
 
-impl std::error::Error for LogError {}
+impl std::error::Error for LogError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            LogError::Io(e) => Some(e),
+            LogError::Mcap(e) => Some(e),
+            LogError::Json(e) => Some(e),
+        }
+    }
+}
 
 impl From<std::io::Error> for LogError {
     fn from(e: std::io::Error) -> Self {

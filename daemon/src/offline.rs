@@ -19,7 +19,8 @@
 //!   take [`DURATION_SLACK_S`], every joint's excitation, `min_samples`): one the live daemon
 //!   would not have calibrated is not calibrated here either ([`replay`] names what it misses);
 //! - the outcome is judged as live: [`DaemonError::Validation`] (65) if validation refuses,
-//!   [`DaemonError::Session`] (66) if the session rules are not met; unreadable input is
+//!   [`DaemonError::Session`] (66) if the session rules are not met,
+//!   [`DaemonError::Calibration`] (66) if the samples do not calibrate; unreadable input is
 //!   [`DaemonError::Io`] (74), bad input [`DaemonError::Input`] (65) naming the file, the line
 //!   and the problem. Nothing here panics on any input;
 //! - the report is always written once the input is read: for a refused table it shows the
@@ -328,8 +329,7 @@ fn calibrate_replay(r: Replay) -> Result<Recalibration, DaemonError> {
     if !r.shortfalls.is_empty() {
         return Err(DaemonError::Session(r.shortfalls.join("; ")));
     }
-    let (outcome, detail) = calibrate::run_detailed(&r.samples, &r.config)
-        .map_err(|e| DaemonError::Session(e.to_string()))?;
+    let (outcome, detail) = calibrate::run_detailed(&r.samples, &r.config)?;
     Ok(Recalibration {
         frames: r.frames,
         clocks: r.clocks,
@@ -427,11 +427,11 @@ pub fn run(
     };
     let r = match calibrate_replay(replayed.clone()) {
         Ok(r) => r,
-        Err(DaemonError::Session(why)) => {
-            // Not calibrated (the session rules, or too few samples): the report says why and
-            // shows the data, as a live session's would.
+        Err(error @ (DaemonError::Session(_) | DaemonError::Calibration(_))) => {
+            // Not calibrated (the session rules, or the samples would not calibrate): the
+            // report says why and shows the data, as a live session's would.
             let reasons = if replayed.shortfalls.is_empty() {
-                vec![why.clone()]
+                vec![error.to_string()]
             } else {
                 replayed.shortfalls.clone()
             };
@@ -444,7 +444,7 @@ pub fn run(
             );
             write_report(exocal_report::html::render_session(&input))?;
             return Err(Box::new(SessionError {
-                error: DaemonError::Session(why),
+                error,
                 summary: Some(unfinished(&replayed)),
             }));
         }

@@ -124,12 +124,9 @@ impl From<DaemonError> for Box<SessionError> {
 }
 
 fn io_err(what: &str, e: LogError) -> DaemonError {
-    DaemonError::Io {
+    DaemonError::Log {
         what: what.to_string(),
-        source: match e {
-            LogError::Io(e) => e,
-            other => std::io::Error::other(other.to_string()),
-        },
+        source: e,
     }
 }
 
@@ -472,7 +469,7 @@ async fn session_body<T: Transport>(
                 }
             }
             rx = bus.recv() => {
-                let rx = rx.map_err(|e| DaemonError::Io { what: "receiving CAN".into(), source: std::io::Error::other(e.to_string()) })?;
+                let rx = rx.map_err(|source| DaemonError::Bus { what: "receiving CAN".into(), source })?;
                 take_frame(&rx, &mut ingest, &mut session, io);
             }
         }
@@ -597,9 +594,19 @@ async fn session_body<T: Transport>(
             }
         }
     };
-    let (outcome, html) = outcome
-        .map_err(|e| DaemonError::Unsupported(format!("calibration task failed: {e}")))?
-        .map_err(|e| DaemonError::Session(e.to_string()))?;
+    let outcome = outcome.map_err(|e| DaemonError::Internal {
+        what: "in the calibration task".into(),
+        source: Box::new(e),
+    })?;
+    let (outcome, html) = match outcome {
+        Ok(done) => done,
+        Err(e) => {
+            // The samples would not calibrate: the report says why, as for a session that ran
+            // out of time.
+            session_report(&ingest, config, &[e.to_string()], io, clock, summary);
+            return Err(e.into());
+        }
+    };
     let report_path = crate::calreport::report_path_for_log(&summary.log_path);
     match std::fs::write(&report_path, html) {
         Ok(()) => {
@@ -686,9 +693,9 @@ async fn session_body<T: Transport>(
     let first_session = (ns(start) / 1_000_000 % 251) as u8;
     let report = push_tables(bus, clock, &tables, &config.push, first_session, io)
         .await
-        .map_err(|e| DaemonError::Io {
+        .map_err(|source| DaemonError::Bus {
             what: "pushing tables".into(),
-            source: std::io::Error::other(e.to_string()),
+            source,
         })?;
     for line in report.lines() {
         io.event(clock.now(), Level::Info, &line);
