@@ -12,6 +12,9 @@
 //!
 //! # Topics and schemas
 //!
+//! Defined once, in the `exocal-log` crate (re-exported here): the writer and every reader use
+//! the same [`Topic`] names, schemas and record types.
+//!
 //! | topic | schema | what |
 //! |---|---|---|
 //! | `/can/rx`, `/can/tx` | `exocal.CanFrame` | every raw frame received / sent: id, data, host and kernel timestamps |
@@ -20,6 +23,7 @@
 //! | `/tf` | `foxglove.FrameTransforms` | the arm's link frames (FK of the aligned joint angles): Foxglove's 3D panel draws the arm |
 //! | `/aligned` | `exocal.AlignedSample` | samples on the common time grid, as fed to the calibration |
 //! | `/progress` | `exocal.Progress` | collection progress: coverage per joint, samples, condition number |
+//! | `/collection` | `exocal.CollectionEnd` | once, when collection ends: frames received in the window (a replay calibrates on exactly those), the window's end, bad-frame and drop counts |
 //! | `/calibration` | `exocal.Calibration` | tables before and after, τ and σ, metrics, validation verdict |
 //! | `/events` | `foxglove.Log` | what happened, human-readable, with a level |
 //!
@@ -33,149 +37,8 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-/// The log's topics.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum Topic {
-    CanRx,
-    CanTx,
-    JointStates,
-    EePose,
-    Tf,
-    Aligned,
-    Progress,
-    Calibration,
-    Events,
-}
-
-impl Topic {
-    /// Every topic, in channel order.
-    pub const ALL: [Topic; 9] = [
-        Topic::CanRx,
-        Topic::CanTx,
-        Topic::JointStates,
-        Topic::EePose,
-        Topic::Tf,
-        Topic::Aligned,
-        Topic::Progress,
-        Topic::Calibration,
-        Topic::Events,
-    ];
-
-    /// The topic name in the file.
-    pub fn name(self) -> &'static str {
-        match self {
-            Topic::CanRx => "/can/rx",
-            Topic::CanTx => "/can/tx",
-            Topic::JointStates => "/joint_states",
-            Topic::EePose => "/ee_pose",
-            Topic::Tf => "/tf",
-            Topic::Aligned => "/aligned",
-            Topic::Progress => "/progress",
-            Topic::Calibration => "/calibration",
-            Topic::Events => "/events",
-        }
-    }
-
-    /// Schema name and JSON Schema text.
-    pub fn schema(self) -> (&'static str, &'static str) {
-        match self {
-            Topic::CanRx | Topic::CanTx => ("exocal.CanFrame", schemas::CAN_FRAME),
-            Topic::JointStates => ("exocal.JointState", schemas::JOINT_STATE),
-            Topic::EePose => ("foxglove.PoseInFrame", schemas::POSE_IN_FRAME),
-            Topic::Tf => ("foxglove.FrameTransforms", schemas::FRAME_TRANSFORMS),
-            Topic::Aligned => ("exocal.AlignedSample", schemas::ALIGNED),
-            Topic::Progress => ("exocal.Progress", schemas::PROGRESS),
-            Topic::Calibration => ("exocal.Calibration", schemas::CALIBRATION),
-            Topic::Events => ("foxglove.Log", schemas::LOG),
-        }
-    }
-
-    fn index(self) -> usize {
-        Topic::ALL.iter().position(|&t| t == self).unwrap_or(0)
-    }
-}
-
-/// JSON Schemas of the messages (Foxglove's well-known ones reduced to their required fields).
-pub mod schemas {
-
-    macro_rules! with_time {
-        ($head:literal, $tail:literal) => {
-            concat!(
-                $head,
-                r#"{"type":"object","properties":{"sec":{"type":"integer","minimum":0},"nsec":{"type":"integer","minimum":0,"maximum":999999999}}}"#,
-                $tail
-            )
-        };
-    }
-
-    /// `exocal.CanFrame`.
-    pub const CAN_FRAME: &str = r#"{"title":"exocal.CanFrame","type":"object","properties":{"id":{"type":"integer"},"extended":{"type":"boolean"},"dlc":{"type":"integer"},"data":{"type":"array","items":{"type":"integer"}},"host_ns":{"type":"integer"},"kernel_ns":{"type":["integer","null"]}},"required":["id","extended","dlc","data","host_ns"]}"#;
-    /// `exocal.JointState` (ROS `sensor_msgs/JointState` shape).
-    pub const JOINT_STATE: &str = with_time!(
-        r#"{"title":"exocal.JointState","type":"object","properties":{"header":{"type":"object","properties":{"frame_id":{"type":"string"},"stamp":"#,
-        r#"}},"name":{"type":"array","items":{"type":"string"}},"position":{"type":"array","items":{"type":"number"}},"velocity":{"type":"array","items":{"type":"number"}},"node_timestamp_us":{"type":"integer"}},"required":["header","name","position","velocity"]}"#
-    );
-    /// `foxglove.PoseInFrame`.
-    pub const POSE_IN_FRAME: &str = with_time!(
-        r#"{"title":"foxglove.PoseInFrame","type":"object","properties":{"timestamp":"#,
-        r#","frame_id":{"type":"string"},"pose":{"type":"object","properties":{"position":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"}}},"orientation":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"},"w":{"type":"number"}}}}}},"required":["timestamp","frame_id","pose"]}"#
-    );
-    /// `foxglove.FrameTransforms`.
-    pub const FRAME_TRANSFORMS: &str = with_time!(
-        r#"{"title":"foxglove.FrameTransforms","type":"object","properties":{"transforms":{"type":"array","items":{"type":"object","properties":{"timestamp":"#,
-        r#","parent_frame_id":{"type":"string"},"child_frame_id":{"type":"string"},"translation":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"}}},"rotation":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"},"w":{"type":"number"}}}},"required":["timestamp","parent_frame_id","child_frame_id","translation","rotation"]}}},"required":["transforms"]}"#
-    );
-    /// `exocal.AlignedSample`.
-    pub const ALIGNED: &str = r#"{"title":"exocal.AlignedSample","type":"object","properties":{"t":{"type":"number"},"joints":{"type":"array","items":{"type":"number"}},"position":{"type":"array","items":{"type":"number"}},"orientation_wxyz":{"type":"array","items":{"type":"number"}}},"required":["t","joints","position","orientation_wxyz"]}"#;
-    /// `exocal.Progress`.
-    pub const PROGRESS: &str = r#"{"title":"exocal.Progress","type":"object","properties":{"elapsed_s":{"type":"number"},"samples":{"type":"integer"},"coverage":{"type":"array","items":{"type":"number"}},"condition_number":{"type":["number","null"]}},"required":["elapsed_s","samples","coverage"]}"#;
-    /// `exocal.Calibration` (free-form object: see the daemon's calibration report).
-    pub const CALIBRATION: &str = r#"{"title":"exocal.Calibration","type":"object","description":"tables before/after, drift tau and sigma, metrics, validation verdict"}"#;
-    /// `foxglove.Log`.
-    pub const LOG: &str = with_time!(
-        r#"{"title":"foxglove.Log","type":"object","properties":{"timestamp":"#,
-        r#","level":{"type":"integer","description":"0 unknown, 1 debug, 2 info, 3 warning, 4 error, 5 fatal"},"message":{"type":"string"},"name":{"type":"string"},"file":{"type":"string"},"line":{"type":"integer","minimum":0}},"required":["timestamp","level","message","name","file","line"]}"#
-    );
-}
-
-/// Foxglove/ROS time `{sec, nsec}`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-pub struct Time {
-    pub sec: u64,
-    pub nsec: u32,
-}
-
-impl Time {
-    /// From nanoseconds.
-    pub fn from_ns(ns: u64) -> Time {
-        Time {
-            sec: ns / 1_000_000_000,
-            nsec: (ns % 1_000_000_000) as u32,
-        }
-    }
-}
-
-/// A raw CAN frame as logged.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct CanFrameRecord {
-    pub id: u32,
-    pub extended: bool,
-    pub dlc: u8,
-    pub data: Vec<u8>,
-    /// Host time (ns since the epoch) the daemon saw the frame.
-    pub host_ns: u64,
-    /// Kernel receive timestamp (ns since the epoch), when the socket provides one.
-    pub kernel_ns: Option<u64>,
-}
-
-/// Severity of an event (foxglove.Log levels).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-pub enum Level {
-    Debug = 1,
-    Info = 2,
-    Warning = 3,
-    Error = 4,
-}
+pub use exocal_log::{schemas, CanFrameRecord, CollectionEnd, Level, Time, Topic};
+use exocal_log::{MESSAGE_ENCODING, SCHEMA_ENCODING};
 
 #[derive(Serialize)]
 struct LogMessage<'a> {
@@ -413,8 +276,9 @@ impl<W: Write + Seek> SessionLog<W> {
         let mut channels = [0u16; Topic::ALL.len()];
         for (slot, topic) in channels.iter_mut().zip(Topic::ALL) {
             let (name, schema) = topic.schema();
-            let schema_id = writer.add_schema(name, "jsonschema", schema.as_bytes())?;
-            *slot = writer.add_channel(schema_id, topic.name(), "json", &BTreeMap::new())?;
+            let schema_id = writer.add_schema(name, SCHEMA_ENCODING, schema.as_bytes())?;
+            *slot =
+                writer.add_channel(schema_id, topic.name(), MESSAGE_ENCODING, &BTreeMap::new())?;
         }
         Ok(SessionLog {
             writer,
@@ -448,6 +312,11 @@ impl<W: Write + Seek> SessionLog<W> {
         self.writer.write_to_known_channel(&header, &self.buffer)?;
         self.counts[i] += 1;
         Ok(())
+    }
+
+    /// The end of the collection window (written once per session).
+    pub fn collection_end(&mut self, end: &CollectionEnd) -> Result<(), LogError> {
+        self.write(Topic::Collection, end.window_end_ns, end)
     }
 
     /// A raw frame received (`tx == false`) or sent.
@@ -652,6 +521,15 @@ mod tests {
             &serde_json::json!({"elapsed_s": 1.0, "samples": 3, "coverage": (vec![0.5; 7]), "condition_number": null}),
         )
         .unwrap();
+        log.collection_end(&CollectionEnd {
+            frames: 250,
+            window_end_ns: t0,
+            unknown: 0,
+            malformed: 0,
+            invalid_angles: 0,
+            dropped: 0,
+        })
+        .unwrap();
         log.write(
             Topic::Calibration,
             t0,
@@ -669,6 +547,7 @@ mod tests {
             ("/tf", 50),
             ("/aligned", 50),
             ("/progress", 1),
+            ("/collection", 1),
             ("/calibration", 1),
             ("/events", 2),
         ])

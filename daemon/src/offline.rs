@@ -6,10 +6,11 @@
 //!   daemon's own [`Ingest::on_frame`], aligned by [`crate::runner::align_session`] and
 //!   calibrated by [`crate::calibrate::run_detailed`]: the live session's code path, minus the
 //!   bus. The same frames give the same table, bit for bit;
-//! - an MCAP log is replayed up to the end of its collection window: the live session logs
-//!   `collection done: N frames` when it stops collecting, and calibrated on exactly the first
-//!   `N` received frames ([`exocal_report::McapSession::collection_frames`]); a log without
-//!   the marker (a session that never finished collecting) is replayed whole. A candump log is
+//! - an MCAP log is replayed up to the end of its collection window: the live session writes
+//!   an `exocal_log::CollectionEnd` record on `/collection` when it stops collecting, and
+//!   calibrated on exactly the first `frames` received frames
+//!   ([`exocal_report::McapSession::collection_frames`]); a log without the record (a session
+//!   that never finished collecting) is replayed whole. A candump log is
 //!   replayed whole: `--export-candump` writes exactly the frames the calibration used, so it
 //!   replays to the same result;
 //! - CSV samples (`t,q1,…,q7,x,y,z,qw,qx,qy,qz`, see [`exocal_report::readers`]) bypass

@@ -31,7 +31,9 @@ use crate::calibrate::{self, Outcome};
 use crate::config::{Config, JOINTS};
 use crate::exit::DaemonError;
 use crate::ingest::{ClockReport, Event, FrameStats, Ingest};
-use crate::mcaplog::{CanFrameRecord, Counts, Level, LogError, SessionLog, Transform};
+use crate::mcaplog::{
+    CanFrameRecord, CollectionEnd, Counts, Level, LogError, SessionLog, Transform,
+};
 use crate::push::{push_tables, PushObserver, PushReport};
 use crate::report::{Notifier, Reporter};
 use crate::session::{Phase, Session};
@@ -482,9 +484,18 @@ async fn session_body<T: Transport>(
     }
     summary.frames = ingest.stats().clone();
     let s = ingest.stats();
-    // The marker `exocald offline` honours: a replay of this log calibrates on the first
-    // `received` frames of /can/rx (those logged before this event), as this session did.
-    // Keep the prefix `collection done: N frames` (exocal_report::readers::COLLECTION_DONE).
+    // The record `exocald offline` honours: a replay of this log calibrates on the first
+    // `frames` frames of /can/rx, as this session did.
+    let end = CollectionEnd {
+        frames: s.received,
+        window_end_ns: ns(clock.now()),
+        unknown: s.unknown,
+        malformed: s.malformed,
+        invalid_angles: s.invalid_angles,
+        dropped: bus.dropped(),
+    };
+    let r = io.log.collection_end(&end);
+    io.check(r);
     io.event(
         clock.now(),
         Level::Info,

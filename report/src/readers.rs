@@ -28,14 +28,15 @@ use std::time::Duration;
 
 use calib_core::{Frame, Sample};
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
-use serde::Deserialize;
+
+use exocal_log::{CanFrameRecord, CollectionEnd, Topic};
 
 use crate::input::{TimedSample, JOINTS};
 
 /// The CSV header, exactly.
 pub const CSV_HEADER: &str = "t,q1,q2,q3,q4,q5,q6,q7,x,y,z,qw,qx,qy,qz";
 /// The MCAP topic of received raw frames in the daemon's session log.
-pub const MCAP_RX_TOPIC: &str = "/can/rx";
+pub const MCAP_RX_TOPIC: &str = exocal_log::Topic::CanRx.name();
 
 /// A raw CAN frame as recorded.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -193,37 +194,20 @@ pub fn parse_candump(text: &str) -> Result<Vec<RecordedFrame>, ReadError> {
     Ok(out)
 }
 
-/// The daemon's raw-frame record (`exocal.CanFrame`, JSON).
-#[derive(Deserialize)]
-struct CanFrameJson {
-    id: u32,
-    extended: bool,
-    data: Vec<u8>,
-    host_ns: u64,
-    kernel_ns: Option<u64>,
-}
-
 /// A daemon session log, as the offline replay needs it.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct McapSession {
     /// Received raw frames (topic [`MCAP_RX_TOPIC`]), in file order.
     pub frames: Vec<RecordedFrame>,
-    /// Log time of the daemon's "collection done" event, if the session got that far.
+    /// When the collection window closed (the log's `exocal_log::CollectionEnd`), if the
+    /// session got that far.
     pub collection_end: Option<Duration>,
-    /// How many received frames the live session had ingested when collection ended (the `N`
-    /// of the event's `collection done: N frames`): it calibrated on exactly the first `N`
-    /// frames of `frames`, so a replay that must agree with it stops there. Frames after them
-    /// arrived during calibration and push. (A cut by time would not do: frames still queued
-    /// in the receiver at the end carry earlier timestamps but were not used.)
+    /// How many received frames the live session had ingested when collection ended: it
+    /// calibrated on exactly the first that many frames of `frames`, so a replay that must agree
+    /// with it stops there. Frames after them arrived during calibration and push. (A cut by
+    /// time would not do: frames still queued in the receiver at the end carry earlier
+    /// timestamps but were not used.)
     pub collection_frames: Option<u64>,
-}
-
-/// The prefix of the daemon's event that ends the collection window.
-pub const COLLECTION_DONE: &str = "collection done";
-
-#[derive(Deserialize)]
-struct EventJson {
-    message: String,
 }
 
 /// Reads a daemon session log: its received raw frames (the time is the kernel receive
@@ -241,15 +225,12 @@ pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
     let mut seen_channel = false;
     for (i, message) in stream.enumerate() {
         let m = message.map_err(|e| err(e.to_string()))?;
-        if m.channel.topic == "/events" && collection_end.is_none() {
-            if let Ok(e) = serde_json::from_slice::<EventJson>(&m.data) {
-                if let Some(rest) = e.message.strip_prefix(COLLECTION_DONE) {
-                    collection_end = Some(Duration::from_nanos(m.log_time));
-                    collection_frames = rest
-                        .strip_prefix(": ")
-                        .and_then(|r| r.split_once(" frames"))
-                        .and_then(|(n, _)| n.parse().ok());
-                }
+        if m.channel.topic == Topic::Collection.name() {
+            let end: CollectionEnd = serde_json::from_slice(&m.data)
+                .map_err(|e| err(format!("message {i} on {}: {e}", Topic::Collection.name())))?;
+            if collection_end.is_none() {
+                collection_end = Some(Duration::from_nanos(end.window_end_ns));
+                collection_frames = Some(end.frames);
             }
             continue;
         }
@@ -257,13 +238,13 @@ pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
             continue;
         }
         seen_channel = true;
-        if m.channel.message_encoding != "json" {
+        if m.channel.message_encoding != exocal_log::MESSAGE_ENCODING {
             return Err(err(format!(
                 "{MCAP_RX_TOPIC} is {:?}-encoded, expected json",
                 m.channel.message_encoding
             )));
         }
-        let f: CanFrameJson = serde_json::from_slice(&m.data)
+        let f: CanFrameRecord = serde_json::from_slice(&m.data)
             .map_err(|e| err(format!("message {i} on {MCAP_RX_TOPIC}: {e}")))?;
         if f.data.len() > 8 {
             return Err(err(format!(
@@ -563,5 +544,80 @@ mod tests {
         assert_eq!(f[1].data, vec![1, 2]);
         let e = read_mcap_frames(b"not mcap").unwrap_err();
         assert_eq!(e.kind, InputKind::Mcap);
+    }
+
+    /// A log with `frames` received frames and, if given, a collection-end record after
+    /// `end_after` of them, written with the schema's names and records.
+    fn session_log(frames: u64, end: Option<(u64, &str)>) -> Vec<u8> {
+        let mut buf = std::io::Cursor::new(Vec::new());
+        {
+            let mut w = mcap::Writer::new(&mut buf).unwrap();
+            let mut channel = |t: Topic| {
+                let (name, schema) = t.schema();
+                let id = w
+                    .add_schema(name, exocal_log::SCHEMA_ENCODING, schema.as_bytes())
+                    .unwrap();
+                w.add_channel(
+                    id,
+                    t.name(),
+                    exocal_log::MESSAGE_ENCODING,
+                    &Default::default(),
+                )
+                .unwrap()
+            };
+            let (rx, collection) = (channel(Topic::CanRx), channel(Topic::Collection));
+            let mut seq = 0;
+            let mut put = |w: &mut mcap::Writer<_>, ch: u16, t: u64, body: String| {
+                seq += 1;
+                let header = mcap::records::MessageHeader {
+                    channel_id: ch,
+                    sequence: seq,
+                    log_time: t,
+                    publish_time: t,
+                };
+                w.write_to_known_channel(&header, body.as_bytes()).unwrap();
+            };
+            for i in 0..frames {
+                let f = CanFrameRecord {
+                    id: 0x100 + i as u32,
+                    extended: false,
+                    dlc: 1,
+                    data: vec![i as u8],
+                    host_ns: 1_000 + i,
+                    kernel_ns: None,
+                };
+                put(&mut w, rx, f.host_ns, serde_json::to_string(&f).unwrap());
+                if let Some((after, body)) = end {
+                    if i + 1 == after {
+                        put(&mut w, collection, 5_000, body.to_string());
+                    }
+                }
+            }
+            w.finish().unwrap();
+        }
+        buf.into_inner()
+    }
+
+    #[test]
+    fn the_collection_end_is_the_structured_record_not_prose() {
+        let end = CollectionEnd {
+            frames: 3,
+            window_end_ns: 4_999,
+            unknown: 0,
+            malformed: 0,
+            invalid_angles: 0,
+            dropped: 0,
+        };
+        let body = serde_json::to_string(&end).unwrap();
+        let s = read_mcap_session(&session_log(5, Some((3, &body)))).unwrap();
+        assert_eq!(s.frames.len(), 5);
+        assert_eq!(s.collection_frames, Some(3));
+        assert_eq!(s.collection_end, Some(Duration::from_nanos(4_999)));
+        // A session that never finished collecting has no record: replayed whole.
+        let s = read_mcap_session(&session_log(5, None)).unwrap();
+        assert_eq!((s.collection_frames, s.collection_end), (None, None));
+        // A damaged record is an error naming the topic, not a silent whole replay.
+        let e = read_mcap_session(&session_log(5, Some((2, r#"{"frames":"x"}"#)))).unwrap_err();
+        assert!(e.to_string().contains("/collection"), "{e}");
     }
 }

@@ -5,7 +5,7 @@ use calib_core::DhTable;
 use exocal_report::export::config_toml;
 use exocal_report::readers::{read_mcap_frames, read_mcap_session};
 use exocald::config::{Config, DEFAULT_TOML};
-use exocald::mcaplog::{CanFrameRecord, Level, SessionLog};
+use exocald::mcaplog::{CanFrameRecord, CollectionEnd, Level, SessionLog};
 
 #[test]
 fn the_exported_configuration_loads_in_the_daemon_with_the_calibrated_table() {
@@ -44,8 +44,18 @@ fn the_mcap_reader_reads_the_frames_the_daemon_logged() {
         };
         log.can_frame(i % 50 == 49, &record).unwrap();
         if i == 200 {
-            let msg = "collection done: 200 frames (0 unknown, 0 malformed)";
+            // Prose is for people; the replay reads the structured record only.
+            let msg = "collection done: 999 frames (0 unknown, 0 malformed)";
             log.event(record.host_ns, Level::Info, msg).unwrap();
+            let end = CollectionEnd {
+                frames: 200,
+                window_end_ns: record.host_ns,
+                unknown: 0,
+                malformed: 0,
+                invalid_angles: 0,
+                dropped: 0,
+            };
+            log.collection_end(&end).unwrap();
         }
         if i % 50 != 49 {
             sent.push(record);
