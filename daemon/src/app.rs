@@ -11,6 +11,7 @@ use crate::config::{Config, ConfigError, DEFAULT_TOML};
 use crate::exit::DaemonError;
 use crate::report::{Notifier, Reporter};
 use crate::runner::{run_session, SessionError, SessionSummary};
+use crate::shutdown::Shutdown;
 
 /// Where a configuration came from.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -106,6 +107,7 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
             };
             finish(crate::offline::run(&config, &text, &opts).map_err(|e| *e))
         }
+        #[cfg(feature = "demo")]
         Command::Demo(args) => {
             let (config, source) = resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
             eprintln!("exocald: configuration from {source}");
@@ -151,51 +153,6 @@ fn runtime() -> Result<tokio::runtime::Runtime, DaemonError> {
             what: "starting the async runtime".into(),
             source,
         })
-}
-
-/// A flag raised by SIGTERM or SIGINT; [`Shutdown::wait`] completes once it is.
-#[derive(Clone)]
-pub struct Shutdown(tokio::sync::watch::Receiver<bool>);
-
-impl Shutdown {
-    /// Installs the signal handlers (inside a runtime).
-    pub fn on_signals() -> Shutdown {
-        let (tx, rx) = tokio::sync::watch::channel(false);
-        tokio::spawn(async move {
-            let term = async {
-                match signal(SignalKind::terminate()) {
-                    Ok(mut s) => {
-                        s.recv().await;
-                    }
-                    Err(_) => std::future::pending().await,
-                }
-            };
-            tokio::select! {
-                _ = tokio::signal::ctrl_c() => {}
-                () = term => {}
-            }
-            let _ = tx.send(true);
-        });
-        Shutdown(rx)
-    }
-
-    /// A flag raised by hand (tests, the demo).
-    pub fn manual() -> (tokio::sync::watch::Sender<bool>, Shutdown) {
-        let (tx, rx) = tokio::sync::watch::channel(false);
-        (tx, Shutdown(rx))
-    }
-
-    /// Completes when the flag is raised.
-    pub fn wait(&self) -> impl std::future::Future<Output = ()> + use<> {
-        let mut rx = self.0.clone();
-        async move {
-            while !*rx.borrow_and_update() {
-                if rx.changed().await.is_err() {
-                    std::future::pending::<()>().await;
-                }
-            }
-        }
-    }
 }
 
 fn open_can(config: &Config) -> Result<SocketCan, DaemonError> {

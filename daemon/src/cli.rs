@@ -48,6 +48,7 @@ pub enum Command {
     ///
     /// Plays the paper's simulation scenario (Table 4 "actual" arm, drifting joint angles),
     /// calibrates, pushes to the emulated nodes and writes the session's MCAP log.
+    #[cfg(feature = "demo")]
     Demo(DemoArgs),
     /// Check a configuration file: print what was understood, or the error (exit 78).
     CheckConfig(CheckConfigArgs),
@@ -57,7 +58,8 @@ pub enum Command {
     /// log up to the end of its collection window), so the same data gives the live run's
     /// table. Writes the HTML report and, for a validated table, the requested exports.
     /// Exit status: 0 validated; 65 refused by validation, or the input does not parse;
-    /// 66 too few samples; 74 I/O error; 78 bad configuration.
+    /// 66 the recording misses the session rules (duration, excitation, samples); 74 I/O
+    /// error; 78 bad configuration.
     Offline(OfflineArgs),
 }
 
@@ -99,6 +101,7 @@ pub struct SessionArgs {
 }
 
 /// Options of `demo`.
+#[cfg(feature = "demo")]
 #[derive(Debug, Args)]
 pub struct DemoArgs {
     /// Seed of the emulated suit (motion, drift, noise): the same seed gives the same table.

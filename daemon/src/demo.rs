@@ -119,7 +119,7 @@ async fn session(config: &Config, opts: &DemoOptions) -> Result<DemoResult, Sess
     let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await });
     let pacer = tokio::spawn(pace(clock, opts.speed));
     // SIGTERM/SIGINT end the session like `calibrate`'s: the log is finished, nothing is lost.
-    let shutdown = crate::app::Shutdown::on_signals();
+    let shutdown = crate::shutdown::Shutdown::on_signals();
     let mut notifier = Notifier::disabled();
     let mut reporter = Reporter::detect(&notifier);
     let result = run_session(

@@ -13,10 +13,11 @@
 //! | [`validate`] | bounds, condition number and held-out accuracy before any push |
 //! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
 //! | [`runner`] | one session on any transport: collect, align, calibrate, validate, push, log |
-//! | [`demo`] | exocal-hil and the daemon in one process on the in-process bus |
+//! | `demo` | exocal-hil and the daemon in one process on the in-process bus (feature `demo`, on by default) |
 //! | [`offline`] | recalibration from a recorded MCAP, candump or CSV file, through the same pipeline |
 //! | [`calreport`] | the HTML calibration report of a session (live or offline) |
 //! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
+//! | [`shutdown`] | SIGTERM/SIGINT as a flag a session waits on |
 //! | [`app`] | what each subcommand does |
 
 pub mod align;
@@ -25,6 +26,7 @@ pub mod calibrate;
 pub mod calreport;
 pub mod cli;
 pub mod config;
+#[cfg(feature = "demo")]
 pub mod demo;
 pub mod exit;
 pub mod ingest;
@@ -34,4 +36,5 @@ pub mod push;
 pub mod report;
 pub mod runner;
 pub mod session;
+pub mod shutdown;
 pub mod validate;

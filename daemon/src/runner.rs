@@ -751,7 +751,7 @@ pub fn write_summary(summary: &SessionSummary, out: &mut impl Write) -> std::io:
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::app::Shutdown;
+    use crate::shutdown::Shutdown;
     use exocal_bus::InProcessBus;
     use exocal_bus::SimClock;
     use exocal_hil::{Hil, Scenario};

@@ -293,7 +293,7 @@ async fn run_case(case: &Case) -> Outcome {
     let mut daemon_end = bus.attach();
     let hil_clock = clock;
     let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &hil_clock).await });
-    let (_stop, shutdown) = exocald::app::Shutdown::manual();
+    let (_stop, shutdown) = exocald::shutdown::Shutdown::manual();
     let mut notifier = Notifier::disabled();
     let mut reporter = Reporter::detect(&notifier);
     let started = std::time::Instant::now();

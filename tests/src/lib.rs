@@ -14,6 +14,7 @@ pub const HARNESS_ENV: &str = "EXOCAL_VCAN_HARNESS";
 pub fn require_vcan(iface: &str) {
     let name = CString::new(iface).expect("interface name has no NUL");
     // SAFETY: `name` is a valid NUL-terminated C string for the duration of the call.
+    #[allow(unsafe_code)]
     let index = unsafe { libc::if_nametoindex(name.as_ptr()) };
     if index == 0 {
         panic!(

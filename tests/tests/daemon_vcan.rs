@@ -450,7 +450,10 @@ fn sigterm_during_collection_finishes_the_log_and_pushes_nothing() {
         .expect("start exocald");
     std::thread::sleep(Duration::from_secs(8));
     // SAFETY: plain kill(2) on our child.
-    unsafe { libc::kill(daemon.id() as i32, libc::SIGTERM) };
+    #[allow(unsafe_code)]
+    unsafe {
+        libc::kill(daemon.id() as i32, libc::SIGTERM)
+    };
     let deadline = Instant::now() + Duration::from_secs(30);
     let status = loop {
         if let Some(s) = daemon.try_wait().unwrap() {

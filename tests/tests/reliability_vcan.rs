@@ -326,7 +326,7 @@ async fn run_row(row: &Row) -> (Vec<String>, String) {
     let mut hil_sock = SocketCan::open("vcan0").expect("hil socket on vcan0");
     let mut daemon_sock = SocketCan::open("vcan0").expect("daemon socket on vcan0");
     let hil_task = tokio::spawn(async move { hil.run(&mut hil_sock, &clock).await });
-    let (_stop, shutdown) = exocald::app::Shutdown::manual();
+    let (_stop, shutdown) = exocald::shutdown::Shutdown::manual();
     let mut notifier = Notifier::disabled();
     let mut reporter = Reporter::detect(&notifier);
     let started = Instant::now();

@@ -102,6 +102,7 @@ pub fn main(args: &[String]) -> Result<u8> {
 
 /// Moves this process into a mount namespace of its own in which nothing propagates back to
 /// the host: every mount made from here on (and by children) goes when the process exits.
+#[allow(unsafe_code)]
 fn private_mount_namespace() -> Result<()> {
     // SAFETY: unshare has no memory-safety preconditions; it changes only this process's mount
     // namespace.

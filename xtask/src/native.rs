@@ -24,6 +24,7 @@ exec \"$@\"";
 /// Whether the native path can work here; the reason when it cannot.
 pub fn available() -> Result<(), String> {
     // SAFETY: plain socket(2) call; the descriptor is closed right away.
+    #[allow(unsafe_code)]
     let fd = unsafe { libc::socket(libc::AF_CAN, libc::SOCK_RAW, libc::CAN_RAW) };
     if fd < 0 {
         let err = std::io::Error::last_os_error();
@@ -32,7 +33,10 @@ pub fn available() -> Result<(), String> {
         ));
     }
     // SAFETY: `fd` is a descriptor we own.
-    unsafe { libc::close(fd) };
+    #[allow(unsafe_code)]
+    unsafe {
+        libc::close(fd)
+    };
 
     if !std::path::Path::new("/sys/module/vcan").exists() && crate::host::is_root() {
         let _ = Command::new("modprobe")
@@ -72,6 +76,7 @@ pub fn run(req: &Request) -> Result<(u8, Vec<u8>)> {
         .process_group(0);
     // SAFETY: prctl is async-signal-safe; it only asks the kernel to kill the child if we die,
     // so that a killed harness leaves nothing running.
+    #[allow(unsafe_code)]
     unsafe {
         cmd.pre_exec(|| {
             libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);
@@ -107,7 +112,10 @@ pub fn run(req: &Request) -> Result<(u8, Vec<u8>)> {
                 req.timeout.as_secs()
             ));
             // SAFETY: signals the process group we created for the child.
-            unsafe { libc::kill(-pgid, libc::SIGKILL) };
+            #[allow(unsafe_code)]
+            unsafe {
+                libc::kill(-pgid, libc::SIGKILL)
+            };
             let _ = child.wait();
             break TIMED_OUT;
         }
@@ -115,7 +123,10 @@ pub fn run(req: &Request) -> Result<(u8, Vec<u8>)> {
     };
     // Whatever the command left behind in its group goes with it.
     // SAFETY: as above; the group may already be gone (ESRCH is fine).
-    unsafe { libc::kill(-pgid, libc::SIGKILL) };
+    #[allow(unsafe_code)]
+    unsafe {
+        libc::kill(-pgid, libc::SIGKILL)
+    };
     let stdout = tee
         .map(|t| t.join().unwrap_or_default())
         .unwrap_or_default();

@@ -212,6 +212,7 @@ fn boot(
         .stdout(Stdio::null())
         .stderr(Stdio::piped());
     // SAFETY: prctl is async-signal-safe; QEMU is killed if the harness dies.
+    #[allow(unsafe_code)]
     unsafe {
         cmd.pre_exec(|| {
             libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL);

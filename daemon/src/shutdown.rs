@@ -1,0 +1,52 @@
+//! Shutdown on SIGTERM/SIGINT, as a flag every part of a session can wait on.
+//!
+//! Contract: [`Shutdown::on_signals`] raises the flag on the first SIGTERM or SIGINT (inside a
+//! tokio runtime); [`Shutdown::manual`] gives tests and the demo a flag raised by hand;
+//! [`Shutdown::wait`] completes once the flag is up, for every clone, however late it is asked.
+
+use tokio::signal::unix::{signal, SignalKind};
+
+/// A flag raised by SIGTERM or SIGINT; [`Shutdown::wait`] completes once it is.
+#[derive(Clone)]
+pub struct Shutdown(tokio::sync::watch::Receiver<bool>);
+
+impl Shutdown {
+    /// Installs the signal handlers (inside a runtime).
+    pub fn on_signals() -> Shutdown {
+        let (tx, rx) = tokio::sync::watch::channel(false);
+        tokio::spawn(async move {
+            let term = async {
+                match signal(SignalKind::terminate()) {
+                    Ok(mut s) => {
+                        s.recv().await;
+                    }
+                    Err(_) => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                () = term => {}
+            }
+            let _ = tx.send(true);
+        });
+        Shutdown(rx)
+    }
+
+    /// A flag raised by hand (tests, the demo).
+    pub fn manual() -> (tokio::sync::watch::Sender<bool>, Shutdown) {
+        let (tx, rx) = tokio::sync::watch::channel(false);
+        (tx, Shutdown(rx))
+    }
+
+    /// Completes when the flag is raised.
+    pub fn wait(&self) -> impl std::future::Future<Output = ()> + use<> {
+        let mut rx = self.0.clone();
+        async move {
+            while !*rx.borrow_and_update() {
+                if rx.changed().await.is_err() {
+                    std::future::pending::<()>().await;
+                }
+            }
+        }
+    }
+}
