@@ -49,7 +49,14 @@ impl<const P: usize> QrAccumulator<P> {
                 continue;
             }
             let a = self.r[j][j];
-            let rr = libm::hypot(a, h[j]);
+            // `hypot` guards against overflow and underflow of the squares, at several times
+            // the cost of the plain formula; only fall back to it outside the safe range.
+            let ss = a * a + h[j] * h[j];
+            let rr = if (1e-290..1e290).contains(&ss) {
+                libm::sqrt(ss)
+            } else {
+                libm::hypot(a, h[j])
+            };
             let (c, s) = (a / rr, h[j] / rr);
             self.r[j][j] = rr;
             let row = &mut self.r[j];

@@ -218,6 +218,7 @@ pub struct LsResult<const N: usize, const P: usize> {
 pub(crate) fn linearise<const N: usize, const P: usize>(table: &DhTable<N>, samples: &[Sample<N>]) -> (QrAccumulator<P>, f64) {
     let mut acc = QrAccumulator::<P>::new();
     let mut cost = 0.0;
+    let table = table.prepare();
     for s in samples {
         let (t, cols) = table.fk_jacobian(&s.joints);
         let e = pose_error(&t, &s.pose);

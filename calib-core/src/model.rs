@@ -144,8 +144,15 @@ impl Frame {
 impl DhRow {
     /// The link transform of eq. (1) for joint variable `q` (the offset is added here).
     pub fn transform(&self, q: f64) -> Frame {
-        let (st, ct) = libm::sincos(q + self.theta_offset);
         let (sa, ca) = libm::sincos(self.alpha);
+        self.transform_with(q, sa, ca)
+    }
+
+    /// [`DhRow::transform`] with `(sin α, cos α)` given (they are constant per table, while the
+    /// joint angle changes with every sample).
+    #[inline]
+    fn transform_with(&self, q: f64, sa: f64, ca: f64) -> Frame {
+        let (st, ct) = libm::sincos(q + self.theta_offset);
         Frame {
             r: Matrix3::new(ct, -st * ca, st * sa, st, ct * ca, -ct * sa, 0.0, sa, ca),
             p: Vector3::new(self.a * ct, self.a * st, self.d),
@@ -271,18 +278,48 @@ impl<const N: usize> DhTable<N> {
         t
     }
 
+    /// The table with `sin α`, `cos α` of every row evaluated once, for kinematics over many
+    /// samples (the results are bit-identical to [`DhTable::fk_jacobian`]).
+    pub(crate) fn prepare(&self) -> PreparedTable<N> {
+        PreparedTable {
+            rows: self.rows,
+            trig: core::array::from_fn(|i| libm::sincos(self.rows[i].alpha)),
+        }
+    }
+
     /// Forward kinematics and the analytic identification Jacobian.
     ///
     /// Returns the tool pose and `cols[kind][joint]`, the tool-frame twist `[v; ω]` of a unit
     /// change of parameter (`kind`, `joint`). `cols[ParamKind::Theta as usize]` is the joint
     /// Jacobian (∂pose/∂q, also in the tool frame).
     pub fn fk_jacobian(&self, joints: &[f64; N]) -> (Frame, [[Vector6<f64>; N]; 4]) {
+        self.prepare().fk_jacobian(joints)
+    }
+
+    /// The joint Jacobian (6 × N, tool frame): column `j` is ∂pose/∂q_j.
+    pub fn joint_jacobian(&self, joints: &[f64; N]) -> [Vector6<f64>; N] {
+        self.fk_jacobian(joints).1[ParamKind::Theta as usize]
+    }
+}
+
+/// A [`DhTable`] with the trigonometry of its constant twists `α` precomputed (see
+/// [`DhTable::prepare`]): per sample only `sin`/`cos` of the joint angles remain.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct PreparedTable<const N: usize> {
+    rows: [DhRow; N],
+    /// `(sin α_i, cos α_i)`.
+    trig: [(f64, f64); N],
+}
+
+impl<const N: usize> PreparedTable<N> {
+    /// [`DhTable::fk_jacobian`].
+    pub(crate) fn fk_jacobian(&self, joints: &[f64; N]) -> (Frame, [[Vector6<f64>; N]; 4]) {
         let mut cols = [[Vector6::zeros(); N]; 4];
         // Backward pass: `u` is U_{i+1} = T_{i+1} ⋯ T_N, the pose of the tool in frame i.
         let mut u = Frame::identity();
         for i in (0..N).rev() {
             let row = &self.rows[i];
-            let (sa, ca) = libm::sincos(row.alpha);
+            let (sa, ca) = self.trig[i];
             let ex = Vector3::new(1.0, 0.0, 0.0);
             let z_local = Vector3::new(0.0, sa, ca);
             // Local twists in frame i (post-multiplied), see paper notes 1-2.
@@ -298,14 +335,9 @@ impl<const N: usize> DhTable<N> {
                 let wt = rt * w;
                 cols[k][i] = Vector6::new(vt.x, vt.y, vt.z, wt.x, wt.y, wt.z);
             }
-            u = row.transform(joints[i]).compose(&u);
+            u = row.transform_with(joints[i], sa, ca).compose(&u);
         }
         (u, cols)
-    }
-
-    /// The joint Jacobian (6 × N, tool frame): column `j` is ∂pose/∂q_j.
-    pub fn joint_jacobian(&self, joints: &[f64; N]) -> [Vector6<f64>; N] {
-        self.fk_jacobian(joints).1[ParamKind::Theta as usize]
     }
 }
 
