@@ -312,6 +312,17 @@ pub(crate) struct PreparedTable<const N: usize> {
 }
 
 impl<const N: usize> PreparedTable<N> {
+    /// The tool pose, composed from the tool backwards like [`PreparedTable::fk_jacobian`]
+    /// does (so bit-identical to its pose, which [`DhTable::fk`] is not), without the Jacobian.
+    pub(crate) fn pose(&self, joints: &[f64; N]) -> Frame {
+        let mut u = Frame::identity();
+        for i in (0..N).rev() {
+            let (sa, ca) = self.trig[i];
+            u = self.rows[i].transform_with(joints[i], sa, ca).compose(&u);
+        }
+        u
+    }
+
     /// [`DhTable::fk_jacobian`].
     pub(crate) fn fk_jacobian(&self, joints: &[f64; N]) -> (Frame, [[Vector6<f64>; N]; 4]) {
         let mut cols = [[Vector6::zeros(); N]; 4];
