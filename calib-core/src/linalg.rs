@@ -73,6 +73,56 @@ impl<const P: usize> QrAccumulator<P> {
         self.rows += 1;
     }
 
+    /// Absorbs the rows collected in `panel` with one blocked Householder QR of `[R; panel]`
+    /// (a reflection per column over all the panel's rows instead of a Givens rotation per row
+    /// and column), and empties the panel. Mathematically the same as [`QrAccumulator::add_row`]
+    /// on every row; `R` keeps a non-negative diagonal.
+    pub fn absorb<const M: usize>(&mut self, panel: &mut QrPanel<P, M>) {
+        let (nf, nt) = (panel.nf, panel.nt);
+        let mut w = [0.0; P];
+        for j in 0..P {
+            // Tail rows are zero in the first `split` columns: their reflections skip them.
+            let nt_j = if j >= panel.split { nt } else { 0 };
+            let (full, tail) = (&mut panel.full[..nf], &mut panel.tail[..nt_j]);
+            let sigma = sum_sq_col(full, j) + sum_sq_col(tail, j);
+            if sigma == 0.0 {
+                continue;
+            }
+            // Reflection H = I − τ v vᵀ, v = [1; x / v0], mapping [r_jj; x] to [μ; 0], μ ≥ 0
+            // (v0 = r_jj − μ without cancellation, Golub & Van Loan Alg. 5.1.1).
+            let a = self.r[j][j];
+            let mu = libm::sqrt(a * a + sigma);
+            let v0 = if a <= 0.0 { a - mu } else { -sigma / (a + mu) };
+            let tau = 2.0 * v0 * v0 / (sigma + v0 * v0);
+            let inv = 1.0 / v0;
+            self.r[j][j] = mu;
+            // w = τ (r_j,k + Σ_i v_i x_ik) for k > j, and the same for the right-hand side.
+            let wr = &mut w[j + 1..];
+            wr.copy_from_slice(&self.r[j][j + 1..]);
+            let mut wy = self.z[j];
+            wy += project(full, &panel.full_y[..nf], j, inv, wr);
+            wy += project(tail, &panel.tail_y[..nt_j], j, inv, wr);
+            for wk in wr.iter_mut() {
+                *wk *= tau;
+            }
+            wy *= tau;
+            for (rk, wk) in self.r[j][j + 1..].iter_mut().zip(wr.iter()) {
+                *rk -= wk;
+            }
+            self.z[j] -= wy;
+            reflect(full, &mut panel.full_y[..nf], j, wr, wy);
+            reflect(tail, &mut panel.tail_y[..nt_j], j, wr, wy);
+        }
+        self.rss += panel.full_y[..nf]
+            .iter()
+            .chain(&panel.tail_y[..nt])
+            .map(|y| y * y)
+            .sum::<f64>();
+        self.rows += nf + nt;
+        panel.nf = 0;
+        panel.nt = 0;
+    }
+
     /// Column norms of the stacked `H` (equal to those of `R`).
     pub fn column_norms(&self) -> [f64; P] {
         core::array::from_fn(|j| libm::sqrt((0..=j).map(|i| self.r[i][j] * self.r[i][j]).sum::<f64>()))
@@ -106,6 +156,110 @@ impl<const P: usize> QrAccumulator<P> {
             rows: self.rows,
             rss: self.rss,
         }
+    }
+}
+
+/// Scales column `j` of `rows` by `inv` (it becomes the reflection vector `v`), adds
+/// `Σ_i v_i rows[i][j+1..]` to `w` and returns `Σ_i v_i y_i`. Two rows at a time, so that `w`
+/// is loaded and stored once per pair.
+fn project<const P: usize>(rows: &mut [[f64; P]], y: &[f64], j: usize, inv: f64, w: &mut [f64]) -> f64 {
+    let mut wy = 0.0;
+    let mut pairs = rows.chunks_exact_mut(2);
+    let mut ys = y.chunks_exact(2);
+    for (pair, yy) in (&mut pairs).zip(&mut ys) {
+        let (a, b) = pair.split_at_mut(1);
+        let (a, b) = (&mut a[0], &mut b[0]);
+        let (va, vb) = (a[j] * inv, b[j] * inv);
+        a[j] = va;
+        b[j] = vb;
+        for ((wk, xa), xb) in w.iter_mut().zip(&a[j + 1..]).zip(&b[j + 1..]) {
+            *wk += va * xa + vb * xb;
+        }
+        wy += va * yy[0] + vb * yy[1];
+    }
+    for (row, yy) in pairs.into_remainder().iter_mut().zip(ys.remainder()) {
+        let v = row[j] * inv;
+        row[j] = v;
+        for (wk, xk) in w.iter_mut().zip(&row[j + 1..]) {
+            *wk += v * xk;
+        }
+        wy += v * yy;
+    }
+    wy
+}
+
+/// Applies the reflection to the panel rows: `rows[i][j+1..] −= v_i w`, `y_i −= v_i w_y`.
+fn reflect<const P: usize>(rows: &mut [[f64; P]], y: &mut [f64], j: usize, w: &[f64], wy: f64) {
+    for (row, yi) in rows.iter_mut().zip(y) {
+        let v = row[j];
+        for (xk, wk) in row[j + 1..].iter_mut().zip(w) {
+            *xk -= v * wk;
+        }
+        *yi -= v * wy;
+    }
+}
+
+/// Σ_i rows[i][j]², with four partial sums (a single chain of dependent additions is slow).
+fn sum_sq_col<const P: usize>(rows: &[[f64; P]], j: usize) -> f64 {
+    let mut acc = [0.0; 4];
+    let mut chunks = rows.chunks_exact(4);
+    for c in &mut chunks {
+        for (a, row) in acc.iter_mut().zip(c) {
+            *a += row[j] * row[j];
+        }
+    }
+    for (a, row) in acc.iter_mut().zip(chunks.remainder()) {
+        *a += row[j] * row[j];
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3])
+}
+
+/// Rows collected for one blocked Householder update of a [`QrAccumulator`]
+/// ([`QrAccumulator::absorb`]), row-major: up to `M` "full" rows that may be non-zero in every
+/// column, and up to `M` "tail" rows that are exactly zero in the first `split` columns (in LS,
+/// the rotation rows vanish in the `a` and `d` columns), whose reflections then skip them.
+#[derive(Clone, Debug)]
+pub struct QrPanel<const P: usize, const M: usize> {
+    full: [[f64; P]; M],
+    full_y: [f64; M],
+    nf: usize,
+    tail: [[f64; P]; M],
+    tail_y: [f64; M],
+    nt: usize,
+    split: usize,
+}
+
+impl<const P: usize, const M: usize> QrPanel<P, M> {
+    /// An empty panel whose tail rows are zero in columns `0..split`.
+    pub fn new(split: usize) -> Self {
+        QrPanel {
+            full: [[0.0; P]; M],
+            full_y: [0.0; M],
+            nf: 0,
+            tail: [[0.0; P]; M],
+            tail_y: [0.0; M],
+            nt: 0,
+            split,
+        }
+    }
+
+    /// Room for `f` more full rows and `t` more tail rows.
+    pub fn has_room(&self, f: usize, t: usize) -> bool {
+        self.nf + f <= M && self.nt + t <= M
+    }
+
+    /// Appends a full row (`h · x ≈ y`); the caller checks [`QrPanel::has_room`].
+    pub fn push_full(&mut self) -> (&mut [f64; P], &mut f64) {
+        let i = self.nf;
+        self.nf += 1;
+        (&mut self.full[i], &mut self.full_y[i])
+    }
+
+    /// Appends a tail row; only its columns `split..` are read (the rest must be zero).
+    pub fn push_tail(&mut self) -> (&mut [f64; P], &mut f64) {
+        let i = self.nt;
+        self.nt += 1;
+        (&mut self.tail[i], &mut self.tail_y[i])
     }
 }
 
@@ -264,6 +418,39 @@ mod tests {
         }
         assert!(acc.residual_ss() < 1e-18);
         assert!(an.condition() < 10.0, "scaling failed: {}", an.condition());
+    }
+
+    #[test]
+    fn householder_panels_match_givens_rows() {
+        let mut rng = Rng::new(7);
+        let mut givens = QrAccumulator::<6>::new();
+        let mut blocked = QrAccumulator::<6>::new();
+        let mut panel = QrPanel::<6, 5>::new(2);
+        for k in 0..37 {
+            // Every other row is zero in the first two columns (a "tail" row).
+            let tail = k % 2 == 1;
+            let h: [f64; 6] = core::array::from_fn(|j| if tail && j < 2 { 0.0 } else { rng.normal() * (1 + j) as f64 });
+            let y = rng.normal();
+            givens.add_row(&h, y);
+            if !panel.has_room(usize::from(!tail), usize::from(tail)) {
+                blocked.absorb(&mut panel);
+            }
+            let (row, yy) = if tail { panel.push_tail() } else { panel.push_full() };
+            *row = h;
+            *yy = y;
+        }
+        blocked.absorb(&mut panel);
+        assert_eq!(blocked.rows(), 37);
+        assert!((blocked.residual_ss() - givens.residual_ss()).abs() < 1e-12 * givens.residual_ss());
+        for i in 0..6 {
+            for j in 0..6 {
+                assert!(
+                    (blocked.r[i][j] - givens.r[i][j]).abs() < 1e-12 * givens.r[i][i],
+                    "R[{i}][{j}]"
+                );
+            }
+            assert!((blocked.z[i] - givens.z[i]).abs() < 1e-12 * givens.r[i][i]);
+        }
     }
 
     #[test]

@@ -16,10 +16,11 @@
 //! Anatomical bounds (Table 2) are honoured per [`BoundsPolicy`].
 
 use crate::error::CalibError;
-use crate::linalg::{Analysis, Observability, QrAccumulator};
+use crate::linalg::{Analysis, Observability, QrAccumulator, QrPanel};
 use crate::model::{
     check_bounds, clamp_to_bounds, error_jacobian, pose_error, BoundViolation, Bounds, DhTable, JointRanges, ParamKind, Sample,
 };
+use nalgebra::{Matrix3, Vector3};
 
 /// What to do when the identified table leaves the anatomical bounds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -216,27 +217,58 @@ pub struct LsResult<const N: usize, const P: usize> {
     pub bounds: BoundsOutcome,
 }
 
+/// Rows of each kind (position, rotation) per Householder panel: 8 samples.
+const PANEL_ROWS: usize = 24;
+
 /// Absorbs every sample linearised at `table`; returns the accumulator and the cost Σ‖e‖².
+///
+/// The residual Jacobian `M(e)·J` is formed column by column from its structure
+/// (`M = [I, −[e_p]×; 0, J_l⁻¹]`): the `a` and `d` columns are pure translations, so their
+/// rotation rows are exactly zero and their position rows are `J`'s. The rows are absorbed 8
+/// samples at a time by a blocked Householder QR ([`QrAccumulator::absorb`]).
 pub(crate) fn linearise<const N: usize, const P: usize>(table: &DhTable<N>, samples: &[Sample<N>]) -> (QrAccumulator<P>, f64) {
     let mut acc = QrAccumulator::<P>::new();
+    let mut panel = QrPanel::<P, PANEL_ROWS>::new(2 * N);
     let mut cost = 0.0;
     let table = table.prepare();
     for s in samples {
         let (t, cols) = table.fk_jacobian(&s.joints);
         let e = pose_error(&t, &s.pose);
         cost += e.norm_squared();
-        let m = error_jacobian(&e);
-        let mut rows = [[0.0; P]; 6];
+        let ep = Vector3::new(e[0], e[1], e[2]);
+        let jl_inv: Matrix3<f64> = error_jacobian(&e).fixed_view::<3, 3>(3, 3).into_owned();
+        if !panel.has_room(3, 3) {
+            acc.absorb(&mut panel);
+        }
+        let mut pos = [[0.0; P]; 3];
+        let mut rot = [[0.0; P]; 3];
         for p in 0..P {
-            let c = m * cols[p / N][p % N];
-            for r in 0..6 {
-                rows[r][p] = c[r];
+            let c = &cols[p / N][p % N];
+            let v = Vector3::new(c[0], c[1], c[2]);
+            if p < 2 * N {
+                for r in 0..3 {
+                    pos[r][p] = v[r];
+                }
+            } else {
+                let w = Vector3::new(c[3], c[4], c[5]);
+                let hp = v + w.cross(&ep);
+                let hr = jl_inv * w;
+                for r in 0..3 {
+                    pos[r][p] = hp[r];
+                    rot[r][p] = hr[r];
+                }
             }
         }
-        for r in 0..6 {
-            acc.add_row(&rows[r], e[r]);
+        for r in 0..3 {
+            let (row, y) = panel.push_full();
+            *row = pos[r];
+            *y = e[r];
+            let (row, y) = panel.push_tail();
+            *row = rot[r];
+            *y = e[3 + r];
         }
     }
+    acc.absorb(&mut panel);
     (acc, cost)
 }
 
