@@ -210,7 +210,10 @@ pub fn identify_ls_frames<const N: usize, const P: usize>(
     validate_samples(samples, &opts.checks)?;
     let ((table, mounting), cost, iterations, analysis) = levenberg_marquardt::<N, P, _>(
         (*start, *mounting),
-        |s| linearise::<N, P>(s, samples),
+        |s| {
+            let (acc, cost) = linearise::<N, P>(s, samples);
+            (acc.analyse(opts.rank_tolerance), cost)
+        },
         |s| cost_at(s, samples),
         apply::<N, P>,
         opts,

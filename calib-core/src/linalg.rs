@@ -133,29 +133,123 @@ impl<const P: usize> QrAccumulator<P> {
     /// singular values below `rel_tol · σ_max` are treated as zero.
     pub fn analyse(&self, rel_tol: f64) -> Analysis<P> {
         let norms = self.column_norms();
-        let target = libm::sqrt(self.rows.max(1) as f64);
-        let scale: [f64; P] = core::array::from_fn(|j| if norms[j] > 0.0 { norms[j] / target } else { 1.0 });
+        let scale = column_scale(&norms, self.rows);
         // Columns of the scaled R.
-        let mut a: [[f64; P]; P] = core::array::from_fn(|j| core::array::from_fn(|i| self.r[i][j] / scale[j]));
-        let mut v: [[f64; P]; P] = core::array::from_fn(|j| core::array::from_fn(|i| if i == j { 1.0 } else { 0.0 }));
-        jacobi_svd(&mut a, &mut v);
-        let sigma: [f64; P] = core::array::from_fn(|i| libm::sqrt(dot(&a[i], &a[i])));
-        // a_iᵀ z = σ_i u_iᵀ z.
-        let az: [f64; P] = core::array::from_fn(|i| dot(&a[i], &self.z));
-        let mut order: [usize; P] = core::array::from_fn(|i| i);
-        order.sort_unstable_by(|&x, &y| sigma[y].total_cmp(&sigma[x]));
-        let smax = if P > 0 { sigma[order[0]] } else { 0.0 };
-        let tol = rel_tol * smax;
-        let rank = order.iter().filter(|&&i| sigma[i] > tol && sigma[i] > 0.0).count();
-        Analysis {
-            singular: core::array::from_fn(|k| sigma[order[k]]),
-            v: core::array::from_fn(|k| v[order[k]]),
-            az: core::array::from_fn(|k| az[order[k]]),
-            scale,
-            rank,
-            rows: self.rows,
-            rss: self.rss,
+        let a: [[f64; P]; P] = core::array::from_fn(|j| core::array::from_fn(|i| self.r[i][j] / scale[j]));
+        Analysis::of_triangle(a, &self.z, scale, self.rows, self.rss, rel_tol)
+    }
+}
+
+/// Column scales making every column of norm `√rows` (zero columns are left alone).
+fn column_scale<const P: usize>(norms: &[f64; P], rows: usize) -> [f64; P] {
+    let target = libm::sqrt(rows.max(1) as f64);
+    core::array::from_fn(|j| if norms[j] > 0.0 { norms[j] / target } else { 1.0 })
+}
+
+/// Streaming normal equations of `min ‖H x − y‖²`: `HᵀH` (upper triangle), `Hᵀy`, `yᵀy`.
+///
+/// Half the work per row of the blocked Householder QR, at the price of squaring the condition
+/// number: [`GramAccumulator::analyse`] declines (returns `None`) unless the column-scaled
+/// problem is well conditioned, and the caller then uses a [`QrAccumulator`].
+#[derive(Clone, Debug)]
+pub struct GramAccumulator<const P: usize> {
+    g: [[f64; P]; P],
+    b: [f64; P],
+    yy: f64,
+    rows: usize,
+}
+
+impl<const P: usize> Default for GramAccumulator<P> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Largest scaled condition number [`GramAccumulator::analyse`] accepts: the normal equations
+/// then lose at most `1e6 · ε ≈ 2e-10` relative in the step and the singular values.
+pub const GRAM_MAX_CONDITION: f64 = 1e3;
+
+impl<const P: usize> GramAccumulator<P> {
+    /// An empty accumulator.
+    pub fn new() -> Self {
+        GramAccumulator {
+            g: [[0.0; P]; P],
+            b: [0.0; P],
+            yy: 0.0,
+            rows: 0,
         }
+    }
+
+    /// Number of rows absorbed.
+    pub fn rows(&self) -> usize {
+        self.rows
+    }
+
+    /// Adds the `R` rows `h[r] · x ≈ y[r]`, which must be zero in the columns `0..first`.
+    pub fn add_rows<const R: usize>(&mut self, h: &[[f64; P]; R], y: &[f64; R], first: usize) {
+        for i in first..P {
+            let hi: [f64; R] = core::array::from_fn(|r| h[r][i]);
+            for (k, gik) in self.g[i].iter_mut().enumerate().skip(i) {
+                let mut sum = 0.0;
+                for r in 0..R {
+                    sum += hi[r] * h[r][k];
+                }
+                *gik += sum;
+            }
+            let mut sum = 0.0;
+            for r in 0..R {
+                sum += hi[r] * y[r];
+            }
+            self.b[i] += sum;
+        }
+        self.yy += y.iter().map(|v| v * v).sum::<f64>();
+        self.rows += R;
+    }
+
+    /// The same [`Analysis`] as [`QrAccumulator::analyse`] of the same rows, from the Cholesky
+    /// factor of the column-scaled `HᵀH` (which is the scaled `R` of the QR). `None` when the
+    /// factorisation fails or the scaled condition number exceeds [`GRAM_MAX_CONDITION`].
+    pub fn analyse(&self, rel_tol: f64) -> Option<Analysis<P>> {
+        let norms: [f64; P] = core::array::from_fn(|j| libm::sqrt(self.g[j][j]));
+        let scale = column_scale(&norms, self.rows);
+        // Upper Cholesky factor R of D⁻¹ HᵀH D⁻¹, row by row.
+        let mut r = [[0.0; P]; P];
+        for j in 0..P {
+            let mut d = self.g[j][j] / (scale[j] * scale[j]);
+            for row in r.iter().take(j) {
+                d -= row[j] * row[j];
+            }
+            if !(d > 0.0 && d.is_finite()) {
+                return None;
+            }
+            let rjj = libm::sqrt(d);
+            r[j][j] = rjj;
+            for k in j + 1..P {
+                let mut x = self.g[j][k] / (scale[j] * scale[k]);
+                for row in r.iter().take(j) {
+                    x -= row[j] * row[k];
+                }
+                r[j][k] = x / rjj;
+            }
+        }
+        // z = R⁻ᵀ D⁻¹ Hᵀy (= Qᵀy of the QR), forward substitution.
+        let mut z = [0.0; P];
+        for j in 0..P {
+            let mut x = self.b[j] / scale[j];
+            for (i, zi) in z.iter().enumerate().take(j) {
+                x -= r[i][j] * zi;
+            }
+            z[j] = x / r[j][j];
+        }
+        let rss = (self.yy - dot(&z, &z)).max(0.0);
+        // `of_triangle` scales by columns: hand it R with unit scales, then restore them.
+        let a: [[f64; P]; P] = core::array::from_fn(|j| core::array::from_fn(|i| r[i][j]));
+        let mut an = Analysis::of_triangle(a, &z, [1.0; P], self.rows, rss, rel_tol);
+        an.scale = scale;
+        if an.condition() > GRAM_MAX_CONDITION {
+            return None;
+        }
+        Some(an)
     }
 }
 
@@ -319,6 +413,29 @@ pub struct Analysis<const P: usize> {
 }
 
 impl<const P: usize> Analysis<P> {
+    /// SVD of the scaled triangle given by its columns `a` (with `R x_scaled = z`).
+    fn of_triangle(mut a: [[f64; P]; P], z: &[f64; P], scale: [f64; P], rows: usize, rss: f64, rel_tol: f64) -> Self {
+        let mut v: [[f64; P]; P] = core::array::from_fn(|j| core::array::from_fn(|i| if i == j { 1.0 } else { 0.0 }));
+        jacobi_svd(&mut a, &mut v);
+        let sigma: [f64; P] = core::array::from_fn(|i| libm::sqrt(dot(&a[i], &a[i])));
+        // a_iᵀ z = σ_i u_iᵀ z.
+        let az: [f64; P] = core::array::from_fn(|i| dot(&a[i], z));
+        let mut order: [usize; P] = core::array::from_fn(|i| i);
+        order.sort_unstable_by(|&x, &y| sigma[y].total_cmp(&sigma[x]));
+        let smax = if P > 0 { sigma[order[0]] } else { 0.0 };
+        let tol = rel_tol * smax;
+        let rank = order.iter().filter(|&&i| sigma[i] > tol && sigma[i] > 0.0).count();
+        Analysis {
+            singular: core::array::from_fn(|k| sigma[order[k]]),
+            v: core::array::from_fn(|k| v[order[k]]),
+            az: core::array::from_fn(|k| az[order[k]]),
+            scale,
+            rank,
+            rows,
+            rss,
+        }
+    }
+
     /// Damped minimum-norm step (`lambda = 0`: Gauss-Newton, truncated to the rank).
     pub fn step(&self, lambda: f64) -> [f64; P] {
         let mut xs = [0.0; P];
@@ -451,6 +568,45 @@ mod tests {
             }
             assert!((blocked.z[i] - givens.z[i]).abs() < 1e-12 * givens.r[i][i]);
         }
+    }
+
+    #[test]
+    fn normal_equations_match_qr_when_well_conditioned_and_decline_otherwise() {
+        let mut rng = Rng::new(8);
+        let mut qr = QrAccumulator::<5>::new();
+        let mut gram = GramAccumulator::<5>::new();
+        for _ in 0..60 {
+            // Badly scaled but well-conditioned after column scaling; rows zero in column 0
+            // half of the time (the `first` argument).
+            let h: [f64; 5] = core::array::from_fn(|j| rng.normal() * libm::pow(10.0, j as f64 - 2.0));
+            let y = rng.normal();
+            qr.add_row(&h, y);
+            gram.add_rows(&[h], &[y], 0);
+            let mut t = h;
+            t[0] = 0.0;
+            let y = rng.normal();
+            qr.add_row(&t, y);
+            gram.add_rows(&[t], &[y], 1);
+        }
+        let (a, b) = (qr.analyse(1e-9), gram.analyse(1e-9).expect("well conditioned"));
+        assert_eq!((a.rank, a.rows()), (b.rank, b.rows()));
+        for (x, y) in a.scale.iter().zip(&b.scale) {
+            assert!((x - y).abs() < 1e-14 * x);
+        }
+        for k in 0..5 {
+            assert!((a.singular[k] - b.singular[k]).abs() < 1e-12 * a.singular[0]);
+        }
+        for (x, y) in a.step(0.0).iter().zip(&b.step(0.0)) {
+            assert!((x - y).abs() < 1e-12 * x.abs().max(1e-3), "{x} vs {y}");
+        }
+        assert!((a.noise_variance() - b.noise_variance()).abs() < 1e-12 * a.noise_variance());
+        // Two identical columns: the normal equations decline.
+        let mut gram = GramAccumulator::<2>::new();
+        for _ in 0..10 {
+            let u = rng.normal();
+            gram.add_rows(&[[u, u]], &[u], 0);
+        }
+        assert!(gram.analyse(1e-9).is_none());
     }
 
     #[test]

@@ -16,11 +16,12 @@
 //! Anatomical bounds (Table 2) are honoured per [`BoundsPolicy`].
 
 use crate::error::CalibError;
-use crate::linalg::{Analysis, Observability, QrAccumulator, QrPanel};
+use crate::linalg::{Analysis, GramAccumulator, Observability, QrAccumulator, QrPanel};
+use crate::model::PreparedTable;
 use crate::model::{
     check_bounds, clamp_to_bounds, error_jacobian, pose_error, BoundViolation, Bounds, DhTable, JointRanges, ParamKind, Sample,
 };
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{Matrix3, Vector3, Vector6};
 
 /// What to do when the identified table leaves the anatomical bounds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -217,47 +218,58 @@ pub struct LsResult<const N: usize, const P: usize> {
     pub bounds: BoundsOutcome,
 }
 
+/// The 6 residual rows `M(e)·J` of one sample, as 3 position rows (all columns) and 3 rotation
+/// rows (zero in the first `2N` columns), and the pose error.
+///
+/// `M(e)·J` is formed column by column from its structure (`M = [I, −[e_p]×; 0, J_l⁻¹]`): the
+/// `a` and `d` columns are pure translations, so their rotation rows are exactly zero and their
+/// position rows are `J`'s.
+#[inline]
+fn sample_rows<const N: usize, const P: usize>(
+    table: &PreparedTable<N>,
+    s: &Sample<N>,
+) -> ([[f64; P]; 3], [[f64; P]; 3], Vector6<f64>) {
+    let (t, cols) = table.fk_jacobian(&s.joints);
+    let e = pose_error(&t, &s.pose);
+    let ep = Vector3::new(e[0], e[1], e[2]);
+    let jl_inv: Matrix3<f64> = error_jacobian(&e).fixed_view::<3, 3>(3, 3).into_owned();
+    let mut pos = [[0.0; P]; 3];
+    let mut rot = [[0.0; P]; 3];
+    for p in 0..P {
+        let c = &cols[p / N][p % N];
+        let v = Vector3::new(c[0], c[1], c[2]);
+        if p < 2 * N {
+            for r in 0..3 {
+                pos[r][p] = v[r];
+            }
+        } else {
+            let w = Vector3::new(c[3], c[4], c[5]);
+            let hp = v + w.cross(&ep);
+            let hr = jl_inv * w;
+            for r in 0..3 {
+                pos[r][p] = hp[r];
+                rot[r][p] = hr[r];
+            }
+        }
+    }
+    (pos, rot, e)
+}
+
 /// Rows of each kind (position, rotation) per Householder panel: 8 samples.
 const PANEL_ROWS: usize = 24;
 
-/// Absorbs every sample linearised at `table`; returns the accumulator and the cost Σ‖e‖².
-///
-/// The residual Jacobian `M(e)·J` is formed column by column from its structure
-/// (`M = [I, −[e_p]×; 0, J_l⁻¹]`): the `a` and `d` columns are pure translations, so their
-/// rotation rows are exactly zero and their position rows are `J`'s. The rows are absorbed 8
-/// samples at a time by a blocked Householder QR ([`QrAccumulator::absorb`]).
-pub(crate) fn linearise<const N: usize, const P: usize>(table: &DhTable<N>, samples: &[Sample<N>]) -> (QrAccumulator<P>, f64) {
+/// Absorbs every sample linearised at `table` into a QR (blocked Householder, 8 samples per
+/// panel); returns the accumulator and the cost Σ‖e‖².
+pub(crate) fn linearise_qr<const N: usize, const P: usize>(table: &DhTable<N>, samples: &[Sample<N>]) -> (QrAccumulator<P>, f64) {
     let mut acc = QrAccumulator::<P>::new();
     let mut panel = QrPanel::<P, PANEL_ROWS>::new(2 * N);
     let mut cost = 0.0;
     let table = table.prepare();
     for s in samples {
-        let (t, cols) = table.fk_jacobian(&s.joints);
-        let e = pose_error(&t, &s.pose);
+        let (pos, rot, e) = sample_rows::<N, P>(&table, s);
         cost += e.norm_squared();
-        let ep = Vector3::new(e[0], e[1], e[2]);
-        let jl_inv: Matrix3<f64> = error_jacobian(&e).fixed_view::<3, 3>(3, 3).into_owned();
         if !panel.has_room(3, 3) {
             acc.absorb(&mut panel);
-        }
-        let mut pos = [[0.0; P]; 3];
-        let mut rot = [[0.0; P]; 3];
-        for p in 0..P {
-            let c = &cols[p / N][p % N];
-            let v = Vector3::new(c[0], c[1], c[2]);
-            if p < 2 * N {
-                for r in 0..3 {
-                    pos[r][p] = v[r];
-                }
-            } else {
-                let w = Vector3::new(c[3], c[4], c[5]);
-                let hp = v + w.cross(&ep);
-                let hr = jl_inv * w;
-                for r in 0..3 {
-                    pos[r][p] = hp[r];
-                    rot[r][p] = hr[r];
-                }
-            }
         }
         for r in 0..3 {
             let (row, y) = panel.push_full();
@@ -270,6 +282,36 @@ pub(crate) fn linearise<const N: usize, const P: usize>(table: &DhTable<N>, samp
     }
     acc.absorb(&mut panel);
     (acc, cost)
+}
+
+/// Linearises every sample at `table` and analyses the least-squares problem; returns the
+/// analysis and the cost Σ‖e‖².
+///
+/// The normal equations are accumulated first (half the work of the QR per sample); when the
+/// column-scaled problem is not well conditioned (condition above [`crate::GRAM_MAX_CONDITION`], e.g.
+/// rank-deficient), the samples are linearised again into the QR, which resolves it to the
+/// rounding of the data.
+pub(crate) fn linearise<const N: usize, const P: usize>(
+    table: &DhTable<N>,
+    samples: &[Sample<N>],
+    rel_tol: f64,
+) -> (Analysis<P>, f64) {
+    let mut gram = GramAccumulator::<P>::new();
+    let mut cost = 0.0;
+    let prepared = table.prepare();
+    for s in samples {
+        let (pos, rot, e) = sample_rows::<N, P>(&prepared, s);
+        cost += e.norm_squared();
+        gram.add_rows(&pos, &[e[0], e[1], e[2]], 0);
+        gram.add_rows(&rot, &[e[3], e[4], e[5]], 2 * N);
+    }
+    match gram.analyse(rel_tol) {
+        Some(analysis) => (analysis, cost),
+        None => {
+            let (acc, cost) = linearise_qr::<N, P>(table, samples);
+            (acc.analyse(rel_tol), cost)
+        }
+    }
 }
 
 /// The cost Σ‖e‖² at `table` alone (no Jacobian), bit-identical to the cost of [`linearise`].
@@ -298,7 +340,7 @@ pub fn identify_ls<const N: usize, const P: usize>(
     validate_samples(samples, &opts.checks)?;
     let (table, cost, iterations, analysis) = levenberg_marquardt::<N, P, DhTable<N>>(
         *start,
-        |t| linearise::<N, P>(t, samples),
+        |t| linearise::<N, P>(t, samples, opts.rank_tolerance),
         |t| cost_at(t, samples),
         |t, step| t.perturbed(step),
         opts,
@@ -323,7 +365,7 @@ const TINY_STEP: f64 = 1e-9;
 /// thousands of samples (observed: a few 1e-15 at K = 6,000).
 const COST_NOISE: f64 = 1e-13;
 
-/// Levenberg-Marquardt over any state: `lin` linearises (streaming QR + cost), `cost` evaluates
+/// Levenberg-Marquardt over any state: `lin` linearises (analysis + cost), `cost` evaluates
 /// the cost alone (bit-identical to `lin`'s), `apply` adds a step. Returns the final state,
 /// cost, iterations and the SVD analysis at the final state.
 ///
@@ -334,14 +376,13 @@ const COST_NOISE: f64 = 1e-13;
 /// returned state is then the last linearised one, so the analysis belongs to it.
 pub(crate) fn levenberg_marquardt<const N: usize, const P: usize, S: Copy>(
     start: S,
-    lin: impl Fn(&S) -> (QrAccumulator<P>, f64),
+    lin: impl Fn(&S) -> (Analysis<P>, f64),
     cost_of: impl Fn(&S) -> f64,
     apply: impl Fn(&S, &[f64; P]) -> S,
     opts: &LsOptions<N>,
 ) -> Result<(S, f64, usize, Analysis<P>), CalibError> {
     let mut state = start;
-    let (acc, mut cost) = lin(&state);
-    let mut analysis = acc.analyse(opts.rank_tolerance);
+    let (mut analysis, mut cost) = lin(&state);
     let mut lambda = 0.0;
     let mut last_change = f64::INFINITY;
     let mut iterations = 0;
@@ -373,12 +414,11 @@ pub(crate) fn levenberg_marquardt<const N: usize, const P: usize, S: Copy>(
         }
         if cand_cost <= cost {
             state = candidate;
-            let acc = match cand_acc {
-                Some(acc) => acc,
+            analysis = match cand_acc {
+                Some(an) => an,
                 None => lin(&state).0,
             };
             cost = cand_cost;
-            analysis = acc.analyse(opts.rank_tolerance);
             lambda = if lambda > 0.0 { lambda * 0.1 } else { 0.0 };
             last_change = max_step;
         } else {
