@@ -189,12 +189,26 @@ impl<const P: usize> GramAccumulator<P> {
     pub fn add_rows<const R: usize>(&mut self, h: &[[f64; P]; R], y: &[f64; R], first: usize) {
         for i in first..P {
             let hi: [f64; R] = core::array::from_fn(|r| h[r][i]);
-            for (k, gik) in self.g[i].iter_mut().enumerate().skip(i) {
+            // From an even column, so that the row splits into pairs (vectorised, no scalar
+            // remainder); the extra entry g[i][i−1] is below the diagonal and never read.
+            let start = i & !1;
+            let mut pairs = self.g[i][start..].chunks_exact_mut(2);
+            for (c, g2) in (&mut pairs).enumerate() {
+                let k = start + 2 * c;
+                let (mut s0, mut s1) = (0.0, 0.0);
+                for r in 0..R {
+                    s0 += hi[r] * h[r][k];
+                    s1 += hi[r] * h[r][k + 1];
+                }
+                g2[0] += s0;
+                g2[1] += s1;
+            }
+            if let Some(g1) = pairs.into_remainder().first_mut() {
                 let mut sum = 0.0;
                 for r in 0..R {
-                    sum += hi[r] * h[r][k];
+                    sum += hi[r] * h[r][P - 1];
                 }
-                *gik += sum;
+                *g1 += sum;
             }
             let mut sum = 0.0;
             for r in 0..R {

@@ -219,7 +219,7 @@ pub struct LsResult<const N: usize, const P: usize> {
 }
 
 /// The 6 residual rows `M(e)·J` of one sample, as 3 position rows (all columns) and 3 rotation
-/// rows (zero in the first `2N` columns), and the pose error.
+/// rows (zero in the first `2N` columns, which are left untouched), and the pose error.
 ///
 /// `M(e)·J` is formed column by column from its structure (`M = [I, −[e_p]×; 0, J_l⁻¹]`): the
 /// `a` and `d` columns are pure translations, so their rotation rows are exactly zero and their
@@ -228,13 +228,14 @@ pub struct LsResult<const N: usize, const P: usize> {
 fn sample_rows<const N: usize, const P: usize>(
     table: &PreparedTable<N>,
     s: &Sample<N>,
-) -> ([[f64; P]; 3], [[f64; P]; 3], Vector6<f64>) {
-    let (t, cols) = table.fk_jacobian(&s.joints);
+    cols: &mut [[Vector6<f64>; N]; 4],
+    pos: &mut [[f64; P]; 3],
+    rot: &mut [[f64; P]; 3],
+) -> Vector6<f64> {
+    let t = table.fk_jacobian_into(&s.joints, cols);
     let e = pose_error(&t, &s.pose);
     let ep = Vector3::new(e[0], e[1], e[2]);
     let jl_inv: Matrix3<f64> = error_jacobian(&e).fixed_view::<3, 3>(3, 3).into_owned();
-    let mut pos = [[0.0; P]; 3];
-    let mut rot = [[0.0; P]; 3];
     for p in 0..P {
         let c = &cols[p / N][p % N];
         let v = Vector3::new(c[0], c[1], c[2]);
@@ -252,7 +253,7 @@ fn sample_rows<const N: usize, const P: usize>(
             }
         }
     }
-    (pos, rot, e)
+    e
 }
 
 /// Rows of each kind (position, rotation) per Householder panel: 8 samples.
@@ -265,8 +266,10 @@ pub(crate) fn linearise_qr<const N: usize, const P: usize>(table: &DhTable<N>, s
     let mut panel = QrPanel::<P, PANEL_ROWS>::new(2 * N);
     let mut cost = 0.0;
     let table = table.prepare();
+    let mut cols = [[Vector6::zeros(); N]; 4];
+    let (mut pos, mut rot) = ([[0.0; P]; 3], [[0.0; P]; 3]);
     for s in samples {
-        let (pos, rot, e) = sample_rows::<N, P>(&table, s);
+        let e = sample_rows::<N, P>(&table, s, &mut cols, &mut pos, &mut rot);
         cost += e.norm_squared();
         if !panel.has_room(3, 3) {
             acc.absorb(&mut panel);
@@ -299,8 +302,10 @@ pub(crate) fn linearise<const N: usize, const P: usize>(
     let mut gram = GramAccumulator::<P>::new();
     let mut cost = 0.0;
     let prepared = table.prepare();
+    let mut cols = [[Vector6::zeros(); N]; 4];
+    let (mut pos, mut rot) = ([[0.0; P]; 3], [[0.0; P]; 3]);
     for s in samples {
-        let (pos, rot, e) = sample_rows::<N, P>(&prepared, s);
+        let e = sample_rows::<N, P>(&prepared, s, &mut cols, &mut pos, &mut rot);
         cost += e.norm_squared();
         gram.add_rows(&pos, &[e[0], e[1], e[2]], 0);
         gram.add_rows(&rot, &[e[3], e[4], e[5]], 2 * N);

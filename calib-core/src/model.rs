@@ -326,6 +326,12 @@ impl<const N: usize> PreparedTable<N> {
     /// [`DhTable::fk_jacobian`].
     pub(crate) fn fk_jacobian(&self, joints: &[f64; N]) -> (Frame, [[Vector6<f64>; N]; 4]) {
         let mut cols = [[Vector6::zeros(); N]; 4];
+        let u = self.fk_jacobian_into(joints, &mut cols);
+        (u, cols)
+    }
+
+    /// [`PreparedTable::fk_jacobian`] into a caller's buffer (no copy of the 4N columns).
+    pub(crate) fn fk_jacobian_into(&self, joints: &[f64; N], cols: &mut [[Vector6<f64>; N]; 4]) -> Frame {
         // Backward pass: `u` is U_{i+1} = T_{i+1} ⋯ T_N, the pose of the tool in frame i.
         let mut u = Frame::identity();
         for i in (0..N).rev() {
@@ -333,22 +339,21 @@ impl<const N: usize> PreparedTable<N> {
             let (sa, ca) = self.trig[i];
             let ex = Vector3::new(1.0, 0.0, 0.0);
             let z_local = Vector3::new(0.0, sa, ca);
-            // Local twists in frame i (post-multiplied), see paper notes 1-2.
-            let twists: [(Vector3<f64>, Vector3<f64>); 4] = [
-                (ex, Vector3::zeros()),
-                (z_local, Vector3::zeros()),
-                (Vector3::zeros(), ex),
-                (Vector3::new(0.0, row.a * ca, -row.a * sa), z_local),
-            ];
+            // Local twists (v, ω) in frame i (post-multiplied), see paper notes 1-2:
+            // a: (x, 0), d: (z, 0), α: (0, x), θ: ((0, a cos α, −a sin α), z); in the tool frame
+            // v' = Uᵀ(ω × p + v), ω' = Uᵀω.
             let rt = u.r.transpose();
-            for (k, (v, w)) in twists.iter().enumerate() {
-                let vt = rt * (w.cross(&u.p) + v);
-                let wt = rt * w;
-                cols[k][i] = Vector6::new(vt.x, vt.y, vt.z, wt.x, wt.y, wt.z);
-            }
+            let x_t = rt * ex;
+            let z_t = rt * z_local;
+            let v_alpha = rt * ex.cross(&u.p);
+            let v_theta = rt * (z_local.cross(&u.p) + Vector3::new(0.0, row.a * ca, -row.a * sa));
+            cols[0][i] = Vector6::new(x_t.x, x_t.y, x_t.z, 0.0, 0.0, 0.0);
+            cols[1][i] = Vector6::new(z_t.x, z_t.y, z_t.z, 0.0, 0.0, 0.0);
+            cols[2][i] = Vector6::new(v_alpha.x, v_alpha.y, v_alpha.z, x_t.x, x_t.y, x_t.z);
+            cols[3][i] = Vector6::new(v_theta.x, v_theta.y, v_theta.z, z_t.x, z_t.y, z_t.z);
             u = row.transform_with(joints[i], sa, ca).compose(&u);
         }
-        (u, cols)
+        u
     }
 }
 
