@@ -187,7 +187,27 @@ impl<const P: usize> GramAccumulator<P> {
 
     /// Adds the `R` rows `h[r] · x ≈ y[r]`, which must be zero in the columns `0..first`.
     pub fn add_rows<const R: usize>(&mut self, h: &[[f64; P]; R], y: &[f64; R], first: usize) {
-        for i in first..P {
+        self.update(core::array::from_fn(|r| &h[r]), y, first, P);
+        self.yy += y.iter().map(|v| v * v).sum::<f64>();
+        self.rows += R;
+    }
+
+    /// Adds three rows `full` (any columns) and three rows `tail` (zero in the columns
+    /// `0..split`): the same as two [`GramAccumulator::add_rows`], with one pass over the rows of
+    /// `HᵀH` from `split` on instead of two.
+    pub fn add_rows_3_3(&mut self, full: &[[f64; P]; 3], yf: &[f64; 3], tail: &[[f64; P]; 3], yt: &[f64; 3], split: usize) {
+        let split = split.min(P);
+        self.update([&full[0], &full[1], &full[2]], yf, 0, split);
+        let h = [&full[0], &full[1], &full[2], &tail[0], &tail[1], &tail[2]];
+        self.update(h, &[yf[0], yf[1], yf[2], yt[0], yt[1], yt[2]], split, P);
+        self.yy += yf.iter().chain(yt).map(|v| v * v).sum::<f64>();
+        self.rows += 6;
+    }
+
+    /// `HᵀH += hᵀh` and `Hᵀy += hᵀy` in the rows `rows_from..rows_to` of `HᵀH` (upper triangle).
+    #[inline]
+    fn update<const R: usize>(&mut self, h: [&[f64; P]; R], y: &[f64; R], rows_from: usize, rows_to: usize) {
+        for i in rows_from..rows_to {
             let hi: [f64; R] = core::array::from_fn(|r| h[r][i]);
             // From an even column, so that the row splits into pairs (vectorised, no scalar
             // remainder); the extra entry g[i][i−1] is below the diagonal and never read.
@@ -216,8 +236,6 @@ impl<const P: usize> GramAccumulator<P> {
             }
             self.b[i] += sum;
         }
-        self.yy += y.iter().map(|v| v * v).sum::<f64>();
-        self.rows += R;
     }
 
     /// The same [`Analysis`] as [`QrAccumulator::analyse`] of the same rows, from the Cholesky
@@ -621,6 +639,31 @@ mod tests {
             gram.add_rows(&[[u, u]], &[u], 0);
         }
         assert!(gram.analyse(1e-9).is_none());
+    }
+
+    #[test]
+    fn three_and_three_rows_equal_two_row_groups() {
+        let mut rng = Rng::new(9);
+        let (mut one, mut two) = (GramAccumulator::<7>::new(), GramAccumulator::<7>::new());
+        for _ in 0..10 {
+            let full: [[f64; 7]; 3] = core::array::from_fn(|_| core::array::from_fn(|_| rng.normal()));
+            let tail: [[f64; 7]; 3] = core::array::from_fn(|_| core::array::from_fn(|j| if j < 3 { 0.0 } else { rng.normal() }));
+            let (yf, yt) = (
+                [rng.normal(), rng.normal(), rng.normal()],
+                [rng.normal(), rng.normal(), rng.normal()],
+            );
+            one.add_rows_3_3(&full, &yf, &tail, &yt, 3);
+            two.add_rows(&full, &yf, 0);
+            two.add_rows(&tail, &yt, 3);
+        }
+        assert_eq!(one.rows(), two.rows());
+        assert!((one.yy - two.yy).abs() < 1e-12 * two.yy);
+        for i in 0..7 {
+            assert!((one.b[i] - two.b[i]).abs() < 1e-12);
+            for k in i..7 {
+                assert!((one.g[i][k] - two.g[i][k]).abs() < 1e-12, "g[{i}][{k}]");
+            }
+        }
     }
 
     #[test]

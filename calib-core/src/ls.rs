@@ -307,8 +307,7 @@ pub(crate) fn linearise<const N: usize, const P: usize>(
     for s in samples {
         let e = sample_rows::<N, P>(&prepared, s, &mut cols, &mut pos, &mut rot);
         cost += e.norm_squared();
-        gram.add_rows(&pos, &[e[0], e[1], e[2]], 0);
-        gram.add_rows(&rot, &[e[3], e[4], e[5]], 2 * N);
+        gram.add_rows_3_3(&pos, &[e[0], e[1], e[2]], &rot, &[e[3], e[4], e[5]], 2 * N);
     }
     match gram.analyse(rel_tol) {
         Some(analysis) => (analysis, cost),
