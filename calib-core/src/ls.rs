@@ -523,6 +523,35 @@ mod tests {
     }
 
     #[test]
+    fn normal_equations_agree_with_the_qr_at_the_papers_conditioning() {
+        // Paper scenario with drift (scaled condition ≈ 24-30): the analysis from the normal
+        // equations must match the Householder QR's, at the start and at the optimum.
+        let samples: std::vec::Vec<Sample<7>> = Scenario::new(ScenarioConfig::paper(), 3)
+            .take(1500)
+            .map(|s| s.sample)
+            .collect();
+        let ls = identify_ls::<7, 28>(&DhTable::paper_nominal(), &samples, &LsOptions::paper()).unwrap();
+        for table in [DhTable::paper_nominal(), ls.table] {
+            let (ne, cost_ne) = linearise::<7, 28>(&table, &samples, 1e-9);
+            let (qr, cost_qr) = linearise_qr::<7, 28>(&table, &samples);
+            let qr = qr.analyse(1e-9);
+            assert_eq!(cost_ne, cost_qr);
+            assert_eq!(cost_ne, cost_at(&table, &samples));
+            assert!(ne.condition() > 15.0 && ne.condition() < 40.0, "{}", ne.condition());
+            assert!((ne.condition() - qr.condition()).abs() < 1e-11 * qr.condition());
+            for k in 0..28 {
+                assert!((ne.singular[k] - qr.singular[k]).abs() < 1e-12 * qr.singular[0]);
+            }
+            let (a, b) = (ne.step(0.0), qr.step(0.0));
+            let big = b.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+            for p in 0..28 {
+                assert!((a[p] - b[p]).abs() < 1e-10 * big + 1e-15, "param {p}: {} vs {}", a[p], b[p]);
+            }
+            assert!((ne.noise_variance() - qr.noise_variance()).abs() < 1e-10 * qr.noise_variance());
+        }
+    }
+
+    #[test]
     fn drift_leaves_small_offsets_and_plausible_std_errors() {
         let samples = session(7, 600, true);
         let r = identify_ls::<7, 28>(&DhTable::paper_nominal(), &samples, &LsOptions::paper()).unwrap();
