@@ -210,7 +210,7 @@ pub fn identify_ls_frames<const N: usize, const P: usize>(
     validate_samples(samples, &opts.checks)?;
     let ((table, mounting), cost, iterations, analysis) = levenberg_marquardt::<N, P, _>(
         (*start, *mounting),
-        |s| {
+        |s, _| {
             let (acc, cost) = linearise::<N, P>(s, samples);
             (acc.analyse(opts.rank_tolerance), cost)
         },

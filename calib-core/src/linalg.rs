@@ -242,6 +242,12 @@ impl<const P: usize> GramAccumulator<P> {
     /// factor of the column-scaled `HᵀH` (which is the scaled `R` of the QR). `None` when the
     /// factorisation fails or the scaled condition number exceeds [`GRAM_MAX_CONDITION`].
     pub fn analyse(&self, rel_tol: f64) -> Option<Analysis<P>> {
+        self.analyse_from(rel_tol, None)
+    }
+
+    /// [`GramAccumulator::analyse`], with the SVD started from the right singular vectors of
+    /// `warm` (typically the analysis of the previous iterate: the same result in fewer sweeps).
+    pub fn analyse_from(&self, rel_tol: f64, warm: Option<&Analysis<P>>) -> Option<Analysis<P>> {
         let norms: [f64; P] = core::array::from_fn(|j| libm::sqrt(self.g[j][j]));
         let scale = column_scale(&norms, self.rows);
         // Upper Cholesky factor R of D⁻¹ HᵀH D⁻¹, row by row.
@@ -276,7 +282,7 @@ impl<const P: usize> GramAccumulator<P> {
         let rss = (self.yy - dot(&z, &z)).max(0.0);
         // `of_triangle` scales by columns: hand it R with unit scales, then restore them.
         let a: [[f64; P]; P] = core::array::from_fn(|j| core::array::from_fn(|i| r[i][j]));
-        let mut an = Analysis::of_triangle(a, &z, [1.0; P], self.rows, rss, rel_tol);
+        let mut an = Analysis::of_triangle_from(a, &z, [1.0; P], self.rows, rss, rel_tol, warm.map(|w| &w.v));
         an.scale = scale;
         if an.condition() > GRAM_MAX_CONDITION {
             return None;
@@ -446,8 +452,38 @@ pub struct Analysis<const P: usize> {
 
 impl<const P: usize> Analysis<P> {
     /// SVD of the scaled triangle given by its columns `a` (with `R x_scaled = z`).
-    fn of_triangle(mut a: [[f64; P]; P], z: &[f64; P], scale: [f64; P], rows: usize, rss: f64, rel_tol: f64) -> Self {
-        let mut v: [[f64; P]; P] = core::array::from_fn(|j| core::array::from_fn(|i| if i == j { 1.0 } else { 0.0 }));
+    fn of_triangle(a: [[f64; P]; P], z: &[f64; P], scale: [f64; P], rows: usize, rss: f64, rel_tol: f64) -> Self {
+        Self::of_triangle_from(a, z, scale, rows, rss, rel_tol, None)
+    }
+
+    /// [`Analysis::of_triangle`], with the Jacobi iteration started from the right singular
+    /// vectors `warm` (any orthogonal matrix gives the same SVD; a nearby one, e.g. of the
+    /// previous Gauss-Newton iterate, needs a fraction of the sweeps).
+    fn of_triangle_from(
+        mut a: [[f64; P]; P],
+        z: &[f64; P],
+        scale: [f64; P],
+        rows: usize,
+        rss: f64,
+        rel_tol: f64,
+        warm: Option<&[[f64; P]; P]>,
+    ) -> Self {
+        let mut v: [[f64; P]; P] = match warm {
+            Some(v0) => {
+                // Columns of A·V0: (A V0)_k = Σ_j v0[k][j] a_j.
+                let mut av = [[0.0; P]; P];
+                for (avk, v0k) in av.iter_mut().zip(v0) {
+                    for (aj, vkj) in a.iter().zip(v0k) {
+                        for (x, y) in avk.iter_mut().zip(aj) {
+                            *x += vkj * y;
+                        }
+                    }
+                }
+                a = av;
+                *v0
+            }
+            None => core::array::from_fn(|j| core::array::from_fn(|i| if i == j { 1.0 } else { 0.0 })),
+        };
         jacobi_svd(&mut a, &mut v);
         let sigma: [f64; P] = core::array::from_fn(|i| libm::sqrt(dot(&a[i], &a[i])));
         // a_iᵀ z = σ_i u_iᵀ z.

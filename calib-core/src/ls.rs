@@ -293,11 +293,13 @@ pub(crate) fn linearise_qr<const N: usize, const P: usize>(table: &DhTable<N>, s
 /// The normal equations are accumulated first (half the work of the QR per sample); when the
 /// column-scaled problem is not well conditioned (condition above [`crate::GRAM_MAX_CONDITION`], e.g.
 /// rank-deficient), the samples are linearised again into the QR, which resolves it to the
-/// rounding of the data.
+/// rounding of the data. `warm` (the previous iterate's analysis) starts the SVD of the normal
+/// equations from its singular vectors.
 pub(crate) fn linearise<const N: usize, const P: usize>(
     table: &DhTable<N>,
     samples: &[Sample<N>],
     rel_tol: f64,
+    warm: Option<&Analysis<P>>,
 ) -> (Analysis<P>, f64) {
     let mut gram = GramAccumulator::<P>::new();
     let mut cost = 0.0;
@@ -309,7 +311,7 @@ pub(crate) fn linearise<const N: usize, const P: usize>(
         cost += e.norm_squared();
         gram.add_rows_3_3(&pos, &[e[0], e[1], e[2]], &rot, &[e[3], e[4], e[5]], 2 * N);
     }
-    match gram.analyse(rel_tol) {
+    match gram.analyse_from(rel_tol, warm) {
         Some(analysis) => (analysis, cost),
         None => {
             let (acc, cost) = linearise_qr::<N, P>(table, samples);
@@ -344,7 +346,7 @@ pub fn identify_ls<const N: usize, const P: usize>(
     validate_samples(samples, &opts.checks)?;
     let (table, cost, iterations, analysis) = levenberg_marquardt::<N, P, DhTable<N>>(
         *start,
-        |t| linearise::<N, P>(t, samples, opts.rank_tolerance),
+        |t, warm| linearise::<N, P>(t, samples, opts.rank_tolerance, warm),
         |t| cost_at(t, samples),
         |t, step| t.perturbed(step),
         opts,
@@ -380,13 +382,13 @@ const COST_NOISE: f64 = 1e-13;
 /// returned state is then the last linearised one, so the analysis belongs to it.
 pub(crate) fn levenberg_marquardt<const N: usize, const P: usize, S: Copy>(
     start: S,
-    lin: impl Fn(&S) -> (Analysis<P>, f64),
+    lin: impl Fn(&S, Option<&Analysis<P>>) -> (Analysis<P>, f64),
     cost_of: impl Fn(&S) -> f64,
     apply: impl Fn(&S, &[f64; P]) -> S,
     opts: &LsOptions<N>,
 ) -> Result<(S, f64, usize, Analysis<P>), CalibError> {
     let mut state = start;
-    let (mut analysis, mut cost) = lin(&state);
+    let (mut analysis, mut cost) = lin(&state, None);
     let mut lambda = 0.0;
     let mut last_change = f64::INFINITY;
     let mut iterations = 0;
@@ -407,7 +409,7 @@ pub(crate) fn levenberg_marquardt<const N: usize, const P: usize, S: Copy>(
         // A Gauss-Newton step far from the optimum is almost always accepted: linearise the
         // trial point at once. Otherwise the cost alone decides first.
         let (cand_acc, cand_cost) = if lambda == 0.0 && max_step > TINY_STEP {
-            let (acc, c) = lin(&candidate);
+            let (acc, c) = lin(&candidate, Some(&analysis));
             (Some(acc), c)
         } else {
             (None, cost_of(&candidate))
@@ -420,7 +422,7 @@ pub(crate) fn levenberg_marquardt<const N: usize, const P: usize, S: Copy>(
             state = candidate;
             analysis = match cand_acc {
                 Some(an) => an,
-                None => lin(&state).0,
+                None => lin(&state, Some(&analysis)).0,
             };
             cost = cand_cost;
             lambda = if lambda > 0.0 { lambda * 0.1 } else { 0.0 };
@@ -531,8 +533,17 @@ mod tests {
             .map(|s| s.sample)
             .collect();
         let ls = identify_ls::<7, 28>(&DhTable::paper_nominal(), &samples, &LsOptions::paper()).unwrap();
+        let (start, _) = linearise::<7, 28>(&DhTable::paper_nominal(), &samples, 1e-9, None);
         for table in [DhTable::paper_nominal(), ls.table] {
-            let (ne, cost_ne) = linearise::<7, 28>(&table, &samples, 1e-9);
+            let (ne, cost_ne) = linearise::<7, 28>(&table, &samples, 1e-9, None);
+            // Warm-started from the analysis at Table 1: the same SVD.
+            let (warm, _) = linearise::<7, 28>(&table, &samples, 1e-9, Some(&start));
+            for k in 0..28 {
+                assert!((warm.singular[k] - ne.singular[k]).abs() < 1e-13 * ne.singular[0]);
+            }
+            for (x, y) in warm.step(0.0).iter().zip(&ne.step(0.0)) {
+                assert!((x - y).abs() < 1e-12 * x.abs() + 1e-15);
+            }
             let (qr, cost_qr) = linearise_qr::<7, 28>(&table, &samples);
             let qr = qr.analyse(1e-9);
             assert_eq!(cost_ne, cost_qr);
