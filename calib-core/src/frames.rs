@@ -19,7 +19,7 @@ use nalgebra::{Rotation3, Vector3, Vector6};
 
 use crate::error::CalibError;
 use crate::linalg::QrAccumulator;
-use crate::ls::{finish, levenberg_marquardt, validate_samples, LsOptions, LsResult, NullDirection};
+use crate::ls::{finish, levenberg_marquardt, validate_samples, Linearised, LsOptions, LsResult, NullDirection};
 use crate::model::{error_jacobian, pose_error, DhTable, Frame, ParamKind, Sample};
 
 /// Number of frame parameters (base 6 + tool 6).
@@ -210,10 +210,12 @@ pub fn identify_ls_frames<const N: usize, const P: usize>(
     validate_samples(samples, &opts.checks)?;
     let ((table, mounting), cost, iterations, analysis) = levenberg_marquardt::<N, P, _>(
         (*start, *mounting),
-        |s, _| {
+        |s, out| {
             let (acc, cost) = linearise::<N, P>(s, samples);
-            (acc.analyse(opts.rank_tolerance), cost)
+            *out = Linearised::Qr(acc);
+            cost
         },
+        |s| linearise::<N, P>(s, samples).0,
         |s| cost_at(s, samples),
         apply::<N, P>,
         opts,

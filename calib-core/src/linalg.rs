@@ -135,8 +135,8 @@ impl<const P: usize> QrAccumulator<P> {
         let norms = self.column_norms();
         let scale = column_scale(&norms, self.rows);
         // Columns of the scaled R.
-        let a: [[f64; P]; P] = core::array::from_fn(|j| core::array::from_fn(|i| self.r[i][j] / scale[j]));
-        Analysis::of_triangle(a, &self.z, scale, self.rows, self.rss, rel_tol)
+        let mut a: [[f64; P]; P] = core::array::from_fn(|j| core::array::from_fn(|i| self.r[i][j] / scale[j]));
+        Analysis::of_triangle(&mut a, &self.z, scale, self.rows, self.rss, rel_tol)
     }
 }
 
@@ -183,6 +183,16 @@ impl<const P: usize> GramAccumulator<P> {
     /// Number of rows absorbed.
     pub fn rows(&self) -> usize {
         self.rows
+    }
+
+    /// Empties the accumulator (in place).
+    pub fn clear(&mut self) {
+        for row in self.g.iter_mut() {
+            row.fill(0.0);
+        }
+        self.b.fill(0.0);
+        self.yy = 0.0;
+        self.rows = 0;
     }
 
     /// Adds the `R` rows `h[r] · x ≈ y[r]`, which must be zero in the columns `0..first`.
@@ -247,42 +257,38 @@ impl<const P: usize> GramAccumulator<P> {
 
     /// [`GramAccumulator::analyse`], with the SVD started from the right singular vectors of
     /// `warm` (typically the analysis of the previous iterate: the same result in fewer sweeps).
+    #[inline(never)]
     pub fn analyse_from(&self, rel_tol: f64, warm: Option<&Analysis<P>>) -> Option<Analysis<P>> {
         let norms: [f64; P] = core::array::from_fn(|j| libm::sqrt(self.g[j][j]));
         let scale = column_scale(&norms, self.rows);
-        // Upper Cholesky factor R of D⁻¹ HᵀH D⁻¹, row by row.
-        let mut r = [[0.0; P]; P];
+        // Upper Cholesky factor R of D⁻¹ HᵀH D⁻¹, kept by columns (`a[k][j] = R[j][k]`, the
+        // layout of the SVD, so no second P × P array is needed on a small target's stack).
+        let mut a = [[0.0; P]; P];
         for j in 0..P {
             let mut d = self.g[j][j] / (scale[j] * scale[j]);
-            for row in r.iter().take(j) {
-                d -= row[j] * row[j];
+            for x in &a[j][..j] {
+                d -= x * x;
             }
             if !(d > 0.0 && d.is_finite()) {
                 return None;
             }
             let rjj = libm::sqrt(d);
-            r[j][j] = rjj;
+            a[j][j] = rjj;
             for k in j + 1..P {
                 let mut x = self.g[j][k] / (scale[j] * scale[k]);
-                for row in r.iter().take(j) {
-                    x -= row[j] * row[k];
-                }
-                r[j][k] = x / rjj;
+                x -= dot_prefix(&a[j], &a[k], j);
+                a[k][j] = x / rjj;
             }
         }
         // z = R⁻ᵀ D⁻¹ Hᵀy (= Qᵀy of the QR), forward substitution.
         let mut z = [0.0; P];
         for j in 0..P {
-            let mut x = self.b[j] / scale[j];
-            for (i, zi) in z.iter().enumerate().take(j) {
-                x -= r[i][j] * zi;
-            }
-            z[j] = x / r[j][j];
+            let x = self.b[j] / scale[j] - dot_prefix(&a[j], &z, j);
+            z[j] = x / a[j][j];
         }
         let rss = (self.yy - dot(&z, &z)).max(0.0);
         // `of_triangle` scales by columns: hand it R with unit scales, then restore them.
-        let a: [[f64; P]; P] = core::array::from_fn(|j| core::array::from_fn(|i| r[i][j]));
-        let mut an = Analysis::of_triangle_from(a, &z, [1.0; P], self.rows, rss, rel_tol, warm.map(|w| &w.v));
+        let mut an = Analysis::of_triangle_from(&mut a, &z, [1.0; P], self.rows, rss, rel_tol, warm.map(|w| &w.v));
         an.scale = scale;
         if an.condition() > GRAM_MAX_CONDITION {
             return None;
@@ -395,6 +401,11 @@ impl<const P: usize, const M: usize> QrPanel<P, M> {
     }
 }
 
+/// `Σ_{i<n} x_i y_i`.
+fn dot_prefix<const P: usize>(x: &[f64; P], y: &[f64; P], n: usize) -> f64 {
+    x[..n].iter().zip(&y[..n]).map(|(a, b)| a * b).sum()
+}
+
 fn dot<const P: usize>(x: &[f64; P], y: &[f64; P]) -> f64 {
     x.iter().zip(y).map(|(a, b)| a * b).sum()
 }
@@ -452,15 +463,16 @@ pub struct Analysis<const P: usize> {
 
 impl<const P: usize> Analysis<P> {
     /// SVD of the scaled triangle given by its columns `a` (with `R x_scaled = z`).
-    fn of_triangle(a: [[f64; P]; P], z: &[f64; P], scale: [f64; P], rows: usize, rss: f64, rel_tol: f64) -> Self {
+    fn of_triangle(a: &mut [[f64; P]; P], z: &[f64; P], scale: [f64; P], rows: usize, rss: f64, rel_tol: f64) -> Self {
         Self::of_triangle_from(a, z, scale, rows, rss, rel_tol, None)
     }
 
     /// [`Analysis::of_triangle`], with the Jacobi iteration started from the right singular
     /// vectors `warm` (any orthogonal matrix gives the same SVD; a nearby one, e.g. of the
     /// previous Gauss-Newton iterate, needs a fraction of the sweeps).
+    #[inline(never)]
     fn of_triangle_from(
-        mut a: [[f64; P]; P],
+        a: &mut [[f64; P]; P],
         z: &[f64; P],
         scale: [f64; P],
         rows: usize,
@@ -470,21 +482,19 @@ impl<const P: usize> Analysis<P> {
     ) -> Self {
         let mut v: [[f64; P]; P] = match warm {
             Some(v0) => {
-                // Columns of A·V0: (A V0)_k = Σ_j v0[k][j] a_j.
-                let mut av = [[0.0; P]; P];
-                for (avk, v0k) in av.iter_mut().zip(v0) {
-                    for (aj, vkj) in a.iter().zip(v0k) {
-                        for (x, y) in avk.iter_mut().zip(aj) {
-                            *x += vkj * y;
-                        }
+                // A ← A·V0, row by row in place: (A V0)[i][k] = Σ_j A[i][j] v0[k][j], with
+                // A[i][j] = a[j][i].
+                for i in 0..P {
+                    let row: [f64; P] = core::array::from_fn(|k| (0..P).map(|j| a[j][i] * v0[k][j]).sum());
+                    for (ak, x) in a.iter_mut().zip(row) {
+                        ak[i] = x;
                     }
                 }
-                a = av;
                 *v0
             }
             None => core::array::from_fn(|j| core::array::from_fn(|i| if i == j { 1.0 } else { 0.0 })),
         };
-        jacobi_svd(&mut a, &mut v);
+        jacobi_svd(a, &mut v);
         let sigma: [f64; P] = core::array::from_fn(|i| libm::sqrt(dot(&a[i], &a[i])));
         // a_iᵀ z = σ_i u_iᵀ z.
         let az: [f64; P] = core::array::from_fn(|i| dot(&a[i], z));
@@ -493,9 +503,22 @@ impl<const P: usize> Analysis<P> {
         let smax = if P > 0 { sigma[order[0]] } else { 0.0 };
         let tol = rel_tol * smax;
         let rank = order.iter().filter(|&&i| sigma[i] > tol && sigma[i] > 0.0).count();
+        // Sort v in place (following the permutation's cycles: no second P × P array).
+        let mut done = [false; P];
+        for start in 0..P {
+            let mut k = start;
+            while !done[k] {
+                done[k] = true;
+                let next = order[k];
+                if next != start {
+                    v.swap(k, next);
+                }
+                k = next;
+            }
+        }
         Analysis {
             singular: core::array::from_fn(|k| sigma[order[k]]),
-            v: core::array::from_fn(|k| v[order[k]]),
+            v,
             az: core::array::from_fn(|k| az[order[k]]),
             scale,
             rank,

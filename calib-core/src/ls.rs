@@ -261,6 +261,7 @@ const PANEL_ROWS: usize = 24;
 
 /// Absorbs every sample linearised at `table` into a QR (blocked Householder, 8 samples per
 /// panel); returns the accumulator and the cost Σ‖e‖².
+#[inline(never)] // its panel stays off the stack of the analysis that follows
 pub(crate) fn linearise_qr<const N: usize, const P: usize>(table: &DhTable<N>, samples: &[Sample<N>]) -> (QrAccumulator<P>, f64) {
     let mut acc = QrAccumulator::<P>::new();
     let mut panel = QrPanel::<P, PANEL_ROWS>::new(2 * N);
@@ -287,21 +288,29 @@ pub(crate) fn linearise_qr<const N: usize, const P: usize>(table: &DhTable<N>, s
     (acc, cost)
 }
 
-/// Linearises every sample at `table` and analyses the least-squares problem; returns the
-/// analysis and the cost Σ‖e‖².
-///
-/// The normal equations are accumulated first (half the work of the QR per sample); when the
-/// column-scaled problem is not well conditioned (condition above [`crate::GRAM_MAX_CONDITION`], e.g.
-/// rank-deficient), the samples are linearised again into the QR, which resolves it to the
-/// rounding of the data. `warm` (the previous iterate's analysis) starts the SVD of the normal
-/// equations from its singular vectors.
+/// A linearisation, before its analysis: the normal equations, or the QR of the fallback.
+#[derive(Clone, Debug)]
+pub(crate) enum Linearised<const P: usize> {
+    /// Normal equations (the well-conditioned case).
+    Gram(GramAccumulator<P>),
+    /// Square-root information (Householder / Givens QR).
+    Qr(QrAccumulator<P>),
+}
+
+/// Linearises every sample at `table` into the normal equations, in `out`; returns the cost
+/// Σ‖e‖² (half the work per sample of the QR; see [`analyse`] for when the QR is used).
 pub(crate) fn linearise<const N: usize, const P: usize>(
     table: &DhTable<N>,
     samples: &[Sample<N>],
-    rel_tol: f64,
-    warm: Option<&Analysis<P>>,
-) -> (Analysis<P>, f64) {
-    let mut gram = GramAccumulator::<P>::new();
+    out: &mut Linearised<P>,
+) -> f64 {
+    match out {
+        Linearised::Gram(gram) => gram.clear(),
+        _ => *out = Linearised::Gram(GramAccumulator::new()),
+    }
+    let Linearised::Gram(gram) = out else {
+        return f64::NAN;
+    };
     let mut cost = 0.0;
     let prepared = table.prepare();
     let mut cols = [[Vector6::zeros(); N]; 4];
@@ -311,13 +320,35 @@ pub(crate) fn linearise<const N: usize, const P: usize>(
         cost += e.norm_squared();
         gram.add_rows_3_3(&pos, &[e[0], e[1], e[2]], &rot, &[e[3], e[4], e[5]], 2 * N);
     }
-    match gram.analyse_from(rel_tol, warm) {
-        Some(analysis) => (analysis, cost),
-        None => {
-            let (acc, cost) = linearise_qr::<N, P>(table, samples);
-            (acc.analyse(rel_tol), cost)
-        }
+    cost
+}
+
+/// The analysis of a linearisation at `state`. The normal equations are used when the
+/// column-scaled problem is well conditioned (condition up to [`crate::GRAM_MAX_CONDITION`]);
+/// otherwise (e.g. rank-deficient) `relin_qr` linearises `state` again into the QR, which
+/// resolves it to the rounding of the data. `warm` (the previous iterate's analysis) starts
+/// the SVD of the normal equations from its singular vectors.
+pub(crate) fn analyse<const P: usize, S>(
+    lin: &Linearised<P>,
+    state: &S,
+    relin_qr: &impl Fn(&S) -> QrAccumulator<P>,
+    rel_tol: f64,
+    warm: Option<&Analysis<P>>,
+) -> Analysis<P> {
+    match lin {
+        Linearised::Qr(acc) => acc.analyse(rel_tol),
+        Linearised::Gram(gram) => match gram.analyse_from(rel_tol, warm) {
+            Some(analysis) => analysis,
+            None => analyse_qr(state, relin_qr, rel_tol),
+        },
     }
+}
+
+/// The QR fallback of [`analyse`], out of line so that its triangle stays off the stack of the
+/// normal-equations path (a small target has little to spare).
+#[inline(never)]
+fn analyse_qr<const P: usize, S>(state: &S, relin_qr: &impl Fn(&S) -> QrAccumulator<P>, rel_tol: f64) -> Analysis<P> {
+    relin_qr(state).analyse(rel_tol)
 }
 
 /// The cost Σ‖e‖² at `table` alone (no Jacobian), bit-identical to the cost of [`linearise`].
@@ -346,7 +377,8 @@ pub fn identify_ls<const N: usize, const P: usize>(
     validate_samples(samples, &opts.checks)?;
     let (table, cost, iterations, analysis) = levenberg_marquardt::<N, P, DhTable<N>>(
         *start,
-        |t, warm| linearise::<N, P>(t, samples, opts.rank_tolerance, warm),
+        |t, out| linearise::<N, P>(t, samples, out),
+        |t| linearise_qr::<N, P>(t, samples).0,
         |t| cost_at(t, samples),
         |t, step| t.perturbed(step),
         opts,
@@ -371,7 +403,8 @@ const TINY_STEP: f64 = 1e-9;
 /// thousands of samples (observed: a few 1e-15 at K = 6,000).
 const COST_NOISE: f64 = 1e-13;
 
-/// Levenberg-Marquardt over any state: `lin` linearises (analysis + cost), `cost` evaluates
+/// Levenberg-Marquardt over any state: `lin` linearises (accumulator + cost), `relin_qr`
+/// linearises into a QR when the normal equations are not good enough (see [`analyse`]), `cost` evaluates
 /// the cost alone (bit-identical to `lin`'s), `apply` adds a step. Returns the final state,
 /// cost, iterations and the SVD analysis at the final state.
 ///
@@ -382,13 +415,17 @@ const COST_NOISE: f64 = 1e-13;
 /// returned state is then the last linearised one, so the analysis belongs to it.
 pub(crate) fn levenberg_marquardt<const N: usize, const P: usize, S: Copy>(
     start: S,
-    lin: impl Fn(&S, Option<&Analysis<P>>) -> (Analysis<P>, f64),
+    lin: impl Fn(&S, &mut Linearised<P>) -> f64,
+    relin_qr: impl Fn(&S) -> QrAccumulator<P>,
     cost_of: impl Fn(&S) -> f64,
     apply: impl Fn(&S, &[f64; P]) -> S,
     opts: &LsOptions<N>,
 ) -> Result<(S, f64, usize, Analysis<P>), CalibError> {
     let mut state = start;
-    let (mut analysis, mut cost) = lin(&state, None);
+    // One linearisation buffer for the whole iteration (a small target has little stack).
+    let mut lin_buf = Linearised::Gram(GramAccumulator::new());
+    let mut cost = lin(&state, &mut lin_buf);
+    let mut analysis = analyse(&lin_buf, &state, &relin_qr, opts.rank_tolerance, None);
     let mut lambda = 0.0;
     let mut last_change = f64::INFINITY;
     let mut iterations = 0;
@@ -408,11 +445,11 @@ pub(crate) fn levenberg_marquardt<const N: usize, const P: usize, S: Copy>(
         let candidate = apply(&state, &step);
         // A Gauss-Newton step far from the optimum is almost always accepted: linearise the
         // trial point at once. Otherwise the cost alone decides first.
-        let (cand_acc, cand_cost) = if lambda == 0.0 && max_step > TINY_STEP {
-            let (acc, c) = lin(&candidate, Some(&analysis));
-            (Some(acc), c)
+        let speculative = lambda == 0.0 && max_step > TINY_STEP;
+        let cand_cost = if speculative {
+            lin(&candidate, &mut lin_buf)
         } else {
-            (None, cost_of(&candidate))
+            cost_of(&candidate)
         };
         let negligible = max_step < TINY_STEP && (cand_cost - cost).abs() <= COST_NOISE * cost;
         if negligible {
@@ -420,10 +457,10 @@ pub(crate) fn levenberg_marquardt<const N: usize, const P: usize, S: Copy>(
         }
         if cand_cost <= cost {
             state = candidate;
-            analysis = match cand_acc {
-                Some(an) => an,
-                None => lin(&state, Some(&analysis)).0,
-            };
+            if !speculative {
+                lin(&state, &mut lin_buf);
+            }
+            analysis = analyse(&lin_buf, &state, &relin_qr, opts.rank_tolerance, Some(&analysis));
             cost = cand_cost;
             lambda = if lambda > 0.0 { lambda * 0.1 } else { 0.0 };
             last_change = max_step;
@@ -533,11 +570,18 @@ mod tests {
             .map(|s| s.sample)
             .collect();
         let ls = identify_ls::<7, 28>(&DhTable::paper_nominal(), &samples, &LsOptions::paper()).unwrap();
-        let (start, _) = linearise::<7, 28>(&DhTable::paper_nominal(), &samples, 1e-9, None);
+        let qr_of = |t: &DhTable<7>| linearise_qr::<7, 28>(t, &samples).0;
+        let lin = |t: &DhTable<7>, warm: Option<&Analysis<28>>| {
+            let mut l = Linearised::Qr(QrAccumulator::new());
+            let c = linearise::<7, 28>(t, &samples, &mut l);
+            assert!(matches!(l, Linearised::Gram(_)));
+            (analyse(&l, t, &qr_of, 1e-9, warm), c)
+        };
+        let (start, _) = lin(&DhTable::paper_nominal(), None);
         for table in [DhTable::paper_nominal(), ls.table] {
-            let (ne, cost_ne) = linearise::<7, 28>(&table, &samples, 1e-9, None);
+            let (ne, cost_ne) = lin(&table, None);
             // Warm-started from the analysis at Table 1: the same SVD.
-            let (warm, _) = linearise::<7, 28>(&table, &samples, 1e-9, Some(&start));
+            let (warm, _) = lin(&table, Some(&start));
             for k in 0..28 {
                 assert!((warm.singular[k] - ne.singular[k]).abs() < 1e-13 * ne.singular[0]);
             }
