@@ -1,10 +1,13 @@
 //! Benchmarks of the kernels under one LS linearisation, per sample: the pose error, the
-//! residual Jacobian `M(e)`, absorbing 6 rows into the streaming QR, and the SVD analysis of
-//! the 28 × 28 triangle. `cargo bench -p calib-core --bench kernels`. (`cargo xtask bench`
+//! residual Jacobian `M(e)`, adding the 6 rows to the normal equations (what `identify_ls`
+//! does per sample), absorbing them into the streaming QR (Givens, per row) or a panel of 8
+//! samples into it (blocked Householder, the fallback for ill-conditioned problems), and the
+//! analyses of the 28 × 28 problem (SVD of the QR triangle; Cholesky + SVD of the normal
+//! equations). `cargo bench -p calib-core --bench kernels`. (`cargo xtask bench`
 //! times the same kernels with the process CPU clock and explains the LS time with them.)
 
 use calib_core::model::error_jacobian;
-use calib_core::{pose_error, DhTable, QrAccumulator, Sample, Scenario, ScenarioConfig, SUIT_PARAMS};
+use calib_core::{pose_error, DhTable, GramAccumulator, QrAccumulator, QrPanel, Sample, Scenario, ScenarioConfig, SUIT_PARAMS};
 use divan::{black_box, Bencher};
 
 fn main() {
@@ -72,4 +75,63 @@ fn svd_analysis(bencher: Bencher) {
         }
     }
     bencher.bench(|| black_box(&acc).analyse(1e-9));
+}
+
+type Rows3 = [[f64; SUIT_PARAMS]; 3];
+
+/// Rows of `rows()` split as `identify_ls` keeps them: 3 position rows, 3 rotation rows (zero in
+/// the 14 `a`, `d` columns).
+fn split_rows() -> (Rows3, Rows3, [f64; 3], [f64; 3]) {
+    let (rows, e) = rows();
+    (
+        [rows[0], rows[1], rows[2]],
+        [rows[3], rows[4], rows[5]],
+        [e[0], e[1], e[2]],
+        [e[3], e[4], e[5]],
+    )
+}
+
+/// One sample's 6 rows into the normal equations (per sample, per linearisation).
+#[divan::bench]
+fn gram_add_6_rows(bencher: Bencher) {
+    let (pos, rot, ep, er) = split_rows();
+    let mut acc = GramAccumulator::<SUIT_PARAMS>::new();
+    bencher.bench_local(|| {
+        acc.add_rows_3_3(black_box(&pos), &ep, black_box(&rot), &er, 14);
+    });
+}
+
+/// A panel of 8 samples (48 rows) into the QR by one blocked Householder update (per panel;
+/// divide by 8 for per sample).
+#[divan::bench]
+fn householder_panel_8_samples(bencher: Bencher) {
+    let (pos, rot, ep, er) = split_rows();
+    let mut acc = QrAccumulator::<SUIT_PARAMS>::new();
+    let mut panel = QrPanel::<SUIT_PARAMS, 24>::new(14);
+    bencher.bench_local(|| {
+        for _ in 0..8 {
+            for r in 0..3 {
+                let (row, y) = panel.push_full();
+                *row = pos[r];
+                *y = ep[r];
+                let (row, y) = panel.push_tail();
+                *row = rot[r];
+                *y = er[r];
+            }
+        }
+        acc.absorb(black_box(&mut panel));
+    });
+}
+
+#[divan::bench(sample_count = 20)]
+fn gram_analysis(bencher: Bencher) {
+    let mut acc = GramAccumulator::<SUIT_PARAMS>::new();
+    for s in Scenario::new(ScenarioConfig::paper(), 1).take(500) {
+        let (t, cols) = DhTable::paper_nominal().fk_jacobian(&s.sample.joints);
+        let e = pose_error(&t, &s.sample.pose);
+        let m = error_jacobian(&e);
+        let rows: [[f64; SUIT_PARAMS]; 6] = core::array::from_fn(|r| core::array::from_fn(|p| (m * cols[p / 7][p % 7])[r]));
+        acc.add_rows(&rows, &e.into(), 0);
+    }
+    bencher.bench(|| black_box(&acc).analyse(1e-9).map(|a| a.rank));
 }

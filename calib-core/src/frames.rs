@@ -19,7 +19,7 @@ use nalgebra::{Rotation3, Vector3, Vector6};
 
 use crate::error::CalibError;
 use crate::linalg::QrAccumulator;
-use crate::ls::{finish, levenberg_marquardt, validate_samples, LsOptions, LsResult, NullDirection};
+use crate::ls::{finish, levenberg_marquardt, validate_samples, Linearised, LsOptions, LsResult, NullDirection};
 use crate::model::{error_jacobian, pose_error, DhTable, Frame, ParamKind, Sample};
 
 /// Number of frame parameters (base 6 + tool 6).
@@ -161,6 +161,19 @@ fn linearise<const N: usize, const P: usize>(state: &(DhTable<N>, Mounting), sam
     (acc, cost)
 }
 
+/// The cost Σ‖e‖² alone, bit-identical to that of [`linearise`].
+fn cost_at<const N: usize>(state: &(DhTable<N>, Mounting), samples: &[Sample<N>]) -> f64 {
+    let (table, mount) = state;
+    let table = table.prepare();
+    samples
+        .iter()
+        .map(|s| {
+            let t = mount.base.compose(&table.pose(&s.joints)).compose(&mount.tool);
+            pose_error(&t, &s.pose).norm_squared()
+        })
+        .fold(0.0, |acc, c| acc + c)
+}
+
 fn apply<const N: usize, const P: usize>(state: &(DhTable<N>, Mounting), step: &[f64; P]) -> (DhTable<N>, Mounting) {
     let (table, mount) = state;
     let b = &step[4 * N..4 * N + 6];
@@ -195,8 +208,18 @@ pub fn identify_ls_frames<const N: usize, const P: usize>(
     }
     crate::ls::check_options(opts)?;
     validate_samples(samples, &opts.checks)?;
-    let ((table, mounting), cost, iterations, analysis) =
-        levenberg_marquardt::<N, P, _>((*start, *mounting), |s| linearise::<N, P>(s, samples), apply::<N, P>, opts)?;
+    let ((table, mounting), cost, iterations, analysis) = levenberg_marquardt::<N, P, _>(
+        (*start, *mounting),
+        |s, out| {
+            let (acc, cost) = linearise::<N, P>(s, samples);
+            *out = Linearised::Qr(acc);
+            cost
+        },
+        |s| linearise::<N, P>(s, samples).0,
+        |s| cost_at(s, samples),
+        apply::<N, P>,
+        opts,
+    )?;
     let ls = finish(table, cost, iterations, &analysis, opts)?;
     Ok(LsFramesResult { ls, mounting })
 }

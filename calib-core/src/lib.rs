@@ -77,7 +77,7 @@ pub use drift_em::em_drift_vec;
 pub use drift_em::{em_drift, DriftEmOptions, DriftEmResult, DriftSlot};
 pub use error::CalibError;
 pub use frames::{identify_ls_frames, LsFramesResult, Mounting, Param, FRAME_PARAMS};
-pub use linalg::{Observability, QrAccumulator};
+pub use linalg::{GramAccumulator, Observability, QrAccumulator, QrPanel, GRAM_MAX_CONDITION};
 pub use ls::{identify_ls, validate_samples, BoundsOutcome, BoundsPolicy, InputChecks, LsOptions, LsResult, NullDirection};
 pub use metrics::{objective_y, objective_y_corrected, ParamErrors};
 pub use model::{

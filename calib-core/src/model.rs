@@ -144,8 +144,15 @@ impl Frame {
 impl DhRow {
     /// The link transform of eq. (1) for joint variable `q` (the offset is added here).
     pub fn transform(&self, q: f64) -> Frame {
-        let (st, ct) = libm::sincos(q + self.theta_offset);
         let (sa, ca) = libm::sincos(self.alpha);
+        self.transform_with(q, sa, ca)
+    }
+
+    /// [`DhRow::transform`] with `(sin α, cos α)` given (they are constant per table, while the
+    /// joint angle changes with every sample).
+    #[inline]
+    fn transform_with(&self, q: f64, sa: f64, ca: f64) -> Frame {
+        let (st, ct) = libm::sincos(q + self.theta_offset);
         Frame {
             r: Matrix3::new(ct, -st * ca, st * sa, st, ct * ca, -ct * sa, 0.0, sa, ca),
             p: Vector3::new(self.a * ct, self.a * st, self.d),
@@ -271,41 +278,82 @@ impl<const N: usize> DhTable<N> {
         t
     }
 
+    /// The table with `sin α`, `cos α` of every row evaluated once, for kinematics over many
+    /// samples (the results are bit-identical to [`DhTable::fk_jacobian`]).
+    pub(crate) fn prepare(&self) -> PreparedTable<N> {
+        PreparedTable {
+            rows: self.rows,
+            trig: core::array::from_fn(|i| libm::sincos(self.rows[i].alpha)),
+        }
+    }
+
     /// Forward kinematics and the analytic identification Jacobian.
     ///
     /// Returns the tool pose and `cols[kind][joint]`, the tool-frame twist `[v; ω]` of a unit
     /// change of parameter (`kind`, `joint`). `cols[ParamKind::Theta as usize]` is the joint
     /// Jacobian (∂pose/∂q, also in the tool frame).
     pub fn fk_jacobian(&self, joints: &[f64; N]) -> (Frame, [[Vector6<f64>; N]; 4]) {
-        let mut cols = [[Vector6::zeros(); N]; 4];
-        // Backward pass: `u` is U_{i+1} = T_{i+1} ⋯ T_N, the pose of the tool in frame i.
-        let mut u = Frame::identity();
-        for i in (0..N).rev() {
-            let row = &self.rows[i];
-            let (sa, ca) = libm::sincos(row.alpha);
-            let ex = Vector3::new(1.0, 0.0, 0.0);
-            let z_local = Vector3::new(0.0, sa, ca);
-            // Local twists in frame i (post-multiplied), see paper notes 1-2.
-            let twists: [(Vector3<f64>, Vector3<f64>); 4] = [
-                (ex, Vector3::zeros()),
-                (z_local, Vector3::zeros()),
-                (Vector3::zeros(), ex),
-                (Vector3::new(0.0, row.a * ca, -row.a * sa), z_local),
-            ];
-            let rt = u.r.transpose();
-            for (k, (v, w)) in twists.iter().enumerate() {
-                let vt = rt * (w.cross(&u.p) + v);
-                let wt = rt * w;
-                cols[k][i] = Vector6::new(vt.x, vt.y, vt.z, wt.x, wt.y, wt.z);
-            }
-            u = row.transform(joints[i]).compose(&u);
-        }
-        (u, cols)
+        self.prepare().fk_jacobian(joints)
     }
 
     /// The joint Jacobian (6 × N, tool frame): column `j` is ∂pose/∂q_j.
     pub fn joint_jacobian(&self, joints: &[f64; N]) -> [Vector6<f64>; N] {
         self.fk_jacobian(joints).1[ParamKind::Theta as usize]
+    }
+}
+
+/// A [`DhTable`] with the trigonometry of its constant twists `α` precomputed (see
+/// [`DhTable::prepare`]): per sample only `sin`/`cos` of the joint angles remain.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct PreparedTable<const N: usize> {
+    rows: [DhRow; N],
+    /// `(sin α_i, cos α_i)`.
+    trig: [(f64, f64); N],
+}
+
+impl<const N: usize> PreparedTable<N> {
+    /// The tool pose, composed from the tool backwards like [`PreparedTable::fk_jacobian`]
+    /// does (so bit-identical to its pose, which [`DhTable::fk`] is not), without the Jacobian.
+    pub(crate) fn pose(&self, joints: &[f64; N]) -> Frame {
+        let mut u = Frame::identity();
+        for i in (0..N).rev() {
+            let (sa, ca) = self.trig[i];
+            u = self.rows[i].transform_with(joints[i], sa, ca).compose(&u);
+        }
+        u
+    }
+
+    /// [`DhTable::fk_jacobian`].
+    pub(crate) fn fk_jacobian(&self, joints: &[f64; N]) -> (Frame, [[Vector6<f64>; N]; 4]) {
+        let mut cols = [[Vector6::zeros(); N]; 4];
+        let u = self.fk_jacobian_into(joints, &mut cols);
+        (u, cols)
+    }
+
+    /// [`PreparedTable::fk_jacobian`] into a caller's buffer (no copy of the 4N columns).
+    pub(crate) fn fk_jacobian_into(&self, joints: &[f64; N], cols: &mut [[Vector6<f64>; N]; 4]) -> Frame {
+        // Backward pass: `u` is U_{i+1} = T_{i+1} ⋯ T_N, the pose of the tool in frame i.
+        let mut u = Frame::identity();
+        for i in (0..N).rev() {
+            let row = &self.rows[i];
+            let (sa, ca) = self.trig[i];
+            let ex = Vector3::new(1.0, 0.0, 0.0);
+            let z_local = Vector3::new(0.0, sa, ca);
+            // Local twists (v, ω) in frame i (post-multiplied), see paper notes 1-2:
+            // a: (x, 0), d: (z, 0), α: (0, x), θ: ((0, a cos α, −a sin α), z); in the tool frame
+            // v' = Uᵀ(ω × p + v), ω' = Uᵀω.
+            let rt = u.r.transpose();
+            let x_t = rt * ex;
+            let z_t = rt * z_local;
+            let v_alpha = rt * ex.cross(&u.p);
+            let v_theta = rt * (z_local.cross(&u.p) + Vector3::new(0.0, row.a * ca, -row.a * sa));
+            cols[0][i] = Vector6::new(x_t.x, x_t.y, x_t.z, 0.0, 0.0, 0.0);
+            cols[1][i] = Vector6::new(z_t.x, z_t.y, z_t.z, 0.0, 0.0, 0.0);
+            cols[2][i] = Vector6::new(v_alpha.x, v_alpha.y, v_alpha.z, x_t.x, x_t.y, x_t.z);
+            cols[3][i] = Vector6::new(v_theta.x, v_theta.y, v_theta.z, z_t.x, z_t.y, z_t.z);
+            u = row.transform_with(joints[i], sa, ca).compose(&u);
+        }
+        u
     }
 }
 
