@@ -428,6 +428,23 @@ footer { margin-top:40px; color:var(--muted); font-size:12.5px; }
 @media print { body { background:#fff; } main { box-shadow:none; } }
 ";
 
+/// The document's head, its title as the headline, and where the data came from.
+fn page_head(out: &mut String, title: &str, source: &str) {
+    let _ = write!(
+        out,
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
+         <meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\
+         <title>{}</title><style>{STYLE}</style></head><body><main>\n",
+        esc(title)
+    );
+    let _ = writeln!(
+        out,
+        "<h1>{}</h1><p class=\"sub\">{}</p>",
+        esc(title),
+        esc(source)
+    );
+}
+
 const EXCITATION_CAPTION: &str = "Share of each joint's anatomical range the session visited \
      (excitation); the line is what the session rules require.";
 
@@ -436,19 +453,7 @@ const EXCITATION_CAPTION: &str = "Share of each joint's anatomical range the ses
 /// the motion lacked.
 pub fn render_session(input: &SessionInput) -> String {
     let mut out = String::with_capacity(1 << 16);
-    let _ = write!(
-        out,
-        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
-         <meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\
-         <title>{}</title><style>{STYLE}</style></head><body><main>\n",
-        esc(&input.title)
-    );
-    let _ = writeln!(
-        out,
-        "<h1>{}</h1><p class=\"sub\">{}</p>",
-        esc(&input.title),
-        esc(&input.source)
-    );
+    page_head(&mut out, &input.title, &input.source);
     out.push_str(
         "<div class=\"verdict bad\">Not calibrated: the session does not meet the session rules; \
          nothing is pushed.<ul>",
@@ -472,19 +477,7 @@ pub fn render_session(input: &SessionInput) -> String {
 pub fn render(input: &ReportInput) -> String {
     let c = &input.calibration;
     let mut out = String::with_capacity(1 << 20);
-    let _ = write!(
-        out,
-        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
-         <meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\
-         <title>{}</title><style>{STYLE}</style></head><body><main>\n",
-        esc(&input.title)
-    );
-    let _ = writeln!(
-        out,
-        "<h1>{}</h1><p class=\"sub\">{}</p>",
-        esc(&input.title),
-        esc(&input.source)
-    );
+    page_head(&mut out, &input.title, &input.source);
     match &input.verdict {
         Some(v) if v.accepted => out.push_str(
             "<div class=\"verdict ok\">Validated: the calibrated table may be pushed.</div>\n",
