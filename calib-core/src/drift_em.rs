@@ -34,6 +34,7 @@ use crate::drift::DriftParams;
 use crate::error::CalibError;
 use crate::linalg::QrAccumulator;
 use crate::ls::{positive, validate_samples, InputChecks};
+use crate::metrics::{expected_table_error, TableError};
 use crate::model::{error_jacobian, pose_error, DhTable, Sample};
 use crate::paper_em::MAX_EM_ITERATIONS;
 
@@ -153,7 +154,14 @@ pub struct DriftEmResult<const N: usize> {
     /// model, `std_errors[kind][joint]` (m, rad): the inverse of the exact Fisher information
     /// of the static parameters with the drift integrated out (from the two-stage filter).
     pub std_errors: [[f64; N]; 4],
+    /// Expected table error (1σ) of [`DriftEmResult::table`] under that bound: the RMS over the
+    /// session's own poses (at most [`EXPECTED_ERROR_POSES`], evenly spread) of the position and
+    /// rotation error its FK would have against the true table ([`crate::metrics`]).
+    pub expected_error: TableError,
 }
+
+/// Most poses of the session [`DriftEmResult::expected_error`] is averaged over.
+pub const EXPECTED_ERROR_POSES: usize = 256;
 
 #[derive(Clone, Copy, Debug)]
 struct Params<const N: usize> {
@@ -501,6 +509,10 @@ pub fn em_drift<const N: usize, const P: usize>(
     let (ll, acc) = geometry_pass::<N, P>(&g, samples, &par)?;
     let analysis = acc.analyse(opts.rank_tolerance);
     let crb = analysis.std_errors(1.0);
+    let stride = samples.len().div_ceil(EXPECTED_ERROR_POSES);
+    let expected_error = expected_table_error::<N, P>(&g, samples.iter().step_by(stride).map(|s| &s.joints), |u| {
+        analysis.variance_along(u)
+    });
     filter_pass::<N, P>(&g, samples, &par, ws)?;
     smooth(ws, &par)?;
     if !converged {
@@ -527,6 +539,7 @@ pub fn em_drift<const N: usize, const P: usize>(
         converged,
         rank,
         std_errors: core::array::from_fn(|k| core::array::from_fn(|j| crb[k * N + j])),
+        expected_error,
     })
 }
 

@@ -74,12 +74,12 @@ pub mod sim;
 pub use drift::{Discretisation, DriftParams, GaussMarkov};
 #[cfg(any(test, feature = "std"))]
 pub use drift_em::em_drift_vec;
-pub use drift_em::{em_drift, DriftEmOptions, DriftEmResult, DriftSlot};
+pub use drift_em::{em_drift, DriftEmOptions, DriftEmResult, DriftSlot, EXPECTED_ERROR_POSES};
 pub use error::CalibError;
 pub use frames::{identify_ls_frames, LsFramesResult, Mounting, Param, FRAME_PARAMS};
 pub use linalg::{GramAccumulator, Observability, QrAccumulator, QrPanel, GRAM_MAX_CONDITION};
 pub use ls::{identify_ls, validate_samples, BoundsOutcome, BoundsPolicy, InputChecks, LsOptions, LsResult, NullDirection};
-pub use metrics::{objective_y, objective_y_corrected, ParamErrors};
+pub use metrics::{expected_table_error, objective_y, objective_y_corrected, table_error, ParamErrors, TableError};
 pub use model::{
     check_bounds, clamp_to_bounds, pose_error, BoundViolation, Bounds, DhRow, DhTable, Frame, JointRanges, ParamKind, Sample,
     SUIT_JOINTS, SUIT_PARAMS,

@@ -569,6 +569,19 @@ impl<const P: usize> Analysis<P> {
         })
     }
 
+    /// `uᵀ C u` for the covariance `C` of the parameters (physical units) at row noise variance
+    /// 1: the variance of the linear functional `u · Δx`, e.g. one output of the FK Jacobian.
+    /// Directions outside the numerical rank are excluded, as in [`Analysis::std_errors`]
+    /// (`variance_along(e_p) = std_errors(1.0)[p]²`).
+    pub fn variance_along(&self, u: &[f64; P]) -> f64 {
+        (0..self.rank)
+            .map(|k| {
+                let c: f64 = (0..P).map(|p| self.v[k][p] * u[p] / self.scale[p]).sum();
+                c * c / (self.singular[k] * self.singular[k])
+            })
+            .sum()
+    }
+
     /// Observability indices of the scaled Jacobian (see [`Observability`]).
     pub fn observability(&self) -> Observability {
         let m = P as f64;

@@ -1,10 +1,80 @@
-//! The paper's objective y (eq. 10) and parameter errors against a known truth.
+//! The paper's objective y (eq. 10), parameter errors against a known truth, and the table
+//! error — how we judge a calibrated table.
+//!
+//! **Table error** ([`table_error`]): RMS over drift-free poses of the position (m) and the
+//! rotation (rad, rotation-vector norm) of [`crate::pose_error`] between FK with one table and
+//! FK with another (normally the calibrated and the true table). Unlike y on held-out motion,
+//! it does not contain that motion's own drift. [`expected_table_error`] is its expectation
+//! (1σ) for a parameter covariance, e.g. the Cramér-Rao bound of [`crate::em_drift`].
 //!
 //! `y = Σ_k ‖e_k‖₂` over the 6-vector pose error of [`crate::pose_error`] (position in metres
 //! and rotation vector in radians, summed as the paper does). Its value does not depend on the
 //! frame the error is expressed in.
 
 use crate::model::{pose_error, DhTable, ParamKind, Sample};
+
+/// RMS position and rotation difference between two tables' FK over a set of poses (see the
+/// module docs), or its expectation.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TableError {
+    /// RMS position difference (m).
+    pub position_m: f64,
+    /// RMS rotation difference (rad).
+    pub rotation_rad: f64,
+}
+
+/// Table error of `table` against `truth` over `poses` (joint angles, rad). Zero for no poses.
+pub fn table_error<'a, const N: usize>(
+    table: &DhTable<N>,
+    truth: &DhTable<N>,
+    poses: impl IntoIterator<Item = &'a [f64; N]>,
+) -> TableError {
+    let (mut pos, mut rot, mut n) = (0.0, 0.0, 0usize);
+    for q in poses {
+        let e = pose_error(&table.fk(q), &truth.fk(q));
+        pos += e.fixed_rows::<3>(0).norm_squared();
+        rot += e.fixed_rows::<3>(3).norm_squared();
+        n += 1;
+    }
+    rms(pos, rot, n)
+}
+
+/// Expected table error (1σ, RMS over `poses`) of a table near `table` whose parameter error
+/// has covariance `C`, given as `variance(u) = uᵀ C u` over the `P = 4N` parameters in
+/// [`DhTable::param`] order (e.g. [`crate::linalg::Analysis::variance_along`]). Linearised:
+/// the FK difference at pose q is `J(q) Δ` with `J` the tool-frame FK Jacobian.
+pub fn expected_table_error<'a, const N: usize, const P: usize>(
+    table: &DhTable<N>,
+    poses: impl IntoIterator<Item = &'a [f64; N]>,
+    variance: impl Fn(&[f64; P]) -> f64,
+) -> TableError {
+    const { assert!(P == 4 * N, "P must be 4N") };
+    let (mut pos, mut rot, mut n) = (0.0, 0.0, 0usize);
+    for q in poses {
+        let (_, cols) = table.fk_jacobian(q);
+        for r in 0..6 {
+            let u: [f64; P] = core::array::from_fn(|p| cols[p / N][p % N][r]);
+            let v = variance(&u).max(0.0);
+            if r < 3 {
+                pos += v;
+            } else {
+                rot += v;
+            }
+        }
+        n += 1;
+    }
+    rms(pos, rot, n)
+}
+
+fn rms(pos: f64, rot: f64, n: usize) -> TableError {
+    if n == 0 {
+        return TableError::default();
+    }
+    TableError {
+        position_m: libm::sqrt(pos / n as f64),
+        rotation_rad: libm::sqrt(rot / n as f64),
+    }
+}
 
 /// y (eq. 10) of `table` on `samples`, using the reported joint angles.
 pub fn objective_y<const N: usize>(table: &DhTable<N>, samples: &[Sample<N>]) -> f64 {
@@ -83,5 +153,29 @@ mod tests {
                 && (e.alpha - 5f64.to_radians()).abs() < 1e-12
                 && e.theta == 0.0
         );
+    }
+
+    #[test]
+    fn table_error_is_zero_for_the_same_table_and_matches_its_expectation_for_a_known_shift() {
+        let poses: std::vec::Vec<[f64; 7]> = Scenario::new(ScenarioConfig::paper(), 3)
+            .take(200)
+            .map(|s| s.sample.joints)
+            .collect();
+        let truth = DhTable::paper_actual();
+        assert_eq!(table_error(&truth, &truth, &poses), TableError::default());
+        // A 1 mm shift of d_1 moves every pose by 1 mm, rotating nothing.
+        let mut t = truth;
+        t.rows[0].d += 1e-3;
+        let e = table_error(&t, &truth, &poses);
+        assert!((e.position_m - 1e-3).abs() < 1e-9 && e.rotation_rad < 1e-12, "{e:?}");
+        // The expectation for a covariance concentrated on d_1 with variance (1 mm)² agrees.
+        let d1 = ParamKind::D as usize * 7; // d_1
+        let exp = expected_table_error::<7, 28>(&truth, &poses, |u| (1e-3 * u[d1]) * (1e-3 * u[d1]));
+        assert!((exp.position_m - 1e-3).abs() < 1e-9 && exp.rotation_rad < 1e-12, "{exp:?}");
+        // A joint-offset error rotates the tool: its rotation error is the offset.
+        let mut t = truth;
+        t.rows[6].theta_offset += 2e-3;
+        let e = table_error(&t, &truth, &poses);
+        assert!((e.rotation_rad - 2e-3).abs() < 1e-9, "{e:?}");
     }
 }
