@@ -52,9 +52,10 @@ pub fn expected_table_error<'a, const N: usize, const P: usize>(
     let (mut pos, mut rot, mut n) = (0.0, 0.0, 0usize);
     for q in poses {
         let (_, cols) = table.fk_jacobian(q);
-        for r in 0..6 {
-            let u: [f64; P] = core::array::from_fn(|p| cols[p / N][p % N][r]);
-            let v = variance(&u).max(0.0);
+        // Row r of the 6 × P FK Jacobian: one output (position x, y, z, rotation x, y, z).
+        let rows: [[f64; P]; 6] = core::array::from_fn(|r| core::array::from_fn(|p| cols[p / N][p % N][r]));
+        for (r, u) in rows.iter().enumerate() {
+            let v = variance(u).max(0.0);
             if r < 3 {
                 pos += v;
             } else {

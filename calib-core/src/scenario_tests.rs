@@ -61,7 +61,7 @@ fn the_expected_table_error_matches_monte_carlo_over_50_sessions() {
     cfg.rotation_noise = 2e-3;
     let seeds = 50;
     let (mut ls, mut em, mut bound) = ([0.0; 2], [0.0; 2], [0.0; 2]);
-    let mut add = |acc: &mut [f64; 2], e: crate::metrics::TableError| {
+    let add = |acc: &mut [f64; 2], e: crate::metrics::TableError| {
         acc[0] += e.position_m * e.position_m / seeds as f64;
         acc[1] += e.rotation_rad * e.rotation_rad / seeds as f64;
     };

@@ -186,6 +186,9 @@ pub fn print_summary(summary: &SessionSummary) {
     }
     if let Some(o) = &summary.outcome {
         let v = &o.verdict;
+        if let Some(e) = v.expected {
+            println!("expected table error: {e}");
+        }
         println!(
             "held-out mean pose error: nominal {:.4e}, calibrated {:.4e} ({:.1}% better); condition number {:.3e}",
             v.nominal.mean_error,

@@ -116,8 +116,11 @@ pub struct ValidationRules {
     pub max_condition_number: f64,
     /// Fraction (0, 1) of the session, at its end, kept out of the fit.
     pub holdout_fraction: f64,
-    /// Required relative drop (0, 1] of held-out pose error versus the nominal table.
-    pub min_improvement: f64,
+    /// Largest expected table error (1σ, RMS position over the session's poses, mm) a pushed
+    /// table may have, from the drift EM's Cramér-Rao bound.
+    pub max_expected_position_error_mm: f64,
+    /// The same for rotation (mrad).
+    pub max_expected_rotation_error_mrad: f64,
 }
 
 /// Where and how the MCAP log is written.
@@ -317,7 +320,8 @@ struct RawSession {
 struct RawValidation {
     max_condition_number: f64,
     holdout_fraction: f64,
-    min_improvement: f64,
+    max_expected_position_error_mm: f64,
+    max_expected_rotation_error_mrad: f64,
 }
 
 #[derive(Deserialize)]
@@ -706,10 +710,13 @@ impl Checker<'_> {
                 v.holdout_fraction,
                 false,
             )?,
-            min_improvement: self.fraction(
-                "validation.min_improvement",
-                v.min_improvement,
-                true,
+            max_expected_position_error_mm: self.positive(
+                "validation.max_expected_position_error_mm",
+                v.max_expected_position_error_mm,
+            )?,
+            max_expected_rotation_error_mrad: self.positive(
+                "validation.max_expected_rotation_error_mrad",
+                v.max_expected_rotation_error_mrad,
             )?,
         };
         if validation.max_condition_number < 1.0 {
@@ -845,10 +852,12 @@ impl Config {
         );
         let _ = writeln!(
             w,
-            "[validation]\nmax_condition_number = {}\nholdout_fraction = {}\nmin_improvement = {}\n",
+            "[validation]\nmax_condition_number = {}\nholdout_fraction = {}\n\
+             max_expected_position_error_mm = {}\nmax_expected_rotation_error_mrad = {}\n",
             num(v.max_condition_number),
             num(v.holdout_fraction),
-            num(v.min_improvement),
+            num(v.max_expected_position_error_mm),
+            num(v.max_expected_rotation_error_mrad),
         );
         let _ = writeln!(
             w,
@@ -1043,11 +1052,6 @@ mod tests {
                 "holdout_fraction = 1.0",
                 "validation.holdout_fraction",
             ),
-            (
-                "min_improvement = 0.5",
-                "min_improvement = 0.0",
-                "validation.min_improvement",
-            ),
         ] {
             let (k, line, _) = invalid(&edited(from, to));
             assert_eq!(k, key);
@@ -1063,6 +1067,16 @@ mod tests {
         assert_eq!(key, "session.grid_hz");
         let (key, _, _) = invalid(&edited("max_gap_s = 0.05", "max_gap_s = 0.001"));
         assert_eq!(key, "session.max_gap_s");
+        let (key, _, _) = invalid(&edited(
+            "max_expected_position_error_mm = 3.0",
+            "max_expected_position_error_mm = 0.0",
+        ));
+        assert_eq!(key, "validation.max_expected_position_error_mm");
+        let (key, _, _) = invalid(&edited(
+            "max_expected_rotation_error_mrad = 10.0",
+            "max_expected_rotation_error_mrad = inf",
+        ));
+        assert_eq!(key, "validation.max_expected_rotation_error_mrad");
     }
 
     #[test]

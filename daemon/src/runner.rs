@@ -671,10 +671,13 @@ async fn session_body<T: Transport>(
         clock.now(),
         Level::Info,
         &format!(
-            "held-out pose error {:.3e} → {:.3e} ({:.1}% better than nominal), condition number {:.3e}",
+            "expected table error {}; held-out pose error {:.3e} → {:.3e} ({:.1}% better than nominal, paired t {:.1}), condition number {:.3e}",
+            v.expected
+                .map_or_else(|| "unknown".to_string(), |e| e.to_string()),
             v.nominal.mean_error,
             v.candidate.mean_error,
             v.improvement * 100.0,
+            v.heldout_t,
             v.condition_number
         ),
     );
@@ -873,14 +876,16 @@ mod tests {
     async fn a_refused_calibration_pushes_nothing_and_says_why() {
         let dir = temp_dir("refused");
         let mut c = config(&dir);
-        // Nothing can be 100% better than nominal: validation must refuse.
-        c.validation.min_improvement = 1.0;
+        // No minute of motion gives a table to a micrometre: validation must refuse.
+        c.validation.max_expected_position_error_mm = 1e-3;
         let (result, before, after) = session(c, &dir, None).await;
         let err = result.unwrap_err();
         match &err.error {
             DaemonError::Validation(reasons) => {
                 assert!(
-                    reasons.iter().any(|r| r.contains("100.0% required")),
+                    reasons
+                        .iter()
+                        .any(|r| r.contains("mm (1σ) above the 0.001 mm allowed")),
                     "{reasons:?}"
                 );
             }

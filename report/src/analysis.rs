@@ -45,6 +45,7 @@ pub fn calibrate(
             log_likelihood: r.log_likelihood.to_vec(),
             drift: r.drift,
             std_errors: std::array::from_fn(|p| r.std_errors[p / JOINTS][p % JOINTS]),
+            expected_error: r.expected_error,
             drift_series,
         })
         .map_err(|e| e.to_string());

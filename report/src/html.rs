@@ -537,6 +537,18 @@ pub fn render(input: &ReportInput) -> String {
         format!("{:.0} %", 100.0 * (1.0 - pa / pb)),
         "position error removed".into(),
     );
+    if let Ok(em) = &c.em {
+        let e = em.expected_error;
+        card(
+            &mut out,
+            format!(
+                "±{:.2} mm, ±{:.2} mrad",
+                e.position_m * 1e3,
+                e.rotation_rad * 1e3
+            ),
+            "expected table error (1σ, Cramér-Rao bound)".into(),
+        );
+    }
     card(
         &mut out,
         format!("{:.1}", c.ls.condition),

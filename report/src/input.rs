@@ -5,7 +5,7 @@
 //! ([`Quality`]) is filled by whoever read the data (the daemon's ingest and alignment for
 //! frame-level inputs, the CSV reader for sample files).
 
-use calib_core::{DhTable, DriftParams, Sample};
+use calib_core::{DhTable, DriftParams, Sample, TableError};
 
 /// Joints of the suit.
 pub const JOINTS: usize = 7;
@@ -45,6 +45,8 @@ pub struct EmDetail {
     pub drift: [DriftParams; JOINTS],
     /// Cramér-Rao 1σ of every parameter under the drift model, `kind·7 + joint`.
     pub std_errors: [f64; PARAMS],
+    /// Expected table error (1σ) under that bound, over the session's poses.
+    pub expected_error: TableError,
     /// Smoothed drift (rad) per fitted sample.
     pub drift_series: Vec<[f64; JOINTS]>,
 }

@@ -143,6 +143,10 @@ fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
         "title not escaped/rendered"
     );
     assert!(dom.contains("a test reason"));
+    assert!(
+        dom.contains("expected table error (1σ, Cramér-Rao bound)"),
+        "the expected accuracy is not stated"
+    );
     assert!(!dom.contains("class=\"missing\""), "a plot was not drawn");
     for id in FIGURES {
         let fig = figure(&dom, id);

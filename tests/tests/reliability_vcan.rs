@@ -313,6 +313,10 @@ async fn run_row(row: &Row) -> (Vec<String>, String) {
     config.session.max_duration_s = 12.0;
     config.session.min_samples = 300;
     config.session.excitation_required = 0.1;
+    // A 6–12 s window calibrates to ±2–4 mm (1σ): above the shipped 3 mm limit at times. The
+    // matrix tests the transport and the push under faults, so it accepts coarser tables.
+    config.validation.max_expected_position_error_mm = 10.0;
+    config.validation.max_expected_rotation_error_mrad = 30.0;
     config.push.timeout_ms = 200;
     config.push.backoff_initial_ms = 50;
     config.push.backoff_max_ms = 200;
