@@ -32,7 +32,7 @@ use nalgebra::{Cholesky, Const, SMatrix, SVector, Vector6};
 
 use crate::drift::DriftParams;
 use crate::error::CalibError;
-use crate::linalg::QrAccumulator;
+use crate::linalg::{Analysis, QrAccumulator};
 use crate::ls::{positive, validate_samples, InputChecks};
 use crate::metrics::{expected_table_error, TableError};
 use crate::model::{error_jacobian, pose_error, DhTable, Sample};
@@ -541,6 +541,36 @@ pub fn em_drift<const N: usize, const P: usize>(
         std_errors: core::array::from_fn(|k| core::array::from_fn(|j| crb[k * N + j])),
         expected_error,
     })
+}
+
+/// The Cramér-Rao bound of the `4N` geometric parameters at a *known* table, drift and noise
+/// (e.g. the truth of a simulation): the exact Fisher information with the drift trajectory
+/// integrated out (the two-stage filter of [`em_drift`], O(K)), as an [`Analysis`] whose
+/// [`Analysis::variance_along`] / [`Analysis::std_errors`]`(1.0)` give the bound. Per joint the
+/// drift is `φ_j = e^{−Δt/τ_j}` with process variance `q_j`; `r` is the pose-noise variance
+/// per component (m², rad²), floored at `noise_floor` (a noise-free pose keeps a finite bound).
+pub fn cramer_rao<const N: usize, const P: usize>(
+    table: &DhTable<N>,
+    samples: &[Sample<N>],
+    phi: [f64; N],
+    q: [f64; N],
+    r: [f64; 6],
+    noise_floor: f64,
+) -> Result<Analysis<P>, CalibError> {
+    const { assert!(P == 4 * N, "P must be 4N") };
+    let valid = phi.iter().all(|p| (0.0..1.0).contains(p)) && q.iter().all(|v| positive(*v)) && r.iter().all(|v| *v >= 0.0);
+    if !(valid && positive(noise_floor) && table.is_finite()) {
+        return Err(CalibError::InvalidInput {
+            what: "cramer_rao drift or noise",
+        });
+    }
+    let par = Params {
+        phi,
+        q,
+        r: r.map(|v| v.max(noise_floor)),
+    };
+    let (_, acc) = geometry_pass::<N, P>(table, samples, &par)?;
+    Ok(acc.analyse(1e-12))
 }
 
 /// [`em_drift`] with an allocated workspace; returns the result and the smoothed drift.

@@ -18,6 +18,8 @@
 //! | the paper's EM (eqs. 33–36) | [`paper_em()`] |
 //! | our EM (Kalman + RTS smoother over the drift) | [`em_drift()`] |
 //! | objective y (eq. 10) and parameter errors | [`objective_y`], [`ParamErrors`] |
+//! | table error, expected table error, the Cramér-Rao bound | [`table_error`], [`DriftEmResult::expected_error`], [`cramer_rao()`] |
+//! | the accuracy sweep (std) | `sweep` |
 //!
 //! # Quick start
 //! ```
@@ -70,11 +72,13 @@ pub mod rng;
 #[cfg(test)]
 mod scenario_tests;
 pub mod sim;
+#[cfg(any(test, feature = "std"))]
+pub mod sweep;
 
 pub use drift::{Discretisation, DriftParams, GaussMarkov};
 #[cfg(any(test, feature = "std"))]
 pub use drift_em::em_drift_vec;
-pub use drift_em::{em_drift, DriftEmOptions, DriftEmResult, DriftSlot, EXPECTED_ERROR_POSES};
+pub use drift_em::{cramer_rao, em_drift, DriftEmOptions, DriftEmResult, DriftSlot, EXPECTED_ERROR_POSES};
 pub use error::CalibError;
 pub use frames::{identify_ls_frames, LsFramesResult, Mounting, Param, FRAME_PARAMS};
 pub use linalg::{GramAccumulator, Observability, QrAccumulator, QrPanel, GRAM_MAX_CONDITION};
