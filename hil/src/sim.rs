@@ -747,6 +747,11 @@ impl Suit {
             at += f.reorder_max_ms * 1e-3 * r.uniform();
             self.stats.delayed += 1;
         }
+        for stall in &f.bus_stalls {
+            if (stall.from_s..stall.to_s).contains(&t) {
+                at = at.max((t + stall.late_ms * 1e-3).min(stall.to_s));
+            }
+        }
         let dup = f.duplicate > 0.0 && r.uniform() < f.duplicate;
         self.push(at, frame);
         if dup {
@@ -1203,6 +1208,40 @@ mod tests {
         let lost_ratio = st.lost as f64 / (frames.len() as f64 + st.lost as f64);
         assert!((lost_ratio - 0.05).abs() < 0.01, "{lost_ratio}");
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_bus_stall_holds_every_frame_back_then_lets_the_backlog_out() {
+        let key = |frames: &[Frame]| {
+            let mut k: Vec<(u32, Vec<u8>)> = frames
+                .iter()
+                .map(|f| (f.raw_id(), f.data().to_vec()))
+                .collect();
+            k.sort();
+            k
+        };
+        let clean = Suit::new(Scenario::paper(), &temp_dir("stall-clean"))
+            .unwrap()
+            .advance(6.0);
+        let mut s = Scenario::paper();
+        s.faults.bus_stalls.push(crate::scenario::BusStall {
+            from_s: 5.0,
+            to_s: 6.0,
+            late_ms: 300.0,
+        });
+        let dir = temp_dir("stall");
+        let mut suit = Suit::new(s, &dir).unwrap();
+        let mut frames = suit.advance(5.0);
+        // Nothing reaches the bus for 300 ms; by the end of the stall, everything has.
+        assert!(suit.advance(5.299).is_empty());
+        let first_late = suit.advance(5.301);
+        assert!(!first_late.is_empty());
+        frames.extend(first_late);
+        frames.extend(suit.advance(6.0));
+        assert_eq!(key(&frames), key(&clean));
+        for d in [dir, temp_dir("stall-clean")] {
+            let _ = std::fs::remove_dir_all(d);
+        }
     }
 
     #[test]
