@@ -1005,13 +1005,12 @@ mod tests {
         assert_eq!(track_clock(&clean, &AlignParams::default()).jumps(), 0);
     }
 
+    /// Per node: `(node_s, host_rx_s)` points in arrival order, and their true send times.
+    type Session = (Vec<Vec<(f64, f64)>>, Vec<Vec<f64>>);
+
     /// Eight nodes (own skew, offset and phase) sampling every 10 ms from host time 5 s, with
-    /// `late(node, host_send)` added to every receive time; each node's points in arrival
-    /// order, with their true send times.
-    fn session(
-        n: usize,
-        late: impl Fn(usize, f64) -> f64,
-    ) -> (Vec<Vec<(f64, f64)>>, Vec<Vec<f64>>) {
+    /// `late(node, host_send)` added to every receive time.
+    fn session(n: usize, late: impl Fn(usize, f64) -> f64) -> Session {
         let mut rng = Rng(77);
         let mut streams = Vec::new();
         let mut truths = Vec::new();
