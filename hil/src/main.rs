@@ -133,3 +133,35 @@ fn readiness(linger: Linger) -> String {
         Linger::For(_) => "exiting (--linger 0)".into(),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    #[test]
+    fn the_cli_is_consistent_and_linger_takes_finite_non_negative_seconds() {
+        Cli::command().debug_assert();
+        assert_eq!(non_negative("0"), Ok(0.0));
+        assert_eq!(non_negative("2.5"), Ok(2.5));
+        for bad in ["-1", "inf", "NaN", "soon"] {
+            assert!(non_negative(bad).is_err(), "{bad}");
+        }
+        let cli = Cli::try_parse_from(["exocal-hil", "--iface", "vcan0", "--linger", "0"]).unwrap();
+        assert_eq!(cli.linger, Some(0.0));
+        assert!(Cli::try_parse_from(["exocal-hil", "--iface", "vcan0", "--linger=-3"]).is_err());
+    }
+
+    #[test]
+    fn the_readiness_line_says_how_long_the_nodes_answer() {
+        assert_eq!(
+            readiness(Linger::UntilStopped),
+            "nodes answering until SIGTERM"
+        );
+        assert_eq!(
+            readiness(Linger::For(30.0)),
+            "nodes answering for 30 s more (simulated), or until SIGTERM"
+        );
+        assert_eq!(readiness(Linger::For(0.0)), "exiting (--linger 0)");
+    }
+}
