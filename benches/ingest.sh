@@ -83,8 +83,9 @@ load)
         # CPU time spent while the hil plays: after minus before (start-up costs left out).
         dcpu0=$(cpu_s "$dpid" 2>/dev/null || echo nan)
         ccpu0=$(cpu_s "$cpid" 2>/dev/null || echo nan)
-        "$bin/exocal-hil" --iface vcan0 --speed "$speed" --duration "$seconds" --flash-dir "$w/flash" \
-            >"$w/hil.out" 2>"$w/hil.err"
+        # --linger 0: the hil exits when its motion ends (its nodes would answer on otherwise).
+        "$bin/exocal-hil" --iface vcan0 --speed "$speed" --duration "$seconds" --linger 0 \
+            --flash-dir "$w/flash" >"$w/hil.out" 2>"$w/hil.err"
         sleep 1
         dcpu=$(awk -v a="$dcpu0" -v b="$(cpu_s "$dpid" 2>/dev/null || echo nan)" 'BEGIN { printf "%.3f", b - a }')
         drss=$(rss_kb "$dpid" 2>/dev/null || echo nan)
@@ -133,7 +134,8 @@ session)
     spid=$!
     wait_for "$w/daemon.err" 100 "logging to" || echo "ingest.sh: the daemon did not start" >&2
     sleep 0.5
-    # The hil outlives the session: it must answer the table transfers after the window.
+    # The hil outlives the session: after its motion its nodes keep answering (the table
+    # transfers after the window) until the SIGTERM below.
     "$bin/exocal-hil" --iface vcan0 --speed 1 --duration 600 --flash-dir "$w/flash" >"$w/hil.out" 2>"$w/hil.err" &
     hpid=$!
     wait "$spid"

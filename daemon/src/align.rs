@@ -17,6 +17,15 @@
 //!   agreeing), fits each segment, and maps any sample to host time through its segment.
 //!   Isolated outliers stay in their segment (the robust fit ignores them). A segment with too
 //!   few points maps nothing: its samples are excluded, never guessed.
+//! - [`track_clocks`] tracks every node of a session and tells the receiver's stalls from the
+//!   nodes' own discontinuities. A break that every sending node shows within
+//!   [`STALL_WINDOW_S`] of host time, and across which every one of those nodes' counters runs
+//!   on (node time neither steps back nor runs ahead of host time by more than the jump
+//!   threshold), is a [`Stall`] of the receiver (or the bus, or a sender lagging for all
+//!   nodes): frames arrived late, the node clocks did not move. Its segments are joined again
+//!   and fitted on the earliest-arriving of them (receive delays are one-sided), so the late
+//!   samples map through their node's clock and are kept. Anything else (one node rebooting,
+//!   one clock stepping, all nodes power-cycling at once) stays a jump of that node.
 //! - [`resample_scalar`] / [`resample_quat`] evaluate a time-sorted stream on a grid: linear
 //!   interpolation for angles, slerp (shortest arc) for unit quaternions. A grid point is a gap
 //!   (`None`) unless it is bracketed by two samples at most `max_gap` apart (or hits a sample).
@@ -219,6 +228,10 @@ pub struct ClockTrack {
     /// A sample whose receive time disagrees with its segment's fit by more than this (s) has a
     /// timestamp that cannot be trusted (a glitch too short to be a jump): it maps to nothing.
     pub reject_s: f64,
+    /// How late (s) a frame may arrive after its fitted send time and still be used:
+    /// [`LATE_LIMIT_S`], or longer across a receiver stall whose lateness the node's counter
+    /// vouches for.
+    pub late_limit_s: f64,
 }
 
 impl ClockTrack {
@@ -238,14 +251,15 @@ impl ClockTrack {
 
     /// Maps all samples; `None` for those in unfitted segments and for timestamp glitches: a
     /// frame received more than `reject_s` before its fitted send time (impossible) or more than
-    /// `LATE_LIMIT_S` after it (late frames are normal, a second late is not).
+    /// `late_limit_s` after it (late frames are normal, a second late is not, unless a stall
+    /// explains it).
     pub fn map_all(&self, points: &[(f64, f64)]) -> Vec<Option<f64>> {
         points
             .iter()
             .enumerate()
             .map(|(i, p)| {
                 self.to_host(i, p.0)
-                    .filter(|&h| (-self.reject_s..=LATE_LIMIT_S).contains(&(p.1 - h)))
+                    .filter(|&h| (-self.reject_s..=self.late_limit_s).contains(&(p.1 - h)))
             })
             .collect()
     }
@@ -318,6 +332,318 @@ pub fn track_clock(points: &[(f64, f64)], params: &AlignParams) -> ClockTrack {
     ClockTrack {
         segments,
         reject_s: params.jump_threshold_s,
+        late_limit_s: LATE_LIMIT_S,
+    }
+}
+
+/// Host-time window (s) within which every sending node's clock must break for the break to be
+/// the receiver's stall rather than the nodes' own: a few ms, the spread of one burst of late
+/// frames (with samples at 100 Hz, the first late frame of each node arrives within 10 ms).
+pub const STALL_WINDOW_S: f64 = 0.020;
+
+/// Fewest nodes that must break together for a stall: one node alone is that node's jump.
+pub const STALL_MIN_NODES: usize = 2;
+
+/// Samples either side of a break whose median `host − node` gives the break's step (the
+/// samples nearest it: a late step is confirmed by more than these).
+const STEP_WINDOW: usize = 25;
+
+/// A stall of the receiver (or the bus, or of a sender common to all nodes): every sending
+/// node's frames arrived late together, then on time again, while the node clocks ran on.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Stall {
+    /// Host time (s) of the first late frame.
+    pub at_s: f64,
+    /// How late the frames arrived (s): the largest step of `host − node` over the episode.
+    pub late_s: f64,
+}
+
+/// Every node's clock track over a session, and the receiver stalls found among them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SessionClocks {
+    /// One track per stream, in the order given; stalls are not counted as their jumps.
+    pub tracks: Vec<ClockTrack>,
+    /// Stall episodes in host-time order (a late step and the step back on time are one).
+    pub stalls: Vec<Stall>,
+}
+
+impl SessionClocks {
+    /// The longest stall's lateness (s), if any.
+    pub fn longest_stall_s(&self) -> Option<f64> {
+        self.stalls.iter().map(|s| s.late_s).reduce(f64::max)
+    }
+}
+
+/// One break of one stream: `segment` starts at sample `start`, received at `host_s`; the
+/// sample before it was received at `before_s`.
+#[derive(Debug, Clone, Copy)]
+struct Break {
+    stream: usize,
+    segment: usize,
+    start: usize,
+    before_s: f64,
+    host_s: f64,
+}
+
+impl Break {
+    /// Whether the two breaks happened together: their receive intervals (from the sample
+    /// before to the break's first) overlap, give or take [`STALL_WINDOW_S`].
+    fn together(&self, other: &Break) -> bool {
+        self.before_s - STALL_WINDOW_S <= other.host_s
+            && other.before_s - STALL_WINDOW_S <= self.host_s
+    }
+}
+
+/// Median `host − node` of (up to) [`STEP_WINDOW`] finite points of `points[range]`, taken from
+/// its start (`from_end` false) or its end.
+fn level(points: &[(f64, f64)], range: std::ops::Range<usize>, from_end: bool) -> Option<f64> {
+    let d = |p: &(f64, f64)| p.1 - p.0;
+    let mut v: Vec<f64> = if from_end {
+        points[range]
+            .iter()
+            .rev()
+            .map(d)
+            .filter(|x| x.is_finite())
+            .take(STEP_WINDOW)
+            .collect()
+    } else {
+        points[range]
+            .iter()
+            .map(d)
+            .filter(|x| x.is_finite())
+            .take(STEP_WINDOW)
+            .collect()
+    };
+    (!v.is_empty()).then(|| median(&mut v))
+}
+
+/// The step of `host − node` at the start of segment `k ≥ 1` of `track`: between the medians
+/// of the [`STEP_WINDOW`] samples either side of the break.
+fn step_at(points: &[(f64, f64)], track: &ClockTrack, k: usize) -> Option<f64> {
+    let (prev, seg) = (&track.segments[k - 1], &track.segments[k]);
+    let before = level(points, prev.start..prev.end, true)?;
+    let after = level(points, seg.start..seg.end, false)?;
+    Some(after - before)
+}
+
+/// Samples before a break of which one must lead on to it for the counter to run on (a
+/// reordered frame may come between).
+const RUN_ON_NEIGHBOURS: usize = 3;
+
+/// Whether the node's counter runs on across the break at sample `b` (`b ≥ 1`): from one of the
+/// [`RUN_ON_NEIGHBOURS`] samples before it to the break's first, node time does not step back
+/// beyond `tolerance` (s), and advances by no more than host time did plus the time the stream
+/// has been received (frames lost in a stall are at most that late). A reboot restarts the
+/// counter (back, or far forward once unwrapped); late frames only move host time.
+fn counter_runs_on(points: &[(f64, f64)], b: usize, tolerance: f64) -> bool {
+    let at = points[b];
+    let received_s = at.1 - points[0].1;
+    points[b.saturating_sub(RUN_ON_NEIGHBOURS)..b]
+        .iter()
+        .any(|before| {
+            let (dn, dh) = (at.0 - before.0, at.1 - before.1);
+            dn.is_finite()
+                && dh.is_finite()
+                && dn >= -tolerance
+                && dn <= dh + received_s + tolerance
+        })
+}
+
+/// Tracks every stream's clock ([`track_clock`]) and finds the breaks that are receiver stalls:
+/// every sending stream breaks at the same time (at least [`STALL_MIN_NODES`] of them; the
+/// intervals between each break's first sample and the one before overlap, give or take
+/// [`STALL_WINDOW_S`]), each with its counter running on. A stream is sending at a break when
+/// it has samples received more than the window before and after it. Those breaks are undone:
+/// the segments they separated are one again, fitted on the points of the segments that
+/// arrived earliest (within the jump threshold), and the track's late limit covers the
+/// longest stall. A stall episode opens with a step of `host − node` up and ends with the
+/// next step down.
+pub fn track_clocks(streams: &[&[(f64, f64)]], params: &AlignParams) -> SessionClocks {
+    let mut tracks: Vec<ClockTrack> = streams.iter().map(|s| track_clock(s, params)).collect();
+    let spans: Vec<Option<(f64, f64)>> = streams
+        .iter()
+        .map(|s| {
+            let mut hosts = s.iter().map(|p| p.1).filter(|h| h.is_finite());
+            let first = hosts.next()?;
+            Some(hosts.fold((first, first), |(lo, hi), h| (lo.min(h), hi.max(h))))
+        })
+        .collect();
+    let mut breaks: Vec<Break> = tracks
+        .iter()
+        .enumerate()
+        .flat_map(|(i, t)| {
+            t.segments
+                .iter()
+                .enumerate()
+                .skip(1)
+                .map(move |(k, seg)| Break {
+                    stream: i,
+                    segment: k,
+                    start: seg.start,
+                    before_s: streams[i][seg.start - 1].1,
+                    host_s: streams[i][seg.start].1,
+                })
+        })
+        .filter(|b| b.host_s.is_finite() && b.before_s.is_finite())
+        .collect();
+    breaks.sort_by(|a, b| a.host_s.total_cmp(&b.host_s));
+
+    // Clusters of breaks that are stalls: (host time, step of host − node per stream).
+    let mut used = vec![false; breaks.len()];
+    let mut stall_breaks: Vec<Vec<Break>> = Vec::new();
+    let mut steps: Vec<(f64, f64)> = Vec::new();
+    for first in 0..breaks.len() {
+        if used[first] {
+            continue;
+        }
+        let reference = breaks[first];
+        let h = reference.host_s;
+        let sending: Vec<usize> = (0..streams.len())
+            .filter(|&j| {
+                spans[j].is_some_and(|(lo, hi)| {
+                    lo < reference.before_s - STALL_WINDOW_S && hi > h + STALL_WINDOW_S
+                })
+            })
+            .collect();
+        if sending.len() < STALL_MIN_NODES {
+            continue;
+        }
+        // For each sending stream, its first unused break at the same time.
+        let members: Option<Vec<usize>> = sending
+            .iter()
+            .map(|&j| {
+                (0..breaks.len())
+                    .find(|&k| !used[k] && breaks[k].stream == j && breaks[k].together(&reference))
+            })
+            .collect();
+        let Some(members) = members else { continue };
+        let runs_on = members.iter().all(|&k| {
+            let b = breaks[k];
+            counter_runs_on(streams[b.stream], b.start, params.jump_threshold_s)
+        });
+        if !runs_on {
+            continue;
+        }
+        let mut node_steps: Vec<f64> = members
+            .iter()
+            .filter_map(|&k| {
+                let b = breaks[k];
+                step_at(streams[b.stream], &tracks[b.stream], b.segment)
+            })
+            .collect();
+        if node_steps.is_empty() {
+            continue;
+        }
+        for &k in &members {
+            used[k] = true;
+        }
+        steps.push((h, median(&mut node_steps)));
+        stall_breaks.push(members.iter().map(|&k| breaks[k]).collect());
+    }
+
+    // Episodes: steps up (later still, while one is open) until a step down; a step down with
+    // no episode open ends a stall that began before the session.
+    let mut stalls: Vec<Stall> = Vec::new();
+    let mut lateness: Option<f64> = None;
+    for &(h, step) in &steps {
+        match (lateness, stalls.last_mut()) {
+            (Some(late), Some(last)) if step > 0.0 => {
+                last.late_s = last.late_s.max(late + step);
+                lateness = Some(late + step);
+            }
+            (Some(_), Some(_)) => lateness = None,
+            _ => {
+                stalls.push(Stall {
+                    at_s: h,
+                    late_s: step.abs(),
+                });
+                lateness = (step > 0.0).then_some(step);
+            }
+        }
+    }
+    let late_limit_s = stalls
+        .iter()
+        .map(|s| s.late_s + params.jump_threshold_s)
+        .fold(LATE_LIMIT_S, f64::max);
+
+    // Undo the stall breaks, stream by stream.
+    for (i, track) in tracks.iter_mut().enumerate() {
+        let mut joined_at: Vec<usize> = stall_breaks
+            .iter()
+            .flatten()
+            .filter(|b| b.stream == i)
+            .map(|b| b.segment)
+            .collect();
+        if joined_at.is_empty() {
+            continue;
+        }
+        joined_at.sort_unstable();
+        *track = join_segments(streams[i], track, &joined_at, params);
+        track.late_limit_s = late_limit_s;
+    }
+    SessionClocks { tracks, stalls }
+}
+
+/// `track` with the breaks before the segments numbered in `joined_at` (sorted, ≥ 1) undone:
+/// each run of joined segments is one, fitted on the points of those of its segments whose
+/// median `host − node` is within the jump threshold of the lowest (the others arrived late).
+fn join_segments(
+    points: &[(f64, f64)],
+    track: &ClockTrack,
+    joined_at: &[usize],
+    params: &AlignParams,
+) -> ClockTrack {
+    let mut groups: Vec<Vec<usize>> = Vec::new();
+    for k in 0..track.segments.len() {
+        match groups.last_mut() {
+            Some(g) if joined_at.binary_search(&k).is_ok() => g.push(k),
+            _ => groups.push(vec![k]),
+        }
+    }
+    let segments = groups
+        .iter()
+        .map(|g| {
+            if g.len() == 1 {
+                return track.segments[g[0]].clone();
+            }
+            let (start, end) = (
+                track.segments[g[0]].start,
+                track.segments[g[g.len() - 1]].end,
+            );
+            let levels: Vec<(usize, f64)> = g
+                .iter()
+                .filter_map(|&k| {
+                    let s = &track.segments[k];
+                    let mut d: Vec<f64> = points[s.start..s.end]
+                        .iter()
+                        .map(|p| p.1 - p.0)
+                        .filter(|d| d.is_finite())
+                        .collect();
+                    (!d.is_empty()).then(|| (k, median(&mut d)))
+                })
+                .collect();
+            let fit = levels.iter().map(|l| l.1).reduce(f64::min).and_then(|low| {
+                let on_time: Vec<(f64, f64)> = levels
+                    .iter()
+                    .filter(|l| l.1 - low <= params.jump_threshold_s)
+                    .flat_map(|&(k, _)| {
+                        let s = &track.segments[k];
+                        points[s.start..s.end].iter().copied()
+                    })
+                    .collect();
+                if on_time.len() >= params.min_segment_points {
+                    fit_clock(&on_time, params)
+                } else {
+                    None
+                }
+            });
+            ClockSegment { start, end, fit }
+        })
+        .collect();
+    ClockTrack {
+        segments,
+        reject_s: track.reject_s,
+        late_limit_s: track.late_limit_s,
     }
 }
 
@@ -443,6 +769,9 @@ pub struct Aligned {
     pub grid_points: usize,
     /// Of those, points excluded because some stream had a gap there.
     pub gaps: usize,
+    /// Receiver stalls found while mapping the streams to host time ([`track_clocks`]; empty
+    /// from [`align`] itself, which gets host times).
+    pub stalls: Vec<Stall>,
 }
 
 /// Resamples the joint streams and the pose stream (host time, sorted) onto one grid at `hz`
@@ -464,6 +793,7 @@ pub fn align(
             samples: Vec::new(),
             grid_points: 0,
             gaps: 0,
+            stalls: Vec::new(),
         };
     };
     let start = spans.iter().map(|s| s.0).fold(f64::NEG_INFINITY, f64::max);
@@ -496,6 +826,7 @@ pub fn align(
         grid_points: g.len(),
         gaps: g.len() - samples.len(),
         samples,
+        stalls: Vec::new(),
     }
 }
 
@@ -672,6 +1003,155 @@ mod tests {
 
         let (clean, _) = synth(22, 4000, 0.01, 90e-6, 50.0, 300e-6, 0.05);
         assert_eq!(track_clock(&clean, &AlignParams::default()).jumps(), 0);
+    }
+
+    /// Per node: `(node_s, host_rx_s)` points in arrival order, and their true send times.
+    type Session = (Vec<Vec<(f64, f64)>>, Vec<Vec<f64>>);
+
+    /// Eight nodes (own skew, offset and phase) sampling every 10 ms from host time 5 s, with
+    /// `late(node, host_send)` added to every receive time.
+    fn session(n: usize, late: impl Fn(usize, f64) -> f64) -> Session {
+        let mut rng = Rng(77);
+        let mut streams = Vec::new();
+        let mut truths = Vec::new();
+        for node in 0..8 {
+            let skew = (node as f64 - 3.5) * 40e-6;
+            let offset = 100.0 + 517.0 * node as f64;
+            // A FIFO receive path: a frame is never received before the one sent ahead of it.
+            let mut last_rx = f64::NEG_INFINITY;
+            let s: Vec<(f64, f64, f64)> = (0..n)
+                .map(|k| {
+                    let send = 5.0 + k as f64 * 0.01 + node as f64 * 1.1e-3;
+                    let rx = send + 200e-6 + rng.exp(200e-6) + late(node, send);
+                    last_rx = last_rx.max(rx);
+                    (offset + send / (1.0 + skew), last_rx, send)
+                })
+                .collect();
+            streams.push(s.iter().map(|p| (p.0, p.1)).collect());
+            truths.push(s.iter().map(|p| p.2).collect());
+        }
+        (streams, truths)
+    }
+
+    /// A sender lagging `lag` s for every node from host time `from` and catching up in one
+    /// burst at `to`: frames are `lag` late, then received together at `to`, then on time.
+    fn lagging(from: f64, to: f64, lag: f64) -> impl Fn(f64) -> f64 {
+        move |send| {
+            if send < from || send >= to {
+                0.0
+            } else if send < to - lag {
+                lag
+            } else {
+                to - send
+            }
+        }
+    }
+
+    fn refs(streams: &[Vec<(f64, f64)>]) -> Vec<&[(f64, f64)]> {
+        streams.iter().map(Vec::as_slice).collect()
+    }
+
+    #[test]
+    fn every_node_late_together_is_one_stall_and_every_sample_is_kept_on_its_node_clock() {
+        let lag = lagging(20.0, 23.0, 0.3);
+        let (streams, truths) = session(4000, |_, t| lag(t));
+        let p = AlignParams::default();
+        // Node by node, the lag is two jumps (late, then back on time): the old reading.
+        for s in &streams {
+            assert_eq!(track_clock(s, &p).jumps(), 2);
+        }
+        let clocks = track_clocks(&refs(&streams), &p);
+        assert_eq!(clocks.stalls.len(), 1, "{:?}", clocks.stalls);
+        let stall = clocks.stalls[0];
+        // Its first late frame arrived 0.3 s after the lag began.
+        assert!((stall.at_s - 20.3).abs() < 0.02, "{stall:?}");
+        assert!((stall.late_s - 0.3).abs() < 0.02, "{stall:?}");
+        assert_eq!(clocks.longest_stall_s(), Some(stall.late_s));
+        for ((track, s), truth) in clocks.tracks.iter().zip(&streams).zip(&truths) {
+            assert_eq!(track.jumps(), 0, "{:?}", track.segments);
+            for (k, (m, t)) in track.map_all(s).iter().zip(truth).enumerate() {
+                let e = m.map(|m| m - t);
+                assert!(
+                    e.is_some_and(|e| e > 0.0 && e < 1.5e-3),
+                    "sample {k}: {e:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_stall_longer_than_the_late_limit_keeps_its_samples_too() {
+        let lag = lagging(20.0, 26.0, 2.5);
+        let (streams, _) = session(4000, |_, t| lag(t));
+        let clocks = track_clocks(&refs(&streams), &AlignParams::default());
+        assert_eq!(clocks.stalls.len(), 1, "{:?}", clocks.stalls);
+        assert!(
+            (clocks.stalls[0].late_s - 2.5).abs() < 0.02,
+            "{:?}",
+            clocks.stalls
+        );
+        for (track, s) in clocks.tracks.iter().zip(&streams) {
+            assert_eq!(track.jumps(), 0);
+            assert!(track.map_all(s).iter().all(Option::is_some));
+        }
+    }
+
+    /// Node `node`'s clock restarts from (about) zero at host time `at`, after `down` s silent.
+    fn reboot(streams: &mut [Vec<(f64, f64)>], node: usize, at: f64, down: f64) {
+        let s = &mut streams[node];
+        let restart = s.iter().find(|p| p.1 >= at + down).map(|p| p.0);
+        let first_after = restart.expect("samples after the reboot");
+        s.retain(|p| p.1 < at || p.1 >= at + down);
+        for p in s.iter_mut().filter(|p| p.1 >= at + down) {
+            p.0 -= first_after - 0.0005;
+        }
+    }
+
+    #[test]
+    fn one_node_rebooting_is_that_nodes_jump_stall_or_not() {
+        let p = AlignParams::default();
+        for stalled in [false, true] {
+            let lag = lagging(12.0, 14.0, 0.3);
+            let (mut streams, _) = session(4000, |_, t| if stalled { lag(t) } else { 0.0 });
+            reboot(&mut streams, 2, 30.0, 0.5);
+            let clocks = track_clocks(&refs(&streams), &p);
+            assert_eq!(
+                clocks.stalls.len(),
+                usize::from(stalled),
+                "{:?}",
+                clocks.stalls
+            );
+            for (node, track) in clocks.tracks.iter().enumerate() {
+                let segments = &track.segments;
+                assert_eq!(
+                    track.jumps(),
+                    usize::from(node == 2),
+                    "node {node}: {segments:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn every_node_rebooting_at_once_is_no_stall() {
+        let (mut streams, _) = session(4000, |_, _| 0.0);
+        for node in 0..8 {
+            reboot(&mut streams, node, 30.0, 0.5);
+        }
+        let clocks = track_clocks(&refs(&streams), &AlignParams::default());
+        assert!(clocks.stalls.is_empty(), "{:?}", clocks.stalls);
+        assert!(clocks.tracks.iter().all(|t| t.jumps() == 1));
+    }
+
+    #[test]
+    fn a_lag_that_spares_one_sending_node_is_no_stall() {
+        let lag = lagging(20.0, 23.0, 0.3);
+        let (streams, _) = session(4000, |node, t| if node == 5 { 0.0 } else { lag(t) });
+        let clocks = track_clocks(&refs(&streams), &AlignParams::default());
+        assert!(clocks.stalls.is_empty(), "{:?}", clocks.stalls);
+        for (node, track) in clocks.tracks.iter().enumerate() {
+            assert_eq!(track.jumps(), if node == 5 { 0 } else { 2 }, "node {node}");
+        }
     }
 
     #[test]

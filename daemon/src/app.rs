@@ -174,6 +174,9 @@ pub fn print_summary(summary: &SessionSummary) {
         "aligned samples: {} ({} grid points excluded as gaps)",
         summary.aligned_samples, summary.gaps
     );
+    if summary.stalls.count > 0 {
+        println!("clocks: {}", summary.stalls);
+    }
     for c in &summary.clocks {
         println!(
             "clock {}: skew {} ppm, {} jump(s), {} samples excluded",

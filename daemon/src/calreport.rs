@@ -21,7 +21,7 @@ use exocal_report::{
 use crate::align::AlignedSample;
 use crate::calibrate::{to_sample, Outcome};
 use crate::config::Config;
-use crate::ingest::{ClockReport, FrameStats};
+use crate::ingest::{ClockReport, FrameStats, StallReport};
 use crate::validate::{split_holdout, table_from_rows};
 
 /// The report next to a session log: same folder and stem, extension `html`.
@@ -85,6 +85,7 @@ pub fn frame_quality(
     config: &Config,
     stats: &FrameStats,
     clocks: &[ClockReport],
+    stalls: StallReport,
     rates: &[(Option<f64>, Option<f64>)],
     samples: &[AlignedSample],
     gaps: usize,
@@ -123,6 +124,8 @@ pub fn frame_quality(
         streams,
         joint_ranges: ranges(config),
         excitation_required: Some(config.session.excitation_required),
+        receiver_stalls: stalls.count,
+        longest_stall_ms: stalls.longest_ms,
     }
 }
 
@@ -152,6 +155,8 @@ pub fn sample_quality(config: &Config, samples: &[AlignedSample]) -> Quality {
         }],
         joint_ranges: ranges(config),
         excitation_required: Some(config.session.excitation_required),
+        receiver_stalls: 0,
+        longest_stall_ms: None,
     }
 }
 

@@ -14,8 +14,10 @@
 //!   whole µs ([`whole_micros`]), in seconds since the first frame of the session
 //!   ([`Ingest::origin`]); node time is the node's µs
 //!   counter, unwrapped across its 2^32 rollover.
-//! - [`Ingest::align`] fits each node's clock ([`crate::align::track_clock`]), maps every
-//!   sample to host time and resamples all streams onto one grid ([`crate::align::align`]).
+//! - [`Ingest::align`] fits every node's clock ([`crate::align::track_clocks`]: a break every
+//!   node shows at once is a receiver stall, reported once in [`StallReport`] and not as a
+//!   jump of each node; a node's own reboot or clock step is its jump), maps every sample to
+//!   host time and resamples all streams onto one grid ([`crate::align::align`]).
 
 use std::time::Duration;
 
@@ -25,7 +27,7 @@ use exocal_dbc::pose::PoseAssembler;
 use exocal_dbc::{DecodeError, Message, NodeId};
 use serde::Serialize;
 
-use crate::align::{self, AlignParams, Aligned, Pose, Unwrapper};
+use crate::align::{self, AlignParams, Aligned, Pose, Stall, Unwrapper};
 use crate::config::JOINTS;
 
 /// Node clocks are 32-bit microsecond counters.
@@ -135,9 +137,8 @@ impl<T> Stream<T> {
 }
 
 impl<T: Copy> Stream<T> {
-    /// Samples mapped to host time, sorted; plus the clock track.
-    fn mapped(&self, params: &AlignParams) -> (Vec<(f64, T)>, align::ClockTrack) {
-        let track = align::track_clock(&self.clock, params);
+    /// Samples mapped to host time through `track` (this stream's), sorted.
+    fn mapped(&self, track: &align::ClockTrack) -> Vec<(f64, T)> {
         let mut out: Vec<(f64, T)> = track
             .map_all(&self.clock)
             .into_iter()
@@ -145,7 +146,39 @@ impl<T: Copy> Stream<T> {
             .filter_map(|(t, v)| t.map(|t| (t, *v)))
             .collect();
         align::sort_stream(&mut out);
-        (out, track)
+        out
+    }
+}
+
+/// The receiver's stalls over a session: breaks every node's clock showed together, which
+/// are not counted as any node's jump ([`crate::align::track_clocks`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct StallReport {
+    /// Stall episodes.
+    pub count: usize,
+    /// Lateness of the longest (ms), if any.
+    pub longest_ms: Option<f64>,
+}
+
+impl StallReport {
+    /// The report of `stalls`.
+    pub fn of(stalls: &[Stall]) -> StallReport {
+        StallReport {
+            count: stalls.len(),
+            longest_ms: stalls.iter().map(|s| s.late_s * 1e3).reduce(f64::max),
+        }
+    }
+}
+
+impl std::fmt::Display for StallReport {
+    /// `receiver stalled N times (longest X ms)`.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let times = if self.count == 1 { "time" } else { "times" };
+        write!(f, "receiver stalled {} {times}", self.count)?;
+        if let Some(ms) = self.longest_ms {
+            write!(f, " (longest {ms:.0} ms)")?;
+        }
+        Ok(())
     }
 }
 
@@ -157,7 +190,7 @@ pub struct ClockReport {
     pub samples: usize,
     /// Samples in segments too short to fit (excluded).
     pub unmapped: usize,
-    /// Reboots or clock jumps detected.
+    /// The node's own reboots or clock jumps detected (a receiver stall is none of these).
     pub jumps: usize,
     /// Skew of the longest segment (ppm).
     pub skew_ppm: Option<f64>,
@@ -381,39 +414,46 @@ impl Ingest {
             .collect()
     }
 
-    /// Fits the clocks and resamples everything onto one grid at `hz` (host s since origin).
+    /// Fits the clocks and resamples everything onto one grid at `hz` (host s since origin);
+    /// the receiver stalls found are in [`Aligned::stalls`].
     pub fn align(
         &self,
         params: &AlignParams,
         hz: f64,
         max_gap: f64,
     ) -> (Aligned, Vec<ClockReport>) {
+        let clocks: Vec<&[(f64, f64)]> = self
+            .joints
+            .iter()
+            .map(|s| s.clock.as_slice())
+            .chain(std::iter::once(self.pose.clock.as_slice()))
+            .collect();
+        let session = align::track_clocks(&clocks, params);
         let mut reports = Vec::with_capacity(JOINTS + 1);
         let mut joints: [Vec<(f64, f64)>; JOINTS] = Default::default();
         for (i, (stream, out)) in self.joints.iter().zip(joints.iter_mut()).enumerate() {
-            let (mapped, track) = stream.mapped(params);
+            let track = &session.tracks[i];
+            let mapped = stream.mapped(track);
             let node = self
                 .joint_of_node
                 .iter()
                 .position(|&j| j == Some(i))
                 .and_then(|id| NodeId::new(id as u8))
                 .unwrap_or(NodeId::JOINTS[i]);
-            reports.push(clock_report(
-                node,
-                stream.values.len(),
-                mapped.len(),
-                &track,
-            ));
+            reports.push(clock_report(node, stream.values.len(), mapped.len(), track));
             *out = mapped;
         }
-        let (poses, track) = self.pose.mapped(params);
+        let track = &session.tracks[JOINTS];
+        let poses = self.pose.mapped(track);
         reports.push(clock_report(
             NodeId::END_EFFECTOR,
             self.pose.values.len(),
             poses.len(),
-            &track,
+            track,
         ));
-        (align::align(&joints, &poses, hz, max_gap), reports)
+        let mut aligned = align::align(&joints, &poses, hz, max_gap);
+        aligned.stalls = session.stalls;
+        (aligned, reports)
     }
 }
 
@@ -582,6 +622,89 @@ mod tests {
                     s.t
                 );
             }
+        }
+    }
+
+    /// Seven joints and the end-effector at 100 Hz for 30 s through [`Ingest`], each node with
+    /// its own clock offset and skew; `late(t)` is added to the receive time of every frame sent
+    /// at `t`; node `reboot`, if any, goes silent at 15 s and restarts its clock 0.5 s later.
+    fn ingest_session(late: impl Fn(f64) -> f64, reboot: Option<usize>) -> Ingest {
+        let mut ing = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
+        let node_us = |node: usize, t: f64| {
+            let us = if reboot == Some(node) && t >= 15.5 {
+                (t - 15.5) * 1e6 + 500.0
+            } else {
+                node as f64 * 7_654_321.0 + t * (1.0 + (node as f64 - 4.0) * 30e-6) * 1e6
+            };
+            (us.round() as u64 % (1 << 32)) as u32
+        };
+        let mut frames: Vec<(f64, Frame)> = Vec::new();
+        for k in 0..3000 {
+            for node in 1..=8usize {
+                let t = k as f64 * 0.01 + node as f64 * 1e-4;
+                if reboot == Some(node) && (15.0..15.5).contains(&t) {
+                    continue;
+                }
+                let rx = t + 3e-4 + late(t);
+                if node <= JOINTS {
+                    let f = joint_frame(node as u8, node_us(node, t), (0.3 * t).sin());
+                    frames.push((rx, f));
+                } else {
+                    let p = DbcPose {
+                        seq: (k % 64) as u8,
+                        timestamp_us: node_us(node, t),
+                        position: [0.1, 0.2, 0.3],
+                        quat: [1.0, 0.0, 0.0, 0.0],
+                    };
+                    for page in p.pages() {
+                        let f: Frame = Message::EePose(page).to_frame().unwrap();
+                        frames.push((rx, f));
+                    }
+                }
+            }
+        }
+        // One FIFO receive path: arrival order is send order (a stable sort by receive time).
+        frames.sort_by(|a, b| a.0.total_cmp(&b.0));
+        for (t, f) in &frames {
+            ing.on_frame(&rx(*f, *t));
+        }
+        ing
+    }
+
+    #[test]
+    fn a_receiver_stall_is_reported_once_and_its_samples_kept() {
+        // Every frame sent from 10 s on arrives 400 ms late, until the backlog goes out at 13 s.
+        let late = |t: f64| match t {
+            t if (10.0..12.6).contains(&t) => 0.4,
+            t if (12.6..13.0).contains(&t) => 13.0 - t,
+            _ => 0.0,
+        };
+        let ing = ingest_session(late, None);
+        let (aligned, reports) = ing.align(&AlignParams::default(), 100.0, 0.05);
+        let stalls = StallReport::of(&aligned.stalls);
+        assert_eq!(stalls.count, 1, "{:?}", aligned.stalls);
+        assert!(stalls
+            .longest_ms
+            .is_some_and(|ms| (ms - 400.0).abs() < 20.0));
+        assert!(
+            stalls
+                .to_string()
+                .starts_with("receiver stalled 1 time (longest "),
+            "{stalls}"
+        );
+        for r in &reports {
+            assert_eq!((r.jumps, r.unmapped), (0, 0), "{r:?}");
+        }
+        assert_eq!(aligned.gaps, 0);
+    }
+
+    #[test]
+    fn one_node_rebooting_is_its_own_jump_not_a_stall() {
+        let ing = ingest_session(|_| 0.0, Some(3));
+        let (aligned, reports) = ing.align(&AlignParams::default(), 100.0, 0.05);
+        assert!(aligned.stalls.is_empty(), "{:?}", aligned.stalls);
+        for r in &reports {
+            assert_eq!(r.jumps, usize::from(r.node == "Joint3"), "{r:?}");
         }
     }
 }

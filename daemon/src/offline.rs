@@ -41,7 +41,7 @@ use crate::align::{AlignedSample, Pose};
 use crate::calibrate::{self, Outcome};
 use crate::config::Config;
 use crate::exit::DaemonError;
-use crate::ingest::{ClockReport, Event, FrameStats, Ingest};
+use crate::ingest::{ClockReport, Event, FrameStats, Ingest, StallReport};
 use crate::runner::{SessionError, SessionSummary};
 use crate::session::{Phase, Session};
 
@@ -175,6 +175,8 @@ pub const DURATION_SLACK_S: f64 = 1.0;
 pub struct Replay {
     pub frames: FrameStats,
     pub clocks: Vec<ClockReport>,
+    /// Receiver stalls (not counted in any node's clock jumps).
+    pub stalls: StallReport,
     /// The samples the calibration runs on (aligned, or the CSV's).
     pub samples: Vec<AlignedSample>,
     pub gaps: usize,
@@ -193,6 +195,8 @@ pub struct Replay {
 pub struct Recalibration {
     pub frames: FrameStats,
     pub clocks: Vec<ClockReport>,
+    /// Receiver stalls (not counted in any node's clock jumps).
+    pub stalls: StallReport,
     /// The samples the calibration ran on (aligned, or the CSV's).
     pub samples: Vec<AlignedSample>,
     pub gaps: usize,
@@ -263,10 +267,12 @@ pub fn replay(input: &Input, config: &Config) -> Result<Replay, DaemonError> {
                 _ => 0.0,
             };
             let (aligned, clocks) = crate::runner::align_session(&ingest, &config);
+            let stalls = StallReport::of(&aligned.stalls);
             let quality = crate::calreport::frame_quality(
                 &config,
                 ingest.stats(),
                 &clocks,
+                stalls,
                 &ingest.stream_rates(),
                 &aligned.samples,
                 aligned.gaps,
@@ -274,6 +280,7 @@ pub fn replay(input: &Input, config: &Config) -> Result<Replay, DaemonError> {
             Ok(Replay {
                 frames: ingest.stats().clone(),
                 clocks,
+                stalls,
                 samples: aligned.samples,
                 gaps: aligned.gaps,
                 shortfalls: shortfalls(&session, &config, duration_s),
@@ -308,6 +315,7 @@ pub fn replay(input: &Input, config: &Config) -> Result<Replay, DaemonError> {
             Ok(Replay {
                 frames: FrameStats::default(),
                 clocks: Vec::new(),
+                stalls: StallReport::default(),
                 samples,
                 gaps: 0,
                 shortfalls: shortfalls(&session, &config, duration_s),
@@ -334,6 +342,7 @@ fn calibrate_replay(r: Replay) -> Result<Recalibration, DaemonError> {
     Ok(Recalibration {
         frames: r.frames,
         clocks: r.clocks,
+        stalls: r.stalls,
         samples: r.samples,
         gaps: r.gaps,
         config: r.config,
@@ -420,6 +429,7 @@ pub fn run(
         log_counts: Vec::new(),
         frames: r.frames.clone(),
         clocks: r.clocks.clone(),
+        stalls: r.stalls,
         aligned_samples: r.samples.len(),
         gaps: r.gaps,
         outcome: None,
@@ -499,6 +509,7 @@ pub fn run(
         log_counts: Vec::new(),
         frames: r.frames,
         clocks: r.clocks,
+        stalls: r.stalls,
         aligned_samples: r.samples.len(),
         gaps: r.gaps,
         outcome: Some(r.outcome),

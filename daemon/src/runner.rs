@@ -30,7 +30,7 @@ use crate::align::{AlignParams, Aligned};
 use crate::calibrate::{self, Outcome};
 use crate::config::{Config, JOINTS};
 use crate::exit::DaemonError;
-use crate::ingest::{ClockReport, Event, FrameStats, Ingest};
+use crate::ingest::{ClockReport, Event, FrameStats, Ingest, StallReport};
 use crate::mcaplog::{
     CanFrameRecord, CollectionEnd, Counts, Level, LogError, SessionLog, Transform,
 };
@@ -95,6 +95,8 @@ pub struct SessionSummary {
     /// counts them.
     pub frames: FrameStats,
     pub clocks: Vec<ClockReport>,
+    /// Receiver stalls (not counted in any node's clock jumps).
+    pub stalls: StallReport,
     pub aligned_samples: usize,
     pub gaps: usize,
     pub outcome: Option<Outcome>,
@@ -248,6 +250,7 @@ fn session_report(
         config,
         ingest.stats(),
         &clocks,
+        StallReport::of(&aligned.stalls),
         &ingest.stream_rates(),
         &aligned.samples,
         aligned.gaps,
@@ -364,6 +367,7 @@ pub async fn run_session<T: Transport>(
         log_counts: Vec::new(),
         frames: FrameStats::default(),
         clocks: Vec::new(),
+        stalls: StallReport::default(),
         aligned_samples: 0,
         gaps: 0,
         outcome: None,
@@ -519,8 +523,17 @@ async fn session_body<T: Transport>(
     // 2. Align.
     let (aligned, clocks) = align_session(&ingest, config);
     summary.clocks = clocks;
+    summary.stalls = StallReport::of(&aligned.stalls);
     summary.aligned_samples = aligned.samples.len();
     summary.gaps = aligned.gaps;
+    if summary.stalls.count > 0 {
+        let line = format!(
+            "{}: every node's frames arrived late together while their clocks ran on; their \
+             samples are kept on the nodes' clocks (not clock jumps)",
+            summary.stalls
+        );
+        io.event(clock.now(), Level::Warning, &line);
+    }
     for c in &summary.clocks {
         if c.residual_rms_us
             .is_some_and(|r| r > CLOCK_RESIDUAL_WARN_US)
@@ -567,6 +580,7 @@ async fn session_body<T: Transport>(
         config,
         ingest.stats(),
         &summary.clocks,
+        summary.stalls,
         &ingest.stream_rates(),
         &aligned.samples,
         aligned.gaps,
@@ -776,9 +790,22 @@ mod tests {
         Vec<Option<u32>>,
         Vec<Option<u32>>,
     ) {
+        session_on(config, dir, stop_after_s, Scenario::paper()).await
+    }
+
+    /// [`session`] against the hil playing `scenario` (for 400 s at most).
+    async fn session_on(
+        config: Config,
+        dir: &std::path::Path,
+        stop_after_s: Option<f64>,
+        mut scenario: Scenario,
+    ) -> (
+        Result<SessionSummary, SessionError>,
+        Vec<Option<u32>>,
+        Vec<Option<u32>>,
+    ) {
         let flash = dir.join("flash");
         std::fs::create_dir_all(&flash).unwrap();
-        let mut scenario = Scenario::paper();
         scenario.duration_s = 400.0;
         let mut hil = Hil::new(scenario, &flash).unwrap();
         let crcs = |flash: &std::path::Path| -> Vec<Option<u32>> {
@@ -935,6 +962,48 @@ mod tests {
             summary.aligned_samples
         );
         assert!(html.contains(&format!("<td>{}</td>", summary.aligned_samples)));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_bus_stall_is_a_receiver_stall_and_a_reboot_is_that_nodes_jump() {
+        use exocal_hil::scenario::{BusStall, Reboot};
+        let dir = temp_dir("stall");
+        let mut c = config(&dir);
+        // Refused (nothing is 100% better): the alignment is what this test is about.
+        c.validation.min_improvement = 1.0;
+        let mut scenario = Scenario::paper();
+        // Every node's frames 400 ms late for 3 s, then Joint4 reboots.
+        scenario.faults.bus_stalls.push(BusStall {
+            from_s: 5.0,
+            to_s: 8.0,
+            late_ms: 400.0,
+        });
+        scenario.faults.reboots.push(Reboot {
+            node: 4,
+            at_s: 11.0,
+            down_s: 0.5,
+        });
+        let (result, _, _) = session_on(c, &dir, None, scenario).await;
+        let summary = match result {
+            Ok(s) => s,
+            Err(e) => e.summary.expect("a summary"),
+        };
+        // A loaded machine may stall the in-process bus too: those are stalls as well.
+        assert!(summary.stalls.count >= 1, "{:?}", summary.stalls);
+        // Receive stamps carry the emulator's ~1 ms real (20 ms simulated) send jitter.
+        assert!(
+            summary
+                .stalls
+                .longest_ms
+                .is_some_and(|ms| (300.0..500.0).contains(&ms)),
+            "{:?}",
+            summary.stalls
+        );
+        for c in &summary.clocks {
+            let want = usize::from(c.node == "Joint4");
+            assert_eq!(c.jumps, want, "{c:?}");
+        }
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

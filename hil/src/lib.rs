@@ -21,6 +21,12 @@
 //! println!("{report}");
 //! # Ok(()) }
 //! ```
+//!
+//! The scenario's `duration_s` bounds the *motion*, not the nodes' lives: [`Hil::run`] returns
+//! when the motion ends, and [`Hil::linger`] then keeps the nodes answering (heartbeats, table
+//! transfers and their readback; no more samples) for a given simulated time or until a stop
+//! future resolves — as a real suit at rest whose nodes stay powered. [`Hil::play`] is `run`
+//! with a stop future.
 
 pub mod capture;
 pub mod flash;
@@ -33,6 +39,7 @@ pub use sim::{Kind, Stats, Suit};
 
 use exocal_bus::{BusError, SimClock, Transport};
 use exocal_dbc::NodeId;
+use std::future::Future;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
@@ -65,8 +72,10 @@ impl std::error::Error for HilError {}
 /// What a run did.
 #[derive(Clone, Debug)]
 pub struct RunReport {
-    /// Simulated seconds played.
+    /// Simulated seconds played, the motion and any lingering after it.
     pub simulated_s: f64,
+    /// Simulated seconds of motion (at most the scenario's `duration_s`).
+    pub motion_s: f64,
     /// Wall-clock time taken.
     pub wall: Duration,
     /// Frames received from the bus.
@@ -92,6 +101,14 @@ impl std::fmt::Display for RunReport {
             self.received,
             self.rx_dropped,
         )?;
+        if self.simulated_s > self.motion_s {
+            writeln!(
+                f,
+                "motion {:.3} s, then the nodes answered for {:.3} s",
+                self.motion_s,
+                self.simulated_s - self.motion_s
+            )?;
+        }
         writeln!(
             f,
             "faults: lost {}, duplicated {}, delayed {}, malformed {}, babbled {}, NaN {}, reboots {}; \
@@ -115,9 +132,31 @@ impl std::fmt::Display for RunReport {
     }
 }
 
+/// How long the nodes keep answering once the motion has ended ([`Hil::linger`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Linger {
+    /// Until the stop future resolves.
+    UntilStopped,
+    /// For this many simulated seconds after the end of the motion (or until stopped first).
+    For(f64),
+}
+
+/// How a phase of the emulation ended.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Ended {
+    /// Its simulated time ran out.
+    Elapsed,
+    /// The stop future resolved first.
+    Stopped,
+}
+
 /// The emulator driving a transport.
 pub struct Hil {
     suit: Suit,
+    /// When the first phase started (wall clock).
+    started: Option<Instant>,
+    /// Frames received from the bus over all phases.
+    received: u64,
 }
 
 impl Hil {
@@ -125,6 +164,8 @@ impl Hil {
     pub fn new(scenario: Scenario, flash_dir: &Path) -> Result<Hil, HilError> {
         Ok(Hil {
             suit: Suit::new(scenario, flash_dir)?,
+            started: None,
+            received: 0,
         })
     }
 
@@ -133,18 +174,75 @@ impl Hil {
         &self.suit
     }
 
-    /// Plays the scenario on `bus` until `scenario.duration_s` of simulated time has passed on
-    /// `clock`, answering table transfers as they come. Frames go out in simulated-time order at
-    /// `clock.speed()` × real time. Timers have about 1 ms of wall-clock resolution, so a node
-    /// answers a command within about `speed` ms of simulated time: scale transfer timeouts.
+    /// Plays the scenario's motion on `bus` until `scenario.duration_s` of simulated time has
+    /// passed on `clock`, answering table transfers as they come, and reports. Frames go out in
+    /// simulated-time order at `clock.speed()` × real time. Timers have about 1 ms of wall-clock
+    /// resolution, so a node answers a command within about `speed` ms of simulated time: scale
+    /// transfer timeouts. The nodes fall silent when it returns: [`Hil::linger`] keeps them up.
     pub async fn run<T: Transport>(
         &mut self,
         bus: &mut T,
         clock: &SimClock,
     ) -> Result<RunReport, HilError> {
-        let started = Instant::now();
+        self.play(bus, clock, std::future::pending()).await?;
+        Ok(self.report(bus))
+    }
+
+    /// [`Hil::run`] without the report, ending early when `stop` resolves.
+    pub async fn play<T: Transport, F: Future<Output = ()>>(
+        &mut self,
+        bus: &mut T,
+        clock: &SimClock,
+        stop: F,
+    ) -> Result<Ended, HilError> {
         let end = self.suit.scenario().duration_s;
-        let mut received = 0u64;
+        self.serve_until(bus, clock, end, stop).await
+    }
+
+    /// After the motion ([`Hil::play`] returned [`Ended::Elapsed`]): the nodes stay up, sending
+    /// their heartbeats and answering table transfers (readback included), until simulated time
+    /// `duration_s + s` for [`Linger::For`]`(s)`, or until `stop` resolves. Called before the
+    /// motion has ended, it plays the rest of the motion first.
+    pub async fn linger<T: Transport, F: Future<Output = ()>>(
+        &mut self,
+        bus: &mut T,
+        clock: &SimClock,
+        linger: Linger,
+        stop: F,
+    ) -> Result<Ended, HilError> {
+        let end = match linger {
+            Linger::UntilStopped => f64::INFINITY,
+            Linger::For(s) => self.suit.scenario().duration_s + s.max(0.0),
+        };
+        self.serve_until(bus, clock, end, stop).await
+    }
+
+    /// What the emulation did so far; `bus` is the transport it played on (for its drop count).
+    pub fn report<T: Transport>(&self, bus: &T) -> RunReport {
+        let simulated_s = self.suit.now_s();
+        RunReport {
+            simulated_s,
+            motion_s: simulated_s.min(self.suit.scenario().duration_s),
+            wall: self.started.map_or(Duration::ZERO, |s| s.elapsed()),
+            received: self.received,
+            rx_dropped: bus.dropped(),
+            stats: self.suit.stats().clone(),
+            held_crc: std::array::from_fn(|j| {
+                self.suit.held_table(NodeId::JOINTS[j]).map(|t| t.crc())
+            }),
+        }
+    }
+
+    /// Runs the suit on `bus` until simulated time `end` (may be infinite) or until `stop`.
+    async fn serve_until<T: Transport, F: Future<Output = ()>>(
+        &mut self,
+        bus: &mut T,
+        clock: &SimClock,
+        end: f64,
+        stop: F,
+    ) -> Result<Ended, HilError> {
+        self.started.get_or_insert_with(Instant::now);
+        let mut stop = std::pin::pin!(stop);
         loop {
             let now = clock.now_s().min(end);
             let frames = self.suit.advance(now);
@@ -152,30 +250,23 @@ impl Hil {
                 bus.send_all(&frames).await.map_err(HilError::Bus)?;
             }
             if now >= end {
-                break;
+                return Ok(Ended::Elapsed);
             }
+            // Heartbeats never stop, so the next event is finite; `sleep_until` caps it anyway.
             let next = self.suit.next_event_s().min(end);
-            // Biased: when the sender lags behind the clock, received commands still go first.
+            // Biased: a stop goes first; when the sender lags behind the clock, received commands
+            // still go before it catches up.
             tokio::select! {
                 biased;
+                _ = stop.as_mut() => return Ok(Ended::Stopped),
                 r = bus.recv() => {
                     let r = r.map_err(HilError::Bus)?;
-                    received += 1;
+                    self.received += 1;
                     self.suit.receive(&r.frame, clock.now_s());
                 }
                 _ = clock.sleep_until(next) => {}
             }
         }
-        Ok(RunReport {
-            simulated_s: end,
-            wall: started.elapsed(),
-            received,
-            rx_dropped: bus.dropped(),
-            stats: self.suit.stats().clone(),
-            held_crc: std::array::from_fn(|j| {
-                self.suit.held_table(NodeId::JOINTS[j]).map(|t| t.crc())
-            }),
-        })
     }
 }
 
@@ -208,19 +299,8 @@ mod tests {
         let mut hil_end = bus.attach();
         let mut ctrl: Endpoint = bus.attach();
         let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await.unwrap() });
-        let mut up = Upload::new(
-            node,
-            42,
-            table,
-            RetryPolicy {
-                timeout_us: 500_000,
-                max_attempts: 4,
-                max_restarts: 2,
-            },
-        );
+        let mut up = Upload::new(node, 42, table, policy());
         let mut seen = Vec::new();
-        let mut log = Vec::new();
-        let t0 = std::time::Instant::now();
         // Let the nodes run for a simulated second before pushing.
         while clock.now_s() < 1.0 {
             if let Some(r) = ctrl.try_recv() {
@@ -229,6 +309,32 @@ mod tests {
                 tokio::time::sleep(Duration::from_millis(1)).await;
             }
         }
+        drive(&mut up, &mut ctrl, &clock, &mut seen).await;
+        // Keep listening until the hil stops, for the heartbeats after the push.
+        while !hil_task.is_finished() {
+            while let Some(r) = ctrl.try_recv() {
+                seen.push(decode_frame(&r.frame).unwrap());
+            }
+            tokio::time::sleep(Duration::from_millis(1)).await;
+        }
+        while let Some(r) = ctrl.try_recv() {
+            seen.push(decode_frame(&r.frame).unwrap());
+        }
+        let report = hil_task.await.unwrap();
+        (up.outcome(), seen, report)
+    }
+
+    /// Drives `up` from `ctrl` until it has an outcome (a hang guard stops it after 20 s of
+    /// wall-clock time); every frame `ctrl` receives meanwhile goes to `seen`. The exchange is
+    /// printed when the upload does not succeed.
+    async fn drive(
+        up: &mut Upload,
+        ctrl: &mut Endpoint,
+        clock: &SimClock,
+        seen: &mut Vec<Message>,
+    ) {
+        let mut log = Vec::new();
+        let t0 = std::time::Instant::now();
         while up.outcome().is_none() && t0.elapsed() < Duration::from_secs(20) {
             let now_us = (clock.now_s() * 1e6) as u64;
             if let Some(cmd) = up.poll(now_us) {
@@ -249,21 +355,17 @@ mod tests {
                 tokio::time::sleep(Duration::from_millis(1)).await;
             }
         }
-        // Keep listening until the hil stops, for the heartbeats after the push.
-        while !hil_task.is_finished() {
-            while let Some(r) = ctrl.try_recv() {
-                seen.push(decode_frame(&r.frame).unwrap());
-            }
-            tokio::time::sleep(Duration::from_millis(1)).await;
-        }
-        while let Some(r) = ctrl.try_recv() {
-            seen.push(decode_frame(&r.frame).unwrap());
-        }
-        let report = hil_task.await.unwrap();
-        if up.outcome() != Some(Ok(table.crc())) {
+        if !matches!(up.outcome(), Some(Ok(_))) {
             eprintln!("upload log:\n{}", log.join("\n"));
         }
-        (up.outcome(), seen, report)
+    }
+
+    fn policy() -> RetryPolicy {
+        RetryPolicy {
+            timeout_us: 500_000,
+            max_attempts: 4,
+            max_restarts: 2,
+        }
     }
 
     fn short_paper() -> Scenario {
@@ -364,6 +466,168 @@ mod tests {
             span >= 7.8 && span <= 8.1 + lag.max(0.0),
             "bus timestamps span {span} simulated s, lag {lag}"
         );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Every frame `rx` holds now.
+    fn drain(rx: &mut Endpoint) -> Vec<Message> {
+        std::iter::from_fn(|| rx.try_recv())
+            .map(|r| decode_frame(&r.frame).unwrap())
+            .collect()
+    }
+
+    // On a paused runtime: simulated time is the runtime's virtual time, so phases end exactly.
+    #[tokio::test(start_paused = true)]
+    async fn linger_for_keeps_only_the_heartbeats_for_that_much_simulated_time() {
+        let dir = temp_dir("linger-for");
+        let mut s = Scenario::paper();
+        s.duration_s = 2.0;
+        let mut hil = Hil::new(s, &dir).unwrap();
+        let clock = SimClock::new(5.0).unwrap();
+        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+        let mut hil_end = bus.attach();
+        let mut rx = bus.attach();
+        let ended = hil.play(&mut hil_end, &clock, std::future::pending());
+        assert_eq!(ended.await.unwrap(), Ended::Elapsed);
+        let motion = hil.report(&hil_end);
+        assert_eq!((motion.motion_s, motion.simulated_s), (2.0, 2.0));
+        let moving = drain(&mut rx);
+        assert!(moving.iter().any(|m| matches!(m, Message::JointState(_))));
+        // `--linger 0`: nothing more.
+        let ended = hil.linger(
+            &mut hil_end,
+            &clock,
+            Linger::For(0.0),
+            std::future::pending(),
+        );
+        assert_eq!(ended.await.unwrap(), Ended::Elapsed);
+        assert_eq!(hil.report(&hil_end).simulated_s, 2.0);
+        assert!(drain(&mut rx).is_empty());
+        let ended = hil.linger(
+            &mut hil_end,
+            &clock,
+            Linger::For(10.0),
+            std::future::pending(),
+        );
+        assert_eq!(ended.await.unwrap(), Ended::Elapsed);
+        let report = hil.report(&hil_end);
+        assert_eq!((report.motion_s, report.simulated_s), (2.0, 12.0));
+        assert!(report
+            .to_string()
+            .contains("then the nodes answered for 10.000 s"));
+        let rest = drain(&mut rx);
+        assert_eq!(
+            rest.len() as u64,
+            report.stats.frames_sent - motion.stats.frames_sent
+        );
+        // No sample taken after the motion; heartbeats (1 Hz in this scenario) go on.
+        for node in NodeId::ALL {
+            let (before, after) = (
+                motion.stats.samples[usize::from(node.raw())],
+                report.stats.samples[usize::from(node.raw())],
+            );
+            for k in [Kind::JointState, Kind::Imu, Kind::Pose] {
+                assert_eq!(before[k as usize], after[k as usize], "{node} {k:?}");
+            }
+            let beats = rest
+                .iter()
+                .filter(|m| matches!(m, Message::Heartbeat(h) if h.node == node))
+                .count();
+            assert!(
+                (9..=11).contains(&beats),
+                "{node}: {beats} heartbeats in 10 s"
+            );
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn after_the_motion_the_nodes_take_a_push_and_answer_until_stopped() {
+        let dir = temp_dir("linger-push");
+        let mut s = Scenario::paper();
+        s.duration_s = 2.0;
+        let mut hil = Hil::new(s, &dir).unwrap();
+        let clock = SimClock::new(1.0).unwrap();
+        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+        let mut hil_end = bus.attach();
+        let mut ctrl = bus.attach();
+        let (motion_tx, motion_rx) = tokio::sync::oneshot::channel();
+        let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+        let hil_task = tokio::spawn(async move {
+            let motion = hil.play(&mut hil_end, &clock, std::future::pending());
+            let motion = motion.await.unwrap();
+            motion_tx.send(hil.report(&hil_end)).unwrap();
+            let stop = async {
+                let _ = stop_rx.await;
+            };
+            let rest = hil.linger(&mut hil_end, &clock, Linger::UntilStopped, stop);
+            (motion, rest.await.unwrap(), hil.report(&hil_end))
+        });
+        let at_motion_end = motion_rx.await.unwrap();
+        drain(&mut ctrl);
+        let node = NodeId::JOINTS[3];
+        let mut up = Upload::new(node, 7, new_table(), policy());
+        let mut seen = Vec::new();
+        drive(&mut up, &mut ctrl, &clock, &mut seen).await;
+        assert_eq!(up.outcome(), Some(Ok(new_table().crc())));
+        // Three simulated seconds later, still answering: heartbeats announce the new table.
+        let until = clock.now_s() + 3.0;
+        clock.sleep_until(until).await;
+        seen.extend(drain(&mut ctrl));
+        stop_tx.send(()).unwrap();
+        let (motion, rest, report) = hil_task.await.unwrap();
+        assert_eq!((motion, rest), (Ended::Elapsed, Ended::Stopped));
+        assert_eq!(at_motion_end.motion_s, 2.0);
+        // The suit advances at its events: the last heartbeat was at most a second before.
+        assert!(report.simulated_s > until - 1.5, "{report}");
+        assert_eq!(report.motion_s, 2.0);
+        assert!(
+            report.stats.commands > at_motion_end.stats.commands
+                && report.stats.replies > at_motion_end.stats.replies,
+            "{report}"
+        );
+        assert_eq!(
+            flash::read(&dir, node).unwrap().map(|i| i.table),
+            Some(new_table())
+        );
+        for node in NodeId::ALL {
+            let i = usize::from(node.raw());
+            let (before, after) = (at_motion_end.stats.samples[i], report.stats.samples[i]);
+            assert_eq!(
+                before[..3],
+                after[..3],
+                "{node}: no samples after the motion"
+            );
+        }
+        let last_hb = seen.iter().rev().find_map(|m| match m {
+            Message::Heartbeat(h) if h.node == node => Some(h.table_crc),
+            _ => None,
+        });
+        assert_eq!(last_hb, Some(new_table().crc()));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_stop_during_the_motion_ends_it_there() {
+        let dir = temp_dir("stop");
+        let mut s = Scenario::paper();
+        s.duration_s = 5.0;
+        let mut hil = Hil::new(s, &dir).unwrap();
+        let clock = SimClock::new(2.0).unwrap();
+        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+        let mut hil_end = bus.attach();
+        let _rx = bus.attach();
+        let stop = tokio::time::sleep(Duration::from_millis(500));
+        assert_eq!(
+            hil.play(&mut hil_end, &clock, stop).await.unwrap(),
+            Ended::Stopped
+        );
+        let report = hil.report(&hil_end);
+        assert!(
+            report.motion_s < 5.0 && report.simulated_s == report.motion_s,
+            "{report}"
+        );
+        assert!(report.stats.frames_sent > 0);
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

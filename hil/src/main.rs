@@ -3,13 +3,21 @@
 use anyhow::Context;
 use clap::Parser;
 use exocal_bus::{SimClock, SocketCan};
-use exocal_hil::{Hil, Scenario};
+use exocal_hil::{Ended, Hil, Linger, Scenario};
 use std::path::PathBuf;
+use tokio::signal::unix::{signal, SignalKind};
 
 /// Emulates the exocal suit's IMU nodes (7 joints + end-effector reference) on a CAN interface.
 ///
 /// Nodes send joint states, raw IMU data, end-effector poses and heartbeats as described in
 /// exocal.dbc, and accept table transfers, persisting tables to one flash file per node.
+///
+/// The motion lasts the scenario's duration (--duration). Then the arm rests but the nodes stay
+/// up: they keep sending heartbeats and answering table transfers (readback included) until
+/// SIGTERM or SIGINT, or for --linger seconds. When the motion ends, a line "exocal-hil: motion
+/// ended after N s; ..." goes to stderr. On SIGTERM/SIGINT (during the motion too) or at the end
+/// of --linger, the run's report goes to stdout and the exit status is 0.
+///
 /// Example: exocal-hil --iface vcan0 --speed 10
 #[derive(Parser, Debug)]
 #[command(version, about)]
@@ -23,9 +31,14 @@ struct Cli {
     /// Simulated time per wall-clock time.
     #[arg(long, default_value_t = 1.0)]
     speed: f64,
-    /// Override the scenario's duration, simulated seconds.
+    /// Override the scenario's duration of motion, simulated seconds.
     #[arg(long)]
     duration: Option<f64>,
+    /// After the motion, answer for this many seconds of simulated time (like --duration: it
+    /// lasts LINGER/speed of wall-clock time), then exit; 0 exits when the motion ends. Without
+    /// it, the nodes answer until SIGTERM or SIGINT.
+    #[arg(long, value_name = "SECONDS", value_parser = non_negative)]
+    linger: Option<f64>,
     /// Override the scenario's seed.
     #[arg(long)]
     seed: Option<u64>,
@@ -35,6 +48,15 @@ struct Cli {
     /// Print the scenario (after overrides) as TOML and exit.
     #[arg(long)]
     print_scenario: bool,
+}
+
+/// `--linger`: a finite number of seconds, zero or more.
+fn non_negative(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        Ok(v) => Err(format!("must be finite and ≥ 0, got {v}")),
+        Err(e) => Err(e.to_string()),
+    }
 }
 
 fn main() -> anyhow::Result<()> {
@@ -61,6 +83,15 @@ fn main() -> anyhow::Result<()> {
         .enable_all()
         .build()?;
     rt.block_on(async {
+        let mut term = signal(SignalKind::terminate()).context("handling SIGTERM")?;
+        let mut int = signal(SignalKind::interrupt()).context("handling SIGINT")?;
+        let stop = async {
+            tokio::select! {
+                _ = term.recv() => {}
+                _ = int.recv() => {}
+            }
+        };
+        let mut stop = std::pin::pin!(stop);
         let mut bus = SocketCan::open(&iface)?;
         let mut hil = Hil::new(scenario, &cli.flash_dir)?;
         let clock = SimClock::new(clock.speed()).expect("checked above");
@@ -70,8 +101,67 @@ fn main() -> anyhow::Result<()> {
             iface,
             clock.speed()
         );
-        let report = hil.run(&mut bus, &clock).await?;
-        print!("{report}");
+        let linger = cli.linger.map_or(Linger::UntilStopped, Linger::For);
+        match hil.play(&mut bus, &clock, stop.as_mut()).await? {
+            Ended::Stopped => eprintln!(
+                "exocal-hil: stopped by a signal after {:.3} s of motion",
+                hil.suit().now_s()
+            ),
+            Ended::Elapsed => {
+                eprintln!(
+                    "exocal-hil: motion ended after {:.3} s; {}",
+                    hil.suit().now_s(),
+                    readiness(linger)
+                );
+                if hil.linger(&mut bus, &clock, linger, stop.as_mut()).await? == Ended::Stopped {
+                    eprintln!("exocal-hil: stopped by a signal");
+                }
+            }
+        }
+        print!("{}", hil.report(&bus));
         Ok(())
     })
+}
+
+/// What the nodes do once the motion has ended, for the readiness line.
+fn readiness(linger: Linger) -> String {
+    match linger {
+        Linger::UntilStopped => "nodes answering until SIGTERM".into(),
+        Linger::For(s) if s > 0.0 => {
+            format!("nodes answering for {s} s more (simulated), or until SIGTERM")
+        }
+        Linger::For(_) => "exiting (--linger 0)".into(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    #[test]
+    fn the_cli_is_consistent_and_linger_takes_finite_non_negative_seconds() {
+        Cli::command().debug_assert();
+        assert_eq!(non_negative("0"), Ok(0.0));
+        assert_eq!(non_negative("2.5"), Ok(2.5));
+        for bad in ["-1", "inf", "NaN", "soon"] {
+            assert!(non_negative(bad).is_err(), "{bad}");
+        }
+        let cli = Cli::try_parse_from(["exocal-hil", "--iface", "vcan0", "--linger", "0"]).unwrap();
+        assert_eq!(cli.linger, Some(0.0));
+        assert!(Cli::try_parse_from(["exocal-hil", "--iface", "vcan0", "--linger=-3"]).is_err());
+    }
+
+    #[test]
+    fn the_readiness_line_says_how_long_the_nodes_answer() {
+        assert_eq!(
+            readiness(Linger::UntilStopped),
+            "nodes answering until SIGTERM"
+        );
+        assert_eq!(
+            readiness(Linger::For(30.0)),
+            "nodes answering for 30 s more (simulated), or until SIGTERM"
+        );
+        assert_eq!(readiness(Linger::For(0.0)), "exiting (--linger 0)");
+    }
 }

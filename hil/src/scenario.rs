@@ -347,6 +347,21 @@ pub struct Babble {
     pub rate_hz: f64,
 }
 
+/// The bus (or the receiver, or the sender) stalls: every frame put on the wire during
+/// `[from_s, to_s)`, by any node, arrives `late_ms` later, but no later than `to_s`, when the
+/// backlog goes out at once. The nodes' clocks run on: their timestamps are those of the
+/// samples.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BusStall {
+    /// Start, simulated s.
+    pub from_s: f64,
+    /// End, simulated s.
+    pub to_s: f64,
+    /// How late the frames arrive, ms.
+    pub late_ms: f64,
+}
+
 /// How a node treats table transfers.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -400,6 +415,8 @@ pub struct Faults {
     pub reboots: Vec<Reboot>,
     /// Babbling nodes.
     pub babble: Vec<Babble>,
+    /// Stalls of the whole bus.
+    pub bus_stalls: Vec<BusStall>,
     /// Transfer behaviours.
     pub transfer: Vec<TransferFault>,
 }
@@ -651,6 +668,18 @@ impl Scenario {
             nonneg("faults.reboots.at_s", r.at_s)?;
             nonneg("faults.reboots.down_s", r.down_s)?;
         }
+        for b in &f.bus_stalls {
+            nonneg("faults.bus_stalls.from_s", b.from_s)?;
+            nonneg("faults.bus_stalls.late_ms", b.late_ms)?;
+            if b.to_s.partial_cmp(&b.from_s) != Some(std::cmp::Ordering::Greater)
+                || !b.to_s.is_finite()
+            {
+                return Err(invalid(
+                    "faults.bus_stalls.to_s",
+                    "must be finite and after from_s",
+                ));
+            }
+        }
         for b in &f.babble {
             node("faults.babble.node", b.node)?;
             nonneg("faults.babble.from_s", b.from_s)?;
@@ -701,6 +730,14 @@ mod tests {
             (
                 "[arm]\npreset = \"paper_actual\"\nranges_deg = [[0, 1]]\n",
                 "arm.ranges_deg",
+            ),
+            (
+                "[[faults.bus_stalls]]\nfrom_s = 2\nto_s = 1\nlate_ms = 10\n",
+                "faults.bus_stalls.to_s",
+            ),
+            (
+                "[[faults.bus_stalls]]\nfrom_s = 1\nto_s = 2\nlate_ms = -1\n",
+                "faults.bus_stalls.late_ms",
             ),
         ] {
             let e = Scenario::from_toml(&format!("{base}{extra}"))

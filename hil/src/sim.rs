@@ -15,6 +15,11 @@
 //! frame. The end-effector node
 //! reports `FK(true table, true angles)` plus noise as a unit quaternion with w ≥ 0.
 //!
+//! Motion: the scenario's `duration_s` bounds the motion. After it the suit is at rest with its
+//! nodes powered: they take no more samples (no joint state, IMU or pose frames, and no injected
+//! malformed or babble frames), but keep their heartbeats and answer table transfers, for as
+//! long as simulated time is advanced. The frames up to `duration_s` do not depend on it.
+//!
 //! Clocks: each node stamps frames with `offset + (t − boot)·(1 + skew) + jumps + jitter` in
 //! µs, wrapping at 2^32, and samples every `1/rate` of *its own* clock.
 
@@ -380,6 +385,17 @@ impl Suit {
         self.now_s
     }
 
+    /// Whether the motion is over at simulated time `t` (samples at `duration_s` still count).
+    fn at_rest(&self, t: f64) -> bool {
+        t > self.scenario.duration_s
+    }
+
+    /// Whether babble fault `i` has a frame to come: before its own end and the motion's.
+    fn babble_pending(&self, i: usize) -> bool {
+        let next = self.babble_next[i];
+        next < self.scenario.faults.babble[i].to_s && !self.at_rest(next)
+    }
+
     fn next_internal_s(&self) -> f64 {
         let mut t = self.malformed_next;
         for n in self.nodes.iter().filter(|n| n.up) {
@@ -390,8 +406,8 @@ impl Suit {
         if let Some((te, _)) = self.events.get(self.next_event) {
             t = t.min(*te);
         }
-        for (b, next) in self.scenario.faults.babble.iter().zip(&self.babble_next) {
-            if *next < b.to_s {
+        for (i, next) in self.babble_next.iter().enumerate() {
+            if self.babble_pending(i) {
                 t = t.min(*next);
             }
         }
@@ -431,6 +447,10 @@ impl Suit {
             }
         }
         if self.malformed_next <= t {
+            if self.at_rest(t) {
+                self.malformed_next = f64::INFINITY;
+                return;
+            }
             self.malformed(t);
             self.malformed_next =
                 t - self.fault_rng.uniform().max(1e-12).ln() / self.scenario.faults.malformed_hz;
@@ -438,7 +458,7 @@ impl Suit {
         }
         for i in 0..self.babble_next.len() {
             let b = self.scenario.faults.babble[i];
-            if self.babble_next[i] <= t && self.babble_next[i] < b.to_s {
+            if self.babble_next[i] <= t && self.babble_pending(i) {
                 self.babble_next[i] += 1.0 / b.rate_hz;
                 let node = &self.nodes[usize::from(b.node - 1)];
                 if let (true, Some(f)) = (node.up, node.last_frame) {
@@ -455,6 +475,11 @@ impl Suit {
             for s in 0..self.nodes[n].schedules.len() {
                 let sched = self.nodes[n].schedules[s];
                 if sched.next_s <= t {
+                    if sched.kind != Kind::Heartbeat && self.at_rest(t) {
+                        // The motion is over: the node takes no more samples of this kind.
+                        self.nodes[n].schedules[s].next_s = f64::INFINITY;
+                        return;
+                    }
                     self.nodes[n].schedules[s].next_s += sched.period_s;
                     self.sample(n, sched.kind, t);
                     return;
@@ -721,6 +746,11 @@ impl Suit {
         if f.reorder > 0.0 && r.uniform() < f.reorder {
             at += f.reorder_max_ms * 1e-3 * r.uniform();
             self.stats.delayed += 1;
+        }
+        for stall in &f.bus_stalls {
+            if (stall.from_s..stall.to_s).contains(&t) {
+                at = at.max((t + stall.late_ms * 1e-3).min(stall.to_s));
+            }
         }
         let dup = f.duplicate > 0.0 && r.uniform() < f.duplicate;
         self.push(at, frame);
@@ -1050,6 +1080,82 @@ mod tests {
     }
 
     #[test]
+    fn after_the_motion_nodes_send_only_heartbeats_and_take_a_table_with_readback() {
+        use exocal_dbc::transfer::{RetryPolicy, Upload};
+        let dir = temp_dir("rest");
+        let mut s = Scenario::paper();
+        s.duration_s = 3.0;
+        s.faults.malformed_hz = 20.0;
+        s.faults.babble.push(crate::scenario::Babble {
+            node: 2,
+            from_s: 1.0,
+            to_s: 10.0,
+            rate_hz: 100.0,
+        });
+        // Up to its end, the motion is that of a longer scenario, faults included.
+        let mut long = s.clone();
+        long.duration_s = 100.0;
+        let long_dir = temp_dir("rest-long");
+        let moving = Suit::new(long, &long_dir).unwrap().advance(3.0);
+        let mut suit = Suit::new(s, &dir).unwrap();
+        assert_eq!(suit.advance(3.0), moving);
+        // The last samples are on the wire 50 µs after they are taken.
+        suit.advance(3.001);
+        let samples = suit.stats().samples;
+        // At rest: heartbeats only, from every node at its rate (1 Hz in this scenario).
+        let rest = suit.advance(13.001);
+        let c = counts(&rest);
+        assert_eq!(
+            c.keys().copied().collect::<Vec<_>>(),
+            (1..=8).map(|n| 0x700 | n).collect::<Vec<u32>>(),
+            "{c:?}"
+        );
+        assert!(c.values().all(|n| (9..=11).contains(n)), "{c:?}");
+        for (before, after) in samples.iter().zip(&suit.stats().samples) {
+            assert_eq!(before[..3], after[..3]);
+        }
+        // A table pushed at rest is installed, read back, and announced by the heartbeats.
+        let node = NodeId::JOINTS[2];
+        let table = Table::from_si(0.0301, -1.5, 0.0299, 0.01, 1.2, 0.9).unwrap();
+        let policy = RetryPolicy {
+            timeout_us: 500_000,
+            max_attempts: 4,
+            max_restarts: 2,
+        };
+        let mut up = Upload::new(node, 9, table, policy);
+        let mut t = 13.001;
+        while up.outcome().is_none() && t < 40.0 {
+            if let Some(cmd) = up.poll((t * 1e6) as u64) {
+                suit.receive(&Message::TableCmd(cmd).to_frame::<Frame>().unwrap(), t);
+            }
+            t += 1e-3;
+            for f in suit.advance(t) {
+                if let Ok(Message::TableReply(r)) = decode_frame(&f) {
+                    up.on_reply(&r);
+                }
+            }
+        }
+        assert_eq!(up.outcome(), Some(Ok(table.crc())));
+        assert_eq!(
+            flash::read(&dir, node).unwrap().map(|i| i.table),
+            Some(table)
+        );
+        let later = suit.advance(t + 2.0);
+        let crcs: Vec<u32> = later
+            .iter()
+            .filter_map(|f| match decode_frame(f) {
+                Ok(Message::Heartbeat(h)) if h.node == node => Some(h.table_crc),
+                _ => None,
+            })
+            .collect();
+        assert!(!crcs.is_empty() && crcs.iter().all(|&c| c == table.crc()));
+        assert!(later.iter().all(|f| f.raw_id() & !0xF == 0x700));
+        for d in [dir, long_dir] {
+            let _ = std::fs::remove_dir_all(d);
+        }
+    }
+
+    #[test]
     fn injected_faults_show_on_the_wire() {
         let dir = temp_dir("faults");
         let mut s = Scenario::paper();
@@ -1102,6 +1208,40 @@ mod tests {
         let lost_ratio = st.lost as f64 / (frames.len() as f64 + st.lost as f64);
         assert!((lost_ratio - 0.05).abs() < 0.01, "{lost_ratio}");
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_bus_stall_holds_every_frame_back_then_lets_the_backlog_out() {
+        let key = |frames: &[Frame]| {
+            let mut k: Vec<(u32, Vec<u8>)> = frames
+                .iter()
+                .map(|f| (f.raw_id(), f.data().to_vec()))
+                .collect();
+            k.sort();
+            k
+        };
+        let clean = Suit::new(Scenario::paper(), &temp_dir("stall-clean"))
+            .unwrap()
+            .advance(6.0);
+        let mut s = Scenario::paper();
+        s.faults.bus_stalls.push(crate::scenario::BusStall {
+            from_s: 5.0,
+            to_s: 6.0,
+            late_ms: 300.0,
+        });
+        let dir = temp_dir("stall");
+        let mut suit = Suit::new(s, &dir).unwrap();
+        let mut frames = suit.advance(5.0);
+        // Nothing reaches the bus for 300 ms; by the end of the stall, everything has.
+        assert!(suit.advance(5.299).is_empty());
+        let first_late = suit.advance(5.301);
+        assert!(!first_late.is_empty());
+        frames.extend(first_late);
+        frames.extend(suit.advance(6.0));
+        assert_eq!(key(&frames), key(&clean));
+        for d in [dir, temp_dir("stall-clean")] {
+            let _ = std::fs::remove_dir_all(d);
+        }
     }
 
     #[test]

@@ -352,6 +352,16 @@ fn quality_section(
         "<tr><th>grid points excluded as gaps</th><td>{}</td></tr>",
         q.gaps
     );
+    if q.receiver_stalls > 0 {
+        let longest = q
+            .longest_stall_ms
+            .map_or(String::new(), |ms| format!(" (longest {ms:.0} ms)"));
+        let _ = writeln!(
+            out,
+            "<tr><th>receiver stalls</th><td>{}{longest}</td></tr>",
+            q.receiver_stalls
+        );
+    }
     for (k, v) in &q.counters {
         let _ = writeln!(out, "<tr><th>{}</th><td>{v}</td></tr>", esc(k));
     }
@@ -706,6 +716,8 @@ mod tests {
                 streams: Vec::new(),
                 joint_ranges: JointRanges::<JOINTS>::paper().limits,
                 excitation_required: Some(0.5),
+                receiver_stalls: 0,
+                longest_stall_ms: None,
             },
         });
         assert!(html.contains("offline &lt;short&gt;"), "title not escaped");
@@ -719,5 +731,29 @@ mod tests {
             .expect("the excitation figure");
         assert!(html[at..].contains("<svg"), "excitation not drawn");
         assert!(!html.contains("class=\"missing\""));
+    }
+
+    #[test]
+    fn receiver_stalls_are_one_row_only_when_there_were_some() {
+        let q = |receiver_stalls, longest_stall_ms| Quality {
+            duration_s: 1.0,
+            grid_hz: 100.0,
+            joint_ranges: JointRanges::<JOINTS>::paper().limits,
+            receiver_stalls,
+            longest_stall_ms,
+            ..Quality::default()
+        };
+        let row = |q: &Quality| {
+            let mut out = String::new();
+            quality_section(&mut out, q, &[], None).unwrap();
+            out.lines()
+                .find(|l| l.contains("receiver stalls"))
+                .map(str::to_string)
+        };
+        assert_eq!(
+            row(&q(2, Some(412.4))).as_deref(),
+            Some("<tr><th>receiver stalls</th><td>2 (longest 412 ms)</td></tr>")
+        );
+        assert_eq!(row(&q(0, None)), None);
     }
 }

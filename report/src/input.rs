@@ -85,7 +85,7 @@ pub struct StreamQuality {
     pub loss: Option<f64>,
     /// Samples the alignment could not map to host time (excluded).
     pub excluded: usize,
-    /// Clock jumps or reboots detected.
+    /// The node's own clock jumps or reboots detected.
     pub jumps: usize,
     /// Node clock skew against the host (ppm), if fitted.
     pub skew_ppm: Option<f64>,
@@ -109,6 +109,10 @@ pub struct Quality {
     pub joint_ranges: [(f64, f64); JOINTS],
     /// The excitation the session rules require (fraction of each range), if any.
     pub excitation_required: Option<f64>,
+    /// Times the receiver stalled (every node's frames late together; not counted as any
+    /// stream's clock jumps), and the longest stall's lateness (ms).
+    pub receiver_stalls: usize,
+    pub longest_stall_ms: Option<f64>,
 }
 
 /// The validation verdict, if the caller validated the table.

@@ -78,6 +78,8 @@ fn input() -> ReportInput {
             streams: vec![stream("Joint1"), stream("EndEffector")],
             joint_ranges: JointRanges::<7>::paper().limits,
             excitation_required: Some(0.5),
+            receiver_stalls: 0,
+            longest_stall_ms: None,
         },
         verdict: Some(VerdictSummary {
             accepted: false,

@@ -281,7 +281,8 @@ fn calibrate_on_vcan0_pushes_a_table_every_node_holds_and_logs_every_frame() {
     let out = dir.join("out");
     let cfg = config(&dir, &out, 60.0);
     let capture = Capture::start();
-    // The arm keeps moving after the window: nodes must answer the push.
+    // The arm keeps moving after the window; once its motion ends, the nodes keep answering
+    // (the push) until `stop`, however long the calibration takes.
     let hil = Hil::start(&dir, 400);
     hil.wait_booted();
     let factory = hil.held_crcs();
