@@ -6,9 +6,9 @@
 
 use std::fmt;
 
-use crate::calibrate::CalibrateError;
 use crate::config::ConfigError;
 use crate::mcaplog::LogError;
+use crate::pipeline::CalibrateError;
 use exocal_bus::BusError;
 
 /// sysexits(3) statuses used by exocald.

@@ -22,7 +22,7 @@ use exocal_hil::scenario::{
     Babble, ClockJump, NodeClockSpec, Reboot, Scenario, TransferBehaviour, TransferFault,
 };
 use exocal_hil::Hil;
-use exocald::config::{Config, Interval};
+use exocald::config::Config;
 use exocald::push::Holds;
 use exocald::report::{Notifier, Reporter};
 use exocald::runner::{run_session, SessionError, SessionSummary};
@@ -276,10 +276,7 @@ async fn run_case(case: &Case) -> Outcome {
     config.session.min_duration_s = SESSION_S;
     config.session.max_duration_s = SESSION_S + 20.0;
     if case.name == OUT_OF_BOUNDS {
-        config.bounds.a[2] = Interval {
-            min: 0.42,
-            max: 0.485,
-        };
+        config.bounds.a[2] = (0.42, 0.485);
     }
     scenario.duration_s = config.session.max_duration_s + 120.0;
     let mut hil = Hil::new(scenario, &flash_dir).expect("hil");

@@ -82,6 +82,14 @@ fn figure(out: &mut String, id: &str, caption: &str, svg: Result<String, PlotErr
     let _ = writeln!(out, "<figcaption>{caption}</figcaption></figure>");
 }
 
+/// The table the held-out slice judges: fitted without it.
+fn held_out_table(input: &ReportInput) -> &DhTable<JOINTS> {
+    input
+        .judged
+        .as_ref()
+        .unwrap_or(&input.calibration.calibrated)
+}
+
 fn all_samples(input: &ReportInput) -> Vec<TimedSample> {
     input.fit.iter().chain(&input.held_out).copied().collect()
 }
@@ -167,7 +175,7 @@ fn residual_charts(
         (&input.held_out, "held-out slice")
     };
     let before = residuals(&input.nominal, samples);
-    let after = residuals(&input.calibration.calibrated, samples);
+    let after = residuals(held_out_table(input), samples);
     let dist = |pick: fn(&(f64, f64)) -> f64| {
         vec![
             Distribution {
@@ -231,7 +239,13 @@ fn em_charts(input: &ReportInput) -> (Result<String, PlotError>, Result<String, 
         }],
         shade_from: None,
     };
-    let times: Vec<f64> = input.fit.iter().map(|s| s.t).collect();
+    // The drift series covers the samples the EM ran on: the fitted ones, or every one.
+    let times: Vec<f64> = input
+        .fit
+        .iter()
+        .chain(&input.held_out)
+        .map(|s| s.t)
+        .collect();
     let drift = Panel {
         title: "estimated joint drift (smoothed)".into(),
         x_label: "time (s)".into(),
@@ -511,7 +525,7 @@ pub fn render(input: &ReportInput) -> String {
         &input.held_out
     };
     let before = residuals(&input.nominal, eval);
-    let after = residuals(&c.calibrated, eval);
+    let after = residuals(held_out_table(input), eval);
     let (pb, pa) = (
         mean(before.iter().map(|r| r.0)),
         mean(after.iter().map(|r| r.0)),
@@ -590,7 +604,7 @@ pub fn render(input: &ReportInput) -> String {
         FIGURES[0],
         "Measured end-effector position, and the nominal and calibrated models' forward kinematics \
          of the same joint readings (cf. the paper's Figs. 3, 4 and 7). The shaded part is the \
-         held-out slice, not used for fitting.",
+         held-out slice, which judged a table fitted without it.",
         time,
     );
     figure(
@@ -644,7 +658,7 @@ pub fn render(input: &ReportInput) -> String {
     figure(
         &mut out,
         FIGURES[5],
-        "Each joint's smoothed drift estimate over the fitted part of the session (Gauss–Markov \
+        "Each joint's smoothed drift estimate over the samples the EM ran on (Gauss–Markov \
          model, Kalman filter and RTS smoother).",
         drift,
     );

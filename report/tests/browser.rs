@@ -8,7 +8,7 @@ use std::process::Command;
 
 use calib_core::{DhTable, DriftEmOptions, JointRanges, LsOptions, Scenario, ScenarioConfig};
 use exocal_report::html::{render, FIGURES};
-use exocal_report::{analysis, Quality, ReportInput, StreamQuality, TimedSample, VerdictSummary};
+use exocal_report::{Quality, ReportInput, StreamQuality, TimedSample, VerdictSummary};
 
 fn chromium() -> PathBuf {
     if let Some(p) = std::env::var_os("EXOCAL_CHROMIUM") {
@@ -47,7 +47,8 @@ fn input() -> ReportInput {
         max_iterations: 8,
         ..DriftEmOptions::new(cfg.drift.dt)
     };
-    let calibration = analysis::calibrate(&nominal, &samples, &LsOptions::new(), &em).unwrap();
+    let calibration =
+        exocald::pipeline::ls_then_em(&nominal, &samples, &LsOptions::new(), &em).unwrap();
     assert!(
         calibration.em.is_ok(),
         "{:?}",
@@ -68,6 +69,7 @@ fn input() -> ReportInput {
         source: "calib-core scenario, seed 11".into(),
         nominal,
         calibration,
+        judged: None,
         fit: fit.to_vec(),
         held_out: held.to_vec(),
         quality: Quality {
