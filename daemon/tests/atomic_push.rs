@@ -16,11 +16,12 @@ use std::time::Duration;
 
 use exocal_bus::InProcessBus;
 use exocal_bus::SimClock;
-use exocal_dbc::table::{Field, Table};
+use exocal_dbc::table::Table;
 use exocal_dbc::NodeId;
-use exocal_hil::scenario::{Reboot, Scenario, TransferBehaviour, TransferFault};
+use exocal_hil::trial::{new_tables, TransferMix};
 use exocal_hil::Hil;
 use exocald::config::PushPolicy;
+use exocald::demo::RunningSuit;
 use exocald::push::{push_tables, Holds};
 
 /// Simulated seconds per real second: hil answers within ~SPEED ms of simulated time.
@@ -28,77 +29,20 @@ const SPEED: f64 = 50.0;
 /// Simulated time at which the push starts.
 const PUSH_AT_S: f64 = 0.5;
 
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        // splitmix64
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-    fn unit(&mut self) -> f64 {
-        (self.next() >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn range(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.unit()
-    }
-}
-
-/// The scenario of run `seed`: a quiet suit (1 Hz streams) with transfer-path faults.
-fn scenario(seed: u64) -> Scenario {
-    let mut rng = Rng(seed);
-    let mut s = Scenario::paper();
-    s.seed = seed;
-    s.duration_s = 600.0;
-    s.rates.joint_state_hz = 1.0;
-    s.rates.imu_hz = 1.0;
-    s.rates.pose_hz = 1.0;
-    let f = &mut s.faults;
-    f.loss = [0.0, 0.01, 0.05, 0.1, 0.2, 0.4][(rng.next() % 6) as usize];
-    f.burst_start = if rng.unit() < 0.3 { 0.02 } else { 0.0 };
-    f.burst_len = 1 + (rng.next() % 8) as u32;
-    f.duplicate = rng.range(0.0, 0.2);
-    f.reorder = rng.range(0.0, 0.2);
-    f.reorder_max_ms = rng.range(1.0, 200.0);
-    f.delay = rng.range(0.0, 0.1);
-    f.delay_ms = rng.range(1.0, 300.0);
-    // 0–3 reboots during the push window.
-    for _ in 0..rng.next() % 4 {
-        f.reboots.push(Reboot {
-            node: 1 + (rng.next() % 7) as u8,
-            at_s: PUSH_AT_S + rng.range(0.0, 2.0),
-            down_s: rng.range(0.01, 1.5),
-        });
-    }
-    // One run in five has a node that refuses (NACK) or ignores every transfer command, so the
-    // report's `Old` and `Unknown` verdicts are checked against flash too.
-    if rng.unit() < 0.2 {
-        let behaviour = if rng.unit() < 0.5 {
-            TransferBehaviour::Nack
-        } else {
-            TransferBehaviour::Silent
-        };
-        f.transfer.push(TransferFault {
-            node: 1 + (rng.next() % 7) as u8,
-            behaviour,
-        });
-    }
-    s
-}
-
-/// A new table near `old`: every field moved by a few hundred raw units, kept in bounds.
-fn perturbed(old: &Table, rng: &mut Rng) -> Table {
-    let mut raw = old.raw_values();
-    for f in Field::ALL {
-        let (lo, hi) = f.raw_bounds();
-        let k = f.seq() as usize;
-        raw[k] = (raw[k] + 1 + (rng.next() % 500) as i64).clamp(lo, hi);
-    }
-    Table::from_raw(raw).expect("in bounds")
-}
+/// The faults a trial draws from (the documented figure's bounds).
+const MIX: TransferMix = TransferMix {
+    losses: &[0.0, 0.01, 0.05, 0.1, 0.2, 0.4],
+    burst_start: 0.02,
+    max_fraction: 0.2,
+    reorder_max_ms: 200.0,
+    delay_max_ms: 300.0,
+    reboots: 4,
+    push_at_s: PUSH_AT_S,
+    reboot_window_s: 2.0,
+    down_s: (0.01, 1.5),
+    refusal: 0.2,
+    nack: true,
+};
 
 fn temp_dir(seed: u64) -> PathBuf {
     let d = std::env::temp_dir().join(format!("exocal-atomic-push-{}-{seed}", std::process::id()));
@@ -121,24 +65,14 @@ struct Tally {
 
 async fn one_run(seed: u64, tally: &mut Tally) {
     let dir = temp_dir(seed);
-    let scenario = scenario(seed);
+    let scenario = MIX.scenario(seed);
     let hil = Hil::new(scenario.clone(), &dir).expect("hil");
-    let old: Vec<(NodeId, Table)> = NodeId::JOINTS
-        .iter()
-        .map(|&n| (n, hil.suit().held_table(n).expect("factory table")))
-        .collect();
-    let mut rng = Rng(seed ^ 0xa5a5);
-    let tables: Vec<(NodeId, Table)> = old
-        .iter()
-        .map(|(n, t)| (*n, perturbed(t, &mut rng)))
-        .collect();
+    let trial = new_tables(hil.suit(), seed ^ 0xa5a5);
+    let tables: Vec<(NodeId, Table)> = trial.iter().map(|(n, _, new)| (*n, *new)).collect();
     let clock = SimClock::new(SPEED).expect("speed");
     let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
-    let mut hil_end = bus.attach();
+    let suit = RunningSuit::start(hil, bus.attach(), clock);
     let mut daemon_end = bus.attach();
-    let mut hil = hil;
-    let hil_clock = clock;
-    let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &hil_clock).await });
     tokio::time::sleep(Duration::from_secs_f64(PUSH_AT_S / SPEED)).await;
     let policy = PushPolicy {
         retries: 3,
@@ -159,14 +93,11 @@ async fn one_run(seed: u64, tally: &mut Tally) {
     .expect("bus");
     // Let delayed and duplicated frames drain (max hold-back 300 ms simulated), then stop.
     tokio::time::sleep(Duration::from_secs_f64(0.5 / SPEED)).await;
-    hil_task.abort();
-    let _ = hil_task.await;
+    let flash = suit.stop().await;
     tally.runs += 1;
-    for (((node, old_t), (_, new_t)), rep) in old.iter().zip(&tables).zip(&report.nodes) {
+    for (((node, old_t, new_t), (_, flash)), rep) in trial.iter().zip(&flash).zip(&report.nodes) {
         tally.nodes += 1;
-        let flash = exocal_hil::flash::read(&dir, *node)
-            .expect("flash readable")
-            .map(|img| img.table.crc());
+        let flash = *flash.as_ref().expect("flash readable");
         // No flash file yet means the factory table (nothing was ever written).
         let held = flash.unwrap_or(old_t.crc());
         let holds_new = held == new_t.crc();
