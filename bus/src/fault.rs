@@ -45,7 +45,7 @@ pub struct FaultConfig {
     pub duplicate: f64,
 }
 
-/// Time between a frame and its duplicate (about one classic frame at 1 Mbit/s... and a half).
+/// Time between a frame and its duplicate (a little more than one classic frame at 1 Mbit/s).
 pub const DUPLICATE_GAP: Duration = Duration::from_micros(20);
 
 /// A probability that is not in `[0, 1]`, or a non-finite one, in a [`FaultConfig`].
@@ -99,8 +99,11 @@ pub enum Fate {
     Dropped,
     /// `frame` (corrupted or not) reaches the bus at `at`, and again at `again` if duplicated.
     Deliver {
+        /// The frame as it arrives (one payload bit flipped if corrupted).
         frame: Frame,
+        /// When it reaches the bus.
         at: Duration,
+        /// When its duplicate follows, if it is duplicated.
         again: Option<Duration>,
     },
 }

@@ -298,6 +298,89 @@ pub async fn session_against_suit<D: Transport>(
     }
 }
 
+/// What push trials (a push against the suit under transfer faults) came to, node by node: a
+/// node's flash must hold its old or its new table (never a mix), and the push report must say
+/// which (`New`/`Old`; `Unknown` claims nothing and is counted with its reason).
+#[derive(Debug, Default)]
+pub struct PushTally {
+    /// Trials counted.
+    pub runs: u64,
+    /// Node transfers counted.
+    pub nodes: u64,
+    /// Reports `New`.
+    pub new: u64,
+    /// Reports `Old`.
+    pub old: u64,
+    /// Reports `Unknown`.
+    pub unknown: u64,
+    /// Nodes whose flash holds neither their old nor their new table.
+    pub mixed: u64,
+    /// A mixed table or a report that disagrees with the flash, one line each.
+    pub problems: Vec<String>,
+    /// Every `Unknown`: trial, node, the daemon's reason, what the flash holds.
+    pub unknown_why: Vec<String>,
+}
+
+impl PushTally {
+    /// Counts one trial: per joint node its old and new table (as pushed), its flash after the
+    /// trial ([`RunningSuit::stop`]) and the push report; `trial` names it in the lines, and a
+    /// problem line shows its `faults` too.
+    pub fn add(
+        &mut self,
+        trial: &str,
+        faults: &impl std::fmt::Debug,
+        tables: &[(NodeId, exocal_dbc::Table, exocal_dbc::Table)],
+        flash: &[(NodeId, Result<Option<u32>, FlashError>)],
+        report: &crate::push::PushReport,
+    ) {
+        self.runs += 1;
+        for (((node, old, new), (_, flash)), rep) in tables.iter().zip(flash).zip(&report.nodes) {
+            self.nodes += 1;
+            // No flash file yet means the factory table (nothing was ever written).
+            let held = match flash {
+                Ok(crc) => crc.unwrap_or(old.crc()),
+                Err(e) => {
+                    self.problems
+                        .push(format!("{trial} {node}: flash unreadable: {e}"));
+                    continue;
+                }
+            };
+            let (holds_new, holds_old) = (held == new.crc(), held == old.crc());
+            if !holds_new && !holds_old {
+                self.mixed += 1;
+            }
+            let agrees = match rep.holds {
+                Holds::New => {
+                    self.new += 1;
+                    holds_new
+                }
+                Holds::Old => {
+                    self.old += 1;
+                    holds_old
+                }
+                Holds::Unknown => {
+                    self.unknown += 1;
+                    self.unknown_why.push(format!(
+                        "{trial} {node}: {} (flash {})",
+                        rep.error.as_deref().unwrap_or("no error given"),
+                        if holds_new { "new" } else { "old" }
+                    ));
+                    true
+                }
+            };
+            if !(holds_new || holds_old) || !agrees {
+                self.problems.push(format!(
+                    "{trial} {node}: report {:?} (held_crc {:?}), flash {held:#010x} (old {:#010x}, new {:#010x}), faults {faults:?}",
+                    rep.holds,
+                    rep.held_crc,
+                    old.crc(),
+                    new.crc(),
+                ));
+            }
+        }
+    }
+}
+
 /// Checks that every node's flash holds the table the daemon pushed to it.
 pub fn check_flash(result: &DemoResult) -> Result<(), DaemonError> {
     let Some(push) = &result.summary.push else {

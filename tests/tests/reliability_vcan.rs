@@ -28,7 +28,7 @@ use exocal_hil::scenario::{
 use exocal_hil::trial::{new_tables, TransferMix};
 use exocal_hil::Hil;
 use exocald::config::{Config, PushPolicy};
-use exocald::demo::{session_against_suit, RunningSuit};
+use exocald::demo::{session_against_suit, PushTally, RunningSuit};
 use exocald::push::{push_tables, Holds};
 use exocald::runner::SessionSummary;
 
@@ -60,16 +60,7 @@ const MIX: TransferMix = TransferMix {
     nack: false,
 };
 
-#[derive(Default, Debug)]
-struct Tally {
-    nodes: u64,
-    new: u64,
-    old: u64,
-    unknown: u64,
-    problems: Vec<String>,
-}
-
-async fn push_run(seed: u64, tally: &mut Tally) {
+async fn push_run(seed: u64, tally: &mut PushTally) {
     let dir = scratch(&format!("push-{seed}"));
     let scenario = MIX.scenario(seed);
     let hil = Hil::new(scenario.clone(), &dir).expect("hil");
@@ -103,37 +94,13 @@ async fn push_run(seed: u64, tally: &mut Tally) {
     // Let delayed and duplicated frames drain (≤ 150 ms hold-back), then stop the suit.
     tokio::time::sleep(Duration::from_millis(400)).await;
     let flash = suit.stop().await;
-    for (((node, old_t, new_t), (_, flash)), rep) in trial.iter().zip(&flash).zip(&report.nodes) {
-        tally.nodes += 1;
-        let held = flash
-            .as_ref()
-            .expect("flash readable")
-            .unwrap_or(old_t.crc());
-        let (holds_new, holds_old) = (held == new_t.crc(), held == old_t.crc());
-        let agrees = match rep.holds {
-            Holds::New => {
-                tally.new += 1;
-                holds_new
-            }
-            Holds::Old => {
-                tally.old += 1;
-                holds_old
-            }
-            Holds::Unknown => {
-                tally.unknown += 1;
-                true
-            }
-        };
-        if !(holds_new || holds_old) || !agrees {
-            tally.problems.push(format!(
-                "seed {seed} {node}: report {:?}, flash {held:#010x} (old {:#010x}, new {:#010x}), faults {:?}",
-                rep.holds,
-                old_t.crc(),
-                new_t.crc(),
-                scenario.faults
-            ));
-        }
-    }
+    tally.add(
+        &format!("seed {seed}"),
+        &scenario.faults,
+        &trial,
+        &flash,
+        &report,
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -141,7 +108,7 @@ async fn push_run(seed: u64, tally: &mut Tally) {
 async fn atomic_push_over_vcan0_leaves_old_or_new_and_the_report_says_which() {
     exocal_tests::require_vcan("vcan0");
     let started = Instant::now();
-    let mut tally = Tally::default();
+    let mut tally = PushTally::default();
     for run in 0..PUSH_RUNS {
         push_run(7000 + run, &mut tally).await;
     }
