@@ -73,9 +73,51 @@ fn config(dir: &Path, out: &Path, min_s: f64) -> PathBuf {
     path
 }
 
+/// Time limits that only catch hangs: the suites wait on events (a readiness line, a progress
+/// line, a process's exit), never on how fast a loaded host or the TCG guest runs.
+const HANG: Duration = Duration::from_secs(1800);
+
 struct Hil {
     child: Child,
     flash: PathBuf,
+    /// The hil's stderr lines, as they come (they are echoed to ours too).
+    lines: std::sync::mpsc::Receiver<String>,
+}
+
+/// Echoes `stream` line by line to our stderr and sends each line on the returned channel.
+fn tee_lines(stream: impl std::io::Read + Send + 'static) -> std::sync::mpsc::Receiver<String> {
+    use std::io::BufRead;
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stream)
+            .lines()
+            .map_while(Result::ok)
+        {
+            eprintln!("{line}");
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    rx
+}
+
+/// Waits for the first line from `lines` that `want` accepts; panics naming `what` if the
+/// stream ends or [`HANG`] passes first.
+fn wait_for_line(
+    lines: &std::sync::mpsc::Receiver<String>,
+    what: &str,
+    want: impl Fn(&str) -> bool,
+) -> String {
+    let deadline = Instant::now() + HANG;
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match lines.recv_timeout(left) {
+            Ok(line) if want(&line) => return line,
+            Ok(_) => {}
+            Err(e) => panic!("no {what} ({e:?})"),
+        }
+    }
 }
 
 impl Hil {
@@ -95,9 +137,16 @@ impl Hil {
             .arg(&flash)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
             .spawn()
             .expect("start exocal-hil");
-        Hil { child, flash }
+        let mut child = child;
+        let lines = tee_lines(child.stderr.take().expect("piped"));
+        Hil {
+            child,
+            flash,
+            lines,
+        }
     }
 
     /// CRC of the table each joint node holds in its flash (`None`: nothing flashed yet).
@@ -111,12 +160,17 @@ impl Hil {
             .collect()
     }
 
-    /// Waits (at most 20 s) until the nodes have booted and written their flash.
+    /// Waits for the hil's readiness line (its socket is open and its nodes have booted, their
+    /// flash written); then every joint node holds its factory table.
     fn wait_booted(&self) {
-        let deadline = Instant::now() + Duration::from_secs(20);
-        while self.held_crcs().values().any(Option::is_none) && Instant::now() < deadline {
-            std::thread::sleep(Duration::from_millis(100));
-        }
+        wait_for_line(&self.lines, "readiness line from exocal-hil", |l| {
+            l.starts_with("exocal-hil: playing")
+        });
+        let held = self.held_crcs();
+        assert!(
+            held.values().all(Option::is_some),
+            "flash after boot: {held:?}"
+        );
     }
 
     /// The D-H table the joint nodes hold.
@@ -449,31 +503,38 @@ fn sigterm_during_collection_finishes_the_log_and_pushes_nothing() {
         .stderr(Stdio::piped())
         .spawn()
         .expect("start exocald");
-    std::thread::sleep(Duration::from_secs(8));
+    // Mid-collection by the daemon's own account: its progress line after 5 s of collecting
+    // (of the 60 s window), whatever that took in real time.
+    let lines = tee_lines(daemon.stderr.take().expect("piped"));
+    let progress = wait_for_line(&lines, "progress line after 5 s of collection", |l| {
+        l.strip_prefix("exocald: collecting ")
+            .and_then(|r| r.split(' ').next())
+            .and_then(|s| s.parse::<f64>().ok())
+            .is_some_and(|s| s >= 5.0)
+    });
+    println!("SIGTERM after: {progress}");
     // SAFETY: plain kill(2) on our child.
     #[allow(unsafe_code)]
     unsafe {
         libc::kill(daemon.id() as i32, libc::SIGTERM)
     };
-    let deadline = Instant::now() + Duration::from_secs(30);
+    let deadline = Instant::now() + HANG;
     let status = loop {
         if let Some(s) = daemon.try_wait().unwrap() {
             break s;
         }
-        assert!(
-            Instant::now() < deadline,
-            "exocald ignored SIGTERM for 30 s"
-        );
+        assert!(Instant::now() < deadline, "exocald ignored SIGTERM");
         std::thread::sleep(Duration::from_millis(50));
     };
-    let out_text = daemon.wait_with_output().unwrap();
+    let stderr: Vec<String> = lines.try_iter().collect();
+    let _ = daemon.wait_with_output().unwrap();
     let held = hil.held_crcs();
     hil.stop();
     assert_eq!(
         status.code(),
         Some(75),
         "interrupted session exits EX_TEMPFAIL: {}",
-        String::from_utf8_lossy(&out_text.stderr)
+        stderr.join("\n")
     );
     assert_eq!(held, factory, "a table was pushed after SIGTERM");
     let (counts, messages) = mcap_topics(&mcap_file(&out));
