@@ -15,6 +15,8 @@
 //! | [`runner`] | one session on any transport: collect, align, calibrate, validate, push, log |
 //! | `demo` | exocal-hil and the daemon in one process on the in-process bus (feature `demo`, on by default) |
 //! | [`offline`] | recalibration from a recorded MCAP, candump or CSV file, through the same pipeline |
+//! | [`nodes`] | `exocald nodes`: every joint node's table, read over the bus, against the last push |
+//! | [`recover`] | a session log cut short (kill -9, power loss) read record by record and rewritten complete |
 //! | [`calreport`] | the HTML calibration report of a session (live or offline) |
 //! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
 //! | [`shutdown`] | SIGTERM/SIGINT as a flag a session waits on |
@@ -31,8 +33,10 @@ pub mod demo;
 pub mod exit;
 pub mod ingest;
 pub mod mcaplog;
+pub mod nodes;
 pub mod offline;
 pub mod push;
+pub mod recover;
 pub mod report;
 pub mod runner;
 pub mod session;

@@ -5,12 +5,21 @@
 //! most 1 s (the configured chunk flush interval is 0.5 s). With SIGTERM the daemon finishes the
 //! file: the summary section reads and nothing is lost.
 //!
+//! Every killed file is then fed to `exocald offline` as it is: it must read it (every message
+//! of every complete chunk, as many as the linear scan), warn how much it recovered and where
+//! the file was cut, and judge the recording as a live session would (66 for a session killed
+//! while collecting, a calibration otherwise). One more run is killed on an event, once the
+//! daemon starts pushing: its log holds the whole collection window, so `offline` must
+//! reproduce the uninterrupted session's result exactly; `exocald recover` writes it as a
+//! complete file that the mcap crate opens by its summary.
+//!
 //! `cargo test -p exocald --test crash_mcap` runs `EXOCAL_CRASH_RUNS` kills (default 10, for
 //! CI); the documented figure is `EXOCAL_CRASH_RUNS=100`.
 //! Recovery of a killed file is documented in `docs/recover-mcap.md`.
 
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 use mcap::read::Options;
@@ -25,21 +34,79 @@ fn temp_dir(name: &str) -> PathBuf {
     d
 }
 
+fn demo(dir: &Path, speed: f64) -> Command {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_exocald"));
+    cmd.args([
+        "demo",
+        "--speed",
+        &speed.to_string(),
+        "--seed",
+        "11",
+        "--output",
+    ])
+    .arg(dir)
+    .stdin(Stdio::null());
+    cmd
+}
+
 fn spawn_demo(dir: &Path) -> Child {
-    Command::new(env!("CARGO_BIN_EXE_exocald"))
-        .args([
-            "demo",
-            "--speed",
-            &SPEED.to_string(),
-            "--seed",
-            "11",
-            "--output",
-        ])
-        .arg(dir)
+    demo(dir, SPEED)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
         .expect("spawn exocald demo")
+}
+
+/// `exocald offline` on `log` (the report next to it).
+fn offline(log: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_exocald"))
+        .args(["offline", "--input"])
+        .arg(log)
+        .stdin(Stdio::null())
+        .output()
+        .expect("run exocald offline")
+}
+
+/// The line of `text` that starts with `key`.
+fn line<'a>(text: &'a str, key: &str) -> Option<&'a str> {
+    text.lines().find(|l| l.starts_with(key))
+}
+
+/// Checks `exocald offline` on a killed file that a linear scan reads `n` messages of: it
+/// recovers exactly those, says so and where the file was cut, and ends as a live session
+/// would. Returns its stdout.
+fn offline_reads_the_killed_file(file: &Path, n: u64, failures: &mut Vec<String>) -> String {
+    let out = offline(file);
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    );
+    let code = out.status.code();
+    let said = format!("recovered {n} messages (");
+    if !stderr.contains("was cut short")
+        || !stderr.contains(&said)
+        || !stderr.contains("the file ends")
+    {
+        failures.push(format!(
+            "{}: offline does not say it recovered {n} messages and where the file was cut:\n{stderr}",
+            file.display()
+        ));
+    }
+    // 66: killed while collecting (too short for the session rules); 0 or 65 (refused by
+    // validation, never "bad input"): killed after collecting, calibrated.
+    let judged = match code {
+        Some(66) => stderr.contains("session incomplete"),
+        Some(0) => true,
+        Some(65) => !stderr.contains("bad input"),
+        _ => false,
+    };
+    if !judged {
+        failures.push(format!(
+            "{}: offline exited {code:?}:\n{stderr}",
+            file.display()
+        ));
+    }
+    stdout
 }
 
 fn mcap_files(dir: &Path) -> Vec<PathBuf> {
@@ -115,6 +182,9 @@ fn a_killed_daemon_leaves_a_log_readable_up_to_its_last_flush() {
                 continue; // created, nothing flushed yet: nothing to recover
             }
             let (n, last, _) = linear_scan(&bytes);
+            if n > 0 {
+                offline_reads_the_killed_file(&file, n, &mut failures);
+            }
             if n == 0 && bytes.len() > 4096 {
                 failures.push(format!(
                     "run {run}: {} bytes but no readable message",
@@ -161,6 +231,73 @@ fn a_killed_daemon_leaves_a_log_readable_up_to_its_last_flush() {
     );
     assert!(failures.is_empty(), "{}", failures.join("\n"));
     assert!(!losses.is_empty(), "no log file was left by any run");
+}
+
+/// Killed once the daemon starts pushing (an event: its "pushing the tables" line): the log
+/// holds the whole collection window, so the recalibration from the killed file equals the
+/// uninterrupted session's, and `exocald recover` makes a complete file of it.
+#[test]
+fn a_session_killed_while_pushing_recalibrates_offline_to_the_live_result() {
+    let dir = temp_dir("push");
+    let reference = dir.join("reference");
+    let whole = demo(&reference, 1e6).output().expect("run exocald demo");
+    assert!(
+        whole.status.success(),
+        "{}",
+        String::from_utf8_lossy(&whole.stderr)
+    );
+    let expected = offline(&mcap_files(&reference)[0]);
+    let expected = String::from_utf8_lossy(&expected.stdout).into_owned();
+    let key = "held-out mean pose error:";
+    let expected = line(&expected, key)
+        .expect("the uninterrupted session calibrates")
+        .to_owned();
+
+    let killed = dir.join("killed");
+    let mut child = demo(&killed, SPEED)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn exocald demo");
+    let stderr = BufReader::new(child.stderr.take().unwrap());
+    let pushing = stderr
+        .lines()
+        .map_while(Result::ok)
+        .any(|l| l.contains("pushing the tables"));
+    let _ = child.kill(); // SIGKILL
+    let _ = child.wait();
+    assert!(pushing, "the demo ended without pushing");
+    let file = &mcap_files(&killed)[0];
+    let bytes = std::fs::read(file).unwrap();
+    let (n, _, clean) = linear_scan(&bytes);
+    assert!(!clean && n > 0, "{} messages, clean {clean}", n);
+    let mut failures = Vec::new();
+    let stdout = offline_reads_the_killed_file(file, n, &mut failures);
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+    assert_eq!(line(&stdout, key), Some(expected.as_str()), "{stdout}");
+    println!("killed while pushing: offline = uninterrupted session: {expected}");
+
+    // `exocald recover`: a complete file, read by its summary, with every message kept.
+    let out = dir.join("recovered.mcap");
+    let rec = Command::new(env!("CARGO_BIN_EXE_exocald"))
+        .arg("recover")
+        .arg(file)
+        .arg(&out)
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&rec.stdout);
+    assert!(
+        rec.status.success(),
+        "{said}{}",
+        String::from_utf8_lossy(&rec.stderr)
+    );
+    assert!(said.contains(&format!("recovered {n} messages")), "{said}");
+    println!("{said}");
+    let recovered = std::fs::read(&out).unwrap();
+    let summary = mcap::Summary::read(&recovered).unwrap().expect("a summary");
+    assert_eq!(summary.stats.unwrap().message_count, n);
+    assert_eq!(linear_scan(&recovered), (n, linear_scan(&bytes).1, true));
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
