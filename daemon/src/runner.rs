@@ -231,6 +231,15 @@ fn take_frame(rx: &Received, ingest: &mut Ingest, session: &mut Session, io: &mu
                 io.event(rx.timestamp, Level::Warning, &format!("bad frame: {e}"));
             }
         }
+        Event::Message(exocal_dbc::Message::Trigger(
+            exocal_dbc::TriggerCommand::StartCalibration,
+        )) => {
+            io.event(
+                rx.timestamp,
+                Level::Warning,
+                "trigger ignored (CAN Trigger frame): a session is running",
+            );
+        }
         Event::Message(_) | Event::Partial => {}
     }
 }
