@@ -8,16 +8,15 @@
 //! Every killed file is then fed to `exocald offline` as it is: it must read it (every message
 //! of every complete chunk, as many as the linear scan), warn how much it recovered and where
 //! the file was cut, and judge the recording as a live session would (66 for a session killed
-//! while collecting, a calibration otherwise). One more run is killed on an event, once the
-//! daemon starts pushing: its log holds the whole collection window, so `offline` must
-//! reproduce the uninterrupted session's result exactly; `exocald recover` writes it as a
-//! complete file that the mcap crate opens by its summary.
+//! while collecting, a calibration otherwise). A log cut after its collection window (as a
+//! kill during calibration or push leaves it) must recalibrate offline to exactly the
+//! uninterrupted session's result; `exocald recover` writes it as a complete file that the mcap
+//! crate opens by its summary.
 //!
 //! `cargo test -p exocald --test crash_mcap` runs `EXOCAL_CRASH_RUNS` kills (default 10, for
 //! CI); the documented figure is `EXOCAL_CRASH_RUNS=100`.
 //! Recovery of a killed file is documented in `docs/recover-mcap.md`.
 
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
@@ -233,55 +232,62 @@ fn a_killed_daemon_leaves_a_log_readable_up_to_its_last_flush() {
     assert!(!losses.is_empty(), "no log file was left by any run");
 }
 
-/// Killed once the daemon starts pushing (an event: its "pushing the tables" line): the log
-/// holds the whole collection window, so the recalibration from the killed file equals the
-/// uninterrupted session's, and `exocald recover` makes a complete file of it.
+/// A log cut as a kill during calibration or push leaves it — in the chunk after the one that
+/// holds the `/collection` record — recalibrates offline to the uninterrupted session's result
+/// (the record says which frames the live session used), and `exocald recover` writes it whole.
+/// (Cut, not killed: where a kill lands relative to that chunk's flush is a race; the random
+/// kills above feed `offline` too.)
 #[test]
-fn a_session_killed_while_pushing_recalibrates_offline_to_the_live_result() {
-    let dir = temp_dir("push");
-    let reference = dir.join("reference");
-    let whole = demo(&reference, 1e6).output().expect("run exocald demo");
+fn a_log_cut_after_its_collection_window_recalibrates_offline_to_the_live_result() {
+    let dir = temp_dir("cut");
+    let whole = demo(&dir, 1e6).output().expect("run exocald demo");
     assert!(
         whole.status.success(),
         "{}",
         String::from_utf8_lossy(&whole.stderr)
     );
-    let expected = offline(&mcap_files(&reference)[0]);
+    let log = &mcap_files(&dir)[0];
+    let expected = offline(log);
     let expected = String::from_utf8_lossy(&expected.stdout).into_owned();
     let key = "held-out mean pose error:";
     let expected = line(&expected, key)
-        .expect("the uninterrupted session calibrates")
+        .expect("the session calibrates")
         .to_owned();
 
-    let killed = dir.join("killed");
-    let mut child = demo(&killed, SPEED)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn exocald demo");
-    let stderr = BufReader::new(child.stderr.take().unwrap());
-    let pushing = stderr
-        .lines()
-        .map_while(Result::ok)
-        .any(|l| l.contains("pushing the tables"));
-    let _ = child.kill(); // SIGKILL
-    let _ = child.wait();
-    assert!(pushing, "the demo ended without pushing");
-    let file = &mcap_files(&killed)[0];
-    let bytes = std::fs::read(file).unwrap();
-    let (n, _, clean) = linear_scan(&bytes);
-    assert!(!clean && n > 0, "{} messages, clean {clean}", n);
+    // The chunk after the one holding /collection, cut in its middle.
+    let bytes = std::fs::read(log).unwrap();
+    let summary = mcap::Summary::read(&bytes)
+        .unwrap()
+        .expect("a finished log");
+    let chunks = &summary.chunk_indexes;
+    let holds_collection = chunks
+        .iter()
+        .position(|c| {
+            summary
+                .stream_chunk(&bytes, c)
+                .unwrap()
+                .any(|m| m.unwrap().channel.topic == "/collection")
+        })
+        .expect("a /collection record");
+    let next = chunks
+        .get(holds_collection + 1)
+        .expect("a chunk after the collection window");
+    let at = (next.chunk_start_offset + next.chunk_length / 2) as usize;
+    let cut = dir.join("cut.mcap");
+    std::fs::write(&cut, &bytes[..at]).unwrap();
+    let (n, _, clean) = linear_scan(&bytes[..at]);
+    assert!(!clean && n > 0, "{n} messages, clean {clean}");
     let mut failures = Vec::new();
-    let stdout = offline_reads_the_killed_file(file, n, &mut failures);
+    let stdout = offline_reads_the_killed_file(&cut, n, &mut failures);
     assert!(failures.is_empty(), "{}", failures.join("\n"));
     assert_eq!(line(&stdout, key), Some(expected.as_str()), "{stdout}");
-    println!("killed while pushing: offline = uninterrupted session: {expected}");
+    println!("cut after the collection window: offline = uninterrupted session: {expected}");
 
     // `exocald recover`: a complete file, read by its summary, with every message kept.
     let out = dir.join("recovered.mcap");
     let rec = Command::new(env!("CARGO_BIN_EXE_exocald"))
         .arg("recover")
-        .arg(file)
+        .arg(&cut)
         .arg(&out)
         .output()
         .unwrap();
@@ -296,7 +302,10 @@ fn a_session_killed_while_pushing_recalibrates_offline_to_the_live_result() {
     let recovered = std::fs::read(&out).unwrap();
     let summary = mcap::Summary::read(&recovered).unwrap().expect("a summary");
     assert_eq!(summary.stats.unwrap().message_count, n);
-    assert_eq!(linear_scan(&recovered), (n, linear_scan(&bytes).1, true));
+    assert_eq!(
+        linear_scan(&recovered),
+        (n, linear_scan(&bytes[..at]).1, true)
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -84,11 +84,13 @@ fn figure(out: &mut String, id: &str, caption: &str, svg: Result<String, PlotErr
 
 /// `x` to four significant digits.
 fn sig4(x: f64) -> String {
-    let mag = if x == 0.0 || !x.is_finite() {
-        0
-    } else {
-        x.abs().log10().floor() as i32
-    };
+    if x == 0.0 {
+        return "0".into();
+    }
+    if !x.is_finite() {
+        return format!("{x}");
+    }
+    let mag = x.abs().log10().floor() as i32;
     let decimals = (3 - mag).clamp(0, 12) as usize;
     format!("{x:.decimals$}")
 }

@@ -387,7 +387,8 @@ pub fn histogram(
             lo + k as f64 * width
         }
     };
-    let xs = lo..hi + if b.overflow { 2.0 * width } else { 0.5 * width };
+    // A bin and a half of room right of the last bar (or of the overflow bar).
+    let xs = lo..hi + if b.overflow { 3.0 * width } else { 1.5 * width };
     let top = counts.iter().flatten().fold(0.0f64, |m, &c| m.max(c)) * 1.1;
     let ys = 0.0..top.max(1.0);
     let mut svg = String::new();

@@ -114,22 +114,32 @@ impl Lines {
 
     /// Waits for the next line containing `needle` (the guard: `limit`), and returns it.
     fn wait_for(&mut self, needle: &str, limit: Duration) -> String {
+        self.wait_for_each(&[needle], limit).remove(0)
+    }
+
+    /// Waits until a line containing each of `needles` has come, in any order (the guard:
+    /// `limit`); returns those lines, in the order of `needles`.
+    fn wait_for_each(&mut self, needles: &[&str], limit: Duration) -> Vec<String> {
         let deadline = Instant::now() + limit;
-        loop {
+        let mut found: Vec<Option<String>> = vec![None; needles.len()];
+        while found.iter().any(Option::is_none) {
             let left = deadline.saturating_duration_since(Instant::now());
             match self.rx.recv_timeout(left) {
                 Ok(line) => {
                     self.seen.push(line.clone());
-                    if line.contains(needle) {
-                        return line;
+                    if let Some(k) = (0..needles.len())
+                        .find(|&k| found[k].is_none() && line.contains(needles[k]))
+                    {
+                        found[k] = Some(line);
                     }
                 }
                 Err(e) => panic!(
-                    "no line with {needle:?} ({e:?} after {limit:?}); lines so far:\n{}",
+                    "no line with {needles:?} ({e:?} after {limit:?}); lines so far:\n{}",
                     self.seen.join("\n")
                 ),
             }
         }
+        found.into_iter().flatten().collect()
     }
 }
 
@@ -625,7 +635,7 @@ fn serve_runs_a_session_per_trigger_and_stops_on_sigterm() {
         &[
             ("min_duration_s", "3.0".into()),
             ("max_duration_s", "3.0".into()),
-            ("excitation_required", "0.0".into()),
+            ("excitation_required", "0.01".into()),
             ("min_samples", "50".into()),
             ("grid_hz", "50.0".into()),
         ],
@@ -668,9 +678,11 @@ fn serve_runs_a_session_per_trigger_and_stops_on_sigterm() {
     lines.wait_for("logging to", HANG);
     signal(&daemon, libc::SIGUSR1);
     trigger();
-    lines.wait_for("trigger ignored (SIGUSR1): a session is running", HANG);
-    lines.wait_for(
-        "trigger ignored (CAN Trigger frame): a session is running",
+    lines.wait_for_each(
+        &[
+            "trigger ignored (SIGUSR1): a session is running",
+            "trigger ignored (CAN Trigger frame): a session is running",
+        ],
         HANG,
     );
     lines.wait_for("idle: waiting for a trigger", HANG);
