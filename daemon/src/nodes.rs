@@ -380,7 +380,7 @@ impl Listing {
             "d (mm)",
             "θ off (°)",
             "τ (s)",
-            "σ (mrad/s)",
+            "σ (rad/s)",
             "last push"
         )];
         for n in &self.nodes {
@@ -392,7 +392,7 @@ impl Listing {
             };
             let line = match (&n.table, n.answered) {
                 (Some(t), _) => format!(
-                    "{:<7} {:>2} {:<10} {:>9.3} {:>9.4} {:>9.3} {:>10.4} {:>7.3} {:>11.3}  {vs}",
+                    "{:<7} {:>2} {:<10} {:>9.3} {:>9.4} {:>9.3} {:>10.4} {:>7.3} {:>11.4}  {vs}",
                     n.node,
                     n.id,
                     format!("{:#010x}", n.crc.unwrap_or(0)),
@@ -401,7 +401,7 @@ impl Listing {
                     t.d_m * 1e3,
                     t.theta_offset_rad.to_degrees(),
                     t.tau_s,
-                    t.sigma_rad_s * 1e3
+                    t.sigma_rad_s
                 ),
                 (None, true) => format!(
                     "{:<7} {:>2} {:<10} holds no table  {vs}",
