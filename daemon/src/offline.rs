@@ -128,7 +128,7 @@ pub fn read_session_log(
         return Ok((readers::read_mcap_session(bytes).map_err(bad)?, None));
     }
     let (recovery, complete) = recover::recover_in_memory(bytes)
-        .map_err(|e| DaemonError::Input(format!("{}: MCAP log cut short: {e}", path.display())))?;
+        .map_err(|e| DaemonError::Input(format!("{}: {e}", path.display())))?;
     let session = readers::read_mcap_session(&complete).map_err(|e| {
         DaemonError::Input(format!(
             "{}: {e} (the log was cut short: {recovery})",
