@@ -18,7 +18,7 @@
 //!   chunks, and where the input ends ([`End`]);
 //! - nothing here panics on any input.
 
-use std::collections::BTreeSet;
+use std::collections::BTreeMap;
 use std::fmt;
 use std::io::{Cursor, Seek, Write};
 
@@ -227,26 +227,31 @@ fn chunk_records(header: mcap::records::ChunkHeader, data: &[u8]) -> Result<Vec<
 }
 
 /// Copies records into the new file, keeping ids, and counts the messages.
+/// A schema as the writer compares it: name, encoding, data.
+type SchemaKey = (String, String, Vec<u8>);
+/// A channel as the writer compares it: schema id, topic, encoding, metadata.
+type ChannelKey = (u16, String, String, BTreeMap<String, String>);
+
 struct Copier<W: Write + Seek> {
     writer: mcap::Writer<W>,
     messages: u64,
     log_times: Option<(u64, u64)>,
-    /// Channels seen, so a message on an unknown channel (which the writer would refuse) marks
-    /// the chunk damaged instead of failing the recovery.
-    channels: BTreeSet<u16>,
+    /// Schemas and channels copied so far, by id: a record the writer would refuse (an id
+    /// redefined differently, a channel of an unknown schema, a message on an unknown channel)
+    /// marks its chunk damaged instead of failing the recovery ([`Copier::check`]).
+    schemas: BTreeMap<u16, SchemaKey>,
+    channels: BTreeMap<u16, ChannelKey>,
 }
 
 impl<W: Write + Seek> Copier<W> {
+    /// Copies `kept` (checked by [`Copier::check`]: only I/O can fail here).
     fn copy(&mut self, kept: Vec<Kept>) -> Result<(), mcap::McapError> {
         for k in kept {
             match k {
-                Kept::Schema(header, data) => {
-                    self.writer.add_schema_with_id(
-                        header.id,
-                        &header.name,
-                        &header.encoding,
-                        &data,
-                    )?;
+                Kept::Schema(h, data) => {
+                    self.writer
+                        .add_schema_with_id(h.id, &h.name, &h.encoding, &data)?;
+                    self.schemas.insert(h.id, (h.name, h.encoding, data));
                 }
                 Kept::Channel(c) => {
                     self.writer.add_channel_with_id(
@@ -256,7 +261,8 @@ impl<W: Write + Seek> Copier<W> {
                         &c.message_encoding,
                         &c.metadata,
                     )?;
-                    self.channels.insert(c.id);
+                    self.channels
+                        .insert(c.id, (c.schema_id, c.topic, c.message_encoding, c.metadata));
                 }
                 Kept::Message(header, data) => {
                     self.writer.write_to_known_channel(&header, &data)?;
@@ -272,15 +278,45 @@ impl<W: Write + Seek> Copier<W> {
         Ok(())
     }
 
-    /// Whether every message in `kept` has its channel (defined earlier or in `kept` itself).
-    fn channels_known(&self, kept: &[Kept]) -> Result<(), String> {
-        let mut known = self.channels.clone();
+    /// Why the writer would refuse a record of `kept`, if it would: a schema id 0 or redefined
+    /// differently, a channel redefined differently or of a schema never defined, a message on
+    /// a channel never defined (earlier, or in `kept` itself).
+    fn check(&self, kept: &[Kept]) -> Result<(), String> {
+        let mut schemas: BTreeMap<u16, SchemaKey> = BTreeMap::new();
+        let mut channels: BTreeMap<u16, ChannelKey> = BTreeMap::new();
         for k in kept {
             match k {
-                Kept::Channel(c) => {
-                    known.insert(c.id);
+                Kept::Schema(h, data) => {
+                    let key = (h.name.clone(), h.encoding.clone(), data.clone());
+                    let known = self.schemas.get(&h.id).or(schemas.get(&h.id));
+                    if h.id == 0 || known.is_some_and(|s| *s != key) {
+                        return Err(format!("schema {} redefined or invalid", h.id));
+                    }
+                    schemas.insert(h.id, key);
                 }
-                Kept::Message(h, _) if !known.contains(&h.channel_id) => {
+                Kept::Channel(c) => {
+                    let key = (
+                        c.schema_id,
+                        c.topic.clone(),
+                        c.message_encoding.clone(),
+                        c.metadata.clone(),
+                    );
+                    let schema_known = c.schema_id == 0
+                        || self.schemas.contains_key(&c.schema_id)
+                        || schemas.contains_key(&c.schema_id);
+                    let known = self.channels.get(&c.id).or(channels.get(&c.id));
+                    if !schema_known || known.is_some_and(|k| *k != key) {
+                        return Err(format!(
+                            "channel {} redefined or of a schema never defined",
+                            c.id
+                        ));
+                    }
+                    channels.insert(c.id, key);
+                }
+                Kept::Message(h, _)
+                    if !self.channels.contains_key(&h.channel_id)
+                        && !channels.contains_key(&h.channel_id) =>
+                {
                     return Err(format!(
                         "a message on channel {} never defined",
                         h.channel_id
@@ -321,7 +357,8 @@ pub fn recover<W: Write + Seek>(
         writer: mcap::Writer::with_options(out, options)?,
         messages: 0,
         log_times: None,
-        channels: BTreeSet::new(),
+        schemas: BTreeMap::new(),
+        channels: BTreeMap::new(),
     };
     let mut chunks = 0u64;
     let end = loop {
@@ -373,7 +410,7 @@ pub fn recover<W: Write + Seek>(
             },
             other => keep(other).into_iter().collect(),
         };
-        if let Err(why) = copier.channels_known(&kept) {
+        if let Err(why) = copier.check(&kept) {
             break damaged(why);
         }
         copier.copy(kept)?;
@@ -639,5 +676,88 @@ mod tests {
         let counts: BTreeMap<String, u64> = serde_json::from_slice(&run.stdout).unwrap();
         assert_eq!(counts.values().sum::<u64>(), r.messages);
         assert_eq!(counts.len(), Topic::ALL.len(), "{counts:?}");
+    }
+
+    /// Hand-made records of an unchunked file: opcode, length, body.
+    fn record(op: u8, body: &[u8]) -> Vec<u8> {
+        let mut r = vec![op];
+        r.extend_from_slice(&(body.len() as u64).to_le_bytes());
+        r.extend_from_slice(body);
+        r
+    }
+
+    fn string(s: &str) -> Vec<u8> {
+        let mut b = (s.len() as u32).to_le_bytes().to_vec();
+        b.extend_from_slice(s.as_bytes());
+        b
+    }
+
+    fn schema(id: u16, name: &str) -> Vec<u8> {
+        let body = [
+            id.to_le_bytes().to_vec(),
+            string(name),
+            string("jsonschema"),
+            string("{}"),
+        ]
+        .concat();
+        record(op::SCHEMA, &body)
+    }
+
+    fn channel(id: u16, schema: u16) -> Vec<u8> {
+        let body = [
+            id.to_le_bytes().to_vec(),
+            schema.to_le_bytes().to_vec(),
+            string("/t"),
+            string("json"),
+            0u32.to_le_bytes().to_vec(),
+        ]
+        .concat();
+        record(op::CHANNEL, &body)
+    }
+
+    fn message(channel: u16, t: u64) -> Vec<u8> {
+        let body = [
+            channel.to_le_bytes().to_vec(),
+            1u32.to_le_bytes().to_vec(),
+            t.to_le_bytes().to_vec(),
+            t.to_le_bytes().to_vec(),
+            b"{}".to_vec(),
+        ]
+        .concat();
+        record(op::MESSAGE, &body)
+    }
+
+    #[test]
+    fn records_the_writer_would_refuse_are_damage_not_a_failure() {
+        let head = [
+            mcap::MAGIC.to_vec(),
+            record(op::HEADER, &[string(""), string("hand")].concat()),
+            schema(1, "a"),
+            channel(1, 1),
+            message(1, 5),
+        ]
+        .concat();
+        let (r, out) = recover_in_memory(&head).unwrap();
+        assert_eq!((r.messages, r.chunks, r.log_times), (1, 0, Some((5, 5))));
+        assert_eq!(messages(&out).len(), 1);
+        for (bad, why) in [
+            (schema(1, "b"), "schema 1 redefined"),
+            (schema(0, "a"), "schema 0 redefined or invalid"),
+            (
+                channel(2, 7),
+                "channel 2 redefined or of a schema never defined",
+            ),
+            (message(9, 6), "a message on channel 9 never defined"),
+        ] {
+            let file = [head.clone(), bad, message(1, 7)].concat();
+            let (r, out) = recover_in_memory(&file).unwrap();
+            assert_eq!(r.messages, 1, "{r}");
+            assert!(
+                matches!(r.end, End::Damaged { at, .. } if at as usize == head.len()),
+                "{r}"
+            );
+            assert!(r.to_string().contains(why), "{r}");
+            assert!(mcap::Summary::read(&out).unwrap().is_some());
+        }
     }
 }
