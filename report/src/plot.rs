@@ -148,6 +148,9 @@ pub fn tick_labels(range: &Range<f64>) -> impl Fn(&f64) -> String {
     }
 }
 
+/// An axis's tick label formatter.
+pub type TickLabels = Box<dyn Fn(&f64) -> String>;
+
 /// Most significant digits a tick label shows.
 pub const MAX_DIGITS: i32 = 6;
 
@@ -155,7 +158,7 @@ pub const MAX_DIGITS: i32 = 6;
 /// of [`tick_labels`], or, when they would need more than [`MAX_DIGITS`] digits (a narrow
 /// range far from zero: 1e9 + 0…7), the labels of the values minus an offset that the
 /// description names (`"time (s) − 1e9"`).
-pub fn axis_labels(range: &Range<f64>, desc: &str) -> (Box<dyn Fn(&f64) -> String>, String) {
+pub fn axis_labels(range: &Range<f64>, desc: &str) -> (TickLabels, String) {
     let (step, mag) = exponents(range);
     let span = (range.end - range.start).abs();
     if mag - step < MAX_DIGITS || !(span > 0.0 && span.is_finite()) {
