@@ -44,7 +44,13 @@ pub enum Command {
     /// interface missing or a node unreachable; 74 I/O error; 75 interrupted (nothing pushed);
     /// 78 bad configuration.
     Calibrate(SessionArgs),
-    /// Serve: keep listening, and calibrate each time a trigger frame arrives on CAN.
+    /// Serve: keep listening, and run a session on each CAN Trigger frame or SIGUSR1.
+    ///
+    /// Idle, it feeds the watchdog and says so on stderr ("idle: waiting for a trigger"). A
+    /// trigger that arrives during a session is ignored, and said so (stderr; a frame also in
+    /// the session's log). Exit status: 0 stopped by SIGTERM/SIGINT while idle; 75 stopped
+    /// during a session (nothing pushed); 69 CAN interface missing; 74 I/O error; 78 bad
+    /// configuration. A session that fails is reported and the daemon waits again.
     Run(SessionArgs),
     /// Emulated suit and daemon in one process, on the in-process bus: no CAN, no root.
     ///
