@@ -17,6 +17,8 @@
 //! | `demo` | exocal-hil and the daemon in one process on the in-process bus (feature `demo`, on by default) |
 //! | [`offline`] | recalibration from a recorded MCAP, candump or CSV file, through the same pipeline |
 //! | [`calreport`] | the HTML report of a session (live or offline), from what the pipeline computed |
+//! | [`nodes`] | `exocald nodes`: every joint node's table, read over the bus, against the last push |
+//! | [`recover`] | a session log cut short (kill -9, power loss) read record by record and rewritten complete |
 //! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
 //! | [`shutdown`] | SIGTERM/SIGINT as a flag a session waits on |
 //! | [`app`] | what each subcommand does |
@@ -32,9 +34,11 @@ pub mod demo;
 pub mod exit;
 pub mod ingest;
 pub mod mcaplog;
+pub mod nodes;
 pub mod offline;
 pub mod pipeline;
 pub mod push;
+pub mod recover;
 pub mod report;
 pub mod runner;
 pub mod session;

@@ -12,6 +12,9 @@
 //!   that never finished collecting) is replayed whole. A candump log is
 //!   replayed whole: `--export-candump` writes exactly the frames the calibration used, so it
 //!   replays to the same result;
+//! - an MCAP log cut short (a killed daemon's: no summary, no footer) is read through
+//!   [`crate::recover`]: every message of every complete chunk; the run warns how much was
+//!   recovered and where the file was cut ([`read_session_log`]);
 //! - CSV samples (`t,q1,…,q7,x,y,z,qw,qx,qy,qz`, see [`exocal_report::readers`]) bypass
 //!   alignment; the EM steps at the file's median sample interval (`session.grid_hz` when they
 //!   agree to [`CSV_RATE_TOLERANCE`]);
@@ -41,6 +44,7 @@ use crate::collect::{Collected, Collector};
 use crate::config::Config;
 use crate::exit::DaemonError;
 use crate::pipeline::{self, Calibrated};
+use crate::recover::{self, Recovery};
 use crate::runner::{SessionError, SessionSummary};
 use crate::session::{Phase, Session};
 
@@ -111,8 +115,35 @@ pub enum Input {
     Samples(Vec<TimedSample>),
 }
 
-/// Reads `bytes` (from `path`, for the messages) as `format`.
-pub fn read_input(path: &Path, bytes: &[u8], format: Format) -> Result<Input, DaemonError> {
+/// A daemon session log, finished or cut short: a finished file is read as it is; one without
+/// its end magic (a killed daemon's) is first recovered in memory ([`crate::recover`]: every
+/// message of every complete chunk), and the [`Recovery`] says what was kept.
+pub fn read_session_log(
+    path: &Path,
+    bytes: &[u8],
+) -> Result<(readers::McapSession, Option<Recovery>), DaemonError> {
+    let bad = |e: readers::ReadError| DaemonError::Input(format!("{}: {e}", path.display()));
+    if recover::is_finished(bytes) {
+        return Ok((readers::read_mcap_session(bytes).map_err(bad)?, None));
+    }
+    let (recovery, complete) = recover::recover_in_memory(bytes)
+        .map_err(|e| DaemonError::Input(format!("{}: {e}", path.display())))?;
+    let session = readers::read_mcap_session(&complete).map_err(|e| {
+        DaemonError::Input(format!(
+            "{}: {e} (the log was cut short: {recovery})",
+            path.display()
+        ))
+    })?;
+    Ok((session, Some(recovery)))
+}
+
+/// Reads `bytes` (from `path`, for the messages) as `format`; for an MCAP log cut short, also
+/// what was recovered of it ([`read_session_log`]).
+pub fn read_input(
+    path: &Path,
+    bytes: &[u8],
+    format: Format,
+) -> Result<(Input, Option<Recovery>), DaemonError> {
     let bad = |e: readers::ReadError| DaemonError::Input(format!("{}: {e}", path.display()));
     let text = || {
         std::str::from_utf8(bytes).map_err(|e| {
@@ -125,7 +156,7 @@ pub fn read_input(path: &Path, bytes: &[u8], format: Format) -> Result<Input, Da
     };
     match format {
         Format::Mcap => {
-            let session = readers::read_mcap_session(bytes).map_err(bad)?;
+            let (session, recovery) = read_session_log(path, bytes)?;
             let mut frames = session.frames;
             if let Some(n) = session.collection_frames {
                 let n = usize::try_from(n).unwrap_or(usize::MAX);
@@ -139,10 +170,16 @@ pub fn read_input(path: &Path, bytes: &[u8], format: Format) -> Result<Input, Da
                 }
                 frames.truncate(n);
             }
-            Ok(Input::Frames(frames))
+            Ok((Input::Frames(frames), recovery))
         }
-        Format::Candump => Ok(Input::Frames(readers::parse_candump(text()?).map_err(bad)?)),
-        Format::Csv => Ok(Input::Samples(readers::parse_csv(text()?).map_err(bad)?)),
+        Format::Candump => Ok((
+            Input::Frames(readers::parse_candump(text()?).map_err(bad)?),
+            None,
+        )),
+        Format::Csv => Ok((
+            Input::Samples(readers::parse_csv(text()?).map_err(bad)?),
+            None,
+        )),
     }
 }
 
@@ -349,7 +386,23 @@ pub fn run(
         Some(f) => f,
         None => detect_format(path, &bytes)?,
     };
-    let input = read_input(path, &bytes, format)?;
+    let (input, recovery) = read_input(path, &bytes, format)?;
+    if let Some(r) = &recovery {
+        eprintln!(
+            "exocald: warning: {} was cut short (no summary or footer: the daemon was killed or \
+             lost power): {r}; `exocald recover` writes it as a complete, indexed file",
+            path.display()
+        );
+    }
+    let source = match &recovery {
+        Some(r) => format!(
+            "offline: {} ({format}, cut short: {} messages, {:.1} s recovered)",
+            path.display(),
+            r.messages,
+            r.span_s()
+        ),
+        None => format!("offline: {} ({format})", path.display()),
+    };
     if let (Input::Samples(_), Some(_)) = (&input, &opts.export_candump) {
         return Err(DaemonError::Usage(
             "--export-candump needs a frame input (MCAP or candump), not CSV samples".into(),
@@ -372,7 +425,6 @@ pub fn run(
         .file_name()
         .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
     let title = format!("exocald offline recalibration — {name}");
-    let source = format!("offline: {} ({format})", path.display());
     let mut summary = SessionSummary::new(path.clone());
     summary.collected(&replayed.collected);
     summary.report_path = Some(report_path.clone());

@@ -242,6 +242,15 @@ impl Io<'_> {
                     self.event(rx.timestamp, Level::Warning, &format!("bad frame: {e}"));
                 }
             }
+            Event::Message(exocal_dbc::Message::Trigger(
+                exocal_dbc::TriggerCommand::StartCalibration,
+            )) => {
+                self.event(
+                    rx.timestamp,
+                    Level::Warning,
+                    "trigger ignored (CAN Trigger frame): a session is running",
+                );
+            }
             Event::Message(_) | Event::Partial => {}
         }
     }

@@ -151,7 +151,8 @@ fn offline_recalibration_agrees_with_the_live_session() {
                 &std::fs::read(&live.log_path).unwrap(),
                 Format::Mcap,
             )
-            .unwrap(),
+            .unwrap()
+            .0,
             &config,
         )
         .unwrap()

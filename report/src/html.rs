@@ -19,8 +19,8 @@ use crate::input::{
     TimedSample, JOINTS, PARAMS,
 };
 use crate::plot::{
-    bars, histogram, line_panels, Distribution, Panel, PlotError, Series, ACTUAL, CALIBRATED,
-    JOINT_COLOURS, NOMINAL,
+    bars, histogram, line_panels, Binning, Distribution, Panel, PlotError, Series, ACTUAL,
+    CALIBRATED, JOINT_COLOURS, NOMINAL,
 };
 
 /// The figure ids, in page order.
@@ -88,6 +88,32 @@ fn held_out_table(input: &ReportInput) -> &DhTable<JOINTS> {
         .judged
         .as_ref()
         .unwrap_or(&input.calibration.calibrated)
+}
+
+/// `x` to four significant digits.
+fn sig4(x: f64) -> String {
+    if x == 0.0 {
+        return "0".into();
+    }
+    if !x.is_finite() {
+        return format!("{x}");
+    }
+    let mag = x.abs().log10().floor() as i32;
+    let decimals = (3 - mag).clamp(0, 12) as usize;
+    format!("{x:.decimals$}")
+}
+
+/// What a histogram's bins cover, for its caption.
+fn bins_caption(b: &Binning, unit: &str) -> String {
+    let (lo, hi) = (sig4(b.lo), sig4(b.hi));
+    if b.overflow {
+        format!(
+            "Bins from {lo} to {hi} {unit}; the bar marked \"&gt;\" holds every sample beyond \
+             (outliers)."
+        )
+    } else {
+        format!("Bins from {lo} to {hi} {unit}: every sample of both series.")
+    }
 }
 
 fn all_samples(input: &ReportInput) -> Vec<TimedSample> {
@@ -162,13 +188,10 @@ fn trajectories(input: &ReportInput) -> (Result<String, PlotError>, Result<Strin
     (time, plane)
 }
 
-fn residual_charts(
-    input: &ReportInput,
-) -> (
-    Result<String, PlotError>,
-    Result<String, PlotError>,
-    &'static str,
-) {
+/// A histogram, drawn, and its bins.
+type Histogram = Result<(String, Binning), PlotError>;
+
+fn residual_charts(input: &ReportInput) -> (Histogram, Histogram, &'static str) {
     let (samples, which) = if input.held_out.is_empty() {
         (&input.fit, "fitted samples (no held-out slice)")
     } else {
@@ -617,17 +640,29 @@ pub fn render(input: &ReportInput) -> String {
     let (pos, rot, which) = residual_charts(input);
     let _ = writeln!(out, "<h2>Residuals before and after ({which})</h2>");
     out.push_str("<div class=\"pair\">");
+    let caption = |what: &str, unit: &str, h: &Histogram| match h {
+        Ok((_, b)) => format!("{what} {}", bins_caption(b, unit)),
+        Err(_) => what.to_string(),
+    };
     figure(
         &mut out,
         FIGURES[2],
-        "Position error per sample (pose error in the model's tool frame).",
-        pos,
+        &caption(
+            "Position error per sample (pose error in the model's tool frame).",
+            "mm",
+            &pos,
+        ),
+        pos.map(|(svg, _)| svg),
     );
     figure(
         &mut out,
         FIGURES[3],
-        "Rotation error per sample (rotation-vector norm).",
-        rot,
+        &caption(
+            "Rotation error per sample (rotation-vector norm).",
+            "mrad",
+            &rot,
+        ),
+        rot.map(|(svg, _)| svg),
     );
     out.push_str("</div>\n");
 
