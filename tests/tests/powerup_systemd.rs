@@ -436,7 +436,7 @@ fn stop_mid_session_leaves_a_finished_log_and_no_partial_table() {
     let before = held_crcs();
     assert_eq!(before, boot.held);
     // `systemctl start` returns on READY=1; the daemon's status says when it collects (its
-    // window is half a minute of its own clock): stop it then, however slow the guest is.
+    // window is 45 s of its own clock): stop it then, however slow the guest is.
     let start = Command::new("systemctl")
         .args(["start", UNIT])
         .status()
