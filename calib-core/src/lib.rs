@@ -63,6 +63,7 @@ pub mod drift;
 pub mod drift_em;
 pub mod error;
 pub mod frames;
+mod kalman;
 pub mod linalg;
 pub mod ls;
 pub mod metrics;

@@ -406,7 +406,7 @@ fn dot_prefix<const P: usize>(x: &[f64; P], y: &[f64; P], n: usize) -> f64 {
     x[..n].iter().zip(&y[..n]).map(|(a, b)| a * b).sum()
 }
 
-fn dot<const P: usize>(x: &[f64; P], y: &[f64; P]) -> f64 {
+pub(crate) fn dot<const P: usize>(x: &[f64; P], y: &[f64; P]) -> f64 {
     x.iter().zip(y).map(|(a, b)| a * b).sum()
 }
 
@@ -532,6 +532,21 @@ impl<const P: usize> Analysis<P> {
         let mut xs = [0.0; P];
         for k in 0..self.rank {
             let w = self.az[k] / (self.singular[k] * self.singular[k] + lambda);
+            for (x, vk) in xs.iter_mut().zip(&self.v[k]) {
+                *x += w * vk;
+            }
+        }
+        core::array::from_fn(|p| xs[p] / self.scale[p])
+    }
+
+    /// `C g` for the parameter covariance `C` (physical units, row noise variance 1): the
+    /// Gauss-Newton step of this problem for another gradient `g = Hᵀ(y − H x)`, truncated to
+    /// the numerical rank like [`Analysis::step`] (`solve(Hᵀy) = step(0.0)`).
+    pub fn solve(&self, g: &[f64; P]) -> [f64; P] {
+        let gs: [f64; P] = core::array::from_fn(|p| g[p] / self.scale[p]);
+        let mut xs = [0.0; P];
+        for k in 0..self.rank {
+            let w = dot(&self.v[k], &gs) / (self.singular[k] * self.singular[k]);
             for (x, vk) in xs.iter_mut().zip(&self.v[k]) {
                 *x += w * vk;
             }
