@@ -43,8 +43,8 @@ use nalgebra::Vector6;
 
 use crate::drift::DriftParams;
 use crate::error::CalibError;
-use crate::kalman::{filter, linearise_into, smooth, Params, Stats, TwoStage};
 pub use crate::kalman::DriftSlot;
+use crate::kalman::{filter, linearise_into, smooth, Params, Stats, TwoStage};
 use crate::linalg::{Analysis, GramAccumulator, QrAccumulator};
 use crate::ls::{positive, validate_samples, InputChecks};
 use crate::metrics::{expected_table_error, TableError};
@@ -54,10 +54,20 @@ use crate::paper_em::MAX_EM_ITERATIONS;
 /// The iteration runs on at least this many samples (fewer only if the session is shorter).
 pub const MIN_ITERATION_SAMPLES: usize = 1000;
 
+/// The iteration moves to a smaller stride when a joint's estimated correlation time is below
+/// this many iterated steps.
+pub const TAU_STEPS: f64 = 12.0;
+
 /// Relative change of any drift parameter since the last exact geometry information after
 /// which it is recomputed (the geometry step's preconditioner).
-pub const REFRESH: f64 = 0.25;
-fn refresh() -> f64 { #[cfg(feature = "std")] if let Ok(v) = std::env::var("REFRESH") { return v.parse().unwrap(); } REFRESH }
+pub const REFRESH: f64 = 3.0;
+fn refresh() -> f64 {
+    #[cfg(feature = "std")]
+    if let Ok(v) = std::env::var("REFRESH") {
+        return v.parse().unwrap();
+    }
+    REFRESH
+}
 
 /// Options of [`em_drift`].
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -102,9 +112,9 @@ impl<const N: usize> DriftEmOptions<N> {
         DriftEmOptions {
             dt,
             max_iterations: 100,
-            tolerance: 1e-2,
+            tolerance: 0.5,
             param_tolerance: 1e-2,
-            se_tolerance: 1e-2,
+            se_tolerance: 0.1,
             max_stride: 4,
             require_convergence: false,
             initial_tau: 3.0,
@@ -170,9 +180,7 @@ fn q_joint(phi: f64, q: f64, k: f64, e0: f64, s00: f64, s10: f64, s11: f64) -> f
     -0.5 * (libm::log(p0) + e0 / p0 + (k - 1.0) * libm::log(q) + (s11 - 2.0 * phi * s10 + phi * phi * s00) / q)
 }
 
-const MACKAY: bool = true;
-
-fn m_step<const N: usize>(st: &Stats<N>, par: &Params<N>, kn: usize, noise_floor: f64) -> Params<N> {
+fn m_step<const N: usize>(st: &Stats<N>, par: &Params<N>, kn: usize, noise_floor: f64, leverage: bool) -> Params<N> {
     let k = kn as f64;
     let mut out = *par;
     for j in 0..N {
@@ -212,7 +220,12 @@ fn m_step<const N: usize>(st: &Stats<N>, par: &Params<N>, kn: usize, noise_floor
         // leverage-corrected update res / (K (1 − c)) has the same fixed point and gets there
         // at once when res and var scale with r.
         let c = st.var[i] / (k * par.r[i]);
-        out.r[i] = if MACKAY && c < 0.995 { st.res[i] / (k * (1.0 - c)) } else { (st.res[i] + st.var[i]) / k }.max(noise_floor);
+        out.r[i] = if leverage && c < 0.995 {
+            st.res[i] / (k * (1.0 - c))
+        } else {
+            (st.res[i] + st.var[i]) / k
+        }
+        .max(noise_floor);
     }
     out
 }
@@ -282,7 +295,12 @@ impl<const N: usize, const P: usize> Iterate<N, P> {
     }
 
     fn is_finite(&self) -> bool {
-        self.x.iter().chain(&self.lphi).chain(&self.lq).chain(&self.lr).all(|v| v.is_finite())
+        self.x
+            .iter()
+            .chain(&self.lphi)
+            .chain(&self.lq)
+            .chain(&self.lr)
+            .all(|v| v.is_finite())
     }
 }
 
@@ -331,13 +349,14 @@ fn qr_information<const N: usize, const P: usize>(
     Ok(qr.analyse(rank_tolerance))
 }
 
-/// The drift parameters of a decimated session (step `stride·Δt`) at the step Δt: the same
-/// stationary variance, `φ = φ_s^{1/stride}`.
-fn at_unit_step<const N: usize>(par: &Params<N>, stride: usize) -> Params<N> {
+/// The drift parameters at the step `from·Δt` converted to the step `to·Δt` (a decimated
+/// session's drift is the same Gauss-Markov process): the same stationary variance,
+/// `φ_to = φ_from^{to/from}`.
+fn restride<const N: usize>(par: &Params<N>, from: usize, to: usize) -> Params<N> {
     let mut out = *par;
     for j in 0..N {
         let v = par.q[j] / (1.0 - par.phi[j] * par.phi[j]);
-        let phi = libm::pow(par.phi[j], 1.0 / stride as f64);
+        let phi = libm::pow(par.phi[j], to as f64 / from as f64).min(1.0 - 1e-9);
         out.phi[j] = phi;
         out.q[j] = v * (1.0 - phi * phi);
     }
@@ -352,7 +371,9 @@ fn dbg<const N: usize>(w: &dyn core::fmt::Debug, e: &CalibError, par: &Params<N>
 #[cfg(feature = "std")]
 macro_rules! trace { ($($t:tt)*) => { if std::env::var("EMDBG").is_ok() { std::eprintln!($($t)*); } } }
 #[cfg(not(feature = "std"))]
-macro_rules! trace { ($($t:tt)*) => {} }
+macro_rules! trace {
+    ($($t:tt)*) => {};
+}
 
 /// SQUAREM's extrapolation steps are bounded by this, then by four times more after each
 /// extrapolation that used the whole bound (the scheme of Varadhan & Roland's `squarem`).
@@ -401,17 +422,20 @@ pub fn em_drift<const N: usize, const P: usize>(
         });
     }
     let kn = samples.len();
-    let stride = (kn / MIN_ITERATION_SAMPLES).clamp(1, opts.max_stride);
-    let ks = kn.div_ceil(stride);
+    let mut stride = (kn / MIN_ITERATION_SAMPLES).clamp(1, opts.max_stride);
+    let mut ks = kn.div_ceil(stride);
     let floor = opts.noise_floor;
 
     // 1. The iterated samples, linearised at the start.
-    let sub = &mut workspace[..ks];
-    let prepared = start.prepare();
+    let mut g_ref = *start;
     let mut cols = [[Vector6::zeros(); N]; 4];
-    for (slot, s) in sub.iter_mut().zip(samples.iter().step_by(stride)) {
-        linearise_into(&prepared, s, &mut cols, slot);
-    }
+    let mut linearise_subset = |g: &DhTable<N>, stride: usize, ws: &mut [DriftSlot<N>]| {
+        let prepared = g.prepare();
+        for (slot, s) in ws.iter_mut().zip(samples.iter().step_by(stride)) {
+            linearise_into(&prepared, s, &mut cols, slot);
+        }
+    };
+    linearise_subset(&g_ref, stride, &mut workspace[..ks]);
     let dt_s = opts.dt * stride as f64;
     let phi0 = libm::exp(-dt_s / opts.initial_tau);
     let par0 = Params {
@@ -420,70 +444,122 @@ pub fn em_drift<const N: usize, const P: usize>(
         r: [opts.initial_noise_std * opts.initial_noise_std; 6],
     };
 
-    // 2-4. ECME maps, accelerated.
+    // 2-4. ECME maps, accelerated. `best` is the last accepted iterate (its likelihood known);
+    // `z` the next candidate, accepted when the filter pass that starts its map finds its
+    // likelihood no lower.
     let mut history: heapless::Vec<f64, MAX_EM_ITERATIONS> = heapless::Vec::new();
     let mut iterations = 0;
     let mut information_passes = 0;
     let mut z = Iterate::<N, P>::new([0.0; P], &par0);
+    let mut best: Option<(f64, Iterate<N, P>)> = None;
     let mut pre: Option<(Analysis<P>, Iterate<N, P>, [f64; P])> = None;
     let mut step_max = STEP_MAX0;
     let mut converged = false;
-    let mut ll_z = f64::NEG_INFINITY;
-    while iterations + 3 <= opts.max_iterations {
-        // The exact information when the drift parameters have moved since (and an exact step).
-        let stale = |z: &Iterate<N, P>, pre: &Option<(Analysis<P>, Iterate<N, P>, [f64; P])>| match pre {
-            None => true,
-            Some((_, at, _)) => z.change(at, &[1.0; P]).1 > libm::log(1.0 + refresh()),
-        };
+    // After a rejected candidate: plain EM updates (monotone) for one map.
+    let mut safe = false;
+    let stale = |z: &Iterate<N, P>, pre: &Option<(Analysis<P>, Iterate<N, P>, [f64; P])>| match pre {
+        None => true,
+        Some((_, at, _)) => z.change(at, &[1.0; P]).1 > libm::log(1.0 + refresh()),
+    };
+    while iterations < opts.max_iterations {
+        let sub = &mut workspace[..ks];
         if stale(&z, &pre) {
+            // The exact information at the current drift parameters, and an exact step.
             let par = z.params(floor);
-            let (ll, analysis) = information(sub, &z.x, &par, opts.rank_tolerance).inspect_err(|e| dbg(&"info", e, &par))?;
+            let (_, analysis) = information(sub, &z.x, &par, opts.rank_tolerance)?;
             information_passes += 1;
             let step = analysis.step(0.0);
             for (x, s) in z.x.iter_mut().zip(&step) {
                 *x += s;
             }
-            let se = analysis.std_errors(1.0).map(|s| if s > 0.0 && s.is_finite() { s } else { 1.0 });
-            trace!("info ll {ll:.3} par {par:?}");
+            let se = analysis
+                .std_errors(1.0)
+                .map(|s| if s > 0.0 && s.is_finite() { s } else { 1.0 });
             pre = Some((analysis, z, se));
         }
         let Some((pre_an, _, se)) = &pre else {
             return Err(degenerate("geometry information"));
         };
-        let map = |z: &Iterate<N, P>, sub: &mut [DriftSlot<N>]| -> Result<(f64, Iterate<N, P>), CalibError> {
+        let map = |z: &Iterate<N, P>,
+                   sub: &mut [DriftSlot<N>],
+                   ll: Option<f64>,
+                   safe: bool|
+         -> Result<(f64, Iterate<N, P>), CalibError> {
             let par = z.params(floor);
-            let ll = filter(sub, &z.x, &par).inspect_err(|e| dbg(&"mapf", e, &par))?;
-            let (st, grad) = smooth::<N, P>(sub, &par).inspect_err(|e| dbg(&"maps", e, &par))?;
-            let new = m_step(&st, &par, ks, floor);
+            let ll = match ll {
+                Some(ll) => ll,
+                None => filter(sub, &z.x, &par)?,
+            };
+            let (st, grad) = smooth::<N, P>(sub, &par)?;
+            let new = m_step(&st, &par, ks, floor, !safe);
             let dx = pre_an.solve(&grad);
             Ok((ll, Iterate::new(core::array::from_fn(|p| z.x[p] + dx[p]), &new)))
         };
-        let (ll0, z1) = map(&z, sub)?;
-        if stale(&z1, &pre) {
-            // Warming up: the drift parameters still move fast; exact steps until they settle.
-            iterations += 1;
-            let _ = history.push(ll0);
-            trace!("warm {iterations} ll0 {ll0:.3}");
+        let (ll0, z1) = map(&z, sub, None, safe)?;
+        iterations += 1;
+        if let Some((ll_b, z_b)) = best {
+            if ll0 < ll_b {
+                trace!("reject {ll0:.3} < {ll_b:.3}");
+                z = z_b;
+                pre = None;
+                safe = true;
+                continue;
+            }
+            let (dg, dp) = z.change(&z_b, se);
+            trace!("accept {ll0:.3} gain {:.3} dg {dg:.2e} dp {dp:.2e}", ll0 - ll_b);
+            if dg < opts.se_tolerance && (dp < opts.param_tolerance || ll0 - ll_b <= opts.tolerance) {
+                // A drift faster than TAU_STEPS iterated steps is poorly told from white noise on the
+                // decimated samples: iterate on more of them (from the current estimate).
+                let par = z.params(floor);
+                let tau_steps = par.phi.iter().fold(f64::INFINITY, |m, p| m.min(-1.0 / libm::log(*p)));
+                if stride > 1 && tau_steps < TAU_STEPS {
+                    let finer = ((tau_steps * stride as f64 / TAU_STEPS) as usize).clamp(1, stride - 1);
+                    trace!("stride {stride} -> {finer} (τ {tau_steps:.1} steps)");
+                    g_ref = g_ref.perturbed(&z.x);
+                    let par = restride(&par, stride, finer);
+                    stride = finer;
+                    ks = kn.div_ceil(stride);
+                    linearise_subset(&g_ref, stride, &mut workspace[..ks]);
+                    z = Iterate::new([0.0; P], &par);
+                    best = None;
+                    pre = None;
+                    history.clear();
+                    continue;
+                }
+                let _ = history.push(ll0);
+                best = Some((ll0, z));
+                converged = true;
+                break;
+            }
+        }
+        let _ = history.push(ll0);
+        best = Some((ll0, z));
+        if safe || stale(&z1, &pre) || iterations + 2 > opts.max_iterations {
+            // Warming up (the drift parameters still move fast), or recovering: plain maps.
+            safe = false;
             z = z1;
-            ll_z = ll0;
             continue;
         }
-        let (ll1, z2) = map(&z1, sub)?;
+        let (ll1, z2) = map(&z1, sub, None, false)?;
+        iterations += 1;
         trace!("it {iterations} ll0 {ll0:.3} ll1 {ll1:.3}");
-        iterations += 2;
-        let _ = history.push(ll0);
+        if ll1 < ll0 {
+            // The geometry step's information is stale after all: recompute it.
+            pre = None;
+            continue;
+        }
+        // SQUAREM: z' = z − 2α r + α² v with r = z1 − z, v = z2 − z1 − r; α = −1 gives z2.
         let r = z1.minus(&z);
         let v = z2.minus(&z1).minus(&r);
         let (nr, nv) = (libm::sqrt(r.norm2(se)), libm::sqrt(v.norm2(se)));
         let mut alpha = if nv > 0.0 { -(nr / nv) } else { -1.0 };
         alpha = alpha.min(-1.0).max(-step_max);
+        if alpha == -step_max {
+            step_max *= 4.0;
+        }
         let mut next: Option<(f64, Iterate<N, P>)> = None;
-        for _ in 0..8 {
-            // z' = z − 2α r + α² v; α = −1 gives z2.
+        while alpha < -1.0 {
             let cand = z.combine(-2.0 * alpha, &r, alpha * alpha, &v);
-            if alpha == -1.0 {
-                break;
-            }
             if cand.is_finite() {
                 let par = cand.params(floor);
                 if let Ok(ll_c) = filter(sub, &cand.x, &par) {
@@ -493,39 +569,23 @@ pub fn em_drift<const N: usize, const P: usize>(
                     }
                 }
             }
-            alpha = ((alpha - 1.0) / 2.0).min(-1.0);
+            alpha = (alpha - 1.0) / 2.0;
             if alpha > -1.01 {
                 alpha = -1.0;
             }
         }
-        if alpha == -step_max {
-            step_max *= 4.0;
-        }
-        let (ll_c, cand) = match next {
-            Some(n) => n,
-            None => {
-                let par = z2.params(floor);
-                (filter(sub, &z2.x, &par)?, z2)
-            }
+        // The stabilising map from the extrapolated point (its filter pass is done), or the
+        // plain one from z2.
+        let (cand, ll_c) = match next {
+            Some((ll_c, cand)) => (cand, Some(ll_c)),
+            None => (z2, None),
         };
-        // The stabilising map from the accepted point (its filter pass is already done).
-        let par = cand.params(floor);
-        let (st, grad) = smooth::<N, P>(sub, &par)?;
-        let new = m_step(&st, &par, ks, floor);
-        let dx = pre_an.solve(&grad);
-        let z_new = Iterate::new(core::array::from_fn(|p| cand.x[p] + dx[p]), &new);
+        let (ll_c, z_new) = map(&cand, sub, ll_c, false)?;
         iterations += 1;
-        let (dg, dp) = z_new.change(&z, se);
-        trace!("  alpha {alpha:.2} llc {ll_c:.3} dg {dg:.2e} dp {dp:.2e} r {:?}", z_new.params(floor).r);
-        let gain = ll_c - ll0;
+        trace!("  alpha {alpha:.2} llc {ll_c:.3}");
         z = z_new;
-        ll_z = ll_c;
-        if dg < opts.se_tolerance && (dp < opts.param_tolerance || gain.abs() <= opts.tolerance) {
-            converged = true;
-            break;
-        }
     }
-    let _ = history.push(ll_z);
+    let (ll_z, z) = best.ok_or(degenerate("no iteration"))?;
     if !converged && opts.require_convergence {
         let prev = history.iter().rev().nth(1).copied().unwrap_or(ll_z);
         return Err(CalibError::NotConverged {
@@ -535,8 +595,8 @@ pub fn em_drift<const N: usize, const P: usize>(
     }
 
     // 5. Every sample, at the iterated geometry and the drift parameters at the step Δt.
-    let par = at_unit_step(&z.params(floor), stride);
-    let g1 = start.perturbed(&z.x);
+    let par = restride(&z.params(floor), stride, 1);
+    let g1 = g_ref.perturbed(&z.x);
     let ws = &mut workspace[..kn];
     let prepared = g1.prepare();
     let mut gram = GramAccumulator::<P>::new();
@@ -784,9 +844,33 @@ mod probe {
     #[test]
     #[ignore]
     fn probe_em() {
-        let samples: std::vec::Vec<_> = crate::sim::Scenario::new(crate::sim::ScenarioConfig::paper(), 1).take(6000).map(|s| s.sample).collect();
+        let env = |n: &str, d: f64| std::env::var(n).map(|v| v.parse().unwrap()).unwrap_or(d);
+        let mut cfg = crate::sim::ScenarioConfig::paper();
+        cfg.position_noise = env("PN", 0.0);
+        cfg.rotation_noise = env("RN", 0.0);
+        if env("EXACT", 0.0) > 0.0 {
+            cfg.drift = crate::GaussMarkov {
+                tau: 0.5,
+                sigma: 0.01,
+                discretisation: crate::Discretisation::Exact,
+                ..cfg.drift
+            };
+        }
+        let samples: std::vec::Vec<_> = crate::sim::Scenario::new(cfg, env("SEED", 1.0) as u64)
+            .take(env("K", 6000.0) as usize)
+            .map(|s| s.sample)
+            .collect();
         let ls = crate::ls::identify_ls::<7, 28>(&DhTable::paper_nominal(), &samples, &crate::ls::LsOptions::paper()).unwrap();
-        let r = em_drift_vec::<7, 28>(&ls.table, &samples, &DriftEmOptions::new(0.01));
-        std::eprintln!("{:?}", r.map(|r| r.0.iterations));
+        let mut o = DriftEmOptions::new(0.01);
+        o.max_stride = env("STRIDE", 4.0) as usize;
+        o.tolerance = env("TOL", o.tolerance);
+        let r = em_drift_vec::<7, 28>(&ls.table, &samples, &o);
+        let r = r.unwrap().0;
+        std::eprintln!(
+            "{} {:?} {:?}",
+            r.iterations,
+            r.measurement_variance.map(f64::sqrt),
+            r.expected_error
+        );
     }
 }

@@ -245,29 +245,72 @@ pub(crate) struct Stats<const N: usize> {
     pub var: [f64; 6],
 }
 
-/// Cholesky factor (lower, in place) of a symmetric positive definite `N × N` matrix.
-#[inline]
-fn cholesky<const N: usize>(a: &mut [[f64; N]; N]) -> Result<(), CalibError> {
+/// `Σ_b x[b]·rows[b]` (a vector-matrix product as a sum of scaled rows: vectorises).
+#[inline(always)]
+fn combo<const N: usize>(x: &[f64; N], rows: &[[f64; N]; N]) -> [f64; N] {
+    let mut out = [0.0; N];
+    for (xb, row) in x.iter().zip(rows) {
+        for (o, v) in out.iter_mut().zip(row) {
+            *o += xb * v;
+        }
+    }
+    out
+}
+
+/// Solves `A X = B` for a symmetric positive definite `A` (Cholesky, row-oriented so that
+/// every inner loop runs over the `N` right-hand sides); `b` is overwritten by `X`.
+#[inline(always)]
+fn spd_solve<const N: usize>(a: &[[f64; N]; N], b: &mut [[f64; N]; N]) -> Result<(), CalibError> {
+    let mut l = [[0.0; N]; N];
+    let mut inv = [0.0; N];
     for j in 0..N {
         let mut d = a[j][j];
         for k in 0..j {
-            d -= a[j][k] * a[j][k];
+            d -= l[j][k] * l[j][k];
         }
         if !(d > 0.0 && d.is_finite()) {
             return Err(CalibError::InvalidInput {
                 what: "predicted drift covariance not positive definite",
             });
         }
-        let l = libm::sqrt(d);
-        a[j][j] = l;
-        let inv = 1.0 / l;
+        let ljj = libm::sqrt(d);
+        inv[j] = 1.0 / ljj;
+        l[j][j] = ljj;
         for i in j + 1..N {
             let mut s = a[i][j];
             for k in 0..j {
-                s -= a[i][k] * a[j][k];
+                s -= l[i][k] * l[j][k];
             }
-            a[i][j] = s * inv;
+            l[i][j] = s * inv[j];
         }
+    }
+    // Forward: L Z = B, row by row.
+    for i in 0..N {
+        let mut row = b[i];
+        for k in 0..i {
+            let lik = l[i][k];
+            for (r, z) in row.iter_mut().zip(&b[k]) {
+                *r -= lik * z;
+            }
+        }
+        for r in row.iter_mut() {
+            *r *= inv[i];
+        }
+        b[i] = row;
+    }
+    // Backward: Lᵀ X = Z.
+    for i in (0..N).rev() {
+        let mut row = b[i];
+        for k in i + 1..N {
+            let lki = l[k][i];
+            for (r, x) in row.iter_mut().zip(&b[k]) {
+                *r -= lki * x;
+            }
+        }
+        for r in row.iter_mut() {
+            *r *= inv[i];
+        }
+        b[i] = row;
     }
     Ok(())
 }
@@ -306,12 +349,7 @@ pub(crate) fn smooth<const N: usize, const P: usize>(
         for i in 0..6 {
             let h = &slot.h[i][3];
             let res = slot.y[i] - dot(h, &slot.mean);
-            let mut ph = [0.0; N];
-            for (row, hb) in slot.cov.iter().zip(h) {
-                for (o, pab) in ph.iter_mut().zip(row) {
-                    *o += pab * hb;
-                }
-            }
+            let ph = combo(h, &slot.cov);
             st.res[i] += res * res;
             st.var[i] += dot(h, &ph);
             let w = res * rinv[i];
@@ -325,72 +363,44 @@ pub(crate) fn smooth<const N: usize, const P: usize>(
         let (lo, hi) = slots.split_at_mut(k + 1);
         let (cur, next) = (&mut lo[k], &hi[0]);
         // Predicted covariance P⁻ = Φ P Φ + Q and Φ P.
-        let mut pred = cur.cov;
         let mut fp = cur.cov;
+        let mut pred = cur.cov;
         for a in 0..N {
             for b in 0..N {
-                pred[a][b] *= par.phi[a] * par.phi[b];
                 fp[a][b] *= par.phi[a];
+                pred[a][b] = fp[a][b] * par.phi[b];
             }
             pred[a][a] += par.q[a];
         }
-        // Smoother gain Gᵀ = (P⁻)⁻¹ Φ P, column by column of Φ P.
-        let mut l = pred;
-        cholesky(&mut l)?;
+        // Smoother gain Gᵀ = (P⁻)⁻¹ Φ P (so gt[b][a] = G[a][b]).
         let mut gt = fp;
-        for c in 0..N {
-            // Forward: L z = fp[:, c]; backward: Lᵀ g = z.
-            for i in 0..N {
-                let mut s = gt[i][c];
-                for k2 in 0..i {
-                    s -= l[i][k2] * gt[k2][c];
-                }
-                gt[i][c] = s / l[i][i];
-            }
-            for i in (0..N).rev() {
-                let mut s = gt[i][c];
-                for k2 in i + 1..N {
-                    s -= l[k2][i] * gt[k2][c];
-                }
-                gt[i][c] = s / l[i][i];
-            }
-        }
-        // gt[b][a] = G[a][b].
+        spd_solve(&pred, &mut gt)?;
+        // Mean: m_s = m + G (m_s' − Φ m).
         let dm: [f64; N] = core::array::from_fn(|b| next.mean[b] - par.phi[b] * cur.mean[b]);
-        for a in 0..N {
-            let mut s = 0.0;
-            for b in 0..N {
-                s += gt[b][a] * dm[b];
-            }
-            cur.mean[a] += s;
+        let gdm = combo(&dm, &gt);
+        for (m, d) in cur.mean.iter_mut().zip(&gdm) {
+            *m += d;
         }
-        // P_s = P + G (P_s' − P⁻) Gᵀ.
-        let mut d = next.cov;
-        for (drow, prow) in d.iter_mut().zip(&pred) {
-            for (x, p) in drow.iter_mut().zip(prow) {
-                *x -= p;
-            }
-        }
-        // gd = G d  (row a: Σ_b G[a][b] d[b][:]).
-        let mut gd = [[0.0; N]; N];
-        for (a, gdrow) in gd.iter_mut().enumerate() {
-            for (b, drow) in d.iter().enumerate() {
-                let gab = gt[b][a];
-                for (o, x) in gdrow.iter_mut().zip(drow) {
-                    *o += gab * x;
-                }
-            }
+        // Covariance: P_s = P + G (P_s' − P⁻) Gᵀ; with D = P_s' − P⁻, (D Gᵀ) row b is
+        // Σ_c D[b][c] gt[c], and G (D Gᵀ) row a is Σ_b gt[b][a] (D Gᵀ)[b].
+        let mut dgt = [[0.0; N]; N];
+        for b in 0..N {
+            let drow: [f64; N] = core::array::from_fn(|c| next.cov[b][c] - pred[b][c]);
+            dgt[b] = combo(&drow, &gt);
         }
         for a in 0..N {
-            for c in a..N {
-                let mut s = 0.0;
-                for b in 0..N {
-                    s += gd[a][b] * gt[b][c];
-                }
-                cur.cov[a][c] += s;
-                if c != a {
-                    cur.cov[c][a] = cur.cov[a][c];
-                }
+            let ga: [f64; N] = core::array::from_fn(|b| gt[b][a]);
+            let add = combo(&ga, &dgt);
+            for (c, v) in cur.cov[a].iter_mut().zip(&add) {
+                *c += v;
+            }
+        }
+        // Symmetric up to rounding: make it exactly so.
+        for a in 0..N {
+            for c in a + 1..N {
+                let v = 0.5 * (cur.cov[a][c] + cur.cov[c][a]);
+                cur.cov[a][c] = v;
+                cur.cov[c][a] = v;
             }
         }
         // Lag-one covariance diagonal: (P_s' Gᵀ)_jj.
@@ -480,5 +490,71 @@ impl<const N: usize, const P: usize> TwoStage<N, P> {
         self.ll -= 0.5 * (libm::log(det) + 6.0 * LN_2PI);
         sink(&rows, &rhs);
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod probe {
+    use super::*;
+    fn cpu() -> f64 {
+        let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+        #[allow(unsafe_code)]
+        unsafe {
+            libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts)
+        };
+        ts.tv_sec as f64 * 1e3 + ts.tv_nsec as f64 * 1e-6
+    }
+    #[test]
+    #[ignore]
+    fn kernel_times() {
+        let samples: std::vec::Vec<_> = crate::sim::Scenario::new(crate::sim::ScenarioConfig::paper(), 1)
+            .take(6000)
+            .map(|s| s.sample)
+            .collect();
+        let table = crate::DhTable::paper_actual().prepare();
+        let mut ws = std::vec![DriftSlot::<7>::default(); 6000];
+        let mut cols = [[Vector6::zeros(); 7]; 4];
+        let par = Params::<7> {
+            phi: [0.99; 7],
+            q: [1e-6; 7],
+            r: [1e-9, 1e-9, 1e-9, 1e-8, 1e-8, 1e-8],
+        };
+        for _ in 0..3 {
+            let t = cpu();
+            for (s, slot) in samples.iter().zip(ws.iter_mut()) {
+                linearise_into(&table, s, &mut cols, slot);
+            }
+            let tl = cpu() - t;
+            let t = cpu();
+            let ll = filter(&mut ws, &[0.0; 28], &par).unwrap();
+            let tf = cpu() - t;
+            let t = cpu();
+            let (st, g) = smooth::<7, 28>(&mut ws, &par).unwrap();
+            let ts = cpu() - t;
+            let t = cpu();
+            let mut gram = crate::linalg::GramAccumulator::<28>::new();
+            let mut two = TwoStage::<7, 28>::new(&par);
+            for slot in ws.iter() {
+                two.absorb(&slot.e, &slot.h, &par, &mut |r, y| gram.add_rows(r, y, 0))
+                    .unwrap();
+            }
+            let tg = cpu() - t;
+            let t = cpu();
+            let mut two = TwoStage::<7, 28>::new(&par);
+            for slot in ws.iter() {
+                two.absorb(&slot.e, &slot.h, &par, &mut |_r, _y| {}).unwrap();
+            }
+            let tg2 = cpu() - t;
+            std::eprintln!(
+                "per sample µs: lin {:.3} filter {:.3} smooth {:.3} twostage+gram {:.3} twostage alone {:.3} [{ll} {} {}]",
+                tl / 6.0,
+                tf / 6.0,
+                ts / 6.0,
+                tg / 6.0,
+                tg2 / 6.0,
+                st.s00[0],
+                g[0]
+            );
+        }
     }
 }
