@@ -56,7 +56,7 @@ pub const MIN_ITERATION_SAMPLES: usize = 1000;
 
 /// The iteration moves to a smaller stride when a joint's estimated correlation time is below
 /// this many iterated steps.
-pub const TAU_STEPS: f64 = 12.0;
+pub const TAU_STEPS: f64 = 10.0;
 
 /// Relative change of any drift parameter since the last exact geometry information after
 /// which it is recomputed (the geometry step's preconditioner).
@@ -112,7 +112,7 @@ impl<const N: usize> DriftEmOptions<N> {
         DriftEmOptions {
             dt,
             max_iterations: 100,
-            tolerance: 0.5,
+            tolerance: 1.0,
             param_tolerance: 1e-2,
             se_tolerance: 0.1,
             max_stride: 4,
@@ -513,7 +513,7 @@ pub fn em_drift<const N: usize, const P: usize>(
                 let par = z.params(floor);
                 let tau_steps = par.phi.iter().fold(f64::INFINITY, |m, p| m.min(-1.0 / libm::log(*p)));
                 if stride > 1 && tau_steps < TAU_STEPS {
-                    let finer = ((tau_steps * stride as f64 / TAU_STEPS) as usize).clamp(1, stride - 1);
+                    let finer = ((tau_steps * stride as f64 / (1.5 * TAU_STEPS)) as usize).clamp(1, stride - 1);
                     trace!("stride {stride} -> {finer} (τ {tau_steps:.1} steps)");
                     g_ref = g_ref.perturbed(&z.x);
                     let par = restride(&par, stride, finer);
