@@ -12,28 +12,41 @@
 //! 1. **Iterate on every `stride`-th sample** (at most [`DriftEmOptions::max_stride`], and at
 //!    least [`MIN_ITERATION_SAMPLES`] of them): the drift of a decimated session is the same
 //!    Gauss-Markov process at the step `stride·Δt`, so φ, q and r are estimated from it at a
-//!    fraction of the cost. The samples are linearised once, at the starting geometry; the
-//!    geometry is an offset `x` from it.
+//!    fraction of the cost; the table is fitted on every sample at the end (5.). The iterated
+//!    samples are linearised once; the geometry is an offset `x` from that linearisation. A
+//!    drift faster than [`TAU_STEPS`] iterated steps is hard to tell from white pose noise on
+//!    decimated samples: when the iteration converges with such a τ, it goes on at a smaller
+//!    stride (from where it is).
 //! 2. **ECME map.** One filter + smoother pass at `(x, φ, q, r)` gives the likelihood, the
-//!    M-step of φ, q (per joint, a 1-D profile search of the expected complete-data
-//!    log-likelihood with the stationary prior of δ_0) and r, and the exact gradient of the
-//!    log-likelihood in `x`, `Hᵀ R⁻¹ (y − J E[δ])`. The geometry step is that gradient times
-//!    the inverse of the exact information `Hᵀ Σ⁻¹ H`, computed by the two-stage (Friedland)
-//!    filter that carries `x` in the drift mean; it is recomputed, with an exact step, whenever
-//!    the drift parameters have moved by more than [`REFRESH`] (relative) since.
-//! 3. **SQUAREM** (Varadhan & Roland 2008) extrapolates two such maps at a time along the slow
-//!    direction (the measurement noise creeping down on noise-free data, the drift absorbing
-//!    the offsets), in coordinates scaled by standard errors (`x`) and logarithms (φ, q, r). An
-//!    extrapolation that lowers the likelihood is pulled back towards the plain maps, which
-//!    never lower it, so the recorded likelihood never decreases.
-//! 4. **Stops** when, over one SQUAREM cycle, the geometry moved less than
-//!    [`DriftEmOptions::se_tolerance`] of its standard errors and every τ, q, r less than
-//!    [`DriftEmOptions::param_tolerance`] (relative).
+//!    M-step of φ and q (per joint, a 1-D profile search of the expected complete-data
+//!    log-likelihood with the stationary prior of δ_0), the noise update and the exact
+//!    gradient of the log-likelihood in `x`, `Hᵀ R⁻¹ (y − J E[δ])`. The noise update is EM's
+//!    `r = Σ E[(y − Jδ)²] / K` corrected for the leverage of the drift, `r = Σ res² / (K − Σ
+//!    Var[Jδ] / r)`: the same fixed point, reached at once where EM creeps (with small noise
+//!    the drift absorbs nearly all of each sample's residual). The geometry step is the
+//!    gradient times the inverse of the exact information `Hᵀ Σ⁻¹ H` from the two-stage
+//!    (Friedland) filter that carries `x` in the drift mean; that information is recomputed,
+//!    with an exact step, whenever a drift parameter has moved by more than a factor
+//!    `1 + `[`REFRESH`] since, or a map lowered the likelihood.
+//! 3. **SQUAREM** (Varadhan & Roland 2008) extrapolates two maps at a time along the slow
+//!    directions, in coordinates scaled by standard errors (`x`) and logarithms (φ, q, r). Every
+//!    iterate is accepted only if its likelihood is no lower than the last accepted one
+//!    (otherwise the iteration returns to it with fresh information and a plain EM update), so
+//!    the recorded likelihood never decreases.
+//! 4. **Stops** when, between accepted iterates, the geometry moved less than
+//!    [`DriftEmOptions::se_tolerance`] of its standard errors and either every τ, q, r changed
+//!    by less than [`DriftEmOptions::param_tolerance`] (relative) or the likelihood rose by less
+//!    than [`DriftEmOptions::tolerance`].
 //! 5. **All samples, once.** The drift parameters are converted to the step Δt, every sample
 //!    is linearised at the iterated geometry and one two-stage pass gives the exact geometry
 //!    step (the final table), the Fisher information of the geometry with the drift integrated
 //!    out (`std_errors`, `expected_error`) and the likelihood. A filter and smoother pass at the
-//!    final table leaves the smoothed drift trajectory in the workspace ([`DriftSlot::drift`]).
+//!    final table (on the same linearisation) leaves the smoothed drift trajectory in the
+//!    workspace ([`DriftSlot::drift`]).
+//!
+//! On the paper's scenario (K = 6,000) that is about 14 maps on 1,500 samples, 4 exact
+//! informations and one pass over all samples (`cargo run -p calib-core --release --example
+//! paper` prints the counts).
 //!
 //! A static θ offset and a slow drift are separable only to about `σ·√(2τ/T)` for a session of
 //! length T (the standard error of the mean of a Gauss-Markov process); the result reports this
@@ -58,16 +71,10 @@ pub const MIN_ITERATION_SAMPLES: usize = 1000;
 /// this many iterated steps.
 pub const TAU_STEPS: f64 = 10.0;
 
-/// Relative change of any drift parameter since the last exact geometry information after
-/// which it is recomputed (the geometry step's preconditioner).
+/// The geometry step's information is recomputed when a drift parameter has changed by more
+/// than a factor `1 + REFRESH` since it was (measured: a stale information still gives steps
+/// that raise the likelihood at a factor of 4; a refresh costs about two maps).
 pub const REFRESH: f64 = 3.0;
-fn refresh() -> f64 {
-    #[cfg(feature = "std")]
-    if let Ok(v) = std::env::var("REFRESH") {
-        return v.parse().unwrap();
-    }
-    REFRESH
-}
 
 /// Options of [`em_drift`].
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -142,12 +149,13 @@ pub struct DriftEmResult<const N: usize> {
     pub measurement_variance: [f64; 6],
     /// Per joint `σ·√(2τ/T)`: how well a static θ offset can be told from the drift (rad).
     pub separability: [f64; N],
-    /// Log-likelihood of the iterated samples (every `stride`-th) at the start of every
-    /// SQUAREM cycle, then at the last iterate. It never decreases.
+    /// Log-likelihood of the iterated samples (every `stride`-th, at the final stride) at every
+    /// accepted iterate. It never decreases.
     pub log_likelihood: heapless::Vec<f64, MAX_EM_ITERATIONS>,
-    /// Log-likelihood of all samples at the final table and drift parameters.
+    /// Log-likelihood of all samples at the final table and drift parameters (linearised at
+    /// the iterated geometry).
     pub final_log_likelihood: f64,
-    /// The iteration ran on every `stride`-th sample.
+    /// The iteration ended on every `stride`-th sample.
     pub stride: usize,
     /// ECME maps (filter + smoother passes over the iterated samples).
     pub iterations: usize,
@@ -363,18 +371,6 @@ fn restride<const N: usize>(par: &Params<N>, from: usize, to: usize) -> Params<N
     out
 }
 
-#[allow(unused)]
-fn dbg<const N: usize>(w: &dyn core::fmt::Debug, e: &CalibError, par: &Params<N>) {
-    #[cfg(feature = "std")]
-    std::eprintln!("{w:?} {e:?} {par:?}");
-}
-#[cfg(feature = "std")]
-macro_rules! trace { ($($t:tt)*) => { if std::env::var("EMDBG").is_ok() { std::eprintln!($($t)*); } } }
-#[cfg(not(feature = "std"))]
-macro_rules! trace {
-    ($($t:tt)*) => {};
-}
-
 /// SQUAREM's extrapolation steps are bounded by this, then by four times more after each
 /// extrapolation that used the whole bound (the scheme of Varadhan & Roland's `squarem`).
 const STEP_MAX0: f64 = 1.0;
@@ -459,7 +455,7 @@ pub fn em_drift<const N: usize, const P: usize>(
     let mut safe = false;
     let stale = |z: &Iterate<N, P>, pre: &Option<(Analysis<P>, Iterate<N, P>, [f64; P])>| match pre {
         None => true,
-        Some((_, at, _)) => z.change(at, &[1.0; P]).1 > libm::log(1.0 + refresh()),
+        Some((_, at, _)) => z.change(at, &[1.0; P]).1 > libm::log(1.0 + REFRESH),
     };
     while iterations < opts.max_iterations {
         let sub = &mut workspace[..ks];
@@ -499,14 +495,12 @@ pub fn em_drift<const N: usize, const P: usize>(
         iterations += 1;
         if let Some((ll_b, z_b)) = best {
             if ll0 < ll_b {
-                trace!("reject {ll0:.3} < {ll_b:.3}");
                 z = z_b;
                 pre = None;
                 safe = true;
                 continue;
             }
             let (dg, dp) = z.change(&z_b, se);
-            trace!("accept {ll0:.3} gain {:.3} dg {dg:.2e} dp {dp:.2e}", ll0 - ll_b);
             if dg < opts.se_tolerance && (dp < opts.param_tolerance || ll0 - ll_b <= opts.tolerance) {
                 // A drift faster than TAU_STEPS iterated steps is poorly told from white noise on the
                 // decimated samples: iterate on more of them (from the current estimate).
@@ -514,7 +508,6 @@ pub fn em_drift<const N: usize, const P: usize>(
                 let tau_steps = par.phi.iter().fold(f64::INFINITY, |m, p| m.min(-1.0 / libm::log(*p)));
                 if stride > 1 && tau_steps < TAU_STEPS {
                     let finer = ((tau_steps * stride as f64 / (1.5 * TAU_STEPS)) as usize).clamp(1, stride - 1);
-                    trace!("stride {stride} -> {finer} (τ {tau_steps:.1} steps)");
                     g_ref = g_ref.perturbed(&z.x);
                     let par = restride(&par, stride, finer);
                     stride = finer;
@@ -542,7 +535,6 @@ pub fn em_drift<const N: usize, const P: usize>(
         }
         let (ll1, z2) = map(&z1, sub, None, false)?;
         iterations += 1;
-        trace!("it {iterations} ll0 {ll0:.3} ll1 {ll1:.3}");
         if ll1 < ll0 {
             // The geometry step's information is stale after all: recompute it.
             pre = None;
@@ -580,9 +572,8 @@ pub fn em_drift<const N: usize, const P: usize>(
             Some((ll_c, cand)) => (cand, Some(ll_c)),
             None => (z2, None),
         };
-        let (ll_c, z_new) = map(&cand, sub, ll_c, false)?;
+        let (_, z_new) = map(&cand, sub, ll_c, false)?;
         iterations += 1;
-        trace!("  alpha {alpha:.2} llc {ll_c:.3}");
         z = z_new;
     }
     let (ll_z, z) = best.ok_or(degenerate("no iteration"))?;
@@ -836,41 +827,5 @@ mod tests {
             em_drift_vec::<7, 28>(&start, &samples, &strict),
             Err(CalibError::NotConverged { .. })
         ));
-    }
-}
-#[cfg(test)]
-mod probe {
-    use super::*;
-    #[test]
-    #[ignore]
-    fn probe_em() {
-        let env = |n: &str, d: f64| std::env::var(n).map(|v| v.parse().unwrap()).unwrap_or(d);
-        let mut cfg = crate::sim::ScenarioConfig::paper();
-        cfg.position_noise = env("PN", 0.0);
-        cfg.rotation_noise = env("RN", 0.0);
-        if env("EXACT", 0.0) > 0.0 {
-            cfg.drift = crate::GaussMarkov {
-                tau: 0.5,
-                sigma: 0.01,
-                discretisation: crate::Discretisation::Exact,
-                ..cfg.drift
-            };
-        }
-        let samples: std::vec::Vec<_> = crate::sim::Scenario::new(cfg, env("SEED", 1.0) as u64)
-            .take(env("K", 6000.0) as usize)
-            .map(|s| s.sample)
-            .collect();
-        let ls = crate::ls::identify_ls::<7, 28>(&DhTable::paper_nominal(), &samples, &crate::ls::LsOptions::paper()).unwrap();
-        let mut o = DriftEmOptions::new(0.01);
-        o.max_stride = env("STRIDE", 4.0) as usize;
-        o.tolerance = env("TOL", o.tolerance);
-        let r = em_drift_vec::<7, 28>(&ls.table, &samples, &o);
-        let r = r.unwrap().0;
-        std::eprintln!(
-            "{} {:?} {:?}",
-            r.iterations,
-            r.measurement_variance.map(f64::sqrt),
-            r.expected_error
-        );
     }
 }

@@ -265,8 +265,8 @@ fn spd_solve<const N: usize>(a: &[[f64; N]; N], b: &mut [[f64; N]; N]) -> Result
     let mut inv = [0.0; N];
     for j in 0..N {
         let mut d = a[j][j];
-        for k in 0..j {
-            d -= l[j][k] * l[j][k];
+        for x in &l[j][..j] {
+            d -= x * x;
         }
         if !(d > 0.0 && d.is_finite()) {
             return Err(CalibError::InvalidInput {
@@ -278,8 +278,8 @@ fn spd_solve<const N: usize>(a: &[[f64; N]; N], b: &mut [[f64; N]; N]) -> Result
         l[j][j] = ljj;
         for i in j + 1..N {
             let mut s = a[i][j];
-            for k in 0..j {
-                s -= l[i][k] * l[j][k];
+            for (x, y) in l[i][..j].iter().zip(&l[j][..j]) {
+                s -= x * y;
             }
             l[i][j] = s * inv[j];
         }
@@ -346,13 +346,13 @@ pub(crate) fn smooth<const N: usize, const P: usize>(
                 st.s11[j] += ex;
             }
         }
-        for i in 0..6 {
+        for (i, ri) in rinv.iter().enumerate() {
             let h = &slot.h[i][3];
             let res = slot.y[i] - dot(h, &slot.mean);
             let ph = combo(h, &slot.cov);
             st.res[i] += res * res;
             st.var[i] += dot(h, &ph);
-            let w = res * rinv[i];
+            let w = res * ri;
             for (g, hp) in grad.iter_mut().zip(slot.h[i].as_flattened()) {
                 *g += hp * w;
             }
@@ -388,10 +388,10 @@ pub(crate) fn smooth<const N: usize, const P: usize>(
             let drow: [f64; N] = core::array::from_fn(|c| next.cov[b][c] - pred[b][c]);
             dgt[b] = combo(&drow, &gt);
         }
-        for a in 0..N {
+        for (a, row) in cur.cov.iter_mut().enumerate() {
             let ga: [f64; N] = core::array::from_fn(|b| gt[b][a]);
             let add = combo(&ga, &dgt);
-            for (c, v) in cur.cov[a].iter_mut().zip(&add) {
+            for (c, v) in row.iter_mut().zip(&add) {
                 *c += v;
             }
         }
@@ -404,12 +404,9 @@ pub(crate) fn smooth<const N: usize, const P: usize>(
             }
         }
         // Lag-one covariance diagonal: (P_s' Gᵀ)_jj.
-        for j in 0..N {
-            let mut s = 0.0;
-            for b in 0..N {
-                s += next.cov[j][b] * gt[b][j];
-            }
-            st.s10[j] += next.mean[j] * cur.mean[j] + s;
+        for (j, s10) in st.s10.iter_mut().enumerate() {
+            let lag: f64 = next.cov[j].iter().zip(&gt).map(|(c, g)| c * g[j]).sum();
+            *s10 += next.mean[j] * cur.mean[j] + lag;
         }
         add(k, cur, &mut st);
     }
@@ -490,71 +487,5 @@ impl<const N: usize, const P: usize> TwoStage<N, P> {
         self.ll -= 0.5 * (libm::log(det) + 6.0 * LN_2PI);
         sink(&rows, &rhs);
         Ok(())
-    }
-}
-
-#[cfg(test)]
-mod probe {
-    use super::*;
-    fn cpu() -> f64 {
-        let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
-        #[allow(unsafe_code)]
-        unsafe {
-            libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts)
-        };
-        ts.tv_sec as f64 * 1e3 + ts.tv_nsec as f64 * 1e-6
-    }
-    #[test]
-    #[ignore]
-    fn kernel_times() {
-        let samples: std::vec::Vec<_> = crate::sim::Scenario::new(crate::sim::ScenarioConfig::paper(), 1)
-            .take(6000)
-            .map(|s| s.sample)
-            .collect();
-        let table = crate::DhTable::paper_actual().prepare();
-        let mut ws = std::vec![DriftSlot::<7>::default(); 6000];
-        let mut cols = [[Vector6::zeros(); 7]; 4];
-        let par = Params::<7> {
-            phi: [0.99; 7],
-            q: [1e-6; 7],
-            r: [1e-9, 1e-9, 1e-9, 1e-8, 1e-8, 1e-8],
-        };
-        for _ in 0..3 {
-            let t = cpu();
-            for (s, slot) in samples.iter().zip(ws.iter_mut()) {
-                linearise_into(&table, s, &mut cols, slot);
-            }
-            let tl = cpu() - t;
-            let t = cpu();
-            let ll = filter(&mut ws, &[0.0; 28], &par).unwrap();
-            let tf = cpu() - t;
-            let t = cpu();
-            let (st, g) = smooth::<7, 28>(&mut ws, &par).unwrap();
-            let ts = cpu() - t;
-            let t = cpu();
-            let mut gram = crate::linalg::GramAccumulator::<28>::new();
-            let mut two = TwoStage::<7, 28>::new(&par);
-            for slot in ws.iter() {
-                two.absorb(&slot.e, &slot.h, &par, &mut |r, y| gram.add_rows(r, y, 0))
-                    .unwrap();
-            }
-            let tg = cpu() - t;
-            let t = cpu();
-            let mut two = TwoStage::<7, 28>::new(&par);
-            for slot in ws.iter() {
-                two.absorb(&slot.e, &slot.h, &par, &mut |_r, _y| {}).unwrap();
-            }
-            let tg2 = cpu() - t;
-            std::eprintln!(
-                "per sample µs: lin {:.3} filter {:.3} smooth {:.3} twostage+gram {:.3} twostage alone {:.3} [{ll} {} {}]",
-                tl / 6.0,
-                tf / 6.0,
-                ts / 6.0,
-                tg / 6.0,
-                tg2 / 6.0,
-                st.s00[0],
-                g[0]
-            );
-        }
     }
 }
