@@ -554,6 +554,13 @@ impl<const P: usize> Analysis<P> {
         core::array::from_fn(|p| xs[p] / self.scale[p])
     }
 
+    /// The decrease of the residual sum of squares that the Gauss-Newton step
+    /// ([`Analysis::step`]`(0.0)`) predicts: the squared projection of the right-hand side on
+    /// the identifiable directions.
+    pub fn predicted_decrease(&self) -> f64 {
+        (0..self.rank).map(|k| (self.az[k] / self.singular[k]).powi(2)).sum()
+    }
+
     /// Condition number `σ_max / σ_min` of the scaled Jacobian (infinite if rank-deficient).
     pub fn condition(&self) -> f64 {
         match (self.singular.first(), self.singular.last()) {
