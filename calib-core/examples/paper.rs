@@ -43,7 +43,11 @@ fn te(e: &TableError) -> String {
 
 /// A table error against the bound, `×` per component.
 fn vs_bound(e: &TableError, bound: &TableError) -> String {
-    format!("{:.2}× / {:.2}×", e.position_m / bound.position_m, e.rotation_rad / bound.rotation_rad)
+    format!(
+        "{:.2}× / {:.2}×",
+        e.position_m / bound.position_m,
+        e.rotation_rad / bound.rotation_rad
+    )
 }
 
 fn main() {
@@ -108,12 +112,24 @@ fn main() {
     let y_true_h = objective_y(&truth, &held_samples);
     let (pn, rn) = (cfg.position_noise.powi(2), cfg.rotation_noise.powi(2));
     let q = cfg.drift.process_variance();
-    let crb = cramer_rao::<7, SUIT_PARAMS>(&truth, &samples, [cfg.drift.phi(); 7], [q; 7], [pn, pn, pn, rn, rn, rn], 1e-14)
-        .expect("Cramér-Rao bound");
+    let crb = cramer_rao::<7, SUIT_PARAMS>(
+        &truth,
+        &samples,
+        [cfg.drift.phi(); 7],
+        [q; 7],
+        [pn, pn, pn, rn, rn, rn],
+        1e-14,
+    )
+    .expect("Cramér-Rao bound");
     let bound = expected_table_error::<7, SUIT_PARAMS>(&truth, &fresh, |u| crb.variance_along(u));
     let te_of = |t: &DhTable<7>| table_error(t, &truth, &fresh);
-    let (te_nom, te_ls, te_ps, te_pv, te_em) =
-        (te_of(&nominal), te_of(&ls.table), te_of(&pem_s.table), te_of(&pem_v.table), te_of(&em.table));
+    let (te_nom, te_ls, te_ps, te_pv, te_em) = (
+        te_of(&nominal),
+        te_of(&ls.table),
+        te_of(&pem_s.table),
+        te_of(&pem_v.table),
+        te_of(&em.table),
+    );
 
     println!(
         "Section 4 scenario: seed {seed}, {seconds} s, K = {k} samples per session, Δt = 0.01 s, τ = 1 s, σ = 1 (paper discretisation), pose noise {} m / {} rad",

@@ -195,6 +195,21 @@ impl<const P: usize> GramAccumulator<P> {
         self.rows = 0;
     }
 
+    /// Adds the rows absorbed by `other` (e.g. another block of the same session, accumulated
+    /// on another core): the accumulator of both sets of rows.
+    pub fn merge(&mut self, other: &Self) {
+        for (row, orow) in self.g.iter_mut().zip(&other.g) {
+            for (x, y) in row.iter_mut().zip(orow) {
+                *x += y;
+            }
+        }
+        for (x, y) in self.b.iter_mut().zip(&other.b) {
+            *x += y;
+        }
+        self.yy += other.yy;
+        self.rows += other.rows;
+    }
+
     /// Adds the `R` rows `h[r] · x ≈ y[r]`, which must be zero in the columns `0..first`.
     pub fn add_rows<const R: usize>(&mut self, h: &[[f64; P]; R], y: &[f64; R], first: usize) {
         self.update(core::array::from_fn(|r| &h[r]), y, first, P);

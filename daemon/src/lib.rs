@@ -10,6 +10,7 @@
 //! | [`session`] | the collection window: coverage, sample counts, ready/failed |
 //! | [`report`] | progress bar / systemd `STATUS=` / plain lines; READY and WATCHDOG |
 //! | [`calibrate`] | LS, then drift EM, then validation, on aligned samples (pure) |
+//! | [`parallel`] | the LS linearisation in sample blocks on several cores (std scoped threads) |
 //! | [`validate`] | bounds, condition number and held-out accuracy before any push |
 //! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
 //! | [`runner`] | one session on any transport: collect, align, calibrate, validate, push, log |
@@ -32,6 +33,7 @@ pub mod exit;
 pub mod ingest;
 pub mod mcaplog;
 pub mod offline;
+pub mod parallel;
 pub mod push;
 pub mod report;
 pub mod runner;
