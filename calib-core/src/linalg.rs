@@ -573,7 +573,12 @@ impl<const P: usize> Analysis<P> {
     /// ([`Analysis::step`]`(0.0)`) predicts: the squared projection of the right-hand side on
     /// the identifiable directions.
     pub fn predicted_decrease(&self) -> f64 {
-        (0..self.rank).map(|k| (self.az[k] / self.singular[k]).powi(2)).sum()
+        (0..self.rank)
+            .map(|k| {
+                let c = self.az[k] / self.singular[k];
+                c * c
+            })
+            .sum()
     }
 
     /// Condition number `σ_max / σ_min` of the scaled Jacobian (infinite if rank-deficient).
