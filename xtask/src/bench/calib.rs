@@ -396,10 +396,10 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
     });
     goals.push(Goal {
         what: "the daemon linearises on several cores (multi-core figure)".into(),
-        met: speedup.is_some(),
+        met: speedup.is_some_and(|(ls, _)| ls >= 1.3),
         detail: speedup.map_or("not measured".into(), |(ls, all)| {
             format!(
-                "2 threads against 1 at K = 6,000 (wall clock, not pinned, on a shared machine): LS {ls:.2}× faster, LS + our EM {all:.2}× (the EM is a Kalman filter and smoother, sequential in time: only the LS parallelises)"
+                "2 threads against 1 at K = 6,000 (wall clock, not pinned): LS {ls:.2}× faster, LS + our EM {all:.2}×. Bounded by the machine's second core being free (see the load average: other processes share both cores) and by the EM, a Kalman filter and smoother sequential in time: only the LS parallelises"
             )
         }),
     });
