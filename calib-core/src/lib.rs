@@ -90,8 +90,8 @@ pub use ls::{
 };
 pub use metrics::{expected_table_error, objective_y, objective_y_corrected, table_error, ParamErrors, TableError};
 pub use model::{
-    check_bounds, clamp_to_bounds, pose_error, BoundViolation, Bounds, DhRow, DhTable, Frame, JointRanges, ParamKind, Sample,
-    SUIT_JOINTS, SUIT_PARAMS,
+    bound_violations, check_bounds, clamp_to_bounds, pose_error, BoundViolation, Bounds, DhRow, DhTable, Frame, JointRanges,
+    ParamKind, Sample, SUIT_JOINTS, SUIT_PARAMS,
 };
 pub use paper_em::{paper_em, PaperEmForm, PaperEmOptions, PaperEmResult, MAX_EM_ITERATIONS};
 pub use rng::Rng;

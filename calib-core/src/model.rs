@@ -62,6 +62,11 @@ impl ParamKind {
         }
     }
 
+    /// Whether the parameter is an angle (α, θ offset): bounds compare it modulo 2π.
+    pub const fn is_angle(self) -> bool {
+        matches!(self, ParamKind::Alpha | ParamKind::Theta)
+    }
+
     /// Index of parameter (`self`, `joint`) in a chain of `n` joints.
     pub const fn index(self, joint: usize, n: usize) -> usize {
         self as usize * n + joint
@@ -456,37 +461,56 @@ pub struct BoundViolation {
     pub max: f64,
 }
 
-/// Checks `table` against `bounds`; the first violation (in parameter order) is returned.
-pub fn check_bounds<const N: usize>(table: &DhTable<N>, bounds: &Bounds<N>) -> Result<(), BoundViolation> {
-    for kind in ParamKind::ALL {
-        for j in 0..N {
-            if let Some((min, max)) = bounds.limits[kind as usize][j] {
-                let value = table.rows[j].get(kind);
-                if !(min..=max).contains(&value) {
-                    return Err(BoundViolation {
-                        kind,
-                        joint: j,
-                        value,
-                        min,
-                        max,
-                    });
-                }
-            }
-        }
+/// `value` as bounds compare it: angles are brought within π of the interval's centre (so
+/// `[-190°, -170°]` holds 175°), lengths are left as they are.
+fn bounded_value(kind: ParamKind, value: f64, (min, max): (f64, f64)) -> f64 {
+    if !kind.is_angle() {
+        return value;
     }
-    Ok(())
+    let centre = 0.5 * (min + max);
+    let tau = 2.0 * core::f64::consts::PI;
+    let d = libm::remainder(value - centre, tau);
+    centre + d
 }
 
-/// Clamps every bounded parameter of `table` into its interval; returns how many were moved.
+/// Every parameter of `table` outside its [`Bounds`], in parameter order (a non-finite value is
+/// outside any interval). Angles are compared modulo 2π, see [`ParamKind::is_angle`].
+pub fn bound_violations<'a, const N: usize>(
+    table: &'a DhTable<N>,
+    bounds: &'a Bounds<N>,
+) -> impl Iterator<Item = BoundViolation> + 'a {
+    ParamKind::ALL.into_iter().flat_map(move |kind| {
+        (0..N).filter_map(move |j| {
+            let (min, max) = bounds.limits[kind as usize][j]?;
+            let value = table.rows[j].get(kind);
+            let v = bounded_value(kind, value, (min, max));
+            (!(min..=max).contains(&v)).then_some(BoundViolation {
+                kind,
+                joint: j,
+                value,
+                min,
+                max,
+            })
+        })
+    })
+}
+
+/// Checks `table` against `bounds`; the first violation (in parameter order) is returned.
+pub fn check_bounds<const N: usize>(table: &DhTable<N>, bounds: &Bounds<N>) -> Result<(), BoundViolation> {
+    bound_violations(table, bounds).next().map_or(Ok(()), Err)
+}
+
+/// Clamps every bounded parameter of `table` into its interval (angles modulo 2π, as
+/// [`bound_violations`] compares them); returns how many were moved.
 pub fn clamp_to_bounds<const N: usize>(table: &mut DhTable<N>, bounds: &Bounds<N>) -> usize {
     let mut moved = 0;
     for kind in ParamKind::ALL {
         for j in 0..N {
             if let Some((min, max)) = bounds.limits[kind as usize][j] {
                 let v = table.rows[j].get_mut(kind);
-                let c = v.clamp(min, max);
-                if c != *v {
-                    *v = c;
+                let b = bounded_value(kind, *v, (min, max));
+                if !(min..=max).contains(&b) {
+                    *v = b.clamp(min, max);
                     moved += 1;
                 }
             }
@@ -658,6 +682,26 @@ mod tests {
         assert_eq!((v.kind, v.joint), (ParamKind::A, 2));
         assert_eq!(clamp_to_bounds(&mut t, &b), 1);
         assert_eq!(t.rows[2].a, 0.485);
+        assert_eq!(check_bounds(&t, &b), Ok(()));
+    }
+
+    #[test]
+    fn every_violation_is_listed_and_angles_compare_modulo_two_pi() {
+        let deg = core::f64::consts::PI / 180.0;
+        let mut b = Bounds::paper();
+        // α1 within 5° of 180°: -178° is 2° away, 170° is 10° away.
+        b.limits[ParamKind::Alpha as usize][0] = Some((175.0 * deg, 185.0 * deg));
+        let mut t = DhTable::paper_actual();
+        t.rows[0].alpha = -178.0 * deg;
+        assert_eq!(check_bounds(&t, &b), Ok(()));
+        t.rows[0].alpha = 170.0 * deg;
+        t.rows[1].a = f64::NAN;
+        t.rows[3].a = 1.0;
+        let v: heapless::Vec<BoundViolation, 8> = bound_violations(&t, &b).collect();
+        let which: heapless::Vec<(ParamKind, usize), 8> = v.iter().map(|v| (v.kind, v.joint)).collect();
+        assert_eq!(which, [(ParamKind::A, 1), (ParamKind::A, 3), (ParamKind::Alpha, 0)]);
+        assert_eq!(clamp_to_bounds(&mut t, &b), 3);
+        assert!((t.rows[0].alpha - 175.0 * deg).abs() < 1e-12);
         assert_eq!(check_bounds(&t, &b), Ok(()));
     }
 
