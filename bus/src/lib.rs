@@ -13,6 +13,10 @@
 //!   receive timestamps (`SO_TIMESTAMPNS`) and the kernel's drop counter (`SO_RXQ_OVFL`); it
 //!   sends and receives in batches (`sendmmsg`/`recvmmsg`), one system call per up to 64 frames.
 //!
+//! [`FaultInjector`] wraps either with a seeded faulty wire (drop, corrupt, delay, reorder,
+//! duplicate: [`fault`]), its time passed in; the emulated suit draws its wire faults from the
+//! same [`Faults`].
+//!
 //! Both `recv` futures are cancel-safe, so they can sit in a `tokio::select!` next to a timer.
 //!
 //! [`Clock`] is the one notion of time shared by the bus, the emulator and the daemon: the wall
@@ -28,6 +32,9 @@ use std::time::Duration;
 
 mod clock;
 pub use clock::{Clock, SimClock};
+
+pub mod fault;
+pub use fault::{FaultConfig, FaultInjector, Faults};
 
 pub use embedded_can;
 use embedded_can::{Frame as _, Id};

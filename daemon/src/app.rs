@@ -6,7 +6,9 @@ use std::path::{Path, PathBuf};
 use exocal_bus::{Clock, SocketCan, Transport};
 use tokio::signal::unix::{signal, SignalKind};
 
-use crate::cli::{CheckConfigArgs, Cli, Command, SessionArgs, SYSTEM_CONFIG};
+use crate::cli::{
+    CheckConfigArgs, Cli, Command, NodesArgs, RecoverArgs, SessionArgs, SYSTEM_CONFIG,
+};
 use crate::config::{Config, ConfigError, DEFAULT_TOML};
 use crate::exit::DaemonError;
 use crate::report::{Notifier, Reporter};
@@ -106,6 +108,22 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
                 export_candump: args.export_candump,
             };
             finish(crate::offline::run(&config, &text, &opts).map_err(|e| *e))
+        }
+        Command::Recover(args) => recover_log(&args),
+        Command::Nodes(args) => {
+            let (mut config, source) =
+                resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
+            apply_overrides(
+                &mut config,
+                &SessionArgs {
+                    interface: args.interface.clone(),
+                    output: args.output.clone(),
+                    dry_run: true,
+                },
+            );
+            eprintln!("exocald: configuration from {source}");
+            require_interface(&config.interface)?;
+            runtime()?.block_on(nodes_on_can(&config, &args))
         }
         #[cfg(feature = "demo")]
         Command::Demo(args) => {
@@ -251,6 +269,12 @@ pub fn finish(result: Result<SessionSummary, SessionError>) -> Result<(), Daemon
 
 /// `exocald run`: wait for a `Trigger` frame (StartCalibration) or SIGUSR1, run a session,
 /// and wait again, until SIGTERM/SIGINT.
+///
+/// A trigger that arrives while a session runs is ignored, and said so (a line on stderr; a
+/// Trigger frame also in the session's log): one trigger, one session. SIGTERM while idle exits
+/// 0; during a session it ends as `calibrate` does (75, the log finished, nothing pushed).
+/// Each state change is a line on stderr (`idle: …`, `trigger received (…)`), which is what
+/// a supervisor or a test waits on.
 pub async fn serve_on_can(config: Config, dry_run: bool) -> Result<(), DaemonError> {
     const IDLE: &str = "idle: waiting for a trigger (CAN Trigger frame or SIGUSR1)";
     let shutdown = Shutdown::on_signals();
@@ -265,12 +289,13 @@ pub async fn serve_on_can(config: Config, dry_run: bool) -> Result<(), DaemonErr
     let started = std::time::Instant::now();
     let mut tick = tokio::time::interval(crate::runner::TICK);
     notifier.ready(IDLE);
+    reporter.message(IDLE);
     let stop = shutdown.wait();
     tokio::pin!(stop);
     loop {
         let trigger = tokio::select! {
             () = &mut stop => return Ok(()),
-            _ = usr1.recv() => true,
+            _ = usr1.recv() => Some("SIGUSR1"),
             rx = bus.recv() => {
                 let rx = rx.map_err(|source| DaemonError::Bus {
                     what: "receiving CAN".into(),
@@ -280,33 +305,110 @@ pub async fn serve_on_can(config: Config, dry_run: bool) -> Result<(), DaemonErr
                     exocal_dbc::decode_frame(&rx.frame),
                     Ok(exocal_dbc::Message::Trigger(exocal_dbc::TriggerCommand::StartCalibration))
                 )
+                .then_some("CAN Trigger frame")
             }
             _ = tick.tick() => {
                 notifier.watchdog(started.elapsed());
-                false
+                None
             }
         };
-        if !trigger {
+        let Some(by) = trigger else {
             continue;
-        }
-        reporter.message("trigger received: starting a session");
-        let result = run_session(
-            &mut bus,
-            &clock,
-            &config,
-            dry_run,
-            shutdown.wait(),
-            &mut notifier,
-            &mut reporter,
-        )
-        .await;
+        };
+        reporter.message(&format!("trigger received ({by}): starting a session"));
+        // SIGUSR1 during the session is drained here, so it does not start another one after
+        // it (a Trigger frame during the session goes to the session, which logs it).
+        let result = {
+            let session = run_session(
+                &mut bus,
+                &clock,
+                &config,
+                dry_run,
+                shutdown.wait(),
+                &mut notifier,
+                &mut reporter,
+            );
+            tokio::pin!(session);
+            loop {
+                tokio::select! {
+                    result = &mut session => break result,
+                    _ = usr1.recv() => {
+                        eprintln!("exocald: trigger ignored (SIGUSR1): a session is running");
+                    }
+                }
+            }
+        };
         match finish(result) {
             Ok(()) => {}
             Err(DaemonError::Interrupted) => return Err(DaemonError::Interrupted),
             Err(e) => reporter.message(&format!("session failed: {e}")),
         }
         notifier.status(IDLE);
+        reporter.message(IDLE);
     }
+}
+
+/// `exocald nodes`: the listing on stdout (a table, or JSON), then 69 if a node is missing.
+async fn nodes_on_can(config: &Config, args: &NodesArgs) -> Result<(), DaemonError> {
+    let mut bus = open_can(config)?;
+    let listing = crate::nodes::list(&mut bus, &Clock::Wall, config, args.log.as_deref()).await?;
+    if args.json {
+        let text = serde_json::to_string_pretty(&listing).map_err(|e| DaemonError::Internal {
+            what: "formatting the listing as JSON".into(),
+            source: Box::new(e),
+        })?;
+        println!("{text}");
+    } else {
+        for line in listing.lines() {
+            println!("{line}");
+        }
+    }
+    if listing.missing.is_empty() {
+        Ok(())
+    } else {
+        Err(DaemonError::NoAnswer(listing.missing))
+    }
+}
+
+/// `exocald recover IN OUT`: the complete file, and one line saying what was kept.
+fn recover_log(args: &RecoverArgs) -> Result<(), DaemonError> {
+    let io = |what: String| move |source| DaemonError::Io { what, source };
+    let same = match (args.input.canonicalize(), args.output.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
+    };
+    if same {
+        return Err(DaemonError::Usage(format!(
+            "OUT {} is IN: write the recovered log to another file",
+            args.output.display()
+        )));
+    }
+    let bytes =
+        std::fs::read(&args.input).map_err(io(format!("reading {}", args.input.display())))?;
+    let file = std::fs::File::create(&args.output)
+        .map_err(io(format!("creating {}", args.output.display())))?;
+    let out = std::io::BufWriter::new(file);
+    let (recovery, out) = crate::recover::recover(&bytes, out, Some(mcap::Compression::Zstd))
+        .map_err(|e| match e {
+            crate::recover::RecoverError::NotMcap => {
+                DaemonError::Input(format!("{}: {e}", args.input.display()))
+            }
+            crate::recover::RecoverError::Write(e) => DaemonError::Log {
+                what: format!("writing {}", args.output.display()),
+                source: crate::mcaplog::LogError::Mcap(e),
+            },
+        })?;
+    out.into_inner()
+        .map_err(|e| e.into_error())
+        .and_then(|f| f.sync_all())
+        .map_err(io(format!("writing {}", args.output.display())))?;
+    println!("{}: {recovery}", args.input.display());
+    println!(
+        "wrote {}: {} messages, with summary, indexes and footer",
+        args.output.display(),
+        recovery.messages
+    );
+    Ok(())
 }
 
 fn check_config(path: Option<&Path>, args: &CheckConfigArgs) -> Result<(), DaemonError> {

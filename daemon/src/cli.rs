@@ -2,7 +2,9 @@
 //!
 //! `exocald calibrate` is the power-up service (one session, then exit); `exocald run` serves and
 //! calibrates when triggered; `exocald demo` runs the emulated suit and the daemon in one process
-//! (no CAN, no root); `exocald check-config` validates a configuration file and prints it.
+//! (no CAN, no root); `exocald check-config` validates a configuration file and prints it;
+//! `exocald offline` recalibrates from a recorded session; `exocald recover` rewrites a log cut
+//! short as a complete file; `exocald nodes` asks every node which table it holds.
 
 use std::path::PathBuf;
 
@@ -42,7 +44,13 @@ pub enum Command {
     /// interface missing or a node unreachable; 74 I/O error; 75 interrupted (nothing pushed);
     /// 78 bad configuration.
     Calibrate(SessionArgs),
-    /// Serve: keep listening, and calibrate each time a trigger frame arrives on CAN.
+    /// Serve: keep listening, and run a session on each CAN Trigger frame or SIGUSR1.
+    ///
+    /// Idle, it feeds the watchdog and says so on stderr ("idle: waiting for a trigger"). A
+    /// trigger that arrives during a session is ignored, and said so (stderr; a frame also in
+    /// the session's log). Exit status: 0 stopped by SIGTERM/SIGINT while idle; 75 stopped
+    /// during a session (nothing pushed); 69 CAN interface missing; 74 I/O error; 78 bad
+    /// configuration. A session that fails is reported and the daemon waits again.
     Run(SessionArgs),
     /// Emulated suit and daemon in one process, on the in-process bus: no CAN, no root.
     ///
@@ -61,6 +69,51 @@ pub enum Command {
     /// 66 the recording misses the session rules (duration, excitation, samples); 74 I/O
     /// error; 78 bad configuration.
     Offline(OfflineArgs),
+    /// Rewrite a session log cut short (kill -9, power loss) as a complete, indexed MCAP.
+    ///
+    /// Keeps every message of every complete chunk (schemas, channels, ids, sequence numbers and
+    /// times as written) and says how much that is and where the input was cut; the output has
+    /// a summary, indexes and a footer, so Foxglove and any MCAP reader open it. `offline`
+    /// reads a cut log directly; this makes a file for other tools.
+    /// Exit status: 0 written; 64 OUT is IN; 65 IN is not an MCAP file; 74 I/O error.
+    Recover(RecoverArgs),
+    /// Ask every joint node which table it holds (CAN bus required).
+    ///
+    /// Reads each node's table over the bus (the table transfer's readback): node id, the CRC of
+    /// the table held, its D-H row and drift τ/σ, and whether it is the table the last session
+    /// pushed — the table the node confirmed at the end of the newest session log in the output
+    /// directory that has a push (or in --log FILE). Names every node that does not answer.
+    /// Exit status: 0 every node answered; 69 some node did not answer (each named), or the CAN
+    /// interface is missing; 74 I/O error; 78 bad configuration.
+    Nodes(NodesArgs),
+}
+
+/// Options of `nodes`.
+#[derive(Debug, Args)]
+pub struct NodesArgs {
+    /// CAN interface, overriding `can.interface` (e.g. vcan0).
+    #[arg(long, short = 'i', value_name = "IFACE")]
+    pub interface: Option<String>,
+    /// Folder of the session logs, overriding `output.directory`.
+    #[arg(long, short = 'o', value_name = "DIR")]
+    pub output: Option<PathBuf>,
+    /// Compare with the tables pushed in this session log instead.
+    #[arg(long, value_name = "FILE.mcap")]
+    pub log: Option<PathBuf>,
+    /// Print the listing as JSON (for scripts).
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Options of `recover`.
+#[derive(Debug, Args)]
+pub struct RecoverArgs {
+    /// The session log cut short.
+    #[arg(value_name = "IN")]
+    pub input: PathBuf,
+    /// Where to write the complete file (replaced if it exists; never IN itself).
+    #[arg(value_name = "OUT")]
+    pub output: PathBuf,
 }
 
 /// Options of `offline`.
@@ -187,6 +240,32 @@ mod tests {
         assert!(
             Cli::try_parse_from(["exocald", "offline", "-i", "x", "--format", "pcap"]).is_err()
         );
+    }
+
+    #[test]
+    fn recover_takes_in_and_out() {
+        let cli = Cli::try_parse_from(["exocald", "recover", "cut.mcap", "whole.mcap"]).unwrap();
+        match cli.command {
+            Command::Recover(a) => {
+                assert_eq!(a.input, PathBuf::from("cut.mcap"));
+                assert_eq!(a.output, PathBuf::from("whole.mcap"));
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(Cli::try_parse_from(["exocald", "recover", "cut.mcap"]).is_err());
+    }
+
+    #[test]
+    fn nodes_takes_an_interface_a_log_and_json() {
+        let cli = Cli::try_parse_from(["exocald", "nodes", "-i", "vcan0", "--json"]).unwrap();
+        match cli.command {
+            Command::Nodes(a) => {
+                assert_eq!(a.interface.as_deref(), Some("vcan0"));
+                assert!(a.json);
+                assert_eq!((a.output, a.log), (None, None));
+            }
+            other => panic!("{other:?}"),
+        }
     }
 
     #[test]

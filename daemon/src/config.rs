@@ -15,6 +15,7 @@
 use std::fmt;
 use std::path::{Path, PathBuf};
 
+use calib_core::{DhRow, DhTable, JointRanges, ParamKind};
 use serde::Deserialize;
 use toml::de::{DeTable, DeValue};
 
@@ -51,51 +52,38 @@ pub mod limits {
     pub const MAX_BACKOFF_MS: u64 = 600_000;
 }
 
-/// One row of a D-H table, SI units (metres, radians).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct DhRow {
-    /// Link length a_i (m).
-    pub a: f64,
-    /// Link twist α_i (rad).
-    pub alpha: f64,
-    /// Link offset d_i (m).
-    pub d: f64,
-    /// Joint angle offset added to the measured angle θ_i (rad).
-    pub offset: f64,
-}
-
-/// A closed interval `[min, max]`, `min < max`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Interval {
-    pub min: f64,
-    pub max: f64,
-}
-
-impl Interval {
-    /// Whether `x` lies in the interval (bounds included).
-    pub fn contains(&self, x: f64) -> bool {
-        self.min <= x && x <= self.max
-    }
-
-    /// `max - min`.
-    pub fn width(&self) -> f64 {
-        self.max - self.min
-    }
-}
-
-/// Anatomical bounds a table must respect to be pushed.
+/// Anatomical bounds a table must respect to be pushed, as the file states them (SI units).
+/// [`Bounds::table`] turns them into calib-core's per-parameter [`calib_core::Bounds`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct Bounds {
-    /// Allowed a_i (m).
-    pub a: [Interval; JOINTS],
-    /// Allowed d_i (m).
-    pub d: [Interval; JOINTS],
+    /// Allowed `a_i` (m), `(min, max)`.
+    pub a: [(f64, f64); JOINTS],
+    /// Allowed `d_i` (m), `(min, max)`.
+    pub d: [(f64, f64); JOINTS],
     /// Largest |α_i − nominal α_i| (rad).
     pub alpha_deviation: f64,
     /// Largest |offset_i − nominal offset_i| (rad).
     pub offset_deviation: f64,
     /// Anatomical rotation range of each joint (rad).
-    pub joint_range: [Interval; JOINTS],
+    pub joint_range: JointRanges<JOINTS>,
+}
+
+impl Bounds {
+    /// The per-parameter bounds of a table whose nominal is `nominal`: `a` and `d` as
+    /// configured, `α` and the joint offset within their deviation of nominal (calib-core
+    /// compares angles modulo 2π).
+    pub fn table(&self, nominal: &DhTable<JOINTS>) -> calib_core::Bounds<JOINTS> {
+        let mut b = calib_core::Bounds::none();
+        for (j, row) in nominal.rows.iter().enumerate() {
+            let around = |x: f64, dev: f64| Some((x - dev, x + dev));
+            b.limits[ParamKind::A as usize][j] = Some(self.a[j]);
+            b.limits[ParamKind::D as usize][j] = Some(self.d[j]);
+            b.limits[ParamKind::Alpha as usize][j] = around(row.alpha, self.alpha_deviation);
+            b.limits[ParamKind::Theta as usize][j] =
+                around(row.theta_offset, self.offset_deviation);
+        }
+        b
+    }
 }
 
 /// Collection window rules.
@@ -158,7 +146,8 @@ pub struct Config {
     pub interface: String,
     /// CAN node id of the node on joint `i + 1`.
     pub joint_nodes: [u8; JOINTS],
-    pub nominal: [DhRow; JOINTS],
+    /// The nominal D-H table the suit was built to.
+    pub nominal: DhTable<JOINTS>,
     pub bounds: Bounds,
     pub session: SessionRules,
     pub validation: ValidationRules,
@@ -532,8 +521,8 @@ impl Checker<'_> {
         pairs: &[Pair; JOINTS],
         scale: f64,
         limit: f64,
-    ) -> Result<[Interval; JOINTS], ConfigError> {
-        let mut out = [Interval { min: 0.0, max: 0.0 }; JOINTS];
+    ) -> Result<[(f64, f64); JOINTS], ConfigError> {
+        let mut out = [(0.0, 0.0); JOINTS];
         for (i, [lo, hi]) in pairs.iter().copied().enumerate() {
             let k = format!("{key}[{i}]");
             self.magnitude_at_most(&k, lo, limit)?;
@@ -541,10 +530,7 @@ impl Checker<'_> {
             if lo >= hi {
                 return Err(self.err(k, format!("min {lo} must be below max {hi}")));
             }
-            out[i] = Interval {
-                min: lo * scale,
-                max: hi * scale,
-            };
+            out[i] = (lo * scale, hi * scale);
         }
         Ok(out)
     }
@@ -584,13 +570,15 @@ impl Checker<'_> {
         }
 
         let n = &raw.nominal;
-        let mut nominal = [DhRow {
-            a: 0.0,
-            alpha: 0.0,
-            d: 0.0,
-            offset: 0.0,
-        }; JOINTS];
-        for (i, row) in nominal.iter_mut().enumerate() {
+        let mut nominal = DhTable {
+            rows: [DhRow {
+                a: 0.0,
+                alpha: 0.0,
+                d: 0.0,
+                theta_offset: 0.0,
+            }; JOINTS],
+        };
+        for (i, row) in nominal.rows.iter_mut().enumerate() {
             *row = DhRow {
                 a: self.finite(&format!("nominal.a[{i}]"), n.a[i])?,
                 alpha: self.magnitude_at_most(
@@ -599,7 +587,7 @@ impl Checker<'_> {
                     MAX_ANGLE_DEG,
                 )? * deg,
                 d: self.finite(&format!("nominal.d[{i}]"), n.d[i])?,
-                offset: self.magnitude_at_most(
+                theta_offset: self.magnitude_at_most(
                     &format!("nominal.offset_deg[{i}]"),
                     n.offset_deg[i],
                     MAX_ANGLE_DEG,
@@ -621,21 +609,24 @@ impl Checker<'_> {
                 b.offset_deviation_deg,
                 MAX_DEVIATION_DEG,
             )? * deg,
-            joint_range: self.intervals(
-                "bounds.joint_range_deg",
-                &b.joint_range_deg,
-                deg,
-                MAX_ANGLE_DEG,
-            )?,
+            joint_range: JointRanges {
+                limits: self.intervals(
+                    "bounds.joint_range_deg",
+                    &b.joint_range_deg,
+                    deg,
+                    MAX_ANGLE_DEG,
+                )?,
+            },
         };
-        for (i, row) in nominal.iter().enumerate() {
-            if !bounds.a[i].contains(row.a) {
+        let within = |x: f64, (min, max): (f64, f64)| (min..=max).contains(&x);
+        for (i, row) in nominal.rows.iter().enumerate() {
+            if !within(row.a, bounds.a[i]) {
                 return Err(self.err(
                     format!("nominal.a[{i}]"),
                     format!("{} is outside bounds.a[{i}]", row.a),
                 ));
             }
-            if !bounds.d[i].contains(row.d) {
+            if !within(row.d, bounds.d[i]) {
                 return Err(self.err(
                     format!("nominal.d[{i}]"),
                     format!("{} is outside bounds.d[{i}]", row.d),
@@ -799,15 +790,15 @@ impl Config {
         let deg = |r: f64| ((r / (std::f64::consts::PI / 180.0)) * 1e9).round() / 1e9;
         let list = |v: &mut dyn Iterator<Item = String>| v.collect::<Vec<_>>().join(", ");
         let num = |x: f64| format!("{x:?}");
-        let pairs = |v: &[Interval; JOINTS], scale: &dyn Fn(f64) -> f64| {
+        let pairs = |v: &[(f64, f64); JOINTS], scale: &dyn Fn(f64) -> f64| {
             list(
                 &mut v
                     .iter()
-                    .map(|i| format!("[{}, {}]", num(scale(i.min)), num(scale(i.max)))),
+                    .map(|&(min, max)| format!("[{}, {}]", num(scale(min)), num(scale(max)))),
             )
         };
         let text = |s: &str| toml::Value::String(s.to_string()).to_string();
-        let n = &self.nominal;
+        let n = &self.nominal.rows;
         let b = &self.bounds;
         let s = &self.session;
         let v = &self.validation;
@@ -827,7 +818,7 @@ impl Config {
             list(&mut n.iter().map(|r| num(r.a))),
             list(&mut n.iter().map(|r| num(deg(r.alpha)))),
             list(&mut n.iter().map(|r| num(r.d))),
-            list(&mut n.iter().map(|r| num(deg(r.offset)))),
+            list(&mut n.iter().map(|r| num(deg(r.theta_offset)))),
         );
         let _ = writeln!(
             w,
@@ -837,7 +828,7 @@ impl Config {
             pairs(&b.d, &|x| x),
             num(deg(b.alpha_deviation)),
             num(deg(b.offset_deviation)),
-            pairs(&b.joint_range, &deg),
+            pairs(&b.joint_range.limits, &deg),
         );
         let _ = writeln!(
             w,
@@ -906,18 +897,18 @@ mod tests {
         let c = Config::parse(DEFAULT_TOML).unwrap();
         assert_eq!(c.interface, "can0");
         assert_eq!(c.joint_nodes, [1, 2, 3, 4, 5, 6, 7]);
-        let a: Vec<f64> = c.nominal.iter().map(|r| r.a).collect();
+        let a: Vec<f64> = c.nominal.rows.iter().map(|r| r.a).collect();
         assert_eq!(a, [0.04, 0.04, 0.431, 0.244, 0.0, 0.0, 0.0]);
-        assert!((c.nominal[0].alpha + std::f64::consts::FRAC_PI_2).abs() < 1e-12);
-        assert!((c.nominal[1].offset - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
-        assert_eq!(
-            c.bounds.a[2],
-            Interval {
-                min: 0.377,
-                max: 0.485
-            }
-        );
-        assert!((c.bounds.joint_range[4].min + 20f64.to_radians()).abs() < 1e-12);
+        assert!((c.nominal.rows[0].alpha + std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+        assert!((c.nominal.rows[1].theta_offset - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+        assert_eq!(c.bounds.a[2], (0.377, 0.485));
+        assert!((c.bounds.joint_range.limits[4].0 + 20f64.to_radians()).abs() < 1e-12);
+        // The table bounds: a and d as configured, α and the offset around nominal.
+        let t = c.bounds.table(&c.nominal);
+        assert_eq!(t.limits[ParamKind::A as usize][2], Some((0.377, 0.485)));
+        let (lo, hi) = t.limits[ParamKind::Alpha as usize][0].unwrap();
+        assert!((0.5 * (lo + hi) - c.nominal.rows[0].alpha).abs() < 1e-12);
+        assert!((0.5 * (hi - lo) - c.bounds.alpha_deviation).abs() < 1e-12);
         assert_eq!(c.push.retries, 3);
         assert_eq!(Config::default_config(), c);
     }

@@ -13,16 +13,23 @@
 //! stopped and each joint node's flash file is read back: the demo succeeds only if every node
 //! persisted exactly the table the daemon pushed (same CRC). SIGTERM or SIGINT interrupts the
 //! session as in `calibrate`: the log is finished before the process exits.
+//!
+//! [`RunningSuit`] and [`session_against_suit`] are that pairing on any transport, with any
+//! scenario and configuration: the fault matrix, the atomic-push trials and the vcan
+//! reliability suites run the suit through them.
 
+use std::future::Future;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use exocal_bus::{InProcessBus, SimClock};
+use exocal_bus::{Clock, InProcessBus, SimClock, Transport};
 use exocal_dbc::NodeId;
-use exocal_hil::{Hil, Scenario};
+use exocal_hil::flash::FlashError;
+use exocal_hil::{Hil, HilError, Linger, Scenario};
 
 use crate::config::Config;
 use crate::exit::DaemonError;
+use crate::push::Holds;
 use crate::report::{Notifier, Reporter};
 use crate::runner::{run_session, SessionError, SessionSummary};
 
@@ -107,46 +114,271 @@ async fn session(config: &Config, opts: &DemoOptions) -> Result<DemoResult, Sess
     scenario.duration_s = scenario
         .duration_s
         .max(config.session.max_duration_s + 120.0);
-    let mut hil = Hil::new(scenario, &flash_dir).map_err(|e| DaemonError::Interface {
+    let hil = Hil::new(scenario, &flash_dir).map_err(|e| DaemonError::Interface {
         name: "in-process hil".into(),
         reason: e.to_string(),
     })?;
     // Speed 1 on the paused runtime's virtual clock.
     let clock = SimClock::new(1.0).expect("a positive speed");
     let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
-    let mut hil_end = bus.attach();
+    let suit = RunningSuit::start(hil, bus.attach(), clock);
     let mut daemon_end = bus.attach();
-    let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await });
     let pacer = tokio::spawn(pace(clock, opts.speed));
     // SIGTERM/SIGINT end the session like `calibrate`'s: the log is finished, nothing is lost.
     let shutdown = crate::shutdown::Shutdown::on_signals();
-    let mut notifier = Notifier::disabled();
-    let mut reporter = Reporter::detect(&notifier);
-    let result = run_session(
+    let run = session_against_suit(
+        suit,
         &mut daemon_end,
         &clock.bus_clock(),
         config,
-        false,
         shutdown.wait(),
+    )
+    .await;
+    pacer.abort();
+    let summary = run.result?;
+    let flash_crc = run
+        .flash
+        .into_iter()
+        .map(|(n, crc)| (n, crc.ok().flatten()))
+        .collect();
+    Ok(DemoResult { summary, flash_crc })
+}
+
+/// The emulated suit playing on one end of a transport, as a task of the current runtime: its
+/// motion, then its nodes answering (heartbeats, table transfers) until [`RunningSuit::stop`].
+pub struct RunningSuit {
+    task: tokio::task::JoinHandle<Result<(), HilError>>,
+    flash_dir: PathBuf,
+    /// The CRC of the table each joint node held when the suit started (its factory table).
+    pub factory: Vec<(NodeId, Option<u32>)>,
+}
+
+impl RunningSuit {
+    /// Starts `hil` on `bus`, its time on `clock` (make the clock right before this call).
+    pub fn start<T: Transport + 'static>(mut hil: Hil, mut bus: T, clock: SimClock) -> Self {
+        let factory = NodeId::JOINTS
+            .iter()
+            .map(|&n| (n, hil.suit().held_table(n).map(|t| t.crc())))
+            .collect();
+        let flash_dir = hil.suit().flash_dir().to_path_buf();
+        let task = tokio::spawn(async move {
+            hil.play(&mut bus, &clock, std::future::pending()).await?;
+            hil.linger(
+                &mut bus,
+                &clock,
+                Linger::UntilStopped,
+                std::future::pending(),
+            )
+            .await?;
+            Ok(())
+        });
+        RunningSuit {
+            task,
+            flash_dir,
+            factory,
+        }
+    }
+
+    /// Stops the nodes and reads every joint node's flash back: the CRC of the table it holds
+    /// (`None`: never written, so still the factory table), or why the file is unreadable.
+    pub async fn stop(self) -> Vec<(NodeId, Result<Option<u32>, FlashError>)> {
+        self.task.abort();
+        let _ = self.task.await;
+        NodeId::JOINTS
+            .iter()
+            .map(|&n| {
+                let crc = exocal_hil::flash::read(&self.flash_dir, n)
+                    .map(|img| img.map(|i| i.table.crc()));
+                (n, crc)
+            })
+            .collect()
+    }
+}
+
+/// What one session against the emulated suit left.
+#[derive(Debug)]
+pub struct SuitSession {
+    /// The session's result, as `exocald calibrate` would end.
+    pub result: Result<SessionSummary, SessionError>,
+    /// The CRC of each joint node's factory table.
+    pub factory: Vec<(NodeId, Option<u32>)>,
+    /// Each joint node's flash after the session (see [`RunningSuit::stop`]).
+    pub flash: Vec<(NodeId, Result<Option<u32>, FlashError>)>,
+    /// Wall-clock time the session took.
+    pub wall: Duration,
+}
+
+impl SuitSession {
+    /// The session's summary, also when it ended in an error that has one.
+    pub fn summary(&self) -> Option<&SessionSummary> {
+        match &self.result {
+            Ok(s) => Some(s),
+            Err(e) => e.summary.as_ref(),
+        }
+    }
+
+    /// What every session against the suit must keep, whatever its faults: nothing pushed
+    /// unless validation accepted the table; every joint node's flash readable, holding its
+    /// factory table or exactly the table pushed to it, and agreeing with the push report
+    /// (`New`: the pushed table, `Old`: the factory one; `Unknown` claims nothing). Returns what
+    /// was broken, one line each (empty: all kept).
+    pub fn problems(&self) -> Vec<String> {
+        let mut bad = Vec::new();
+        let s = self.summary();
+        let accepted = s
+            .and_then(|s| s.outcome.as_ref())
+            .is_some_and(|c| c.verdict.accepted());
+        let push = s.and_then(|s| s.push.as_ref());
+        if !accepted && push.is_some() {
+            bad.push("pushed although validation refused".to_string());
+        }
+        for ((node, factory), (_, flash)) in self.factory.iter().zip(&self.flash) {
+            let held = match flash {
+                Ok(crc) => crc.or(*factory),
+                Err(e) => {
+                    bad.push(format!("{node}: flash unreadable: {e}"));
+                    continue;
+                }
+            };
+            let report = push.and_then(|p| p.nodes.iter().find(|r| r.node == node.name()));
+            let sent = report.map(|r| r.new_crc);
+            if held != *factory && held != sent {
+                bad.push(format!(
+                    "{node}: flash holds {held:#010x?}, neither its factory table nor the pushed one"
+                ));
+            }
+            if let Some(r) = report {
+                let agrees = match r.holds {
+                    Holds::New => held == sent,
+                    Holds::Old => held == *factory,
+                    Holds::Unknown => true,
+                };
+                if !agrees {
+                    bad.push(format!(
+                        "{node}: report {:?} but flash {held:#010x?}",
+                        r.holds
+                    ));
+                }
+            }
+        }
+        bad
+    }
+}
+
+/// One ordinary daemon session ([`run_session`], no dry run) on `daemon_end` against `suit`,
+/// ended by `shutdown` or by itself; then the suit is stopped and the flash read back.
+pub async fn session_against_suit<D: Transport>(
+    suit: RunningSuit,
+    daemon_end: &mut D,
+    clock: &Clock,
+    config: &Config,
+    shutdown: impl Future<Output = ()>,
+) -> SuitSession {
+    let mut notifier = Notifier::disabled();
+    let mut reporter = Reporter::detect(&notifier);
+    let started = Instant::now();
+    let result = run_session(
+        daemon_end,
+        clock,
+        config,
+        false,
+        shutdown,
         &mut notifier,
         &mut reporter,
     )
     .await;
-    pacer.abort();
-    hil_task.abort();
-    let _ = hil_task.await;
-    let summary = result?;
-    let flash_crc = NodeId::JOINTS
-        .iter()
-        .map(|&n| {
-            let crc = exocal_hil::flash::read(&flash_dir, n)
-                .ok()
-                .flatten()
-                .map(|img| img.table.crc());
-            (n, crc)
-        })
-        .collect();
-    Ok(DemoResult { summary, flash_crc })
+    let wall = started.elapsed();
+    let factory = suit.factory.clone();
+    let flash = suit.stop().await;
+    SuitSession {
+        result,
+        factory,
+        flash,
+        wall,
+    }
+}
+
+/// What push trials (a push against the suit under transfer faults) came to, node by node: a
+/// node's flash must hold its old or its new table (never a mix), and the push report must say
+/// which (`New`/`Old`; `Unknown` claims nothing and is counted with its reason).
+#[derive(Debug, Default)]
+pub struct PushTally {
+    /// Trials counted.
+    pub runs: u64,
+    /// Node transfers counted.
+    pub nodes: u64,
+    /// Reports `New`.
+    pub new: u64,
+    /// Reports `Old`.
+    pub old: u64,
+    /// Reports `Unknown`.
+    pub unknown: u64,
+    /// Nodes whose flash holds neither their old nor their new table.
+    pub mixed: u64,
+    /// A mixed table or a report that disagrees with the flash, one line each.
+    pub problems: Vec<String>,
+    /// Every `Unknown`: trial, node, the daemon's reason, what the flash holds.
+    pub unknown_why: Vec<String>,
+}
+
+impl PushTally {
+    /// Counts one trial: per joint node its old and new table (as pushed), its flash after the
+    /// trial ([`RunningSuit::stop`]) and the push report; `trial` names it in the lines, and a
+    /// problem line shows its `faults` too.
+    pub fn add(
+        &mut self,
+        trial: &str,
+        faults: &impl std::fmt::Debug,
+        tables: &[(NodeId, exocal_dbc::Table, exocal_dbc::Table)],
+        flash: &[(NodeId, Result<Option<u32>, FlashError>)],
+        report: &crate::push::PushReport,
+    ) {
+        self.runs += 1;
+        for (((node, old, new), (_, flash)), rep) in tables.iter().zip(flash).zip(&report.nodes) {
+            self.nodes += 1;
+            // No flash file yet means the factory table (nothing was ever written).
+            let held = match flash {
+                Ok(crc) => crc.unwrap_or(old.crc()),
+                Err(e) => {
+                    self.problems
+                        .push(format!("{trial} {node}: flash unreadable: {e}"));
+                    continue;
+                }
+            };
+            let (holds_new, holds_old) = (held == new.crc(), held == old.crc());
+            if !holds_new && !holds_old {
+                self.mixed += 1;
+            }
+            let agrees = match rep.holds {
+                Holds::New => {
+                    self.new += 1;
+                    holds_new
+                }
+                Holds::Old => {
+                    self.old += 1;
+                    holds_old
+                }
+                Holds::Unknown => {
+                    self.unknown += 1;
+                    self.unknown_why.push(format!(
+                        "{trial} {node}: {} (flash {})",
+                        rep.error.as_deref().unwrap_or("no error given"),
+                        if holds_new { "new" } else { "old" }
+                    ));
+                    true
+                }
+            };
+            if !(holds_new || holds_old) || !agrees {
+                self.problems.push(format!(
+                    "{trial} {node}: report {:?} (held_crc {:?}), flash {held:#010x} (old {:#010x}, new {:#010x}), faults {faults:?}",
+                    rep.holds,
+                    rep.held_crc,
+                    old.crc(),
+                    new.crc(),
+                ));
+            }
+        }
+    }
 }
 
 /// Checks that every node's flash holds the table the daemon pushed to it.

@@ -6,9 +6,9 @@
 
 use std::fmt;
 
-use crate::calibrate::CalibrateError;
 use crate::config::ConfigError;
 use crate::mcaplog::LogError;
+use crate::pipeline::CalibrateError;
 use exocal_bus::BusError;
 
 /// sysexits(3) statuses used by exocald.
@@ -22,7 +22,8 @@ pub mod code {
     pub const DATAERR: u8 = 65;
     /// EX_NOINPUT: the session ended without enough motion or samples to calibrate.
     pub const NOINPUT: u8 = 66;
-    /// EX_UNAVAILABLE: the CAN interface is missing, or a node could not be reached.
+    /// EX_UNAVAILABLE: the CAN interface is missing, or a node could not be reached (for
+    /// `nodes`: some node did not answer).
     pub const UNAVAILABLE: u8 = 69;
     /// EX_SOFTWARE: an internal error (a bug).
     pub const SOFTWARE: u8 = 70;
@@ -69,6 +70,8 @@ pub enum DaemonError {
     Input(String),
     /// Options that do not go together (64).
     Usage(String),
+    /// Nodes that did not answer (69), by name.
+    NoAnswer(Vec<String>),
 }
 
 impl DaemonError {
@@ -76,7 +79,9 @@ impl DaemonError {
     pub fn exit_code(&self) -> u8 {
         match self {
             DaemonError::Config(_) => code::CONFIG,
-            DaemonError::Interface { .. } | DaemonError::Push(_) => code::UNAVAILABLE,
+            DaemonError::Interface { .. } | DaemonError::Push(_) | DaemonError::NoAnswer(_) => {
+                code::UNAVAILABLE
+            }
             DaemonError::Session(_) | DaemonError::Calibration(_) => code::NOINPUT,
             DaemonError::Validation(_) => code::DATAERR,
             DaemonError::Io { .. } | DaemonError::Bus { .. } | DaemonError::Log { .. } => {
@@ -119,6 +124,7 @@ impl fmt::Display for DaemonError {
             }
             DaemonError::Input(what) => write!(f, "bad input: {what}"),
             DaemonError::Usage(what) => write!(f, "usage: {what}"),
+            DaemonError::NoAnswer(nodes) => write!(f, "no answer from {}", nodes.join(", ")),
         }
     }
 }
@@ -184,9 +190,11 @@ mod tests {
                 what: "writing the log".into(),
                 source: LogError::Io(std::io::Error::other("disk full")),
             },
+            DaemonError::NoAnswer(vec!["Joint4".into(), "Joint6".into()]),
         ];
         let codes: Vec<u8> = errors.iter().map(DaemonError::exit_code).collect();
-        assert_eq!(codes, [78, 69, 66, 65, 74, 75, 70, 65, 64, 74, 66, 74]);
+        assert_eq!(codes, [78, 69, 66, 65, 74, 75, 70, 65, 64, 74, 66, 74, 69]);
+        assert_eq!(errors[12].to_string(), "no answer from Joint4, Joint6");
         assert!(errors[1].to_string().contains("can9"));
         // The causes are kept, not flattened to strings: a caller can walk to the root.
         use std::error::Error as _;

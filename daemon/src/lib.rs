@@ -9,32 +9,38 @@
 //! | [`mcaplog`] | the per-session MCAP log (zstd chunks, flushed on an interval, Foxglove schemas) |
 //! | [`session`] | the collection window: coverage, sample counts, ready/failed |
 //! | [`report`] | progress bar / systemd `STATUS=` / plain lines; READY and WATCHDOG |
-//! | [`calibrate`] | LS, then drift EM, then validation, on aligned samples (pure) |
+//! | [`collect`] | what a session gathers, live or replayed: frames → aligned samples and their quality |
+//! | [`pipeline`] | aligned samples → split, LS, drift EM, validation, node rows, report detail (pure) |
 //! | [`parallel`] | the LS linearisation in sample blocks on several cores (std scoped threads) |
 //! | [`validate`] | bounds, condition number and held-out accuracy before any push |
 //! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
 //! | [`runner`] | one session on any transport: collect, align, calibrate, validate, push, log |
 //! | `demo` | exocal-hil and the daemon in one process on the in-process bus (feature `demo`, on by default) |
 //! | [`offline`] | recalibration from a recorded MCAP, candump or CSV file, through the same pipeline |
-//! | [`calreport`] | the HTML calibration report of a session (live or offline) |
+//! | [`calreport`] | the HTML report of a session (live or offline), from what the pipeline computed |
+//! | [`nodes`] | `exocald nodes`: every joint node's table, read over the bus, against the last push |
+//! | [`recover`] | a session log cut short (kill -9, power loss) read record by record and rewritten complete |
 //! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
 //! | [`shutdown`] | SIGTERM/SIGINT as a flag a session waits on |
 //! | [`app`] | what each subcommand does |
 
 pub mod align;
 pub mod app;
-pub mod calibrate;
 pub mod calreport;
 pub mod cli;
+pub mod collect;
 pub mod config;
 #[cfg(feature = "demo")]
 pub mod demo;
 pub mod exit;
 pub mod ingest;
 pub mod mcaplog;
+pub mod nodes;
 pub mod offline;
 pub mod parallel;
+pub mod pipeline;
 pub mod push;
+pub mod recover;
 pub mod report;
 pub mod runner;
 pub mod session;

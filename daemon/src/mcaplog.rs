@@ -122,6 +122,29 @@ pub struct Transform {
     pub rotation_wxyz: [f64; 4],
 }
 
+/// The arm's link frames (`link_{i-1}` → `link_i`) of `table` at joint angles `q`, as
+/// [`SessionLog::arm_transforms`] takes them.
+pub fn link_transforms<const N: usize>(
+    table: &calib_core::DhTable<N>,
+    q: &[f64; N],
+) -> Vec<Transform> {
+    table
+        .rows
+        .iter()
+        .zip(q)
+        .map(|(row, &qi)| {
+            let f = row.transform(qi);
+            let rot = nalgebra::UnitQuaternion::from_rotation_matrix(
+                &nalgebra::Rotation3::from_matrix(&f.r),
+            );
+            Transform {
+                translation: [f.p.x, f.p.y, f.p.z],
+                rotation_wxyz: [rot.w, rot.i, rot.j, rot.k],
+            }
+        })
+        .collect()
+}
+
 fn v3(p: [f64; 3]) -> Vector3 {
     Vector3 {
         x: p[0],

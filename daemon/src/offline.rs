@@ -3,9 +3,8 @@
 //! Contract:
 //! - frame-level inputs — the daemon's MCAP session log (`/can/rx`) or a `candump -L` log — are
 //!   replayed frame by frame, in file order and with their recorded receive times, through the
-//!   daemon's own [`Ingest::on_frame`], aligned by [`crate::runner::align_session`] and
-//!   calibrated by [`crate::calibrate::run_detailed`]: the live session's code path, minus the
-//!   bus. The same frames give the same table, bit for bit;
+//!   live session's own [`Collector`] and calibrated by [`pipeline::run`]: the live session's
+//!   code path, minus the bus. The same frames give the same table, bit for bit;
 //! - an MCAP log is replayed up to the end of its collection window: the live session writes
 //!   an `exocal_log::CollectionEnd` record on `/collection` when it stops collecting, and
 //!   calibrated on exactly the first `frames` received frames
@@ -13,6 +12,9 @@
 //!   that never finished collecting) is replayed whole. A candump log is
 //!   replayed whole: `--export-candump` writes exactly the frames the calibration used, so it
 //!   replays to the same result;
+//! - an MCAP log cut short (a killed daemon's: no summary, no footer) is read through
+//!   [`crate::recover`]: every message of every complete chunk; the run warns how much was
+//!   recovered and where the file was cut ([`read_session_log`]);
 //! - CSV samples (`t,q1,…,q7,x,y,z,qw,qx,qy,qz`, see [`exocal_report::readers`]) bypass
 //!   alignment; the EM steps at the file's median sample interval (`session.grid_hz` when they
 //!   agree to [`CSV_RATE_TOLERANCE`]);
@@ -34,14 +36,15 @@ use std::path::{Path, PathBuf};
 use exocal_bus::embedded_can::{ExtendedId, Frame as _, Id, StandardId};
 use exocal_bus::{Frame, Received};
 use exocal_report::readers::{self, RecordedFrame};
-use exocal_report::{Calibration, Quality, TimedSample};
+use exocal_report::TimedSample;
 use nalgebra::UnitQuaternion;
 
 use crate::align::{AlignedSample, Pose};
-use crate::calibrate::{self, Outcome};
+use crate::collect::{Collected, Collector};
 use crate::config::Config;
 use crate::exit::DaemonError;
-use crate::ingest::{ClockReport, Event, FrameStats, Ingest, StallReport};
+use crate::pipeline::{self, Calibrated};
+use crate::recover::{self, Recovery};
 use crate::runner::{SessionError, SessionSummary};
 use crate::session::{Phase, Session};
 
@@ -112,8 +115,35 @@ pub enum Input {
     Samples(Vec<TimedSample>),
 }
 
-/// Reads `bytes` (from `path`, for the messages) as `format`.
-pub fn read_input(path: &Path, bytes: &[u8], format: Format) -> Result<Input, DaemonError> {
+/// A daemon session log, finished or cut short: a finished file is read as it is; one without
+/// its end magic (a killed daemon's) is first recovered in memory ([`crate::recover`]: every
+/// message of every complete chunk), and the [`Recovery`] says what was kept.
+pub fn read_session_log(
+    path: &Path,
+    bytes: &[u8],
+) -> Result<(readers::McapSession, Option<Recovery>), DaemonError> {
+    let bad = |e: readers::ReadError| DaemonError::Input(format!("{}: {e}", path.display()));
+    if recover::is_finished(bytes) {
+        return Ok((readers::read_mcap_session(bytes).map_err(bad)?, None));
+    }
+    let (recovery, complete) = recover::recover_in_memory(bytes)
+        .map_err(|e| DaemonError::Input(format!("{}: {e}", path.display())))?;
+    let session = readers::read_mcap_session(&complete).map_err(|e| {
+        DaemonError::Input(format!(
+            "{}: {e} (the log was cut short: {recovery})",
+            path.display()
+        ))
+    })?;
+    Ok((session, Some(recovery)))
+}
+
+/// Reads `bytes` (from `path`, for the messages) as `format`; for an MCAP log cut short, also
+/// what was recovered of it ([`read_session_log`]).
+pub fn read_input(
+    path: &Path,
+    bytes: &[u8],
+    format: Format,
+) -> Result<(Input, Option<Recovery>), DaemonError> {
     let bad = |e: readers::ReadError| DaemonError::Input(format!("{}: {e}", path.display()));
     let text = || {
         std::str::from_utf8(bytes).map_err(|e| {
@@ -126,7 +156,7 @@ pub fn read_input(path: &Path, bytes: &[u8], format: Format) -> Result<Input, Da
     };
     match format {
         Format::Mcap => {
-            let session = readers::read_mcap_session(bytes).map_err(bad)?;
+            let (session, recovery) = read_session_log(path, bytes)?;
             let mut frames = session.frames;
             if let Some(n) = session.collection_frames {
                 let n = usize::try_from(n).unwrap_or(usize::MAX);
@@ -140,10 +170,16 @@ pub fn read_input(path: &Path, bytes: &[u8], format: Format) -> Result<Input, Da
                 }
                 frames.truncate(n);
             }
-            Ok(Input::Frames(frames))
+            Ok((Input::Frames(frames), recovery))
         }
-        Format::Candump => Ok(Input::Frames(readers::parse_candump(text()?).map_err(bad)?)),
-        Format::Csv => Ok(Input::Samples(readers::parse_csv(text()?).map_err(bad)?)),
+        Format::Candump => Ok((
+            Input::Frames(readers::parse_candump(text()?).map_err(bad)?),
+            None,
+        )),
+        Format::Csv => Ok((
+            Input::Samples(readers::parse_csv(text()?).map_err(bad)?),
+            None,
+        )),
     }
 }
 
@@ -173,16 +209,10 @@ pub const DURATION_SLACK_S: f64 = 1.0;
 /// The input as the live session would have collected it, before calibrating.
 #[derive(Debug, Clone)]
 pub struct Replay {
-    pub frames: FrameStats,
-    pub clocks: Vec<ClockReport>,
-    /// Receiver stalls (not counted in any node's clock jumps).
-    pub stalls: StallReport,
-    /// The samples the calibration runs on (aligned, or the CSV's).
-    pub samples: Vec<AlignedSample>,
-    pub gaps: usize,
+    /// What the live session would have gathered (for CSV: the file's samples, unaligned).
+    pub collected: Collected,
     /// The configuration the calibration runs with (for CSV, `session.grid_hz` is the file's).
     pub config: Config,
-    pub quality: Quality,
     /// First to last frame (or CSV sample), seconds.
     pub duration_s: f64,
     /// The session rules (`[session]`) the recording does not meet, one line each: empty when
@@ -193,18 +223,10 @@ pub struct Replay {
 /// What a recalibration produced.
 #[derive(Debug, Clone)]
 pub struct Recalibration {
-    pub frames: FrameStats,
-    pub clocks: Vec<ClockReport>,
-    /// Receiver stalls (not counted in any node's clock jumps).
-    pub stalls: StallReport,
-    /// The samples the calibration ran on (aligned, or the CSV's).
-    pub samples: Vec<AlignedSample>,
-    pub gaps: usize,
+    pub collected: Collected,
     /// The configuration the calibration ran with (for CSV, `session.grid_hz` is the file's).
     pub config: Config,
-    pub outcome: Outcome,
-    pub detail: Calibration,
-    pub quality: Quality,
+    pub calibrated: Calibrated,
 }
 
 /// An aligned sample from a CSV one.
@@ -244,48 +266,27 @@ fn shortfalls(session: &Session, config: &Config, duration_s: f64) -> Vec<String
     }
 }
 
-/// Replays `input` through ingest and alignment (frames) or takes its samples (CSV), and
-/// judges it by the session rules (see the module docs).
+/// Replays `input` through the live session's [`Collector`] (frames) or takes its samples
+/// (CSV), and judges it by the session rules (see the module docs).
 pub fn replay(input: &Input, config: &Config) -> Result<Replay, DaemonError> {
     let mut config = config.clone();
-    let mut session = Session::new(config.session.clone(), config.bounds.joint_range);
     match input {
         Input::Frames(recorded) => {
-            let mut ingest = Ingest::new(config.joint_nodes);
+            let mut collector = Collector::new(&config);
             for (i, f) in recorded.iter().enumerate() {
                 let rx = received(f).ok_or_else(|| {
                     DaemonError::Input(format!("frame {}: identifier {:#x} invalid", i + 1, f.id))
                 })?;
-                match ingest.on_frame(&rx) {
-                    Event::Joint { joint, angle, .. } => session.joint_sample(joint, angle),
-                    Event::Pose(_) => session.pose_sample(),
-                    _ => {}
-                }
+                collector.on_frame(&rx);
             }
             let duration_s = match (recorded.first(), recorded.last()) {
                 (Some(a), Some(b)) => b.t.saturating_sub(a.t).as_secs_f64(),
                 _ => 0.0,
             };
-            let (aligned, clocks) = crate::runner::align_session(&ingest, &config);
-            let stalls = StallReport::of(&aligned.stalls);
-            let quality = crate::calreport::frame_quality(
-                &config,
-                ingest.stats(),
-                &clocks,
-                stalls,
-                &ingest.stream_rates(),
-                &aligned.samples,
-                aligned.gaps,
-            );
             Ok(Replay {
-                frames: ingest.stats().clone(),
-                clocks,
-                stalls,
-                samples: aligned.samples,
-                gaps: aligned.gaps,
-                shortfalls: shortfalls(&session, &config, duration_s),
+                collected: collector.collected(&config),
+                shortfalls: shortfalls(&collector.session, &config, duration_s),
                 config,
-                quality,
                 duration_s,
             })
         }
@@ -300,6 +301,7 @@ pub fn replay(input: &Input, config: &Config) -> Result<Replay, DaemonError> {
                     config.session.grid_hz = hz;
                 }
             }
+            let mut session = Session::new(config.session.clone(), config.bounds.joint_range);
             for s in csv {
                 for (j, &q) in s.sample.joints.iter().enumerate() {
                     session.joint_sample(j, q);
@@ -311,16 +313,10 @@ pub fn replay(input: &Input, config: &Config) -> Result<Replay, DaemonError> {
                 _ => 0.0,
             };
             let samples: Vec<AlignedSample> = csv.iter().map(aligned_of).collect();
-            let quality = crate::calreport::sample_quality(&config, &samples);
             Ok(Replay {
-                frames: FrameStats::default(),
-                clocks: Vec::new(),
-                stalls: StallReport::default(),
-                samples,
-                gaps: 0,
+                collected: Collected::from_samples(samples, &config),
                 shortfalls: shortfalls(&session, &config, duration_s),
                 config,
-                quality,
                 duration_s,
             })
         }
@@ -338,17 +334,11 @@ fn calibrate_replay(r: Replay) -> Result<Recalibration, DaemonError> {
     if !r.shortfalls.is_empty() {
         return Err(DaemonError::Session(r.shortfalls.join("; ")));
     }
-    let (outcome, detail) = calibrate::run_detailed(&r.samples, &r.config)?;
+    let calibrated = pipeline::run(&r.collected.samples, &r.config)?;
     Ok(Recalibration {
-        frames: r.frames,
-        clocks: r.clocks,
-        stalls: r.stalls,
-        samples: r.samples,
-        gaps: r.gaps,
+        collected: r.collected,
         config: r.config,
-        outcome,
-        detail,
-        quality: r.quality,
+        calibrated,
     })
 }
 
@@ -396,7 +386,23 @@ pub fn run(
         Some(f) => f,
         None => detect_format(path, &bytes)?,
     };
-    let input = read_input(path, &bytes, format)?;
+    let (input, recovery) = read_input(path, &bytes, format)?;
+    if let Some(r) = &recovery {
+        eprintln!(
+            "exocald: warning: {} was cut short (no summary or footer: the daemon was killed or \
+             lost power): {r}; `exocald recover` writes it as a complete, indexed file",
+            path.display()
+        );
+    }
+    let source = match &recovery {
+        Some(r) => format!(
+            "offline: {} ({format}, cut short: {} messages, {:.1} s recovered)",
+            path.display(),
+            r.messages,
+            r.span_s()
+        ),
+        None => format!("offline: {} ({format})", path.display()),
+    };
     if let (Input::Samples(_), Some(_)) = (&input, &opts.export_candump) {
         return Err(DaemonError::Usage(
             "--export-candump needs a frame input (MCAP or candump), not CSV samples".into(),
@@ -418,59 +424,42 @@ pub fn run(
     let name = path
         .file_name()
         .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
-    let write_report = |html: String| {
-        std::fs::write(&report_path, html).map_err(|source| DaemonError::Io {
-            what: format!("writing the report {}", report_path.display()),
-            source,
-        })
+    let title = format!("exocald offline recalibration — {name}");
+    let mut summary = SessionSummary::new(path.clone());
+    summary.collected(&replayed.collected);
+    summary.report_path = Some(report_path.clone());
+    let calibrated = if replayed.shortfalls.is_empty() {
+        pipeline::run(&replayed.collected.samples, &replayed.config).map_err(DaemonError::from)
+    } else {
+        Err(DaemonError::Session(replayed.shortfalls.join("; ")))
     };
-    let unfinished = |r: &Replay| SessionSummary {
-        log_path: path.clone(),
-        log_counts: Vec::new(),
-        frames: r.frames.clone(),
-        clocks: r.clocks.clone(),
-        stalls: r.stalls,
-        aligned_samples: r.samples.len(),
-        gaps: r.gaps,
-        outcome: None,
-        push: None,
-        report_path: Some(report_path.clone()),
+    // The report is written whatever happened once the input was read: the calibration's, or
+    // (the session rules, or samples that would not calibrate) why not, with the data.
+    let reasons = match &calibrated {
+        Err(DaemonError::Session(_)) => replayed.shortfalls.clone(),
+        Err(e) => vec![e.to_string()],
+        Ok(_) => Vec::new(),
     };
-    let r = match calibrate_replay(replayed.clone()) {
-        Ok(r) => r,
-        Err(error @ (DaemonError::Session(_) | DaemonError::Calibration(_))) => {
-            // Not calibrated (the session rules, or the samples would not calibrate): the
-            // report says why and shows the data, as a live session's would.
-            let reasons = if replayed.shortfalls.is_empty() {
-                vec![error.to_string()]
-            } else {
-                replayed.shortfalls.clone()
-            };
-            let input = crate::calreport::session_input(
-                format!("exocald offline recalibration — {name}"),
-                format!("offline: {} ({format})", path.display()),
-                &replayed.samples,
-                reasons,
-                replayed.quality.clone(),
-            );
-            write_report(exocal_report::html::render_session(&input))?;
+    let html = crate::calreport::render(
+        title,
+        source,
+        &replayed.config,
+        &replayed.collected,
+        calibrated.as_ref().map_err(|_| reasons.as_slice()),
+    );
+    std::fs::write(&report_path, html).map_err(|source| DaemonError::Io {
+        what: format!("writing the report {}", report_path.display()),
+        source,
+    })?;
+    let calibrated = match calibrated {
+        Ok(c) => c,
+        Err(error) => {
             return Err(Box::new(SessionError {
                 error,
-                summary: Some(unfinished(&replayed)),
-            }));
+                summary: Some(summary),
+            }))
         }
-        Err(e) => return Err(e.into()),
     };
-    let report = crate::calreport::report_input(
-        format!("exocald offline recalibration — {name}"),
-        format!("offline: {} ({format})", path.display()),
-        &r.config,
-        &r.samples,
-        &r.outcome,
-        r.detail.clone(),
-        r.quality.clone(),
-    );
-    write_report(exocal_report::html::render(&report))?;
     if let (Input::Frames(frames), Some(out)) = (&input, &opts.export_candump) {
         let mut text = Vec::new();
         exocal_report::export::write_candump(frames, &config.interface, &mut text).map_err(
@@ -481,8 +470,8 @@ pub fn run(
         )?;
         write_file(out, "candump log", &text)?;
     }
-    let accepted = r.outcome.verdict.accepted();
-    let calibrated = r.detail.calibrated;
+    let accepted = calibrated.outcome.verdict.accepted();
+    let table = calibrated.outcome.table();
     let exports = [
         (&opts.export_toml, "TOML configuration"),
         (&opts.export_urdf, "URDF"),
@@ -497,33 +486,19 @@ pub fn run(
             continue;
         }
         let text = if what == "URDF" {
-            exocal_report::export::urdf("exocal_suit", &calibrated, &r.quality.joint_ranges)
+            let limits = &replayed.config.bounds.joint_range.limits;
+            exocal_report::export::urdf("exocal_suit", &table, limits)
         } else {
-            exocal_report::export::config_toml(config_text, &calibrated)
+            exocal_report::export::config_toml(config_text, &table)
         }
         .map_err(|e| DaemonError::Input(format!("exporting the {what}: {e}")))?;
         write_file(out, what, text.as_bytes())?;
     }
-    let summary = SessionSummary {
-        log_path: path.clone(),
-        log_counts: Vec::new(),
-        frames: r.frames,
-        clocks: r.clocks,
-        stalls: r.stalls,
-        aligned_samples: r.samples.len(),
-        gaps: r.gaps,
-        outcome: Some(r.outcome),
-        push: None,
-        report_path: Some(report_path),
-    };
+    let reasons = calibrated.outcome.verdict.reasons.clone();
+    summary.outcome = Some(calibrated.outcome);
     if accepted {
         Ok(summary)
     } else {
-        let reasons = summary
-            .outcome
-            .as_ref()
-            .map(|o| o.verdict.reasons.clone())
-            .unwrap_or_default();
         Err(Box::new(SessionError {
             error: DaemonError::Validation(reasons),
             summary: Some(summary),

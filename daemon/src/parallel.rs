@@ -3,10 +3,11 @@
 //! calib-core stays single-threaded and `no_std`; what it exposes is the per-sample work of an
 //! LS iteration ([`calib_core::normal_equations`], [`calib_core::ls::cost`]) and a way to
 //! merge it ([`GramAccumulator::merge`]). [`Parallel`] implements its [`Linearise`]: the
-//! session is split into one contiguous block per thread (std scoped threads, spawned per
-//! linearisation), each block is accumulated on its own, and the blocks are merged in block
-//! order. The result is the same least-squares problem, added up in another order: the same
-//! optimum to the rounding of the cost (tested), deterministic for a given thread count.
+//! session is split into fixed blocks of [`BLOCK`] samples, each accumulated on its own, the
+//! blocks spread over std scoped threads (spawned per linearisation) and merged in block order.
+//! The result is the same least-squares problem as calib-core's one-pass LS, added up in
+//! another order (the same optimum to the rounding of the cost, tested), and bit-identical on
+//! any number of cores.
 //!
 //! Only the LS parallelises: the drift EM is a Kalman filter and smoother, sequential in time.
 
@@ -14,10 +15,11 @@ use std::num::NonZeroUsize;
 
 use calib_core::{ls, normal_equations, DhTable, GramAccumulator, Linearise, Sample};
 
-/// Fewest samples a block is given: below that a thread costs more than it saves.
-pub const MIN_BLOCK: usize = 500;
+/// Samples per block. The blocks do not depend on the thread count, so neither does the
+/// result: bit-identical on any number of cores.
+pub const BLOCK: usize = 1024;
 
-/// A session's samples, linearised in contiguous blocks on up to `threads` threads.
+/// A session's samples, linearised in blocks of [`BLOCK`] spread over up to `threads` threads.
 #[derive(Clone, Copy, Debug)]
 pub struct Parallel<'a, const N: usize> {
     samples: &'a [Sample<N>],
@@ -25,7 +27,7 @@ pub struct Parallel<'a, const N: usize> {
 }
 
 impl<'a, const N: usize> Parallel<'a, N> {
-    /// `samples` on up to `threads` threads (one block each, at least [`MIN_BLOCK`] samples).
+    /// `samples` on up to `threads` threads.
     pub fn new(samples: &'a [Sample<N>], threads: NonZeroUsize) -> Self {
         Parallel { samples, threads }
     }
@@ -36,27 +38,22 @@ impl<'a, const N: usize> Parallel<'a, N> {
         Parallel::new(samples, threads)
     }
 
-    /// The blocks: as many as threads, each at least [`MIN_BLOCK`] samples (at least one).
-    fn block_len(&self) -> usize {
-        let blocks = self
-            .threads
-            .get()
-            .min(self.samples.len() / MIN_BLOCK)
-            .max(1);
-        self.samples.len().div_ceil(blocks).max(1)
-    }
-
-    /// `work` on every block, the first on this thread; the results in block order.
+    /// `work` on every block (a contiguous run of blocks per thread, the first run on this
+    /// thread); the results in block order.
     fn each_block<T: Send>(&self, work: impl Fn(&[Sample<N>]) -> T + Sync) -> Vec<T> {
-        let mut blocks = self.samples.chunks(self.block_len());
-        let first = blocks.next().unwrap_or(&[]);
+        let blocks: Vec<&[Sample<N>]> = self.samples.chunks(BLOCK).collect();
+        let per_thread = blocks.len().div_ceil(self.threads.get()).max(1);
+        let mut runs = blocks.chunks(per_thread);
+        let first = runs.next().unwrap_or(&[]);
         std::thread::scope(|s| {
             let work = &work;
-            let others: Vec<_> = blocks.map(|b| s.spawn(move || work(b))).collect();
-            let mut out = vec![work(first)];
+            let others: Vec<_> = runs
+                .map(|run| s.spawn(move || run.iter().map(|b| work(b)).collect::<Vec<T>>()))
+                .collect();
+            let mut out: Vec<T> = first.iter().map(|b| work(b)).collect();
             for handle in others {
                 // A panic in a block is a bug in the work itself: let it carry on.
-                out.push(
+                out.extend(
                     handle
                         .join()
                         .unwrap_or_else(|p| std::panic::resume_unwind(p)),
@@ -97,7 +94,7 @@ mod tests {
     };
 
     #[test]
-    fn two_threads_reach_the_optimum_of_one() {
+    fn blocks_on_two_threads_reach_the_one_pass_optimum_bit_identically_to_one_thread() {
         let samples: Vec<Sample<7>> = Scenario::new(ScenarioConfig::paper(), 4)
             .take(2500)
             .map(|s| s.sample)
@@ -106,8 +103,12 @@ mod tests {
         let opts = LsOptions::paper();
         let one = identify_ls::<7, SUIT_PARAMS>(&start, &samples, &opts).unwrap();
         let lin = Parallel::new(&samples, NonZeroUsize::new(2).unwrap());
-        assert_eq!(lin.block_len(), 1250);
         let two = identify_ls_with::<7, SUIT_PARAMS>(&start, &samples, &opts, &lin).unwrap();
+        let lin1 = Parallel::new(&samples, NonZeroUsize::MIN);
+        let one_thread =
+            identify_ls_with::<7, SUIT_PARAMS>(&start, &samples, &opts, &lin1).unwrap();
+        assert_eq!(two.cost.to_bits(), one_thread.cost.to_bits());
+        assert_eq!(two.table, one_thread.table);
         assert!(
             (one.cost - two.cost).abs() < 1e-13 * one.cost,
             "{} vs {}",
@@ -120,8 +121,5 @@ mod tests {
                 "param {p}"
             );
         }
-        // Too few samples for two blocks: one, on this thread.
-        let short = Parallel::new(&samples[..700], NonZeroUsize::new(2).unwrap());
-        assert_eq!(short.block_len(), 700);
     }
 }

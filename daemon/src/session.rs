@@ -14,7 +14,9 @@
 
 use serde::Serialize;
 
-use crate::config::{Interval, SessionRules, JOINTS};
+use calib_core::JointRanges;
+
+use crate::config::{SessionRules, JOINTS};
 
 /// Bins of a joint's range.
 pub const COVERAGE_BINS: usize = 36;
@@ -24,7 +26,8 @@ pub const BIN_MIN_SAMPLES: u32 = 3;
 /// Visited fraction of one joint's anatomical range.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Coverage {
-    range: Interval,
+    /// `(min, max)` (rad).
+    range: (f64, f64),
     bins: [u32; COVERAGE_BINS],
     /// Samples outside the range.
     pub outside: u64,
@@ -33,8 +36,8 @@ pub struct Coverage {
 }
 
 impl Coverage {
-    /// Empty coverage of `range` (rad).
-    pub fn new(range: Interval) -> Coverage {
+    /// Empty coverage of `range` (`(min, max)`, rad).
+    pub fn new(range: (f64, f64)) -> Coverage {
         Coverage {
             range,
             bins: [0; COVERAGE_BINS],
@@ -48,11 +51,12 @@ impl Coverage {
         if angle.is_nan() {
             return;
         }
-        if !self.range.contains(angle) {
+        let (min, max) = self.range;
+        if !(min..=max).contains(&angle) {
             self.outside += 1;
             return;
         }
-        let u = (angle - self.range.min) / self.range.width();
+        let u = (angle - min) / (max - min);
         let bin = ((u * COVERAGE_BINS as f64) as usize).min(COVERAGE_BINS - 1);
         self.bins[bin] = self.bins[bin].saturating_add(1);
         self.inside += 1;
@@ -124,10 +128,10 @@ pub struct Session {
 
 impl Session {
     /// A new window with these rules over these joint ranges (rad).
-    pub fn new(rules: SessionRules, ranges: [Interval; JOINTS]) -> Session {
+    pub fn new(rules: SessionRules, ranges: JointRanges<JOINTS>) -> Session {
         Session {
             rules,
-            coverage: ranges.map(Coverage::new),
+            coverage: ranges.limits.map(Coverage::new),
             joint_samples: [0; JOINTS],
             pose_samples: 0,
             condition_number: None,
@@ -233,11 +237,8 @@ mod tests {
     use super::*;
     use crate::config::Config;
 
-    fn range() -> Interval {
-        Interval {
-            min: -1.0,
-            max: 2.6,
-        }
+    fn range() -> (f64, f64) {
+        (-1.0, 2.6)
     }
 
     #[test]
@@ -287,8 +288,8 @@ mod tests {
         let ranges = Config::default_config().bounds.joint_range;
         for k in 0..n {
             let u = (k as f64 / n as f64 * 7.0).fract() * fraction;
-            for (j, r) in ranges.iter().enumerate() {
-                s.joint_sample(j, r.min + u * r.width());
+            for (j, &(min, max)) in ranges.limits.iter().enumerate() {
+                s.joint_sample(j, min + u * (max - min));
             }
             s.pose_sample();
         }

@@ -9,7 +9,8 @@
 //! - its **expected table error** (1σ, from the drift EM's Cramér-Rao bound: calib-core's
 //!   `DriftEmResult::expected_error`) within `max_expected_position_error_mm` and
 //!   `max_expected_rotation_error_mrad`; a table without one (the EM failed) is refused;
-//! - on the held-out slice (the end of the session, never fitted on) the candidate is **not
+//! - on the held-out slice (the end of the session) the table fitted without it — the candidate,
+//!   or the table the candidate was refitted from on every sample ([`HeldOut`]) — is **not
 //!   significantly worse than nominal**: a paired one-sided t-test of the per-sample difference
 //!   of pose-error norms, over [`HELDOUT_BATCHES`] contiguous batch means (the drift correlates
 //!   neighbouring samples; batch means are close to independent), refused above
@@ -23,10 +24,12 @@
 //! Pose error is calib-core's tool-frame 6-vector (position m, rotation vector rad); its norm,
 //! averaged over the held-out samples, is the paper's objective y divided by their count.
 
-use calib_core::{objective_y, pose_error, DhTable, Sample, TableError};
+use calib_core::{
+    bound_violations, objective_y, pose_error, DhTable, ParamKind, Sample, TableError,
+};
 use serde::Serialize;
 
-use crate::config::{Config, DhRow, JOINTS};
+use crate::config::{Config, JOINTS};
 
 /// Fewest held-out samples a verdict may rest on.
 pub const MIN_HELDOUT: usize = 50;
@@ -102,18 +105,6 @@ impl Verdict {
     }
 }
 
-/// The nominal table of the configuration, as calib-core's type.
-pub fn table_from_rows(rows: &[DhRow; JOINTS]) -> DhTable<JOINTS> {
-    DhTable {
-        rows: rows.map(|r| calib_core::DhRow {
-            a: r.a,
-            alpha: r.alpha,
-            d: r.d,
-            theta_offset: r.offset,
-        }),
-    }
-}
-
 /// Splits time-ordered samples into (fit, held-out): the last `fraction` is held out.
 pub fn split_holdout<T>(samples: &[T], fraction: f64) -> (&[T], &[T]) {
     let held = ((samples.len() as f64) * fraction.clamp(0.0, 1.0)).round() as usize;
@@ -140,17 +131,6 @@ pub fn accuracy(table: &DhTable<JOINTS>, samples: &[Sample<JOINTS>]) -> Accuracy
         mean_error: objective_y(table, samples) / n,
         mean_position_m: pos / n,
         mean_rotation_rad: rot / n,
-    }
-}
-
-/// Wraps an angle difference into (−π, π].
-fn angle_diff(a: f64, b: f64) -> f64 {
-    let tau = std::f64::consts::TAU;
-    let d = (a - b).rem_euclid(tau);
-    if d > std::f64::consts::PI {
-        d - tau
-    } else {
-        d
     }
 }
 
@@ -191,51 +171,63 @@ fn paired_t(
     }
 }
 
-/// Checks `candidate`, whose expected table error is `expected` (see the module docs).
+/// The refusal line of one bound violation: lengths against their interval, angles as their
+/// deviation from nominal (the interval's centre).
+fn bound_reason(v: &calib_core::BoundViolation) -> String {
+    let j = v.joint + 1;
+    let centre = 0.5 * (v.min + v.max);
+    let off = wrap_angle(v.value - centre).to_degrees();
+    let allowed = (0.5 * (v.max - v.min)).to_degrees();
+    match v.kind {
+        ParamKind::A | ParamKind::D => format!(
+            "joint {j}: {} = {:.4} m outside [{}, {}]",
+            v.kind.name(),
+            v.value,
+            v.min,
+            v.max
+        ),
+        ParamKind::Alpha => {
+            format!("joint {j}: alpha is {off:.2}° from nominal, at most {allowed:.2}° allowed")
+        }
+        ParamKind::Theta => format!(
+            "joint {j}: joint offset is {off:.2}° from nominal, at most {allowed:.2}° allowed"
+        ),
+    }
+}
+
+/// `x` wrapped into [−π, π].
+fn wrap_angle(x: f64) -> f64 {
+    let tau = std::f64::consts::TAU;
+    x - tau * (x / tau).round()
+}
+
+/// The held-out slice and the table it judges: one fitted without that slice — the candidate
+/// itself, or the table the candidate was refitted from on every sample.
+#[derive(Debug, Clone, Copy)]
+pub struct HeldOut<'a> {
+    pub table: &'a DhTable<JOINTS>,
+    pub samples: &'a [Sample<JOINTS>],
+}
+
+/// Checks `candidate`, whose expected table error is `expected` and whose identification has
+/// `condition_number`, and judges `heldout` (see the module docs).
 pub fn validate(
     candidate: &DhTable<JOINTS>,
     condition_number: f64,
     expected: Option<TableError>,
-    heldout: &[Sample<JOINTS>],
+    heldout: HeldOut<'_>,
     config: &Config,
 ) -> Verdict {
     let mut reasons = Vec::new();
-    let b = &config.bounds;
-    for (i, (row, nom)) in candidate.rows.iter().zip(&config.nominal).enumerate() {
-        let j = i + 1;
+    for (i, row) in candidate.rows.iter().enumerate() {
         let values = [row.a, row.d, row.alpha, row.theta_offset];
         if values.iter().any(|v| !v.is_finite()) {
-            reasons.push(format!("joint {j}: non-finite parameter {values:?}"));
-            continue;
+            reasons.push(format!("joint {}: non-finite parameter {values:?}", i + 1));
         }
-        if !b.a[i].contains(row.a) {
-            reasons.push(format!(
-                "joint {j}: a = {:.4} m outside [{}, {}]",
-                row.a, b.a[i].min, b.a[i].max
-            ));
-        }
-        if !b.d[i].contains(row.d) {
-            reasons.push(format!(
-                "joint {j}: d = {:.4} m outside [{}, {}]",
-                row.d, b.d[i].min, b.d[i].max
-            ));
-        }
-        let dalpha = angle_diff(row.alpha, nom.alpha);
-        if dalpha.abs() > b.alpha_deviation {
-            reasons.push(format!(
-                "joint {j}: alpha is {:.2}° from nominal, at most {:.2}° allowed",
-                dalpha.to_degrees(),
-                b.alpha_deviation.to_degrees()
-            ));
-        }
-        let doff = angle_diff(row.theta_offset, nom.offset);
-        if doff.abs() > b.offset_deviation {
-            reasons.push(format!(
-                "joint {j}: joint offset is {:.2}° from nominal, at most {:.2}° allowed",
-                doff.to_degrees(),
-                b.offset_deviation.to_degrees()
-            ));
-        }
+    }
+    let bounds = config.bounds.table(&config.nominal);
+    for v in bound_violations(candidate, &bounds).filter(|v| v.value.is_finite()) {
+        reasons.push(bound_reason(&v));
     }
     let max_k = config.validation.max_condition_number;
     if !(condition_number.is_finite() && condition_number <= max_k) {
@@ -263,9 +255,13 @@ pub fn validate(
             }
         }
     }
-    let nominal_table = table_from_rows(&config.nominal);
+    let HeldOut {
+        table: judged,
+        samples: heldout,
+    } = heldout;
+    let nominal_table = config.nominal;
     let nominal = accuracy(&nominal_table, heldout);
-    let cand = accuracy(candidate, heldout);
+    let cand = accuracy(judged, heldout);
     let improvement = if nominal.mean_error > 0.0 {
         1.0 - cand.mean_error / nominal.mean_error
     } else {
@@ -278,7 +274,7 @@ pub fn validate(
             heldout.len()
         ));
     } else {
-        heldout_t = paired_t(candidate, &nominal_table, heldout);
+        heldout_t = paired_t(judged, &nominal_table, heldout);
         if heldout_t.is_nan() || heldout_t > HELDOUT_T_REFUSE {
             reasons.push(format!(
                 "held-out pose error {:.3e} vs nominal {:.3e}: significantly worse than nominal \
@@ -306,12 +302,13 @@ mod tests {
     /// Samples of the paper's "actual" arm (Table 4) along a deterministic sweep, exact poses.
     fn samples(n: usize) -> Vec<Sample<JOINTS>> {
         let actual = DhTable::paper_actual();
-        let ranges = Config::default_config().bounds.joint_range;
+        let ranges = Config::default_config().bounds.joint_range.limits;
         (0..n)
             .map(|k| {
                 let joints: [f64; JOINTS] = std::array::from_fn(|j| {
                     let u = 0.5 + 0.45 * ((k as f64) * 0.013 * (j as f64 + 1.0) + j as f64).sin();
-                    ranges[j].min + u * ranges[j].width()
+                    let (min, max) = ranges[j];
+                    min + u * (max - min)
                 });
                 Sample {
                     joints,
@@ -322,6 +319,11 @@ mod tests {
     }
 
     /// An expected accuracy well within the default limits.
+    /// The held-out slice `samples`, judging `table` itself.
+    fn judging<'a>(table: &'a DhTable<JOINTS>, samples: &'a [Sample<JOINTS>]) -> HeldOut<'a> {
+        HeldOut { table, samples }
+    }
+
     fn good() -> Option<TableError> {
         Some(TableError {
             position_m: 1e-3,
@@ -334,7 +336,7 @@ mod tests {
         let config = Config::default_config();
         let held = samples(200);
         let truth = DhTable::paper_actual();
-        let v = validate(&truth, 50.0, good(), &held, &config);
+        let v = validate(&truth, 50.0, good(), judging(&truth, &held), &config);
         assert!(v.accepted(), "{:?}", v.reasons);
         assert!(v.improvement > 0.999_999, "{}", v.improvement);
         assert!(v.heldout_t < -HELDOUT_T_REFUSE, "{}", v.heldout_t);
@@ -343,15 +345,15 @@ mod tests {
         assert_eq!(v.expected.unwrap().to_string(), "±1.00 mm, ±3.00 mrad (1σ)");
 
         // Nominal itself is not worse than nominal.
-        let nominal = table_from_rows(&config.nominal);
-        let v = validate(&nominal, 50.0, good(), &held, &config);
+        let nominal = config.nominal;
+        let v = validate(&nominal, 50.0, good(), judging(&nominal, &held), &config);
         assert!(v.accepted(), "{:?}", v.reasons);
         assert_eq!((v.improvement, v.heldout_t), (0.0, 0.0));
 
         // Nominal with a 3° error at the shoulder is worse, everywhere on the held-out slice.
         let mut worse = nominal;
         worse.rows[1].theta_offset += 3f64.to_radians();
-        let v = validate(&worse, 50.0, good(), &held, &config);
+        let v = validate(&worse, 50.0, good(), judging(&worse, &held), &config);
         assert_eq!(v.reasons.len(), 1, "{:?}", v.reasons);
         assert!(
             v.reasons[0].contains("significantly worse than nominal"),
@@ -369,7 +371,7 @@ mod tests {
         let config = Config::default_config();
         let held = samples(200);
         let truth = DhTable::paper_actual();
-        let v = validate(&truth, 50.0, None, &held, &config);
+        let v = validate(&truth, 50.0, None, judging(&truth, &held), &config);
         assert_eq!(
             v.reasons,
             ["no expected accuracy: the drift EM did not produce one"]
@@ -378,7 +380,7 @@ mod tests {
             position_m: 4e-3,
             rotation_rad: 2e-3,
         };
-        let v = validate(&truth, 50.0, Some(coarse), &held, &config);
+        let v = validate(&truth, 50.0, Some(coarse), judging(&truth, &held), &config);
         assert_eq!(v.reasons.len(), 1, "{:?}", v.reasons);
         assert!(
             v.reasons[0].starts_with("expected table error ±4.00 mm (1σ) above the 3 mm allowed"),
@@ -389,13 +391,32 @@ mod tests {
             position_m: 1e-3,
             rotation_rad: 0.02,
         };
-        let v = validate(&truth, 50.0, Some(twisted), &held, &config);
+        let v = validate(&truth, 50.0, Some(twisted), judging(&truth, &held), &config);
         assert!(
             v.reasons[0]
                 .starts_with("expected table error ±20.00 mrad (1σ) above the 10 mrad allowed"),
             "{:?}",
             v.reasons
         );
+    }
+
+    #[test]
+    fn the_held_out_slice_judges_the_table_fitted_without_it() {
+        // A refitted candidate is judged for bounds and accuracy itself, on the held-out slice
+        // through the table it was refitted from.
+        let config = Config::default_config();
+        let held = samples(200);
+        let truth = DhTable::paper_actual();
+        let mut worse = config.nominal;
+        worse.rows[1].theta_offset += 3f64.to_radians();
+        let v = validate(&truth, 50.0, good(), judging(&worse, &held), &config);
+        assert!(
+            v.reasons.len() == 1 && v.reasons[0].contains("significantly worse than nominal"),
+            "{:?}",
+            v.reasons
+        );
+        let v = validate(&worse, 50.0, good(), judging(&truth, &held), &config);
+        assert!(v.accepted(), "{:?}", v.reasons);
     }
 
     #[test]
@@ -413,7 +434,7 @@ mod tests {
                 position_m: 0.1,
                 rotation_rad: 0.1,
             }),
-            &samples(10),
+            judging(&t, &samples(10)),
             &config,
         );
         let all = v.reasons.join("\n");
@@ -437,7 +458,7 @@ mod tests {
         let config = Config::default_config();
         let mut t = DhTable::paper_actual();
         t.rows[0].a = f64::NAN;
-        let v = validate(&t, f64::NAN, good(), &samples(100), &config);
+        let v = validate(&t, f64::NAN, good(), judging(&t, &samples(100)), &config);
         assert!(!v.accepted());
         assert!(v.reasons.iter().any(|r| r.contains("non-finite")));
         assert!(v.reasons.iter().any(|r| r.contains("condition number")));
@@ -446,10 +467,27 @@ mod tests {
     }
 
     #[test]
-    fn angle_deviation_wraps() {
-        assert!((angle_diff(3.1, -3.1) - (6.2 - std::f64::consts::TAU)).abs() < 1e-12);
-        let half_pi = std::f64::consts::FRAC_PI_2;
-        assert!(angle_diff(-half_pi, 3.0 * half_pi).abs() < 1e-12);
+    fn angle_deviations_wrap() {
+        let mut config = Config::default_config();
+        // Nominal α1 = -90°; 270° is the same twist, 3° off is 3° off whichever way it is written.
+        let mut t = config.nominal;
+        t.rows[0].alpha = 270f64.to_radians();
+        let v = validate(&t, 50.0, good(), judging(&t, &samples(100)), &config);
+        assert!(
+            !v.reasons.iter().any(|r| r.contains("alpha")),
+            "{:?}",
+            v.reasons
+        );
+        t.rows[0].alpha = 273f64.to_radians();
+        config.bounds.alpha_deviation = 1f64.to_radians();
+        let v = validate(&t, 50.0, good(), judging(&t, &samples(100)), &config);
+        assert!(
+            v.reasons
+                .iter()
+                .any(|r| r == "joint 1: alpha is 3.00° from nominal, at most 1.00° allowed"),
+            "{:?}",
+            v.reasons
+        );
     }
 
     #[test]

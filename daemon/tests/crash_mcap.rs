@@ -5,12 +5,20 @@
 //! most 1 s (the configured chunk flush interval is 0.5 s). With SIGTERM the daemon finishes the
 //! file: the summary section reads and nothing is lost.
 //!
+//! Every killed file is then fed to `exocald offline` as it is: it must read it (every message
+//! of every complete chunk, as many as the linear scan), warn how much it recovered and where
+//! the file was cut, and judge the recording as a live session would (66 for a session killed
+//! while collecting, a calibration otherwise). A log cut after its collection window (as a
+//! kill during calibration or push leaves it) must recalibrate offline to exactly the
+//! uninterrupted session's result; `exocald recover` writes it as a complete file that the mcap
+//! crate opens by its summary.
+//!
 //! `cargo test -p exocald --test crash_mcap` runs `EXOCAL_CRASH_RUNS` kills (default 10, for
 //! CI); the documented figure is `EXOCAL_CRASH_RUNS=100`.
 //! Recovery of a killed file is documented in `docs/recover-mcap.md`.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 use mcap::read::Options;
@@ -25,21 +33,79 @@ fn temp_dir(name: &str) -> PathBuf {
     d
 }
 
+fn demo(dir: &Path, speed: f64) -> Command {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_exocald"));
+    cmd.args([
+        "demo",
+        "--speed",
+        &speed.to_string(),
+        "--seed",
+        "11",
+        "--output",
+    ])
+    .arg(dir)
+    .stdin(Stdio::null());
+    cmd
+}
+
 fn spawn_demo(dir: &Path) -> Child {
-    Command::new(env!("CARGO_BIN_EXE_exocald"))
-        .args([
-            "demo",
-            "--speed",
-            &SPEED.to_string(),
-            "--seed",
-            "11",
-            "--output",
-        ])
-        .arg(dir)
+    demo(dir, SPEED)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
         .expect("spawn exocald demo")
+}
+
+/// `exocald offline` on `log` (the report next to it).
+fn offline(log: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_exocald"))
+        .args(["offline", "--input"])
+        .arg(log)
+        .stdin(Stdio::null())
+        .output()
+        .expect("run exocald offline")
+}
+
+/// The line of `text` that starts with `key`.
+fn line<'a>(text: &'a str, key: &str) -> Option<&'a str> {
+    text.lines().find(|l| l.starts_with(key))
+}
+
+/// Checks `exocald offline` on a killed file that a linear scan reads `n` messages of: it
+/// recovers exactly those, says so and where the file was cut, and ends as a live session
+/// would. Returns its stdout.
+fn offline_reads_the_killed_file(file: &Path, n: u64, failures: &mut Vec<String>) -> String {
+    let out = offline(file);
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    );
+    let code = out.status.code();
+    let said = format!("recovered {n} messages (");
+    if !stderr.contains("was cut short")
+        || !stderr.contains(&said)
+        || !stderr.contains("the file ends")
+    {
+        failures.push(format!(
+            "{}: offline does not say it recovered {n} messages and where the file was cut:\n{stderr}",
+            file.display()
+        ));
+    }
+    // 66: killed while collecting (too short for the session rules); 0 or 65 (refused by
+    // validation, never "bad input"): killed after collecting, calibrated.
+    let judged = match code {
+        Some(66) => stderr.contains("session incomplete"),
+        Some(0) => true,
+        Some(65) => !stderr.contains("bad input"),
+        _ => false,
+    };
+    if !judged {
+        failures.push(format!(
+            "{}: offline exited {code:?}:\n{stderr}",
+            file.display()
+        ));
+    }
+    stdout
 }
 
 fn mcap_files(dir: &Path) -> Vec<PathBuf> {
@@ -115,6 +181,9 @@ fn a_killed_daemon_leaves_a_log_readable_up_to_its_last_flush() {
                 continue; // created, nothing flushed yet: nothing to recover
             }
             let (n, last, _) = linear_scan(&bytes);
+            if n > 0 {
+                offline_reads_the_killed_file(&file, n, &mut failures);
+            }
             if n == 0 && bytes.len() > 4096 {
                 failures.push(format!(
                     "run {run}: {} bytes but no readable message",
@@ -161,6 +230,85 @@ fn a_killed_daemon_leaves_a_log_readable_up_to_its_last_flush() {
     );
     assert!(failures.is_empty(), "{}", failures.join("\n"));
     assert!(!losses.is_empty(), "no log file was left by any run");
+}
+
+/// A log cut as a kill during calibration or push leaves it — in the chunk after the one that
+/// holds the `/collection` record — recalibrates offline to the uninterrupted session's result
+/// (the record says which frames the live session used), and `exocald recover` writes it whole.
+/// (Cut, not killed: where a kill lands relative to that chunk's flush is a race; the random
+/// kills above feed `offline` too.)
+#[test]
+fn a_log_cut_after_its_collection_window_recalibrates_offline_to_the_live_result() {
+    let dir = temp_dir("cut");
+    let whole = demo(&dir, 1e6).output().expect("run exocald demo");
+    assert!(
+        whole.status.success(),
+        "{}",
+        String::from_utf8_lossy(&whole.stderr)
+    );
+    let log = &mcap_files(&dir)[0];
+    let expected = offline(log);
+    let expected = String::from_utf8_lossy(&expected.stdout).into_owned();
+    let key = "held-out mean pose error:";
+    let expected = line(&expected, key)
+        .expect("the session calibrates")
+        .to_owned();
+
+    // The chunk after the one holding /collection, cut in its middle.
+    let bytes = std::fs::read(log).unwrap();
+    let summary = mcap::Summary::read(&bytes)
+        .unwrap()
+        .expect("a finished log");
+    let chunks = &summary.chunk_indexes;
+    let holds_collection = chunks
+        .iter()
+        .position(|c| {
+            summary
+                .stream_chunk(&bytes, c)
+                .unwrap()
+                .any(|m| m.unwrap().channel.topic == "/collection")
+        })
+        .expect("a /collection record");
+    let next = chunks
+        .get(holds_collection + 1)
+        .expect("a chunk after the collection window");
+    let at = (next.chunk_start_offset + next.chunk_length / 2) as usize;
+    let cut = dir.join("cut.mcap");
+    std::fs::write(&cut, &bytes[..at]).unwrap();
+    // The messages of the chunks before the cut (a linear scan also streams some out of the
+    // cut chunk, whose CRC it cannot check; the recovery keeps a chunk whole or not at all).
+    let n: u64 = chunks[..=holds_collection]
+        .iter()
+        .map(|c| summary.stream_chunk(&bytes, c).unwrap().count() as u64)
+        .sum();
+    let mut failures = Vec::new();
+    let stdout = offline_reads_the_killed_file(&cut, n, &mut failures);
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+    assert_eq!(line(&stdout, key), Some(expected.as_str()), "{stdout}");
+    println!("cut after the collection window: offline = uninterrupted session: {expected}");
+
+    // `exocald recover`: a complete file, read by its summary, with every message kept.
+    let out = dir.join("recovered.mcap");
+    let rec = Command::new(env!("CARGO_BIN_EXE_exocald"))
+        .arg("recover")
+        .arg(&cut)
+        .arg(&out)
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&rec.stdout);
+    assert!(
+        rec.status.success(),
+        "{said}{}",
+        String::from_utf8_lossy(&rec.stderr)
+    );
+    assert!(said.contains(&format!("recovered {n} messages")), "{said}");
+    println!("{said}");
+    let recovered = std::fs::read(&out).unwrap();
+    let summary = mcap::Summary::read(&recovered).unwrap().expect("a summary");
+    assert_eq!(summary.stats.unwrap().message_count, n);
+    let (scanned, _, clean) = linear_scan(&recovered);
+    assert_eq!((scanned, clean), (n, true));
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]

@@ -22,10 +22,10 @@ use exocal_hil::scenario::{
     Babble, ClockJump, NodeClockSpec, Reboot, Scenario, TransferBehaviour, TransferFault,
 };
 use exocal_hil::Hil;
-use exocald::config::{Config, Interval};
+use exocald::config::Config;
+use exocald::demo::{session_against_suit, RunningSuit, SuitSession};
 use exocald::push::Holds;
-use exocald::report::{Notifier, Reporter};
-use exocald::runner::{run_session, SessionError, SessionSummary};
+use exocald::runner::SessionSummary;
 
 const SPEED: f64 = 10.0;
 const SESSION_S: f64 = 40.0;
@@ -247,13 +247,6 @@ fn cases() -> Vec<Case> {
     ]
 }
 
-struct Outcome {
-    result: Result<SessionSummary, SessionError>,
-    factory: Vec<(NodeId, u32)>,
-    flash: Vec<(NodeId, Option<u32>)>,
-    wall_s: f64,
-}
-
 fn temp_dir(name: &str) -> PathBuf {
     let slug: String = name
         .chars()
@@ -264,7 +257,7 @@ fn temp_dir(name: &str) -> PathBuf {
     d
 }
 
-async fn run_case(case: &Case) -> Outcome {
+async fn run_case(case: &Case) -> SuitSession {
     let dir = temp_dir(case.name);
     let flash_dir = dir.join("flash");
     std::fs::create_dir_all(&flash_dir).unwrap();
@@ -276,68 +269,31 @@ async fn run_case(case: &Case) -> Outcome {
     config.session.min_duration_s = SESSION_S;
     config.session.max_duration_s = SESSION_S + 20.0;
     if case.name == OUT_OF_BOUNDS {
-        config.bounds.a[2] = Interval {
-            min: 0.42,
-            max: 0.485,
-        };
+        config.bounds.a[2] = (0.42, 0.485);
     }
     scenario.duration_s = config.session.max_duration_s + 120.0;
-    let mut hil = Hil::new(scenario, &flash_dir).expect("hil");
-    let factory: Vec<(NodeId, u32)> = NodeId::JOINTS
-        .iter()
-        .map(|&n| (n, hil.suit().held_table(n).map_or(0, |t| t.crc())))
-        .collect();
+    let hil = Hil::new(scenario, &flash_dir).expect("hil");
     let clock = SimClock::new(SPEED).unwrap();
     let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
-    let mut hil_end = bus.attach();
-    let mut daemon_end = bus.attach();
-    let hil_clock = clock;
-    let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &hil_clock).await });
+    let suit = RunningSuit::start(hil, bus.attach(), clock);
     let (_stop, shutdown) = exocald::shutdown::Shutdown::manual();
-    let mut notifier = Notifier::disabled();
-    let mut reporter = Reporter::detect(&notifier);
-    let started = std::time::Instant::now();
-    let result = run_session(
-        &mut daemon_end,
+    let o = session_against_suit(
+        suit,
+        &mut bus.attach(),
         &clock.bus_clock(),
         &config,
-        false,
         shutdown.wait(),
-        &mut notifier,
-        &mut reporter,
     )
     .await;
-    let wall_s = started.elapsed().as_secs_f64();
-    hil_task.abort();
-    let _ = hil_task.await;
-    let flash = NodeId::JOINTS
-        .iter()
-        .map(|&n| {
-            (
-                n,
-                exocal_hil::flash::read(&flash_dir, n)
-                    .expect("flash readable")
-                    .map(|i| i.table.crc()),
-            )
-        })
-        .collect();
     let _ = std::fs::remove_dir_all(&dir);
-    Outcome {
-        result,
-        factory,
-        flash,
-        wall_s,
-    }
+    o
 }
 
-fn summary(o: &Outcome) -> Option<&SessionSummary> {
-    match &o.result {
-        Ok(s) => Some(s),
-        Err(e) => e.summary.as_ref(),
-    }
+fn summary(o: &SuitSession) -> Option<&SessionSummary> {
+    o.summary()
 }
 
-fn heldout_error(o: &Outcome) -> Option<f64> {
+fn heldout_error(o: &SuitSession) -> Option<f64> {
     summary(o)?
         .outcome
         .as_ref()
@@ -345,46 +301,9 @@ fn heldout_error(o: &Outcome) -> Option<f64> {
 }
 
 /// Checks one outcome; returns the problems found (empty = pass) and the "noticed" text.
-fn check(case: &Case, o: &Outcome, clean_err: Option<f64>) -> (Vec<String>, String) {
-    let mut bad = Vec::new();
+fn check(case: &Case, o: &SuitSession, clean_err: Option<f64>) -> (Vec<String>, String) {
+    let mut bad = o.problems();
     let s = summary(o);
-    let verdict_ok = s
-        .and_then(|s| s.outcome.as_ref())
-        .map(|c| c.verdict.accepted());
-    let push = s.and_then(|s| s.push.as_ref());
-    // No table that fails validation is pushed.
-    if verdict_ok != Some(true) && push.is_some() {
-        bad.push("pushed although validation refused".into());
-    }
-    for (&(node, factory), &(_, flash)) in o.factory.iter().zip(&o.flash) {
-        let held = flash.unwrap_or(factory);
-        let sent = push
-            .and_then(|p| p.nodes.iter().find(|r| r.node == node.name()))
-            .map(|r| r.new_crc);
-        if held != factory && Some(held) != sent {
-            bad.push(format!(
-                "{node} flash {held:#010x} is neither factory nor pushed"
-            ));
-        }
-        if verdict_ok != Some(true) && held != factory {
-            bad.push(format!(
-                "{node} flash changed without an accepted calibration"
-            ));
-        }
-        if let Some(r) = push.and_then(|p| p.nodes.iter().find(|r| r.node == node.name())) {
-            let agrees = match r.holds {
-                Holds::New => Some(held) == sent,
-                Holds::Old => held == factory,
-                Holds::Unknown => true,
-            };
-            if !agrees {
-                bad.push(format!(
-                    "{node}: report {:?} but flash {held:#010x}",
-                    r.holds
-                ));
-            }
-        }
-    }
     let noticed = match (case.expect, s) {
         (_, None) => "no summary".to_string(),
         (Expect::Nothing, _) => "-".to_string(),
@@ -487,7 +406,13 @@ fn check(case: &Case, o: &Outcome, clean_err: Option<f64>) -> (Vec<String>, Stri
     (bad, noticed)
 }
 
-fn row(case: &Case, o: &Outcome, clean_err: Option<f64>, bad: &[String], noticed: &str) -> String {
+fn row(
+    case: &Case,
+    o: &SuitSession,
+    clean_err: Option<f64>,
+    bad: &[String],
+    noticed: &str,
+) -> String {
     let s = summary(o);
     let result = match &o.result {
         Ok(_) => "ok".to_string(),
@@ -518,7 +443,8 @@ fn row(case: &Case, o: &Outcome, clean_err: Option<f64>, bad: &[String], noticed
     };
     format!(
         "| {} | {result} | {verdict} | {err} | {pushed} | {noticed} | {:.0} s | {status} |",
-        case.name, o.wall_s
+        case.name,
+        o.wall.as_secs_f64()
     )
 }
 
@@ -551,10 +477,10 @@ async fn every_fault_class_is_survived_reported_and_never_pushes_a_bad_table() {
 /// The closing paragraph of `docs/faults.md`: where the vcan subset is.
 const VCAN_NOTE: &str =
     "\nOn real vcan: `tests/tests/reliability_vcan.rs` (run through `cargo xtask vcan` or \
-     `cargo xtask test`) plays six rows as 6-s real-time sessions on vcan0 with the daemon and \
+     `cargo xtask test`) plays seven rows as 6-s real-time sessions on vcan0 with the daemon and \
      the emulated suit on separate SocketCAN sockets — 1% loss with node 7 silent to transfers, \
-     a babbling node, 10% loss, a node reboot, a node clock jump, malformed frames with 1% NaN \
-     values — with the same checks except the accuracy bound; figures in \
+     a babbling node, 10% loss, a node reboot, a node clock jump, a bus stall then a node \
+     reboot, malformed frames with 1% NaN values — with the same checks except the accuracy bound; figures in \
      `docs/reliability.md`.\n";
 
 fn write_doc(path: &Path, rows: &[String]) -> std::io::Result<()> {

@@ -9,10 +9,10 @@ use std::path::{Path, PathBuf};
 
 use exocal_report::html::FIGURES;
 use exocal_report::readers::{read_mcap_session, write_csv};
-use exocald::calibrate::Outcome;
 use exocald::config::Config;
 use exocald::exit::{code, DaemonError};
 use exocald::offline::{self, Format, OfflineOptions};
+use exocald::pipeline::Outcome;
 use exocald::runner::{SessionError, SessionSummary};
 
 use common::live_session;
@@ -144,17 +144,19 @@ fn offline_recalibration_agrees_with_the_live_session() {
     );
 
     // (c) The aligned samples as CSV bypass alignment and give the same table to rounding.
-    let samples: Vec<_> = exocald::calreport::timed(
+    let samples: Vec<_> = exocald::pipeline::timed(
         &offline::recalibrate(
             &offline::read_input(
                 &live.log_path,
                 &std::fs::read(&live.log_path).unwrap(),
                 Format::Mcap,
             )
-            .unwrap(),
+            .unwrap()
+            .0,
             &config,
         )
         .unwrap()
+        .collected
         .samples,
     );
     let csv = dir.join("samples.csv");
@@ -183,7 +185,7 @@ fn offline_recalibration_agrees_with_the_live_session() {
         assert_eq!(robot.joints.len(), 8);
         assert_eq!(robot.links.len(), 9);
         let loaded = Config::load(&toml_out).unwrap();
-        for (row, want) in loaded.nominal.iter().zip(&outcome.node_rows) {
+        for (row, want) in loaded.nominal.rows.iter().zip(&outcome.node_rows) {
             assert!((row.a - want.a).abs() < 1e-12, "{row:?} vs {want:?}");
             assert!((row.alpha - want.alpha).abs() < 1e-9);
         }

@@ -33,6 +33,7 @@ pub mod flash;
 pub mod motion;
 pub mod scenario;
 pub mod sim;
+pub mod trial;
 
 pub use scenario::{Scenario, ScenarioError};
 pub use sim::{Kind, Stats, Suit};

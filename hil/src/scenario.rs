@@ -397,6 +397,8 @@ pub struct Faults {
     pub burst_len: u32,
     /// Duplication probability.
     pub duplicate: f64,
+    /// Probability that one bit of a frame's payload is flipped on the wire.
+    pub corrupt: f64,
     /// Probability that a frame is held back up to `reorder_max_ms`, landing after later ones.
     pub reorder: f64,
     /// Bound of the reorder hold-back, ms.
@@ -422,6 +424,23 @@ pub struct Faults {
 }
 
 impl Faults {
+    /// The wire's part (loss, bursts, corruption, delay, reordering, duplication), as the bus's
+    /// fault injector takes it; the suit draws every frame's fate from it.
+    pub fn wire(&self) -> exocal_bus::FaultConfig {
+        let ms = |v: f64| std::time::Duration::from_secs_f64(v.max(0.0) * 1e-3);
+        exocal_bus::FaultConfig {
+            drop: self.loss,
+            burst_start: self.burst_start,
+            burst_len: self.burst_len,
+            corrupt: self.corrupt,
+            delay: self.delay,
+            delay_by: ms(self.delay_ms),
+            reorder: self.reorder,
+            reorder_max: ms(self.reorder_max_ms),
+            duplicate: self.duplicate,
+        }
+    }
+
     /// Behaviour of `node`.
     pub fn transfer_behaviour(&self, node: u8) -> TransferBehaviour {
         self.transfer
@@ -647,6 +666,7 @@ impl Scenario {
             ("faults.loss", f.loss),
             ("faults.burst_start", f.burst_start),
             ("faults.duplicate", f.duplicate),
+            ("faults.corrupt", f.corrupt),
             ("faults.reorder", f.reorder),
             ("faults.delay", f.delay),
             ("faults.nan", f.nan),

@@ -29,6 +29,7 @@ use crate::scenario::{Scenario, TransferBehaviour};
 use crate::HilError;
 use calib_core::{DhTable, Discretisation, GaussMarkov, Rng};
 use exocal_bus::embedded_can::{ExtendedId, Frame as _, StandardId};
+use exocal_bus::fault::{Fate, Faults};
 use exocal_bus::Frame;
 use exocal_dbc::message::{
     Command, Heartbeat, ImuVector, JointState, Message, NackReason, NodeState, Reply, TableCmd,
@@ -41,6 +42,7 @@ use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 /// Standard gravity, m/s².
 const G: f64 = 9.80665;
@@ -86,6 +88,8 @@ pub struct Stats {
     pub lost: u64,
     /// Extra copies sent.
     pub duplicated: u64,
+    /// Frames sent with a bit of their payload flipped.
+    pub corrupted: u64,
     /// Frames delayed or held back.
     pub delayed: u64,
     /// Malformed frames injected.
@@ -190,7 +194,8 @@ pub struct Suit {
     queue: BinaryHeap<Reverse<Pending>>,
     order: u64,
     fault_rng: Rng,
-    burst_left: u32,
+    /// The wire's faults (loss, bursts, corruption, delay, reordering, duplication).
+    wire: Faults,
     now_s: f64,
     flash_dir: PathBuf,
     stats: Stats,
@@ -334,7 +339,7 @@ impl Suit {
             queue: BinaryHeap::new(),
             order: 0,
             fault_rng,
-            burst_left: 0,
+            wire: Faults::new(scenario.faults.wire(), seeded(scenario.seed, 4).next_u64()),
             now_s: 0.0,
             flash_dir: flash_dir.to_path_buf(),
             stats,
@@ -720,44 +725,40 @@ impl Suit {
         self.emit(t, frame.expect("valid frame"));
     }
 
-    /// Puts a frame on the (faulty) wire at `t`.
+    /// Puts a frame on the (faulty) wire at `t`: its fate is drawn by the bus's [`Faults`] (in
+    /// simulated time), then a bus stall holds it back.
     fn emit(&mut self, t: f64, frame: Frame) {
-        let f = &self.scenario.faults;
-        let r = &mut self.fault_rng;
-        if self.burst_left > 0 {
-            self.burst_left -= 1;
-            self.stats.lost += 1;
+        let Fate::Deliver { frame, at, again } = self.wire.fate(Duration::from_secs_f64(t), frame)
+        else {
+            self.sync_wire_stats();
             return;
-        }
-        if f.burst_start > 0.0 && r.uniform() < f.burst_start {
-            self.burst_left = f.burst_len.saturating_sub(1);
-            self.stats.lost += 1;
-            return;
-        }
-        if f.loss > 0.0 && r.uniform() < f.loss {
-            self.stats.lost += 1;
-            return;
-        }
-        let mut at = t;
-        if f.delay > 0.0 && r.uniform() < f.delay {
-            at += f.delay_ms * 1e-3;
-            self.stats.delayed += 1;
-        }
-        if f.reorder > 0.0 && r.uniform() < f.reorder {
-            at += f.reorder_max_ms * 1e-3 * r.uniform();
-            self.stats.delayed += 1;
-        }
-        for stall in &f.bus_stalls {
-            if (stall.from_s..stall.to_s).contains(&t) {
-                at = at.max((t + stall.late_ms * 1e-3).min(stall.to_s));
-            }
-        }
-        let dup = f.duplicate > 0.0 && r.uniform() < f.duplicate;
+        };
+        self.sync_wire_stats();
+        let stall = |at: f64| {
+            self.scenario
+                .faults
+                .bus_stalls
+                .iter()
+                .filter(|s| (s.from_s..s.to_s).contains(&t))
+                .fold(at, |at, s| at.max((t + s.late_ms * 1e-3).min(s.to_s)))
+        };
+        let (at, again) = (
+            stall(at.as_secs_f64()),
+            again.map(|a| stall(a.as_secs_f64())),
+        );
         self.push(at, frame);
-        if dup {
-            self.stats.duplicated += 1;
-            self.push(at + 20e-6, frame);
+        if let Some(again) = again {
+            self.push(again, frame);
         }
+    }
+
+    /// Copies the wire's counters into the suit's.
+    fn sync_wire_stats(&mut self) {
+        let w = self.wire.stats();
+        self.stats.lost = w.dropped;
+        self.stats.duplicated = w.duplicated;
+        self.stats.delayed = w.delayed;
+        self.stats.corrupted = w.corrupted;
     }
 
     fn push(&mut self, t_s: f64, frame: Frame) {
@@ -783,9 +784,9 @@ impl Suit {
         if !self.nodes[n].up {
             return;
         }
-        let f = &self.scenario.faults;
-        if f.loss > 0.0 && self.fault_rng.uniform() < f.loss {
-            self.stats.lost += 1;
+        let lost = self.wire.lost();
+        self.sync_wire_stats();
+        if lost {
             return;
         }
         let cmd: TableCmd = match exocal_dbc::decode_frame(frame) {
@@ -874,7 +875,7 @@ fn schedules(scenario: &Scenario, node: &mut Node, boot_s: f64) -> Vec<Schedule>
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use exocal_dbc::pose::PoseAssembler;
     use exocal_dbc::{decode_frame, PoseFrame};

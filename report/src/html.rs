@@ -19,8 +19,8 @@ use crate::input::{
     TimedSample, JOINTS, PARAMS,
 };
 use crate::plot::{
-    bars, histogram, line_panels, Distribution, Panel, PlotError, Series, ACTUAL, CALIBRATED,
-    JOINT_COLOURS, NOMINAL,
+    bars, histogram, line_panels, Binning, Distribution, Panel, PlotError, Series, ACTUAL,
+    CALIBRATED, JOINT_COLOURS, NOMINAL,
 };
 
 /// The figure ids, in page order.
@@ -80,6 +80,40 @@ fn figure(out: &mut String, id: &str, caption: &str, svg: Result<String, PlotErr
         }
     }
     let _ = writeln!(out, "<figcaption>{caption}</figcaption></figure>");
+}
+
+/// The table the held-out slice judges: fitted without it.
+fn held_out_table(input: &ReportInput) -> &DhTable<JOINTS> {
+    input
+        .judged
+        .as_ref()
+        .unwrap_or(&input.calibration.calibrated)
+}
+
+/// `x` to four significant digits.
+fn sig4(x: f64) -> String {
+    if x == 0.0 {
+        return "0".into();
+    }
+    if !x.is_finite() {
+        return format!("{x}");
+    }
+    let mag = x.abs().log10().floor() as i32;
+    let decimals = (3 - mag).clamp(0, 12) as usize;
+    format!("{x:.decimals$}")
+}
+
+/// What a histogram's bins cover, for its caption.
+fn bins_caption(b: &Binning, unit: &str) -> String {
+    let (lo, hi) = (sig4(b.lo), sig4(b.hi));
+    if b.overflow {
+        format!(
+            "Bins from {lo} to {hi} {unit}; the bar marked \"&gt;\" holds every sample beyond \
+             (outliers)."
+        )
+    } else {
+        format!("Bins from {lo} to {hi} {unit}: every sample of both series.")
+    }
 }
 
 fn all_samples(input: &ReportInput) -> Vec<TimedSample> {
@@ -154,20 +188,17 @@ fn trajectories(input: &ReportInput) -> (Result<String, PlotError>, Result<Strin
     (time, plane)
 }
 
-fn residual_charts(
-    input: &ReportInput,
-) -> (
-    Result<String, PlotError>,
-    Result<String, PlotError>,
-    &'static str,
-) {
+/// A histogram, drawn, and its bins.
+type Histogram = Result<(String, Binning), PlotError>;
+
+fn residual_charts(input: &ReportInput) -> (Histogram, Histogram, &'static str) {
     let (samples, which) = if input.held_out.is_empty() {
         (&input.fit, "fitted samples (no held-out slice)")
     } else {
         (&input.held_out, "held-out slice")
     };
     let before = residuals(&input.nominal, samples);
-    let after = residuals(&input.calibration.calibrated, samples);
+    let after = residuals(held_out_table(input), samples);
     let dist = |pick: fn(&(f64, f64)) -> f64| {
         vec![
             Distribution {
@@ -231,7 +262,13 @@ fn em_charts(input: &ReportInput) -> (Result<String, PlotError>, Result<String, 
         }],
         shade_from: None,
     };
-    let times: Vec<f64> = input.fit.iter().map(|s| s.t).collect();
+    // The drift series covers the samples the EM ran on: the fitted ones, or every one.
+    let times: Vec<f64> = input
+        .fit
+        .iter()
+        .chain(&input.held_out)
+        .map(|s| s.t)
+        .collect();
     let drift = Panel {
         title: "estimated joint drift (smoothed)".into(),
         x_label: "time (s)".into(),
@@ -511,7 +548,7 @@ pub fn render(input: &ReportInput) -> String {
         &input.held_out
     };
     let before = residuals(&input.nominal, eval);
-    let after = residuals(&c.calibrated, eval);
+    let after = residuals(held_out_table(input), eval);
     let (pb, pa) = (
         mean(before.iter().map(|r| r.0)),
         mean(after.iter().map(|r| r.0)),
@@ -590,7 +627,7 @@ pub fn render(input: &ReportInput) -> String {
         FIGURES[0],
         "Measured end-effector position, and the nominal and calibrated models' forward kinematics \
          of the same joint readings (cf. the paper's Figs. 3, 4 and 7). The shaded part is the \
-         held-out slice, not used for fitting.",
+         held-out slice, which judged a table fitted without it.",
         time,
     );
     figure(
@@ -603,17 +640,29 @@ pub fn render(input: &ReportInput) -> String {
     let (pos, rot, which) = residual_charts(input);
     let _ = writeln!(out, "<h2>Residuals before and after ({which})</h2>");
     out.push_str("<div class=\"pair\">");
+    let caption = |what: &str, unit: &str, h: &Histogram| match h {
+        Ok((_, b)) => format!("{what} {}", bins_caption(b, unit)),
+        Err(_) => what.to_string(),
+    };
     figure(
         &mut out,
         FIGURES[2],
-        "Position error per sample (pose error in the model's tool frame).",
-        pos,
+        &caption(
+            "Position error per sample (pose error in the model's tool frame).",
+            "mm",
+            &pos,
+        ),
+        pos.map(|(svg, _)| svg),
     );
     figure(
         &mut out,
         FIGURES[3],
-        "Rotation error per sample (rotation-vector norm).",
-        rot,
+        &caption(
+            "Rotation error per sample (rotation-vector norm).",
+            "mrad",
+            &rot,
+        ),
+        rot.map(|(svg, _)| svg),
     );
     out.push_str("</div>\n");
 
@@ -644,7 +693,7 @@ pub fn render(input: &ReportInput) -> String {
     figure(
         &mut out,
         FIGURES[5],
-        "Each joint's smoothed drift estimate over the fitted part of the session (Gauss–Markov \
+        "Each joint's smoothed drift estimate over the samples the EM ran on (Gauss–Markov \
          model, Kalman filter and RTS smoother).",
         drift,
     );

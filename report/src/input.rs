@@ -1,7 +1,7 @@
 //! What a report is made of: plain data that a live session and an offline run fill alike.
 //!
 //! Contract: [`ReportInput`] holds no references and no daemon types. The calibration part
-//! ([`Calibration`]) comes from [`crate::analysis::calibrate`]; the data-quality part
+//! ([`Calibration`]) comes from the daemon's calibration pipeline; the data-quality part
 //! ([`Quality`]) is filled by whoever read the data (the daemon's ingest and alignment for
 //! frame-level inputs, the CSV reader for sample files).
 
@@ -131,10 +131,14 @@ pub struct ReportInput {
     /// Where the data came from (an interface, a file).
     pub source: String,
     pub nominal: DhTable<JOINTS>,
+    /// The calibration; fitted on `fit` (and, when `judged` is given, `held_out` too).
     pub calibration: Calibration,
-    /// Samples the calibration was fitted on, time-ordered.
+    /// When the calibrated table was refitted on every sample: the table fitted on `fit` only,
+    /// which the held-out slice judged (the report's held-out figures show it).
+    pub judged: Option<DhTable<JOINTS>>,
+    /// The start of the session: the samples the judged table was fitted on, time-ordered.
     pub fit: Vec<TimedSample>,
-    /// The held-out slice (not fitted on), time-ordered; may be empty.
+    /// The held-out slice (the end of the session), time-ordered; may be empty.
     pub held_out: Vec<TimedSample>,
     pub quality: Quality,
     pub verdict: Option<VerdictSummary>,

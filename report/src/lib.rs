@@ -3,16 +3,16 @@
 //! | module | contract |
 //! |---|---|
 //! | [`input`] | [`ReportInput`]: plain data a live session and an offline run fill alike |
-//! | [`analysis`] | [`analysis::calibrate`]: calib-core LS then drift EM, keeping the detail a report shows |
 //! | [`plot`] | SVG charts (plotters), returned as strings |
 //! | [`html`] | [`html::render`]: one self-contained HTML file, no external resources |
 //! | [`export`] | the calibrated table as the daemon's TOML and as URDF; frames as `candump -L` |
 //! | [`readers`] | offline inputs: `candump -L` logs, the daemon's MCAP logs, CSV samples |
 //!
-//! Nothing here knows about CAN sockets or the daemon: the daemon's `offline` command replays
-//! recorded frames through its own ingest and alignment, and hands the result here.
+//! Nothing here knows about CAN sockets or the daemon, and nothing here calibrates: the
+//! daemon's pipeline computes the calibration (LS, EM, validation, correlations) and hands it
+//! here to render; its `offline` command replays recorded frames through its own ingest and
+//! alignment.
 
-pub mod analysis;
 pub mod export;
 pub mod html;
 pub mod input;

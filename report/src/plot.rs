@@ -98,22 +98,86 @@ fn padded(values: impl Iterator<Item = f64>) -> Option<Range<f64>> {
     Some(lo - pad..hi + pad)
 }
 
-/// Short tick labels for any magnitude.
-fn tick(v: &f64) -> String {
-    let a = v.abs();
-    // Below 1e-12 is rounding noise of a range computation, not a value.
-    if a < 1e-12 {
-        "0".into()
-    } else if !(1e-3..1e5).contains(&a) {
-        format!("{v:.1e}")
-    } else if a >= 100.0 {
-        format!("{v:.0}")
-    } else if a >= 1.0 {
-        format!("{v:.1}")
+/// Exponents of an axis over `range`: of its tick step (the step is 1, 2 or 5 × 10^exponent,
+/// as plotters places the [`AXIS_LABELS`] ticks) and of its largest magnitude.
+fn exponents(range: &Range<f64>) -> (i32, i32) {
+    use plotters::coord::ranged1d::Ranged;
+    let coord: plotters::coord::types::RangedCoordf64 = range.clone().into();
+    let ticks = coord.key_points(AXIS_LABELS);
+    let step = match ticks.as_slice() {
+        [a, b, ..] if b > a => (b - a).log10().floor() as i32,
+        _ => {
+            let span = (range.end - range.start).abs();
+            if span > 0.0 && span.is_finite() {
+                (span / AXIS_LABELS as f64).log10().floor() as i32
+            } else {
+                0
+            }
+        }
+    };
+    let magnitude = range.start.abs().max(range.end.abs());
+    let mag = if magnitude > 0.0 && magnitude.is_finite() {
+        magnitude.log10().floor() as i32
     } else {
-        format!("{v:.3}")
+        0
+    };
+    (step, mag)
+}
+
+/// Tick labels of an axis spanning `range`, with as many digits as the ticks need to differ:
+/// plotters puts at most [`AXIS_LABELS`] labels on an axis, at multiples of a step of 1, 2 or
+/// 5 × 10^k, so showing the digits down to 10^k tells every two ticks apart (1.6e5 ± 20 reads
+/// 159990, 159995, …, never "1.6e5" five times). Magnitudes from 1e-3 to below 1e6 are written out, others in
+/// scientific notation with the mantissa digits the step needs. [`axis_labels`] adds an
+/// offset when that would take more than [`MAX_DIGITS`] digits.
+pub fn tick_labels(range: &Range<f64>) -> impl Fn(&f64) -> String {
+    let (step, mag) = exponents(range);
+    let scientific = !(-3..6).contains(&mag);
+    move |v: &f64| {
+        // Below a thousandth of a step is the rounding of a range computation, not a value.
+        if v.abs() < 10f64.powi(step) * 1e-3 {
+            return "0".into();
+        }
+        if scientific {
+            let digits = (mag - step).clamp(0, 15) as usize;
+            format!("{v:.digits$e}")
+        } else {
+            let decimals = (-step).clamp(0, 15) as usize;
+            format!("{v:.decimals$}")
+        }
     }
 }
+
+/// An axis's tick label formatter.
+pub type TickLabels = Box<dyn Fn(&f64) -> String>;
+
+/// Most significant digits a tick label shows.
+pub const MAX_DIGITS: i32 = 6;
+
+/// The tick labels and the description of an axis over `range` described as `desc`: the labels
+/// of [`tick_labels`], or, when they would need more than [`MAX_DIGITS`] digits (a narrow
+/// range far from zero: 1e9 + 0…7), the labels of the values minus an offset that the
+/// description names (`"time (s) − 1e9"`).
+pub fn axis_labels(range: &Range<f64>, desc: &str) -> (TickLabels, String) {
+    let (step, mag) = exponents(range);
+    let span = (range.end - range.start).abs();
+    if mag - step < MAX_DIGITS || !(span > 0.0 && span.is_finite()) {
+        return (Box::new(tick_labels(range)), desc.to_string());
+    }
+    // The start rounded down to a power of ten above the span: labels of a few digits.
+    let q = 10f64.powi(span.log10().floor() as i32 + 1);
+    let offset = (range.start.min(range.end) / q).floor() * q;
+    let f = tick_labels(&(range.start - offset..range.end - offset));
+    let desc = if offset < 0.0 {
+        format!("{desc} + {:e}", -offset)
+    } else {
+        format!("{desc} − {offset:e}")
+    };
+    (Box::new(move |v: &f64| f(&(v - offset))), desc)
+}
+
+/// Labels per axis plotters draws at most (its default for both axes).
+pub const AXIS_LABELS: usize = 10;
 
 fn draw_panel(area: &DrawingArea<SVGBackend<'_>, Shift>, panel: &Panel) -> Result<(), PlotError> {
     let e = |what: &dyn fmt::Display| err(&panel.title, what);
@@ -148,12 +212,16 @@ fn draw_panel(area: &DrawingArea<SVGBackend<'_>, Shift>, panel: &Panel) -> Resul
         .y_label_area_size(62)
         .build_cartesian_2d(xs.clone(), ys.clone())
         .map_err(|x| e(&x))?;
+    let (x_ticks, x_desc) = axis_labels(&xs, &panel.x_label);
+    let (y_ticks, y_desc) = axis_labels(&ys, &panel.y_label);
     chart
         .configure_mesh()
-        .x_desc(panel.x_label.as_str())
-        .y_desc(panel.y_label.as_str())
-        .x_label_formatter(&tick)
-        .y_label_formatter(&tick)
+        .x_desc(x_desc)
+        .y_desc(y_desc)
+        .x_labels(AXIS_LABELS)
+        .y_labels(AXIS_LABELS)
+        .x_label_formatter(&x_ticks)
+        .y_label_formatter(&y_ticks)
         .label_style((FONT, 13))
         .axis_desc_style((FONT, 14))
         .light_line_style(RGBColor(238, 238, 238))
@@ -233,40 +301,99 @@ pub struct Distribution {
     pub values: Vec<f64>,
 }
 
-/// Overlaid histograms of `series` on shared bins (`bins` between 0 and the 99th percentile of
-/// all values, the rest in the last bin).
+/// Where a histogram's bins lie: `bins` bins of `width` from `lo` to `hi`, and, when
+/// `overflow`, one more bar right of `hi` holding every value above it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Binning {
+    pub lo: f64,
+    pub hi: f64,
+    pub width: f64,
+    pub bins: usize,
+    pub overflow: bool,
+}
+
+/// A value this many times the largest series' 99th percentile is an outlier: the bins then end
+/// at that percentile and an explicit overflow bar holds the rest.
+pub const OUTLIER_FACTOR: f64 = 2.0;
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+}
+
+/// The bins of `series` (see [`histogram`]); `None` if there is no finite value.
+pub fn binning(series: &[Distribution], bins: usize) -> Option<Binning> {
+    let sorted: Vec<Vec<f64>> = series
+        .iter()
+        .map(|s| {
+            let mut v: Vec<f64> = s.values.iter().copied().filter(|v| v.is_finite()).collect();
+            v.sort_by(f64::total_cmp);
+            v
+        })
+        .filter(|v| !v.is_empty())
+        .collect();
+    if sorted.is_empty() || bins == 0 {
+        return None;
+    }
+    let lo = sorted.iter().map(|v| v[0]).fold(0.0f64, f64::min);
+    let max = sorted.iter().map(|v| v[v.len() - 1]).fold(lo, f64::max);
+    let p99 = sorted
+        .iter()
+        .map(|v| percentile(v, 0.99))
+        .fold(lo, f64::max);
+    let overflow = max - lo > OUTLIER_FACTOR * (p99 - lo);
+    let hi = if overflow { p99 } else { max }.max(lo + f64::EPSILON);
+    Some(Binning {
+        lo,
+        hi,
+        width: (hi - lo) / bins as f64,
+        bins,
+        overflow,
+    })
+}
+
+/// Overlaid histograms of `series` on shared bins, in % of each series. The bins cover every
+/// value of every series, from 0 (or the least value, if negative) to the largest; only when
+/// that largest is an outlier (over [`OUTLIER_FACTOR`] × the largest series' 99th percentile)
+/// do they end at that percentile, and a separate bar marked "> hi" right of them holds every
+/// value beyond. Returns the SVG and the [`Binning`] (for the caption).
 pub fn histogram(
     title: &str,
     x_label: &str,
     series: &[Distribution],
     bins: usize,
     size: (u32, u32),
-) -> Result<String, PlotError> {
-    let mut all: Vec<f64> = series
-        .iter()
-        .flat_map(|s| s.values.iter().copied())
-        .filter(|v| v.is_finite())
-        .collect();
-    if all.is_empty() || bins == 0 {
-        return Err(err(title, "no finite value to draw"));
-    }
-    all.sort_by(f64::total_cmp);
-    let lo = all[0].min(0.0);
-    let hi = all[((all.len() - 1) as f64 * 0.99) as usize].max(lo + f64::EPSILON);
-    let width = (hi - lo) / bins as f64;
+) -> Result<(String, Binning), PlotError> {
+    let b = binning(series, bins).ok_or_else(|| err(title, "no finite value to draw"))?;
+    let Binning { lo, hi, width, .. } = b;
+    // Bin k of `bins`; index `bins` is the overflow bar.
     let counts: Vec<Vec<f64>> = series
         .iter()
         .map(|s| {
-            let mut c = vec![0.0; bins];
+            let mut c = vec![0.0; bins + 1];
             let n = s.values.iter().filter(|v| v.is_finite()).count().max(1) as f64;
             for v in s.values.iter().filter(|v| v.is_finite()) {
-                let b = (((v - lo) / width) as usize).min(bins - 1);
-                c[b] += 100.0 / n;
+                let k = if *v > hi {
+                    bins
+                } else {
+                    (((v - lo) / width) as usize).min(bins - 1)
+                };
+                c[k] += 100.0 / n;
             }
             c
         })
         .collect();
+    // Bar k spans [x0, x0 + width); the overflow bar stands half a bin apart.
+    let x0 = |k: usize| {
+        if k == bins {
+            hi + 0.5 * width
+        } else {
+            lo + k as f64 * width
+        }
+    };
+    // A bin and a half of room right of the last bar (or of the overflow bar).
+    let xs = lo..hi + if b.overflow { 3.0 * width } else { 1.5 * width };
     let top = counts.iter().flatten().fold(0.0f64, |m, &c| m.max(c)) * 1.1;
+    let ys = 0.0..top.max(1.0);
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
@@ -276,14 +403,17 @@ pub fn histogram(
             .caption(title, (FONT, 17))
             .x_label_area_size(38)
             .y_label_area_size(62)
-            .build_cartesian_2d(lo..hi, 0.0..top.max(1.0))
+            .build_cartesian_2d(xs.clone(), ys.clone())
             .map_err(|x| err(title, x))?;
+        let (x_ticks, x_desc) = axis_labels(&xs, x_label);
         chart
             .configure_mesh()
-            .x_desc(x_label)
+            .x_desc(x_desc)
             .y_desc("share of samples (%)")
-            .x_label_formatter(&tick)
-            .y_label_formatter(&tick)
+            .x_labels(AXIS_LABELS)
+            .y_labels(AXIS_LABELS)
+            .x_label_formatter(&x_ticks)
+            .y_label_formatter(&tick_labels(&ys))
             .label_style((FONT, 13))
             .axis_desc_style((FONT, 14))
             .light_line_style(RGBColor(238, 238, 238))
@@ -297,9 +427,11 @@ pub fn histogram(
                     c.iter()
                         .enumerate()
                         .filter(|(_, &h)| h > 0.0)
-                        .map(|(b, &h)| {
-                            let x0 = lo + b as f64 * width;
-                            Rectangle::new([(x0, 0.0), (x0 + width, h)], colour.mix(0.35).filled())
+                        .map(|(k, &h)| {
+                            Rectangle::new(
+                                [(x0(k), 0.0), (x0(k) + width, h)],
+                                colour.mix(0.35).filled(),
+                            )
                         }),
                 )
                 .map_err(|x| err(title, x))?
@@ -307,17 +439,25 @@ pub fn histogram(
                 .legend(move |(x, y)| {
                     Rectangle::new([(x, y - 5), (x + 18, y + 5)], colour.mix(0.6).filled())
                 });
-            // The outline, as a step line.
-            let steps: Vec<(f64, f64)> = c
+            // The outline of the bins, as a step line.
+            let steps: Vec<(f64, f64)> = c[..bins]
                 .iter()
                 .enumerate()
-                .flat_map(|(b, &h)| {
-                    let x0 = lo + b as f64 * width;
-                    [(x0, h), (x0 + width, h)]
-                })
+                .flat_map(|(k, &h)| [(x0(k), h), (x0(k) + width, h)])
                 .collect();
             chart
                 .draw_series(LineSeries::new(steps, colour.stroke_width(2)))
+                .map_err(|x| err(title, x))?;
+        }
+        if b.overflow {
+            let label = format!("> {}", tick_labels(&xs)(&hi));
+            let h = counts.iter().map(|c| c[bins]).fold(0.0f64, f64::max);
+            chart
+                .draw_series(std::iter::once(Text::new(
+                    label,
+                    (x0(bins), (h + 0.04 * ys.end).min(0.97 * ys.end)),
+                    (FONT, 12).into_font().color(&ACTUAL),
+                )))
                 .map_err(|x| err(title, x))?;
         }
         chart
@@ -330,7 +470,7 @@ pub fn histogram(
             .map_err(|x| err(title, x))?;
         root.present().map_err(|x| err(title, x))?;
     }
-    Ok(svg)
+    Ok((svg, b))
 }
 
 /// Horizontal bars (value in [0, 1] per label) with a vertical "required" line.
@@ -364,6 +504,8 @@ pub fn bars(
             .configure_mesh()
             .disable_y_mesh()
             .x_desc("share of the joint's range visited (%)")
+            .x_labels(AXIS_LABELS)
+            .x_label_formatter(&tick_labels(&(0.0..100.0)))
             .y_labels(n * 2 + 1)
             .y_label_formatter(&|y: &f64| {
                 let k = y - 0.5;
@@ -495,7 +637,7 @@ mod tests {
             colour: CALIBRATED,
             values: (0..500).map(|i| (i % 37) as f64).collect(),
         };
-        let svg = histogram("h", "x", &[d], 20, (500, 300)).unwrap();
+        let (svg, _) = histogram("h", "x", &[d], 20, (500, 300)).unwrap();
         assert!(svg.matches("<rect").count() > 10);
         let svg = bars(
             "b",
@@ -506,5 +648,93 @@ mod tests {
         )
         .unwrap();
         assert!(svg.matches("<rect").count() >= 3);
+    }
+
+    /// The labels plotters puts on an axis over `range`, through [`axis_labels`], and the
+    /// axis's description.
+    fn axis(range: Range<f64>) -> (Vec<String>, String) {
+        use plotters::coord::ranged1d::Ranged;
+        let coord: plotters::coord::types::RangedCoordf64 = range.clone().into();
+        let (f, desc) = axis_labels(&range, "y");
+        (coord.key_points(AXIS_LABELS).iter().map(f).collect(), desc)
+    }
+
+    #[test]
+    fn neighbouring_ticks_never_read_the_same() {
+        let ranges = [
+            159_990.0..160_030.0, // the EM log-likelihood of a one-minute session
+            -160_004.0..-159_998.5,
+            1.6e5 - 0.3..1.6e5 + 0.2,
+            1.0e9..1.0e9 + 7.0,
+            -2.5e7 - 3.0..-2.5e7,
+            0.0..1.0,
+            -0.5..312.4,
+            0.0..100.0,
+            2.0e-7..2.6e-7,
+            -3.0e-4..4.0e-4,
+            12.0..12.004,
+            0.0..5.0e6,
+        ];
+        for r in ranges {
+            let (labels, desc) = axis(r.clone());
+            assert!(labels.len() >= 3, "{r:?}: {labels:?}");
+            let mut unique = labels.clone();
+            unique.sort();
+            unique.dedup();
+            assert_eq!(unique.len(), labels.len(), "{r:?}: {labels:?}");
+            assert!(
+                labels.iter().all(|l| l.len() <= 9),
+                "{r:?}: {labels:?} ({desc})"
+            );
+        }
+        assert_eq!(axis(159_990.0..160_030.0).0[..2], ["159990", "159995"]);
+        assert_eq!(axis(0.0..1.0).0[..3], ["0", "0.2", "0.4"]);
+        let (labels, desc) = axis(1.0e9..1.0e9 + 7.0);
+        assert_eq!(
+            (&labels[..3], desc.as_str()),
+            (&["0".to_string(), "1".into(), "2".into()][..], "y − 1e9")
+        );
+    }
+
+    #[test]
+    fn histogram_bins_cover_both_series_or_name_the_overflow() {
+        let series = |a: Vec<f64>, b: Vec<f64>| {
+            [
+                Distribution {
+                    name: "nominal".into(),
+                    colour: NOMINAL,
+                    values: a,
+                },
+                Distribution {
+                    name: "calibrated".into(),
+                    colour: CALIBRATED,
+                    values: b,
+                },
+            ]
+        };
+        // A large nominal error beside a small calibrated one: the bins reach the largest
+        // nominal value (the old bins ended at the 99th percentile of both together, cutting
+        // off the nominal tail at the chart's edge).
+        let nominal: Vec<f64> = (0..1000).map(|i| 200.0 + 0.1 * i as f64).collect();
+        let calibrated: Vec<f64> = (0..1000).map(|i| 0.02 * i as f64).collect();
+        let b = binning(&series(nominal.clone(), calibrated.clone()), 40).unwrap();
+        assert_eq!((b.lo, b.hi, b.overflow), (0.0, 299.9, false));
+        let (svg, _) = histogram(
+            "h",
+            "x",
+            &series(nominal.clone(), calibrated.clone()),
+            40,
+            (500, 300),
+        )
+        .unwrap();
+        assert!(!svg.contains("&gt; "), "no overflow bar");
+        // One wild value: the bins end at the 99th percentile, and the bar beyond says so.
+        let mut wild = nominal;
+        wild.push(5000.0);
+        let b = binning(&series(wild.clone(), calibrated), 40).unwrap();
+        assert!(b.overflow && (b.hi - 299.0).abs() < 1.0, "{b:?}");
+        let (svg, _) = histogram("h", "x", &series(wild, vec![1.0]), 40, (500, 300)).unwrap();
+        assert!(svg.contains("&gt; 29"), "overflow bar labelled");
+        assert!(binning(&series(vec![f64::NAN], vec![]), 40).is_none());
     }
 }

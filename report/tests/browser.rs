@@ -1,4 +1,8 @@
-//! The report opens in a real browser (headless Chromium) with every plot present and drawn.
+//! The report opens in a real browser (headless Chromium) with every plot present and drawn,
+//! on a session whose nominal table is far off (a large nominal error beside a small calibrated
+//! one, a log-likelihood in the hundreds of thousands): every axis's tick labels differ from
+//! their neighbours, and each residual histogram's bins cover both series (its caption says to
+//! what value; the test checks it against the samples), or show the overflow explicitly.
 //!
 //! Needs Debian's `chromium` (`apt-get install -y chromium`) or `EXOCAL_CHROMIUM=/path/to/it`;
 //! without it the test fails, saying so (it never passes silently).
@@ -7,8 +11,8 @@ use std::path::PathBuf;
 use std::process::Command;
 
 use calib_core::{DhTable, DriftEmOptions, JointRanges, LsOptions, Scenario, ScenarioConfig};
-use exocal_report::html::{render, FIGURES};
-use exocal_report::{analysis, Quality, ReportInput, StreamQuality, TimedSample, VerdictSummary};
+use exocal_report::html::{render, residuals, FIGURES};
+use exocal_report::{Quality, ReportInput, StreamQuality, TimedSample, VerdictSummary};
 
 fn chromium() -> PathBuf {
     if let Some(p) = std::env::var_os("EXOCAL_CHROMIUM") {
@@ -29,25 +33,34 @@ fn chromium() -> PathBuf {
     );
 }
 
-/// A short simulated session, calibrated for real (EM capped to keep the test fast).
+/// Samples in the test's session (a minute at 100 Hz, as a live session has).
+const SAMPLES: usize = 6000;
+
+/// A simulated session calibrated for real (EM capped to keep the test fast) from a nominal
+/// table 3 cm and 2° off on every row, so the nominal error is large.
 fn input() -> ReportInput {
     let cfg = ScenarioConfig::paper();
     let all: Vec<TimedSample> = Scenario::new(cfg, 11)
-        .take(400)
+        .take(SAMPLES)
         .enumerate()
         .map(|(i, s)| TimedSample {
             t: i as f64 * cfg.drift.dt,
             sample: s.sample,
         })
         .collect();
-    let (fit, held) = all.split_at(320);
-    let nominal = DhTable::paper_nominal();
+    let (fit, held) = all.split_at(SAMPLES * 4 / 5);
+    let mut nominal = DhTable::paper_nominal();
+    for row in &mut nominal.rows {
+        row.a += 0.03;
+        row.theta_offset += 2f64.to_radians();
+    }
     let samples: Vec<_> = fit.iter().map(|s| s.sample).collect();
     let em = DriftEmOptions {
         max_iterations: 8,
         ..DriftEmOptions::new(cfg.drift.dt)
     };
-    let calibration = analysis::calibrate(&nominal, &samples, &LsOptions::new(), &em).unwrap();
+    let calibration =
+        exocald::pipeline::ls_then_em(&nominal, &samples, &LsOptions::new(), &em).unwrap();
     assert!(
         calibration.em.is_ok(),
         "{:?}",
@@ -55,7 +68,7 @@ fn input() -> ReportInput {
     );
     let stream = |name: &str| StreamQuality {
         name: name.into(),
-        samples: 400,
+        samples: SAMPLES,
         rate_hz: 100.0,
         loss: Some(0.0),
         excluded: 0,
@@ -68,10 +81,11 @@ fn input() -> ReportInput {
         source: "calib-core scenario, seed 11".into(),
         nominal,
         calibration,
+        judged: None,
         fit: fit.to_vec(),
         held_out: held.to_vec(),
         quality: Quality {
-            duration_s: 4.0,
+            duration_s: SAMPLES as f64 * cfg.drift.dt,
             grid_hz: 100.0,
             gaps: 0,
             counters: vec![("frames received".into(), 3200), ("unknown".into(), 0)],
@@ -97,6 +111,70 @@ fn figure<'a>(dom: &'a str, id: &str) -> &'a str {
     &dom[start..end]
 }
 
+/// The SVG text elements of `fig`: (x, y, text-anchor, content).
+fn texts(fig: &str) -> Vec<(String, String, String, String)> {
+    let attr = |tag: &str, name: &str| {
+        tag.split(&format!(" {name}=\""))
+            .nth(1)
+            .map_or(String::new(), |v| v[..v.find('"').unwrap_or(0)].to_string())
+    };
+    fig.split("<text")
+        .skip(1)
+        .map(|t| {
+            let (tag, rest) = t.split_once('>').unwrap_or((t, ""));
+            let content = rest[..rest.find("</text>").unwrap_or(rest.len())].trim();
+            (
+                attr(tag, "x"),
+                attr(tag, "y"),
+                attr(tag, "text-anchor"),
+                content.to_string(),
+            )
+        })
+        .collect()
+}
+
+/// The tick labels of each axis of `fig`: runs of numbers, in document order, in a row (same
+/// y: an x axis) or right-aligned in a column (same x: a y axis), of at least three. (Stacked
+/// panels put their axes at the same place: each panel's labels are one run.)
+fn axes(fig: &str) -> Vec<Vec<String>> {
+    let mut runs: Vec<((bool, String), Vec<String>)> = Vec::new();
+    for (x, y, anchor, text) in texts(fig) {
+        if text.parse::<f64>().is_err() {
+            runs.push(((false, String::new()), Vec::new()));
+            continue;
+        }
+        let key = if anchor == "end" {
+            (true, x)
+        } else {
+            (false, y)
+        };
+        match runs.last_mut() {
+            Some((k, labels)) if *k == key => labels.push(text),
+            _ => runs.push((key, vec![text])),
+        }
+    }
+    runs.into_iter()
+        .map(|(_, labels)| labels)
+        .filter(|l| l.len() >= 3)
+        .collect()
+}
+
+/// The upper end of a histogram's bins, as its caption states it; `None` for an overflow bar.
+fn bins_upper_end(fig: &str) -> Option<f64> {
+    let caption = &fig[fig.find("<figcaption>").expect("a caption")..];
+    let (_, rest) = caption
+        .split_once("Bins from ")
+        .expect("the caption states the bins");
+    let hi = rest.split(" to ").nth(1).expect("bins' upper end");
+    let (hi, tail) = hi.split_once(' ').unwrap();
+    if tail.contains("every sample of both series") {
+        Some(hi.parse().unwrap())
+    } else {
+        assert!(tail.contains("&gt;"), "{caption}");
+        None
+    }
+}
+
 /// Points drawn by the figure's polylines.
 fn polyline_points(fig: &str) -> usize {
     fig.split("<polyline")
@@ -113,7 +191,8 @@ fn polyline_points(fig: &str) -> usize {
 #[test]
 fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
     let browser = chromium();
-    let html = render(&input());
+    let input = input();
+    let html = render(&input);
     let dir = std::env::temp_dir().join(format!("exocal-report-browser-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let page = dir.join("report.html");
@@ -156,11 +235,11 @@ fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
         let points = polyline_points(fig);
         let rects = fig.matches("<rect").count();
         match id {
-            // Three series × three axes of 400 samples; two planes of three series.
+            // Three series × three axes (decimated to 1,500 points each); two planes of three.
             "fig-trajectory-time" | "fig-trajectory-plane" => {
-                assert!(points >= 2 * 3 * 400, "{id}: {points} points")
+                assert!(points >= 2 * 3 * 1500, "{id}: {points} points")
             }
-            "fig-drift" => assert!(points >= 7 * 320, "{id}: {points} points"),
+            "fig-drift" => assert!(points >= 7 * 1500, "{id}: {points} points"),
             "fig-likelihood" => assert!(points >= 3, "{id}: {points} points"),
             // Bars: at least a few non-empty bins per distribution, one bar per joint.
             "fig-residual-position" | "fig-residual-rotation" => {
@@ -168,6 +247,47 @@ fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
             }
             "fig-excitation" => assert!(rects >= 7, "{id}: {rects} bars"),
             other => panic!("untested figure {other}"),
+        }
+        // Every axis: as many distinct labels as ticks.
+        let axes = axes(fig);
+        assert!(!axes.is_empty(), "{id}: no axis labels found");
+        for labels in &axes {
+            let mut unique = labels.clone();
+            unique.sort();
+            unique.dedup();
+            assert_eq!(
+                unique.len(),
+                labels.len(),
+                "{id}: repeated tick labels {labels:?}"
+            );
+        }
+        println!("{id}: axes {axes:?}");
+    }
+    // The log-likelihood of a minute of samples is large: the case the labels must tell apart.
+    let ll = &input.calibration.em.as_ref().unwrap().log_likelihood;
+    assert!(ll.iter().all(|l| l.abs() > 1e4), "{ll:?}");
+    // The histograms' bins reach the largest error of both series (nominal is far off here).
+    let held = residuals(&input.nominal, &input.held_out);
+    let calibrated = residuals(&input.calibration.calibrated, &input.held_out);
+    for (id, pick) in [
+        (
+            "fig-residual-position",
+            (|r: &(f64, f64)| r.0) as fn(&(f64, f64)) -> f64,
+        ),
+        ("fig-residual-rotation", |r: &(f64, f64)| r.1),
+    ] {
+        let max = |v: &[(f64, f64)]| v.iter().map(pick).fold(0.0f64, f64::max);
+        let (nominal, calibrated) = (max(&held), max(&calibrated));
+        assert!(
+            nominal > 5.0 * calibrated,
+            "{id}: nominal {nominal}, calibrated {calibrated}"
+        );
+        match bins_upper_end(figure(&dom, id)) {
+            Some(hi) => assert!(
+                hi >= nominal * (1.0 - 1e-3),
+                "{id}: bins end at {hi}, the largest nominal error is {nominal}"
+            ),
+            None => assert!(figure(&dom, id).contains("&gt; "), "{id}: no overflow bar"),
         }
     }
     // Nothing external: the file is self-contained.

@@ -13,11 +13,11 @@ fn the_exported_configuration_loads_in_the_daemon_with_the_calibrated_table() {
     let text = config_toml(DEFAULT_TOML, &calibrated).unwrap();
     let loaded = Config::parse(&text).unwrap_or_else(|e| panic!("{e}\n{text}"));
     let default = Config::parse(DEFAULT_TOML).unwrap();
-    for (row, want) in loaded.nominal.iter().zip(&calibrated.rows) {
+    for (row, want) in loaded.nominal.rows.iter().zip(&calibrated.rows) {
         assert!((row.a - want.a).abs() < 1e-15, "{row:?} vs {want:?}");
         assert!((row.d - want.d).abs() < 1e-15);
         assert!((row.alpha - want.alpha).abs() < 1e-12);
-        assert!((row.offset - want.theta_offset).abs() < 1e-12);
+        assert!((row.theta_offset - want.theta_offset).abs() < 1e-12);
     }
     // Only the nominal table changed.
     assert_ne!(loaded.nominal, default.nominal);

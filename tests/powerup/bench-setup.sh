@@ -15,12 +15,13 @@ cp /usr/share/exocal/examples/80-vcan0.netdev /usr/share/exocal/examples/80-vcan
    /etc/systemd/network/
 systemctl enable systemd-networkd.service
 
-# The daemon listens on vcan0. Half a minute of motion on a 50 Hz grid is plenty for the
-# emulated suit, and floating point in the software-emulated (TCG) guest is ~200x slower than
-# native: calibration there takes minutes, not seconds.
-sed -i -e 's/^interface = .*/interface = "vcan0"/' -e 's/^min_duration_s = .*/min_duration_s = 30.0/' \
+# The daemon listens on vcan0. 45 s of motion on a 50 Hz grid: floating point in the
+# software-emulated (TCG) guest is ~200x slower than native, so the grid is coarse, and the
+# window long enough that the table's expected error is well within the shipped 3 mm limit
+# (30 s gave ±3.0-3.3 mm: refused as often as not).
+sed -i -e 's/^interface = .*/interface = "vcan0"/' -e 's/^min_duration_s = .*/min_duration_s = 45.0/' \
     -e 's/^grid_hz = .*/grid_hz = 50.0/' /etc/exocal/exocald.toml
-grep -q '^min_duration_s = 30.0' /etc/exocal/exocald.toml
+grep -q '^min_duration_s = 45.0' /etc/exocal/exocald.toml
 grep -q '^grid_hz = 50.0' /etc/exocal/exocald.toml
 
 # The emulated suit, at 1x real time, its raw IMU channels at 10 Hz so the TCG guest keeps up.

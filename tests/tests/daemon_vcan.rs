@@ -8,14 +8,24 @@
 //!   validated), every channel is present, and the raw frames logged are exactly the frames a
 //!   capture socket saw on the bus over the same window (nothing lost, nothing invented);
 //! - SIGTERM during collection leaves a finished MCAP and pushes nothing; a missing interface is
-//!   a clear error.
+//!   a clear error;
+//! - `exocald nodes` lists every node's table as its flash holds it and names a node that does
+//!   not answer (exit 69, `--json`);
+//! - `exocald run` (serve) on short sessions: one started by SIGUSR1, a second SIGUSR1 and a
+//!   Trigger frame during it ignored (and said so), the next started by a Trigger frame, SIGTERM
+//!   while collecting (75, log finished) and, in a second daemon, while idle (0).
+//!
+//! Every wait is on an event — a line of the daemon's or the hil's stderr — bounded only as a
+//! guard against a hang.
 //!
 //! Needs vcan0 and the binaries: run through `cargo xtask test` (which builds them and sets
 //! `EXOCAL_BIN_DIR` and `EXOCAL_PYTHON`).
 
 use std::collections::{BTreeMap, HashSet};
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use calib_core::{objective_y, DhRow, DhTable, Sample, Scenario, ScenarioConfig};
@@ -55,14 +65,20 @@ fn scratch(name: &str) -> PathBuf {
 
 /// The shipped configuration, pointed at vcan0 and `out`, collecting `min_s` seconds.
 fn config(dir: &Path, out: &Path, min_s: f64) -> PathBuf {
+    config_with(dir, out, &[("min_duration_s", format!("{min_s:.1}"))])
+}
+
+/// The shipped configuration, pointed at vcan0 and `out`, with `keys` set (`key = value`).
+fn config_with(dir: &Path, out: &Path, keys: &[(&str, String)]) -> PathBuf {
     let shipped = std::fs::read_to_string(workspace().join("daemon/exocald.toml")).unwrap();
     let mut text = String::new();
     for line in shipped.lines() {
         let key = line.split('=').next().unwrap_or("").trim();
+        let set = keys.iter().find(|(k, _)| *k == key);
         let line = match key {
             "interface" => "interface = \"vcan0\"".to_string(),
             "directory" => format!("directory = {:?}", out.display().to_string()),
-            "min_duration_s" => format!("min_duration_s = {min_s:.1}"),
+            _ if set.is_some() => format!("{key} = {}", set.unwrap().1),
             _ => line.to_string(),
         };
         text.push_str(&line);
@@ -73,20 +89,114 @@ fn config(dir: &Path, out: &Path, min_s: f64) -> PathBuf {
     path
 }
 
+/// The lines a child writes to stderr, as they come (a thread reads them), echoed to ours.
+struct Lines {
+    rx: mpsc::Receiver<String>,
+    seen: Vec<String>,
+}
+
+impl Lines {
+    fn of(stderr: std::process::ChildStderr, who: &'static str) -> Lines {
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                eprintln!("[{who}] {line}");
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        Lines {
+            rx,
+            seen: Vec::new(),
+        }
+    }
+
+    /// Waits for the next line containing `needle` (the guard: `limit`), and returns it.
+    fn wait_for(&mut self, needle: &str, limit: Duration) -> String {
+        self.wait_for_each(&[needle], limit).remove(0)
+    }
+
+    /// Every line the child wrote, once it has exited (its stderr closed).
+    fn all(mut self) -> Vec<String> {
+        self.seen.extend(self.rx.iter());
+        self.seen
+    }
+
+    /// Waits for the next line that `want` accepts (the guard: `limit`; `what` names it in
+    /// the panic), and returns it.
+    fn wait_until(&mut self, what: &str, want: impl Fn(&str) -> bool, limit: Duration) -> String {
+        let deadline = Instant::now() + limit;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.rx.recv_timeout(left) {
+                Ok(line) => {
+                    self.seen.push(line.clone());
+                    if want(&line) {
+                        return line;
+                    }
+                }
+                Err(e) => panic!(
+                    "no {what} ({e:?} after {limit:?}); lines so far:\n{}",
+                    self.seen.join("\n")
+                ),
+            }
+        }
+    }
+
+    /// Waits until a line containing each of `needles` has come, in any order (the guard:
+    /// `limit`); returns those lines, in the order of `needles`.
+    fn wait_for_each(&mut self, needles: &[&str], limit: Duration) -> Vec<String> {
+        let deadline = Instant::now() + limit;
+        let mut found: Vec<Option<String>> = vec![None; needles.len()];
+        while found.iter().any(Option::is_none) {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.rx.recv_timeout(left) {
+                Ok(line) => {
+                    self.seen.push(line.clone());
+                    if let Some(k) = (0..needles.len())
+                        .find(|&k| found[k].is_none() && line.contains(needles[k]))
+                    {
+                        found[k] = Some(line);
+                    }
+                }
+                Err(e) => panic!(
+                    "no line with {needles:?} ({e:?} after {limit:?}); lines so far:\n{}",
+                    self.seen.join("\n")
+                ),
+            }
+        }
+        found.into_iter().flatten().collect()
+    }
+}
+
+/// Time limits that only catch hangs: the suites wait on events (a readiness line, a progress
+/// line, a process's exit), never on how fast a loaded host or the TCG guest runs.
+const HANG: Duration = Duration::from_secs(1800);
+
 struct Hil {
     child: Child,
     flash: PathBuf,
+    /// Keeps reading (and echoing) the hil's stderr, so that its pipe never fills.
+    _stderr: Lines,
 }
 
 impl Hil {
     fn start(dir: &Path, duration_s: u32) -> Hil {
+        Hil::start_with(dir, duration_s, "")
+    }
+
+    /// The paper scenario with `extra` TOML appended, playing for `duration_s`; returns once its
+    /// nodes are up (its readiness line: the flash is written, the bus open).
+    fn start_with(dir: &Path, duration_s: u32, extra: &str) -> Hil {
         let flash = dir.join("flash");
         // The paper scenario, with the raw IMU channels (70% of the traffic, unused by the
         // calibration) at 10 Hz instead of 100 Hz, so that the TCG guest keeps up.
         let paper = std::fs::read_to_string(workspace().join("hil/scenarios/paper.toml")).unwrap();
         let scenario = dir.join("scenario.toml");
-        std::fs::write(&scenario, paper.replace("imu_hz = 100.0", "imu_hz = 10.0")).unwrap();
-        let child = Command::new(bin("exocal-hil"))
+        let text = paper.replace("imu_hz = 100.0", "imu_hz = 10.0") + extra;
+        std::fs::write(&scenario, text).unwrap();
+        let mut child = Command::new(bin("exocal-hil"))
             .arg("--scenario")
             .arg(&scenario)
             .args(["--iface", "vcan0", "--speed", SPEED, "--duration"])
@@ -95,9 +205,17 @@ impl Hil {
             .arg(&flash)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
             .spawn()
             .expect("start exocal-hil");
-        Hil { child, flash }
+        let mut lines = Lines::of(child.stderr.take().expect("piped"), "hil");
+        // The readiness line: its socket is open and its nodes have booted, their flash written.
+        lines.wait_for("exocal-hil: playing", HANG);
+        Hil {
+            child,
+            flash,
+            _stderr: lines,
+        }
     }
 
     /// CRC of the table each joint node holds in its flash (`None`: nothing flashed yet).
@@ -109,14 +227,6 @@ impl Hil {
                 (n, image.map(|i| i.table.crc()))
             })
             .collect()
-    }
-
-    /// Waits (at most 20 s) until the nodes have booted and written their flash.
-    fn wait_booted(&self) {
-        let deadline = Instant::now() + Duration::from_secs(20);
-        while self.held_crcs().values().any(Option::is_none) && Instant::now() < deadline {
-            std::thread::sleep(Duration::from_millis(100));
-        }
     }
 
     /// The D-H table the joint nodes hold.
@@ -284,7 +394,6 @@ fn calibrate_on_vcan0_pushes_a_table_every_node_holds_and_logs_every_frame() {
     // The arm keeps moving after the window; once its motion ends, the nodes keep answering
     // (the push) until `stop`, however long the calibration takes.
     let hil = Hil::start(&dir, 400);
-    hil.wait_booted();
     let factory = hil.held_crcs();
     let started = Instant::now();
     let daemon = Command::new(bin("exocald"))
@@ -438,7 +547,6 @@ fn sigterm_during_collection_finishes_the_log_and_pushes_nothing() {
     let out = dir.join("out");
     let cfg = config(&dir, &out, 60.0);
     let hil = Hil::start(&dir, 120);
-    hil.wait_booted();
     let factory = hil.held_crcs();
     let mut daemon = Command::new(bin("exocald"))
         .arg("--config")
@@ -449,31 +557,42 @@ fn sigterm_during_collection_finishes_the_log_and_pushes_nothing() {
         .stderr(Stdio::piped())
         .spawn()
         .expect("start exocald");
-    std::thread::sleep(Duration::from_secs(8));
+    // Mid-collection by the daemon's own account: its progress line after 5 s of collecting
+    // (of the 60 s window), whatever that took in real time.
+    let mut lines = Lines::of(daemon.stderr.take().expect("piped"), "exocald");
+    let progress = lines.wait_until(
+        "progress line after 5 s of collection",
+        |l| {
+            l.strip_prefix("exocald: collecting ")
+                .and_then(|r| r.split(' ').next())
+                .and_then(|s| s.parse::<f64>().ok())
+                .is_some_and(|s| s >= 5.0)
+        },
+        HANG,
+    );
+    println!("SIGTERM after: {progress}");
     // SAFETY: plain kill(2) on our child.
     #[allow(unsafe_code)]
     unsafe {
         libc::kill(daemon.id() as i32, libc::SIGTERM)
     };
-    let deadline = Instant::now() + Duration::from_secs(30);
+    let deadline = Instant::now() + HANG;
     let status = loop {
         if let Some(s) = daemon.try_wait().unwrap() {
             break s;
         }
-        assert!(
-            Instant::now() < deadline,
-            "exocald ignored SIGTERM for 30 s"
-        );
+        assert!(Instant::now() < deadline, "exocald ignored SIGTERM");
         std::thread::sleep(Duration::from_millis(50));
     };
-    let out_text = daemon.wait_with_output().unwrap();
+    let stderr = lines.all();
+    let _ = daemon.wait_with_output().unwrap();
     let held = hil.held_crcs();
     hil.stop();
     assert_eq!(
         status.code(),
         Some(75),
         "interrupted session exits EX_TEMPFAIL: {}",
-        String::from_utf8_lossy(&out_text.stderr)
+        stderr.join("\n")
     );
     assert_eq!(held, factory, "a table was pushed after SIGTERM");
     let (counts, messages) = mcap_topics(&mcap_file(&out));
@@ -500,4 +619,167 @@ fn a_missing_interface_is_a_clear_error() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(69), "{stderr}");
     assert!(stderr.contains("vcan9"), "{stderr}");
+}
+
+/// `exocald nodes` against the hil's nodes, Joint4 silent: every other node's CRC and table as
+/// its flash holds them, Joint4 named, exit 69.
+#[test]
+fn nodes_lists_what_every_node_holds_and_names_a_silent_one() {
+    exocal_tests::require_vcan("vcan0");
+    let dir = scratch("nodes");
+    let out = dir.join("out");
+    let cfg = config(&dir, &out, 60.0);
+    let hil = Hil::start_with(
+        &dir,
+        600,
+        "\n[[faults.transfer]]\nnode = 4\nbehaviour = \"silent\"\n",
+    );
+    let held = hil.held_crcs();
+    let run = Command::new(bin("exocald"))
+        .arg("--config")
+        .arg(&cfg)
+        .args(["nodes", "--json"])
+        .stdin(Stdio::null())
+        .output()
+        .expect("run exocald nodes");
+    hil.stop();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(69), "{stderr}");
+    assert!(stderr.contains("no answer from Joint4"), "{stderr}");
+    let listing: serde_json::Value = serde_json::from_slice(&run.stdout).expect("JSON listing");
+    println!("{listing:#}");
+    assert_eq!(listing["missing"], serde_json::json!(["Joint4"]));
+    assert_eq!(listing["compared_with"], serde_json::Value::Null);
+    for node in listing["nodes"].as_array().unwrap() {
+        let n = node["id"].as_u64().unwrap() as u8;
+        if n == 4 {
+            assert_eq!(node["answered"], false, "{node}");
+            continue;
+        }
+        assert_eq!(node["crc"].as_u64().map(|c| c as u32), held[&n], "{node}");
+        let tau = node["table"]["tau_s"].as_f64().unwrap();
+        assert!((tau - 1.0).abs() < 1e-9, "the factory τ: {node}");
+    }
+}
+
+/// `exocald run` on vcan0: sessions on demand, triggers during a session ignored, SIGTERM in
+/// either state. Sessions are short (3 s, any motion; a dry run) so the guest is not kept busy.
+#[test]
+fn serve_runs_a_session_per_trigger_and_stops_on_sigterm() {
+    use socketcan::{CanFrame, Socket};
+    exocal_tests::require_vcan("vcan0");
+    let dir = scratch("serve");
+    let out = dir.join("out");
+    let cfg = config_with(
+        &dir,
+        &out,
+        &[
+            ("min_duration_s", "3.0".into()),
+            ("max_duration_s", "3.0".into()),
+            ("excitation_required", "0.01".into()),
+            ("min_samples", "50".into()),
+            ("grid_hz", "50.0".into()),
+        ],
+    );
+    let hil = Hil::start(&dir, 600);
+    let can = socketcan::CanSocket::open("vcan0").expect("a socket to send triggers");
+    let trigger = || {
+        let frame: CanFrame =
+            exocal_dbc::Message::Trigger(exocal_dbc::TriggerCommand::StartCalibration)
+                .to_frame()
+                .unwrap();
+        can.write_frame(&frame).expect("send a Trigger frame");
+    };
+    let signal = |child: &Child, sig: i32| {
+        // SAFETY: plain kill(2) on our child.
+        #[allow(unsafe_code)]
+        let rc = unsafe { libc::kill(child.id() as i32, sig) };
+        assert_eq!(rc, 0);
+    };
+    let serve = || {
+        let mut child = Command::new(bin("exocald"))
+            .arg("--config")
+            .arg(&cfg)
+            .args(["run", "--dry-run"])
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("start exocald run");
+        let lines = Lines::of(child.stderr.take().unwrap(), "exocald");
+        (child, lines)
+    };
+    let started = Instant::now();
+    let (mut daemon, mut lines) = serve();
+    lines.wait_for("idle: waiting for a trigger", HANG);
+
+    // 1. By signal; a second signal and a Trigger frame while it collects are ignored.
+    signal(&daemon, libc::SIGUSR1);
+    lines.wait_for("trigger received (SIGUSR1): starting a session", HANG);
+    lines.wait_for("logging to", HANG);
+    signal(&daemon, libc::SIGUSR1);
+    trigger();
+    lines.wait_for_each(
+        &[
+            "trigger ignored (SIGUSR1): a session is running",
+            "trigger ignored (CAN Trigger frame): a session is running",
+        ],
+        HANG,
+    );
+    lines.wait_for("idle: waiting for a trigger", HANG);
+
+    // 2. By frame: the next session is this one (the ignored triggers were not queued).
+    trigger();
+    let next = lines.wait_for("trigger received", HANG);
+    assert!(next.contains("(CAN Trigger frame)"), "{next}");
+    lines.wait_for("logging to", HANG);
+
+    // 3. SIGTERM while it collects: interrupted (75), its log finished.
+    signal(&daemon, libc::SIGTERM);
+    let status = daemon.wait().unwrap();
+    assert_eq!(status.code(), Some(75), "{}", lines.seen.join("\n"));
+    let sessions = lines
+        .seen
+        .iter()
+        .filter(|l| l.contains("trigger received"))
+        .count();
+    assert_eq!(sessions, 2, "{}", lines.seen.join("\n"));
+    let mut logs: Vec<PathBuf> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
+        .collect();
+    logs.sort();
+    assert_eq!(logs.len(), 2, "one log per session: {logs:?}");
+    for log in &logs {
+        mcap_topics(log); // finished: the summary reads
+    }
+    // The first session's log says it ignored the frame.
+    let events: Vec<String> = {
+        let bytes = std::fs::read(&logs[0]).unwrap();
+        mcap::MessageStream::new(&bytes)
+            .unwrap()
+            .filter_map(|m| m.ok())
+            .filter(|m| m.channel.topic == "/events")
+            .map(|m| String::from_utf8_lossy(&m.data).into_owned())
+            .collect()
+    };
+    assert!(
+        events
+            .iter()
+            .any(|e| e.contains("trigger ignored (CAN Trigger frame)")),
+        "{events:?}"
+    );
+
+    // 4. SIGTERM while idle: a clean exit, no session.
+    let (mut idle, mut lines) = serve();
+    lines.wait_for("idle: waiting for a trigger", HANG);
+    signal(&idle, libc::SIGTERM);
+    let status = idle.wait().unwrap();
+    hil.stop();
+    assert_eq!(status.code(), Some(0), "{}", lines.seen.join("\n"));
+    println!(
+        "serve: two sessions, two ignored triggers, SIGTERM collecting and idle in {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
 }

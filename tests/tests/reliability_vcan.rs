@@ -20,38 +20,22 @@ use std::time::{Duration, Instant};
 
 use exocal_bus::SimClock;
 use exocal_bus::SocketCan;
-use exocal_dbc::table::{Field, Table};
+use exocal_dbc::table::Table;
 use exocal_dbc::NodeId;
-use exocal_hil::scenario::{Babble, ClockJump, Reboot, Scenario, TransferBehaviour, TransferFault};
+use exocal_hil::scenario::{
+    Babble, BusStall, ClockJump, Reboot, Scenario, TransferBehaviour, TransferFault,
+};
+use exocal_hil::trial::{new_tables, TransferMix};
 use exocal_hil::Hil;
 use exocald::config::{Config, PushPolicy};
+use exocald::demo::{session_against_suit, PushTally, RunningSuit};
 use exocald::push::{push_tables, Holds};
-use exocald::report::{Notifier, Reporter};
-use exocald::runner::{run_session, SessionSummary};
+use exocald::runner::SessionSummary;
 
 /// Seeded atomic-push runs on vcan0.
 const PUSH_RUNS: u64 = 10;
 /// Simulated time before the push starts (the nodes boot and stream).
 const PUSH_AT_S: f64 = 0.3;
-
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        // splitmix64
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-    fn unit(&mut self) -> f64 {
-        (self.next() >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn range(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.unit()
-    }
-}
 
 fn scratch(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("exocal-rel-{}-{name}", std::process::id()));
@@ -60,75 +44,35 @@ fn scratch(name: &str) -> PathBuf {
     dir
 }
 
-/// A quiet suit (1 Hz streams) with transfer-path faults drawn from `seed`.
-fn push_scenario(seed: u64) -> Scenario {
-    let mut rng = Rng(seed);
-    let mut s = Scenario::paper();
-    s.seed = seed;
-    s.duration_s = 600.0;
-    s.rates.joint_state_hz = 1.0;
-    s.rates.imu_hz = 1.0;
-    s.rates.pose_hz = 1.0;
-    let f = &mut s.faults;
-    f.loss = [0.0, 0.02, 0.05, 0.1, 0.2][(rng.next() % 5) as usize];
-    f.duplicate = rng.range(0.0, 0.2);
-    f.reorder = rng.range(0.0, 0.2);
-    f.reorder_max_ms = rng.range(1.0, 100.0);
-    f.delay = rng.range(0.0, 0.1);
-    f.delay_ms = rng.range(1.0, 150.0);
-    for _ in 0..rng.next() % 3 {
-        f.reboots.push(Reboot {
-            node: 1 + (rng.next() % 7) as u8,
-            at_s: PUSH_AT_S + rng.range(0.0, 0.5),
-            down_s: rng.range(0.05, 0.5),
-        });
-    }
-    if rng.unit() < 0.2 {
-        f.transfer.push(TransferFault {
-            node: 1 + (rng.next() % 7) as u8,
-            behaviour: TransferBehaviour::Silent,
-        });
-    }
-    s
-}
+/// The faults a push trial draws from: milder than the in-process matrix's (real time in a
+/// slow guest), silence as the only refusal.
+const MIX: TransferMix = TransferMix {
+    losses: &[0.0, 0.02, 0.05, 0.1, 0.2],
+    burst_start: 0.0,
+    max_fraction: 0.2,
+    reorder_max_ms: 100.0,
+    delay_max_ms: 150.0,
+    reboots: 3,
+    push_at_s: PUSH_AT_S,
+    reboot_window_s: 0.5,
+    down_s: (0.05, 0.5),
+    refusal: 0.2,
+    nack: false,
+};
 
-/// A new table near `old`: every field moved by a few hundred raw units, kept in bounds.
-fn perturbed(old: &Table, rng: &mut Rng) -> Table {
-    let mut raw = old.raw_values();
-    for f in Field::ALL {
-        let (lo, hi) = f.raw_bounds();
-        let k = f.seq() as usize;
-        raw[k] = (raw[k] + 1 + (rng.next() % 500) as i64).clamp(lo, hi);
-    }
-    Table::from_raw(raw).expect("in bounds")
-}
-
-#[derive(Default, Debug)]
-struct Tally {
-    nodes: u64,
-    new: u64,
-    old: u64,
-    unknown: u64,
-    problems: Vec<String>,
-}
-
-async fn push_run(seed: u64, tally: &mut Tally) {
+async fn push_run(seed: u64, tally: &mut PushTally) {
     let dir = scratch(&format!("push-{seed}"));
-    let scenario = push_scenario(seed);
-    let mut hil = Hil::new(scenario.clone(), &dir).expect("hil");
-    let old: Vec<(NodeId, Table)> = NodeId::JOINTS
-        .iter()
-        .map(|&n| (n, hil.suit().held_table(n).expect("factory table")))
-        .collect();
-    let mut rng = Rng(seed ^ 0xa5a5);
-    let tables: Vec<(NodeId, Table)> = old
-        .iter()
-        .map(|(n, t)| (*n, perturbed(t, &mut rng)))
-        .collect();
+    let scenario = MIX.scenario(seed);
+    let hil = Hil::new(scenario.clone(), &dir).expect("hil");
+    let trial = new_tables(hil.suit(), seed ^ 0xa5a5);
+    let tables: Vec<(NodeId, Table)> = trial.iter().map(|(n, _, new)| (*n, *new)).collect();
     let clock = SimClock::new(1.0).expect("speed");
-    let mut hil_sock = SocketCan::open("vcan0").expect("hil socket on vcan0");
+    let suit = RunningSuit::start(
+        hil,
+        SocketCan::open("vcan0").expect("hil socket on vcan0"),
+        clock,
+    );
     let mut daemon_sock = SocketCan::open("vcan0").expect("daemon socket on vcan0");
-    let hil_task = tokio::spawn(async move { hil.run(&mut hil_sock, &clock).await });
     tokio::time::sleep(Duration::from_secs_f64(PUSH_AT_S)).await;
     let policy = PushPolicy {
         retries: 3,
@@ -149,38 +93,14 @@ async fn push_run(seed: u64, tally: &mut Tally) {
     .expect("push over vcan0");
     // Let delayed and duplicated frames drain (≤ 150 ms hold-back), then stop the suit.
     tokio::time::sleep(Duration::from_millis(400)).await;
-    hil_task.abort();
-    let _ = hil_task.await;
-    for (((node, old_t), (_, new_t)), rep) in old.iter().zip(&tables).zip(&report.nodes) {
-        tally.nodes += 1;
-        let held = exocal_hil::flash::read(&dir, *node)
-            .expect("flash readable")
-            .map_or(old_t.crc(), |img| img.table.crc());
-        let (holds_new, holds_old) = (held == new_t.crc(), held == old_t.crc());
-        let agrees = match rep.holds {
-            Holds::New => {
-                tally.new += 1;
-                holds_new
-            }
-            Holds::Old => {
-                tally.old += 1;
-                holds_old
-            }
-            Holds::Unknown => {
-                tally.unknown += 1;
-                true
-            }
-        };
-        if !(holds_new || holds_old) || !agrees {
-            tally.problems.push(format!(
-                "seed {seed} {node}: report {:?}, flash {held:#010x} (old {:#010x}, new {:#010x}), faults {:?}",
-                rep.holds,
-                old_t.crc(),
-                new_t.crc(),
-                scenario.faults
-            ));
-        }
-    }
+    let flash = suit.stop().await;
+    tally.add(
+        &format!("seed {seed}"),
+        &scenario.faults,
+        &trial,
+        &flash,
+        &report,
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -188,7 +108,7 @@ async fn push_run(seed: u64, tally: &mut Tally) {
 async fn atomic_push_over_vcan0_leaves_old_or_new_and_the_report_says_which() {
     exocal_tests::require_vcan("vcan0");
     let started = Instant::now();
-    let mut tally = Tally::default();
+    let mut tally = PushTally::default();
     for run in 0..PUSH_RUNS {
         push_run(7000 + run, &mut tally).await;
     }
@@ -223,6 +143,9 @@ enum Expect {
     MalformedAndNan,
     /// This node's clock report shows more jumps/reboots than any other node's.
     ClockEvent(u8),
+    /// A bus stall of at least this many ms reported as the receiver's (not as every node's
+    /// jumps), and this node's reboot as its own jump.
+    StallThenReboot(f64, u8),
     /// Nothing to name: the generic checks (nothing invalid pushed, reports match flash).
     Survives,
 }
@@ -286,6 +209,22 @@ fn rows() -> Vec<Row> {
             },
         },
         Row {
+            name: "bus stalls 400 ms for 2 s, then node 4 reboots",
+            expect: Expect::StallThenReboot(300.0, 4),
+            apply: |s| {
+                s.faults.bus_stalls.push(BusStall {
+                    from_s: 2.0,
+                    to_s: 4.0,
+                    late_ms: 400.0,
+                });
+                s.faults.reboots.push(Reboot {
+                    node: 4,
+                    at_s: 5.0,
+                    down_s: 0.5,
+                });
+            },
+        },
+        Row {
             name: "malformed frames 20/s, NaN values 1%",
             expect: Expect::MalformedAndNan,
             apply: |s| {
@@ -294,6 +233,27 @@ fn rows() -> Vec<Row> {
             },
         },
     ]
+}
+
+/// Node `n`'s clock jumps/reboots and the most any other node shows; a problem unless node `n`
+/// shows more.
+fn own_jumps(s: &SessionSummary, n: u8, bad: &mut Vec<String>) -> (&'static str, usize, usize) {
+    let name = NodeId::ALL[usize::from(n) - 1].name();
+    let jumps = |pred: &dyn Fn(&str) -> bool| {
+        s.clocks
+            .iter()
+            .filter(|c| pred(&c.node))
+            .map(|c| c.jumps)
+            .max()
+            .unwrap_or(0)
+    };
+    let (ours, others) = (jumps(&|c| c == name), jumps(&|c| c != name));
+    if ours <= others {
+        bad.push(format!(
+            "{name}: {ours} clock jump(s), not more than another node's {others}"
+        ));
+    }
+    (name, ours, others)
 }
 
 /// Runs one row's session; returns the problems found and a one-line outcome.
@@ -321,77 +281,34 @@ async fn run_row(row: &Row) -> (Vec<String>, String) {
     config.push.backoff_initial_ms = 50;
     config.push.backoff_max_ms = 200;
     scenario.duration_s = 600.0;
-    let mut hil = Hil::new(scenario, &flash_dir).expect("hil");
-    let factory: Vec<u32> = NodeId::JOINTS
-        .iter()
-        .map(|&n| hil.suit().held_table(n).map_or(0, |t| t.crc()))
-        .collect();
+    let hil = Hil::new(scenario, &flash_dir).expect("hil");
     let clock = SimClock::new(1.0).unwrap();
-    let mut hil_sock = SocketCan::open("vcan0").expect("hil socket on vcan0");
+    let suit = RunningSuit::start(
+        hil,
+        SocketCan::open("vcan0").expect("hil socket on vcan0"),
+        clock,
+    );
     let mut daemon_sock = SocketCan::open("vcan0").expect("daemon socket on vcan0");
-    let hil_task = tokio::spawn(async move { hil.run(&mut hil_sock, &clock).await });
     let (_stop, shutdown) = exocald::shutdown::Shutdown::manual();
-    let mut notifier = Notifier::disabled();
-    let mut reporter = Reporter::detect(&notifier);
-    let started = Instant::now();
-    let result = run_session(
+    let o = session_against_suit(
+        suit,
         &mut daemon_sock,
         &exocal_bus::Clock::Wall,
         &config,
-        false,
         shutdown.wait(),
-        &mut notifier,
-        &mut reporter,
     )
     .await;
-    let wall_s = started.elapsed().as_secs_f64();
-    hil_task.abort();
-    let _ = hil_task.await;
-    let flash: Vec<Option<u32>> = NodeId::JOINTS
-        .iter()
-        .map(|&n| {
-            exocal_hil::flash::read(&flash_dir, n)
-                .expect("flash readable")
-                .map(|i| i.table.crc())
-        })
-        .collect();
     let _ = std::fs::remove_dir_all(&dir);
-    let (summary, session): (Option<&SessionSummary>, String) = match &result {
-        Ok(s) => (Some(s), "ok".into()),
-        Err(e) => (e.summary.as_ref(), e.error.to_string()),
+    let wall_s = o.wall.as_secs_f64();
+    let session = match &o.result {
+        Ok(_) => "ok".to_string(),
+        Err(e) => e.error.to_string(),
     };
-    let mut bad = Vec::new();
-    let Some(s) = summary else {
+    let Some(s) = o.summary() else {
         return (vec![format!("no session summary: {session}")], session);
     };
-    let accepted = s.outcome.as_ref().map(|c| c.verdict.accepted());
+    let mut bad = o.problems();
     let push = s.push.as_ref();
-    if accepted != Some(true) && push.is_some() {
-        bad.push("pushed although validation refused".into());
-    }
-    for (i, &node) in NodeId::JOINTS.iter().enumerate() {
-        let held = flash[i].unwrap_or(factory[i]);
-        let rep = push.and_then(|p| p.nodes.iter().find(|r| r.node == node.name()));
-        let sent = rep.map(|r| r.new_crc);
-        if held != factory[i] && Some(held) != sent {
-            bad.push(format!(
-                "{node} flash {held:#010x} is neither factory nor pushed"
-            ));
-        }
-        if let Some(r) = rep {
-            let agrees = match r.holds {
-                Holds::New => Some(held) == sent,
-                Holds::Old => held == factory[i],
-                Holds::Unknown => true,
-            };
-            if !agrees {
-                bad.push(format!(
-                    "{node}: report {:?} but flash {held:#010x}",
-                    r.holds
-                ));
-            }
-        }
-    }
     let noticed = match row.expect {
         Expect::PushFails(n) => {
             let name = NodeId::ALL[usize::from(n) - 1].name();
@@ -425,22 +342,23 @@ async fn run_row(row: &Row) -> (Vec<String>, String) {
             )
         }
         Expect::ClockEvent(n) => {
+            let (name, ours, others) = own_jumps(s, n, &mut bad);
+            format!("{name}: {ours} clock jump(s)/reboot(s), others at most {others}")
+        }
+        Expect::StallThenReboot(min_ms, n) => {
             let name = NodeId::ALL[usize::from(n) - 1].name();
-            let jumps = |pred: &dyn Fn(&str) -> bool| {
-                s.clocks
-                    .iter()
-                    .filter(|c| pred(&c.node))
-                    .map(|c| c.jumps)
-                    .max()
-                    .unwrap_or(0)
-            };
-            let (ours, others) = (jumps(&|c| c == name), jumps(&|c| c != name));
-            if ours <= others {
+            let longest = s.stalls.longest_ms.unwrap_or(0.0);
+            if s.stalls.count == 0 || longest < min_ms {
                 bad.push(format!(
-                    "{name}: {ours} clock jump(s), not more than another node's {others}"
+                    "the {min_ms} ms bus stall was not reported as the receiver's: {:?}",
+                    s.stalls
                 ));
             }
-            format!("{name}: {ours} clock jump(s)/reboot(s), others at most {others}")
+            let (_, ours, others) = own_jumps(s, n, &mut bad);
+            format!(
+                "receiver stalled {} time(s) (longest {longest:.0} ms); {name}: {ours} jump(s), others at most {others}",
+                s.stalls.count
+            )
         }
         Expect::Survives => format!("{} aligned samples, {} gap(s)", s.aligned_samples, s.gaps),
     };

@@ -154,8 +154,7 @@ fn nominal_numbers(toml: &str) -> Vec<f64> {
 /// calibration of `rec` under qemu-user that must agree with the host's, the Debian package and
 /// lintian. Returns report lines.
 fn check_target(t: &Target, rec: &Recording, cfg: &Path, work: &Path) -> Result<Vec<String>> {
-    println!("==> {}: release build", t.triple);
-    let bins = targets::build(t)?;
+    let bins = targets::binaries(t);
     let mut lines = Vec::new();
     for bin in &bins {
         let name = bin
@@ -255,6 +254,13 @@ pub fn check(targets: &[Target]) -> Result<Vec<String>> {
     fs::create_dir_all(&work)?;
     let host = targets::build(&TARGETS[0])?;
     let rec = record(&host, &work)?;
+    let controllers: Vec<Target> = targets
+        .iter()
+        .copied()
+        .filter(|t| t.qemu.is_some())
+        .collect();
+    println!("==> release build for every controller target at once");
+    targets::build_all(&controllers)?;
     println!(
         "host offline on {}: exit {}, {} table values",
         rec.mcap.display(),

@@ -59,20 +59,29 @@ pub fn run_teed(cmd: &mut Command, counts: &mut Counts) -> Result<bool> {
     Ok(child.wait()?.success())
 }
 
-/// Builds the test targets of exocal-tests that `feature` turns on (on the host) with `cargo`;
-/// returns their executables, sorted.
+/// The crate of the suites that run in the harness, and every feature that turns some on.
+pub const SUITE_PACKAGE: &str = "exocal-tests";
+/// See [`SUITE_PACKAGE`].
+pub const SUITE_FEATURES: &[&str] = &["vcan", "powerup"];
+
+/// Builds (on the host, with `cargo`) the test targets of [`SUITE_PACKAGE`] that `feature` turns
+/// on (their `required-features`); returns their executables, sorted.
+///
+/// They are built with `--workspace` and every [`SUITE_FEATURES`] on: the workspace's feature
+/// unification, the same as `cargo test --workspace`'s, so after it nothing but the suites
+/// themselves is compiled (built alone with `-p`, the shared dependencies get other features —
+/// calib-core without `default`, clap with fewer — and most of the workspace is compiled again,
+/// once per feature set).
 pub fn build_suites(cargo: &str, feature: &str) -> Result<Vec<String>> {
+    let names = suite_targets(cargo, feature)?;
+    let features: Vec<String> = SUITE_FEATURES
+        .iter()
+        .map(|f| format!("{SUITE_PACKAGE}/{f}"))
+        .collect();
     let out = Command::new(cargo)
-        .args([
-            "test",
-            "-p",
-            "exocal-tests",
-            "--features",
-            feature,
-            "--tests",
-            "--no-run",
-            "--message-format=json-render-diagnostics",
-        ])
+        .args(["test", "--workspace", "--no-run", "--features"])
+        .arg(features.join(","))
+        .arg("--message-format=json-render-diagnostics")
         .stdin(Stdio::null())
         .stderr(Stdio::inherit())
         .output()
@@ -85,17 +94,56 @@ pub fn build_suites(cargo: &str, feature: &str) -> Result<Vec<String>> {
         let Ok(msg) = serde_json::from_str::<serde_json::Value>(line) else {
             continue;
         };
-        let is_test_target = msg["reason"] == "compiler-artifact"
+        let is_suite = msg["reason"] == "compiler-artifact"
             && msg["profile"]["test"] == true
-            && msg["target"]["kind"]
-                .as_array()
-                .is_some_and(|k| k.iter().any(|k| k == "test"));
-        if let (true, Some(exe)) = (is_test_target, msg["executable"].as_str()) {
+            && msg["target"]["name"]
+                .as_str()
+                .is_some_and(|n| names.iter().any(|s| s == n));
+        if let (true, Some(exe)) = (is_suite, msg["executable"].as_str()) {
             bins.push(exe.to_string());
         }
     }
     bins.sort();
     Ok(bins)
+}
+
+/// The names of [`SUITE_PACKAGE`]'s test targets whose `required-features` include `feature`
+/// (from `cargo metadata`).
+fn suite_targets(cargo: &str, feature: &str) -> Result<Vec<String>> {
+    let out = Command::new(cargo)
+        .args(["metadata", "--no-deps", "--format-version", "1"])
+        .stdin(Stdio::null())
+        .stderr(Stdio::inherit())
+        .output()
+        .context("cargo metadata")?;
+    if !out.status.success() {
+        bail!("cargo metadata failed");
+    }
+    let meta: serde_json::Value = serde_json::from_slice(&out.stdout).context("cargo metadata")?;
+    Ok(targets_needing(&meta, SUITE_PACKAGE, feature))
+}
+
+/// The test targets of `package` in `cargo metadata` output that need `feature`.
+fn targets_needing(meta: &serde_json::Value, package: &str, feature: &str) -> Vec<String> {
+    let Some(packages) = meta["packages"].as_array() else {
+        return Vec::new();
+    };
+    packages
+        .iter()
+        .filter(|p| p["name"] == package)
+        .flat_map(|p| p["targets"].as_array().into_iter().flatten())
+        .filter(|t| {
+            t["kind"]
+                .as_array()
+                .is_some_and(|k| k.iter().any(|k| k == "test"))
+        })
+        .filter(|t| {
+            t["required-features"]
+                .as_array()
+                .is_some_and(|f| f.iter().any(|f| f == feature))
+        })
+        .filter_map(|t| t["name"].as_str().map(str::to_string))
+        .collect()
 }
 
 #[cfg(test)]
@@ -115,6 +163,28 @@ mod tests {
                 ignored: 1,
                 broken: 0
             }
+        );
+    }
+
+    #[test]
+    fn suite_targets_are_read_from_required_features() {
+        let meta = serde_json::json!({"packages": [
+            {"name": "exocal-tests", "targets": [
+                {"name": "vcan_smoke", "kind": ["test"], "required-features": ["vcan"]},
+                {"name": "powerup_systemd", "kind": ["test"], "required-features": ["powerup"]},
+                {"name": "exocal_tests", "kind": ["lib"]}
+            ]},
+            {"name": "other", "targets": [
+                {"name": "x", "kind": ["test"], "required-features": ["vcan"]}
+            ]}
+        ]});
+        assert_eq!(
+            targets_needing(&meta, "exocal-tests", "vcan"),
+            ["vcan_smoke"]
+        );
+        assert_eq!(
+            targets_needing(&meta, "exocal-tests", "powerup"),
+            ["powerup_systemd"]
         );
     }
 

@@ -3,7 +3,7 @@
 //!
 //! A leaf module: it imports no other xtask module.
 
-use std::process::{Command, Stdio};
+use std::process::{Child, Command, Stdio};
 
 use anyhow::{bail, Context, Result};
 
@@ -38,9 +38,65 @@ pub fn shell_quote(s: &str) -> String {
     format!("'{}'", s.replace('\'', r"'\''"))
 }
 
+/// `n` processes that keep a CPU busy each (`sh` spinning in a loop), for as long as this value
+/// lives: a stress load for the suites (`cargo xtask test --load N`). Dropping it kills them.
+pub struct BusyLoad {
+    children: Vec<Child>,
+}
+
+impl BusyLoad {
+    /// Starts `n` busy processes (none for 0).
+    pub fn start(n: usize) -> Result<BusyLoad> {
+        let mut load = BusyLoad {
+            children: Vec::with_capacity(n),
+        };
+        for _ in 0..n {
+            let child = Command::new("sh")
+                .args(["-c", "while :; do :; done"])
+                .stdin(Stdio::null())
+                .stdout(Stdio::null())
+                .spawn()
+                .context("start a busy process (sh)")?;
+            load.children.push(child);
+        }
+        Ok(load)
+    }
+
+    /// How many processes it runs.
+    pub fn len(&self) -> usize {
+        self.children.len()
+    }
+}
+
+impl Drop for BusyLoad {
+    fn drop(&mut self) {
+        for child in &mut self.children {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn busy_load_runs_and_ends_its_processes() {
+        let load = BusyLoad::start(2).unwrap();
+        assert_eq!(load.len(), 2);
+        let pids: Vec<u32> = load.children.iter().map(|c| c.id()).collect();
+        for pid in &pids {
+            assert!(std::path::Path::new(&format!("/proc/{pid}")).exists());
+        }
+        drop(load);
+        for pid in &pids {
+            // Reaped by the drop: the pid is gone (or reused by an unrelated process that is
+            // not a spinning sh of ours, which the stat line would show).
+            let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
+            assert!(!stat.contains("(sh) R"), "{pid} still spinning: {stat}");
+        }
+    }
 
     #[test]
     fn shell_quote_survives_single_quotes() {

@@ -105,15 +105,24 @@ pub fn ensure_toolchain(targets: &[Target]) -> Result<()> {
 
 /// Release-builds the shipped binaries for `t`; returns their paths.
 pub fn build(t: &Target) -> Result<Vec<PathBuf>> {
+    build_all(std::slice::from_ref(t))?;
+    Ok(binaries(t))
+}
+
+/// Release-builds the shipped binaries for every target of `targets` in one cargo invocation:
+/// cargo then interleaves the targets' crates on the cores, where one build alone leaves a core
+/// idle in its serial stretches (the largest crates, the links).
+pub fn build_all(targets: &[Target]) -> Result<()> {
     let root = paths::workspace_root();
     let mut cmd = Command::new(paths::cargo());
     cmd.current_dir(&root)
         .args(["build", "--release"])
         .stdin(Stdio::null());
-    // The build machine's own binaries live in target/release, shared with the tests.
-    let native = t.qemu.is_none();
-    if !native {
-        cmd.args(["--target", t.triple]);
+    for t in targets {
+        // The build machine's own binaries live in target/release, shared with the tests.
+        if t.qemu.is_some() {
+            cmd.args(["--target", t.triple]);
+        }
     }
     // Each binary is its own package's; `-p` each, as `cargo xtask test` builds them: the same
     // feature set, so no rebuild.
@@ -123,14 +132,20 @@ pub fn build(t: &Target) -> Result<Vec<PathBuf>> {
     }
     let status = cmd.status().context("cargo build")?;
     if !status.success() {
-        bail!("release build for {} failed", t.triple);
+        let triples: Vec<&str> = targets.iter().map(|t| t.triple).collect();
+        bail!("release build for {} failed", triples.join(", "));
     }
-    let dir = if native {
+    Ok(())
+}
+
+/// Where [`build`] puts the shipped binaries for `t`.
+pub fn binaries(t: &Target) -> Vec<PathBuf> {
+    let dir = if t.qemu.is_none() {
         paths::target_dir().join("release")
     } else {
         paths::target_dir().join(t.triple).join("release")
     };
-    Ok(BINARIES.iter().map(|b| dir.join(b)).collect())
+    BINARIES.iter().map(|b| dir.join(b)).collect()
 }
 
 /// The command that runs a binary built for `t` on this machine.

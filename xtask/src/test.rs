@@ -13,10 +13,12 @@
 //! Counts are read from libtest's `test result:` lines, and the last line is the total.
 
 use std::process::Command;
+use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 
 use crate::libtest::{self, Counts};
+use crate::process::BusyLoad;
 use crate::{cross, figures, harness, paths, powerup, setup, targets};
 
 /// Run every test: workspace tests, vcan suites, power-up, cross-builds, README figures.
@@ -29,16 +31,45 @@ use crate::{cross, figures, harness, paths, powerup, setup, targets};
 pub struct Args {
     #[command(flatten)]
     pub harness: harness::Opts,
+    /// Keep N busy processes on the host while the vcan and power-up suites run (a stress
+    /// test: the suites must pass on a loaded machine).
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub load: usize,
+}
+
+/// Wall time per step, for the summary (where CI's time goes).
+#[derive(Default)]
+struct Steps(Vec<(&'static str, Duration)>);
+
+impl Steps {
+    /// Runs `f` as step `name`, timing it.
+    fn time<R>(&mut self, name: &'static str, f: impl FnOnce() -> R) -> R {
+        let started = Instant::now();
+        let r = f();
+        self.0.push((name, started.elapsed()));
+        r
+    }
+
+    fn line(&self) -> String {
+        let parts: Vec<String> = self
+            .0
+            .iter()
+            .map(|(n, d)| format!("{n} {:.0} s", d.as_secs_f64()))
+            .collect();
+        let total: f64 = self.0.iter().map(|(_, d)| d.as_secs_f64()).sum();
+        format!("step times: {} (total {total:.0} s)", parts.join(", "))
+    }
 }
 
 pub fn run(args: Args) -> Result<u8> {
     let opts = &args.harness;
     let cargo = paths::cargo();
     let mut host = Counts::default();
+    let mut steps = Steps::default();
 
     // Everything the suites need (Chromium, lintian, the cross toolchain, the VM packages when
     // this kernel has no vcan): installed when missing, as root on Debian.
-    setup::install_all()?;
+    steps.time("setup", setup::install_all)?;
     // The Python cross-checks (cantools, mcap) need their venv before any suite runs; the
     // guest is offline, so it is made here, and every suite finds it through EXOCAL_PYTHON.
     let python = setup::python_env()?;
@@ -50,31 +81,36 @@ pub fn run(args: Args) -> Result<u8> {
     // The end-to-end suites run the real binaries, optimised as shipped (in the TCG guest a
     // debug emulator cannot keep its nodes' clocks in step with real time): build them, and
     // tell the suites where.
-    let bins = targets::build(&targets::TARGETS[0])?;
+    let bins = steps.time("release build", || targets::build(&targets::TARGETS[0]))?;
     let bin_dir = bins[0].parent().context("binary directory")?;
     std::env::set_var("EXOCAL_BIN_DIR", bin_dir);
 
     println!(
         "==> [1/5] cargo test --workspace -- --include-ignored (unit, integration and doc tests)"
     );
-    let ok_host = libtest::run_teed(
-        // `--include-ignored`: tests ignored for plain `cargo test` because they need the
-        // project's Python venv (EXOCAL_PYTHON, made above) run here.
-        Command::new(&cargo).args([
-            "test",
-            "--workspace",
-            "--color",
-            "never",
-            "--",
-            "--include-ignored",
-        ]),
-        &mut host,
-    )?;
+    let ok_host = steps.time("[1/5] workspace tests", || {
+        libtest::run_teed(
+            // `--no-fail-fast`: a failing crate does not hide the results of the others.
+            // `--include-ignored`: tests ignored for plain `cargo test` because they need the
+            // project's Python venv (EXOCAL_PYTHON, made above) run here.
+            Command::new(&cargo).args([
+                "test",
+                "--workspace",
+                "--no-fail-fast",
+                "--color",
+                "never",
+                "--",
+                "--include-ignored",
+            ]),
+            &mut host,
+        )
+    })?;
     if !ok_host && host.failed == 0 {
         host.broken += 1;
     }
 
     println!("==> [2/5] vcan suites (exocal-tests --features vcan) in the vcan harness");
+    let started = Instant::now();
     let bins = libtest::build_suites(&cargo, "vcan")?;
     let mut vcan = Counts::default();
     if bins.is_empty() {
@@ -88,38 +124,50 @@ pub fn run(args: Args) -> Result<u8> {
     argv.extend(bins);
     let mut req = opts.request(argv)?;
     req.capture_stdout = true;
+    let load = BusyLoad::start(args.load)?;
+    if load.len() > 0 {
+        println!(
+            "    with {} busy process(es) on the host (--load)",
+            load.len()
+        );
+    }
     let outcome = harness::run(&req)?;
+    steps.0.push(("[2/5] vcan suites", started.elapsed()));
     vcan.scan(&String::from_utf8_lossy(&outcome.stdout));
     if outcome.code != 0 && vcan.failed == 0 {
         vcan.broken += 1;
     }
 
     println!("==> [3/5] the power-up test under systemd (cargo xtask powerup)");
-    let power = match powerup::power_up(opts) {
+    let power = steps.time("[3/5] power-up", || match powerup::power_up(opts) {
         Ok(p) => p,
         Err(e) => {
             eprintln!("power-up test could not run: {e:#}");
             powerup::PowerUp::broken()
         }
-    };
+    });
+    drop(load);
 
     println!(
         "==> [4/5] cross-builds under qemu-user, Debian packages, lintian (cargo xtask cross)"
     );
     let mut cross = Counts::default();
-    let cross_lines = match cross::check(&targets::or_default(&[], true)) {
-        Ok(lines) => {
-            cross.passed = lines.len() as u64;
-            lines
+    let cross_lines = steps.time("[4/5] cross", || {
+        match cross::check(&targets::or_default(&[], true)) {
+            Ok(lines) => {
+                cross.passed = lines.len() as u64;
+                lines
+            }
+            Err(e) => {
+                cross.failed = 1;
+                vec![format!("FAILED: {e:#}")]
+            }
         }
-        Err(e) => {
-            cross.failed = 1;
-            vec![format!("FAILED: {e:#}")]
-        }
-    };
+    });
 
     println!("==> [5/5] every figure the READMEs quote, from its command (cargo xtask figures)");
     let mut figures = Counts::default();
+    let figures_started = Instant::now();
     let figures_line = match figures::regenerate(&paths::workspace_root(), false) {
         Ok(stale) if stale.is_empty() => {
             figures.passed = 1;
@@ -183,6 +231,8 @@ pub fn run(args: Args) -> Result<u8> {
         cross_lines.join("\n  ")
     );
     println!("README figures: {figures_line}");
+    steps.0.push(("[5/5] figures", figures_started.elapsed()));
+    println!("{}", steps.line());
     println!(
         "exocal: {} passed, {} failed, {} skipped",
         total.passed, total.failed, total.ignored

@@ -1,26 +1,45 @@
-//! The calibration pipeline on aligned samples: LS, then our EM, then validation.
+//! The calibration pipeline: a session's aligned samples and the configuration in, everything
+//! the daemon pushes, logs and reports out.
 //!
-//! Contract: [`run`] is pure (no I/O, no clock). It holds out the end of the session
-//! (`validation.holdout_fraction`), identifies the 28 D-H parameters by least squares from the
-//! nominal table (calib-core `identify_ls`), refines them with calib-core's drift EM (Kalman +
-//! RTS smoother; it also yields each joint's drift τ and σ), and validates the EM table — or the
-//! LS table if the EM fails — with [`crate::validate::validate`]. The per-node tables to push are
-//! in [`Outcome::node_rows`]; whether they may be pushed is [`Outcome::verdict`]. LS and EM run
-//! through [`exocal_report::analysis::calibrate`], so the HTML report shows exactly what was
-//! computed ([`run_detailed`]).
+//! Contract: [`run`] is pure (no I/O, no clock) and deterministic (the LS linearises fixed
+//! blocks of samples on every core, [`crate::parallel`], merged in block order: the same bits
+//! on any number of cores); the live session
+//! and `exocald offline` both call it, and the report renders what it returns. In order:
+//! 1. **split**: the end of the session (`validation.holdout_fraction`) is held out;
+//! 2. **LS**: calib-core's `identify_ls_with` from the nominal table on the rest;
+//! 3. **EM**: calib-core's drift EM (Kalman + RTS smoother) from the LS table; it also yields
+//!    each joint's drift τ and σ and the table's expected error (its Cramér-Rao bound);
+//!    that EM table — or the LS table if the EM fails — is the one the held-out slice judges
+//!    ([`Calibrated::judged`]);
+//! 4. **refit** on every sample: LS from the judged table, then the EM. A user gets the table
+//!    the whole session supports, not one that ignored its last fifth;
+//! 5. **validation** by [`crate::validate::validate`]: the refitted table's bounds,
+//!    conditioning and expected error, and the held-out slice against the judged table;
+//! 6. the per-node rows to push ([`Outcome::node_rows`]; whether they may be pushed is
+//!    [`Outcome::verdict`]) and the detail the report shows ([`Calibrated::detail`]: likelihood
+//!    history, smoothed drift, standard deviations, the strongest parameter correlations).
 //!
 //! The EM models the drift at a constant step `1 / session.grid_hz`; grid points dropped as
 //! gaps are skipped, so a gap shortens the step sequence slightly (gaps are rare and short: a
 //! session with many is refused earlier for lack of samples).
 
-use calib_core::{DhTable, DriftEmOptions, Frame, InputChecks, JointRanges, LsOptions, Sample};
-use exocal_report::{analysis, Calibration};
-use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use crate::parallel::Parallel;
+use calib_core::{
+    em_drift_vec, identify_ls_with, DhTable, DriftEmOptions, Frame, InputChecks, LsOptions, Sample,
+};
+use exocal_report::{Calibration, Correlation, EmDetail, LsDetail, TimedSample};
+use nalgebra::{DMatrix, Quaternion, SMatrix, UnitQuaternion, Vector3};
 use serde::Serialize;
 
 use crate::align::AlignedSample;
 use crate::config::{Config, JOINTS};
-use crate::validate::{split_holdout, table_from_rows, validate, Verdict};
+use crate::validate::{split_holdout, validate, HeldOut, Verdict};
+
+/// D-H parameters of the suit (`4 × JOINTS`).
+pub const PARAMS: usize = calib_core::SUIT_PARAMS;
+
+/// How many parameter correlations the report lists.
+pub const TOP_CORRELATIONS: usize = 10;
 
 /// One node's row as pushed: D-H parameters and the drift model.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -56,10 +75,12 @@ pub struct EmSummary {
     pub log_likelihood_last: f64,
 }
 
-/// What a calibration produced.
+/// What a calibration produced, as the daemon logs and prints it.
 #[derive(Debug, Clone, Serialize)]
 pub struct Outcome {
+    /// Samples the judged table was fitted on (the start of the session).
     pub fit_samples: usize,
+    /// Samples held out to judge it (the end). The pushed table is fitted on both.
     pub heldout_samples: usize,
     pub ls: LsSummary,
     /// `None` when the EM failed (the reason is in `em_error`); the LS table is then used.
@@ -69,6 +90,46 @@ pub struct Outcome {
     pub before: [NodeRow; JOINTS],
     pub node_rows: [NodeRow; JOINTS],
     pub verdict: Verdict,
+}
+
+impl Outcome {
+    /// The calibrated D-H table (the rows' geometry).
+    pub fn table(&self) -> DhTable<JOINTS> {
+        DhTable {
+            rows: self.node_rows.map(|r| calib_core::DhRow {
+                a: r.a,
+                alpha: r.alpha,
+                d: r.d,
+                theta_offset: r.theta_offset,
+            }),
+        }
+    }
+}
+
+/// Everything [`run`] computed.
+#[derive(Debug, Clone)]
+pub struct Calibrated {
+    /// The summary (logged, printed, pushed from).
+    pub outcome: Outcome,
+    /// The detail the report shows, of the table fitted on every sample.
+    pub detail: Calibration,
+    /// The table fitted without the held-out slice, which the slice judged.
+    pub judged: DhTable<JOINTS>,
+    /// Every sample, time-ordered, as calib-core takes them: the first
+    /// [`Outcome::fit_samples`] were fitted, the rest held out.
+    pub samples: Vec<TimedSample>,
+}
+
+impl Calibrated {
+    /// The samples the judged table was fitted on.
+    pub fn fit(&self) -> &[TimedSample] {
+        &self.samples[..self.outcome.fit_samples]
+    }
+
+    /// The held-out slice (may be empty).
+    pub fn held_out(&self) -> &[TimedSample] {
+        &self.samples[self.outcome.fit_samples..]
+    }
 }
 
 /// Why no calibration could be computed at all.
@@ -114,6 +175,17 @@ pub fn to_sample(s: &AlignedSample) -> Sample<JOINTS> {
     }
 }
 
+/// Samples with their time, as calib-core and the report take them.
+pub fn timed(samples: &[AlignedSample]) -> Vec<TimedSample> {
+    samples
+        .iter()
+        .map(|s| TimedSample {
+            t: s.t,
+            sample: to_sample(s),
+        })
+        .collect()
+}
+
 fn rows_of(table: &DhTable<JOINTS>, tau: [f64; JOINTS], sigma: [f64; JOINTS]) -> [NodeRow; JOINTS] {
     std::array::from_fn(|i| {
         let r = table.rows[i];
@@ -128,19 +200,8 @@ fn rows_of(table: &DhTable<JOINTS>, tau: [f64; JOINTS], sigma: [f64; JOINTS]) ->
     })
 }
 
-/// Runs LS, EM and validation on `samples` (time-ordered, on the grid).
-pub fn run(samples: &[AlignedSample], config: &Config) -> Result<Outcome, CalibrateError> {
-    run_detailed(samples, config).map(|(outcome, _)| outcome)
-}
-
-/// [`run`], also returning the detail the HTML report shows (likelihood history, smoothed
-/// drift, standard deviations, correlations). The tables are the same: both come from one call
-/// of [`exocal_report::analysis::calibrate`], which runs calib-core's `identify_ls` and
-/// `em_drift` with the options below.
-pub fn run_detailed(
-    samples: &[AlignedSample],
-    config: &Config,
-) -> Result<(Outcome, Calibration), CalibrateError> {
+/// Runs the pipeline on `samples` (time-ordered, on the grid; see the module docs).
+pub fn run(samples: &[AlignedSample], config: &Config) -> Result<Calibrated, CalibrateError> {
     let need = config.session.min_samples;
     if samples.len() < need {
         return Err(CalibrateError::TooFewSamples {
@@ -148,12 +209,14 @@ pub fn run_detailed(
             need,
         });
     }
-    let all: Vec<Sample<JOINTS>> = samples.iter().map(to_sample).collect();
+    let all = timed(samples);
     let (fit, held) = split_holdout(&all, config.validation.holdout_fraction);
-    let nominal = table_from_rows(&config.nominal);
+    let fit: Vec<Sample<JOINTS>> = fit.iter().map(|s| s.sample).collect();
+    let held: Vec<Sample<JOINTS>> = held.iter().map(|s| s.sample).collect();
     let (ls_opts, em_opts) = options(config);
-    let detail =
-        analysis::calibrate(&nominal, fit, &ls_opts, &em_opts).map_err(CalibrateError::Ls)?;
+    let judged = ls_then_em(&config.nominal, &fit, &ls_opts, &em_opts)?.calibrated;
+    let every: Vec<Sample<JOINTS>> = all.iter().map(|s| s.sample).collect();
+    let detail = ls_then_em(&judged, &every, &ls_opts, &em_opts)?;
     let ls = &detail.ls;
     let ls_summary = LsSummary {
         iterations: ls.iterations,
@@ -180,27 +243,33 @@ pub fn run_detailed(
     };
     let table = detail.calibrated;
     let expected = detail.em.as_ref().ok().map(|em| em.expected_error);
-    let verdict = validate(&table, ls.condition, expected, held, config);
+    let heldout = HeldOut {
+        table: &judged,
+        samples: &held,
+    };
+    let verdict = validate(&table, ls.condition, expected, heldout, config);
     let outcome = Outcome {
         fit_samples: fit.len(),
         heldout_samples: held.len(),
         ls: ls_summary,
         em,
         em_error,
-        before: rows_of(&nominal, [0.0; JOINTS], [0.0; JOINTS]),
+        before: rows_of(&config.nominal, [0.0; JOINTS], [0.0; JOINTS]),
         node_rows: rows_of(&table, tau, sigma),
         verdict,
     };
-    Ok((outcome, detail))
+    Ok(Calibrated {
+        outcome,
+        detail,
+        judged,
+        samples: all,
+    })
 }
 
 /// The LS and EM options the daemon calibrates with: input checks against the configured
 /// joint ranges, the EM step `1 / session.grid_hz`.
 pub fn options(config: &Config) -> (LsOptions<JOINTS>, DriftEmOptions<JOINTS>) {
-    let ranges = JointRanges {
-        limits: config.bounds.joint_range.map(|r| (r.min, r.max)),
-    };
-    let checks = InputChecks::new(Some(ranges));
+    let checks = InputChecks::new(Some(config.bounds.joint_range));
     let ls_opts = LsOptions {
         checks,
         ..LsOptions::new()
@@ -212,11 +281,109 @@ pub fn options(config: &Config) -> (LsOptions<JOINTS>, DriftEmOptions<JOINTS>) {
     (ls_opts, em_opts)
 }
 
+/// LS from `nominal` on `fit`, then the drift EM from the LS table, keeping the detail the
+/// report shows. When the EM fails, the LS table is the result and the EM's error is kept as
+/// text.
+pub fn ls_then_em(
+    nominal: &DhTable<JOINTS>,
+    fit: &[Sample<JOINTS>],
+    ls_opts: &LsOptions<JOINTS>,
+    em_opts: &DriftEmOptions<JOINTS>,
+) -> Result<Calibration, CalibrateError> {
+    let lin = Parallel::on_all_cores(fit);
+    let ls = identify_ls_with::<JOINTS, PARAMS>(nominal, fit, ls_opts, &lin)
+        .map_err(CalibrateError::Ls)?;
+    let ls = LsDetail {
+        table: ls.table,
+        iterations: ls.iterations,
+        rank: ls.rank,
+        condition: ls.condition,
+        rms: ls.rms,
+        std_errors: ls.std_errors,
+    };
+    let em = em_drift_vec::<JOINTS, PARAMS>(&ls.table, fit, em_opts)
+        .map(|(r, drift_series)| EmDetail {
+            table: r.table,
+            iterations: r.iterations,
+            converged: r.converged,
+            log_likelihood: r.log_likelihood.to_vec(),
+            drift: r.drift,
+            std_errors: std::array::from_fn(|p| r.std_errors[p / JOINTS][p % JOINTS]),
+            expected_error: r.expected_error,
+            drift_series,
+        })
+        .map_err(|e| e.to_string());
+    let calibrated = em.as_ref().map_or(ls.table, |em| em.table);
+    let correlations = strongest_correlations(&calibrated, fit, TOP_CORRELATIONS);
+    Ok(Calibration {
+        ls,
+        em,
+        calibrated,
+        correlations,
+    })
+}
+
+/// The `top` strongest parameter correlations of the linearised problem at `table`:
+/// information matrix `Σ JᵀJ` of the tool-frame pose Jacobian over `samples`, pseudo-inverted
+/// in column-scaled coordinates (directions outside the numerical rank are left out).
+pub fn strongest_correlations(
+    table: &DhTable<JOINTS>,
+    samples: &[Sample<JOINTS>],
+    top: usize,
+) -> Vec<Correlation> {
+    let mut info = SMatrix::<f64, PARAMS, PARAMS>::zeros();
+    for s in samples {
+        let (_, cols) = table.fk_jacobian(&s.joints);
+        let mut j = SMatrix::<f64, 6, PARAMS>::zeros();
+        for p in 0..PARAMS {
+            j.set_column(p, &cols[p / JOINTS][p % JOINTS]);
+        }
+        info += j.transpose() * j;
+    }
+    let scale: Vec<f64> = (0..PARAMS)
+        .map(|p| {
+            let d = info[(p, p)];
+            if d > 0.0 {
+                1.0 / d.sqrt()
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let scaled = DMatrix::from_fn(PARAMS, PARAMS, |r, c| info[(r, c)] * scale[r] * scale[c]);
+    let eig = scaled.symmetric_eigen();
+    let max = eig.eigenvalues.iter().fold(0.0f64, |m, &v| m.max(v));
+    let mut cov = DMatrix::<f64>::zeros(PARAMS, PARAMS);
+    for (k, &lambda) in eig.eigenvalues.iter().enumerate() {
+        if lambda > 1e-10 * max {
+            let v = eig.eigenvectors.column(k);
+            cov += (v * v.transpose()) / lambda;
+        }
+    }
+    let mut out = Vec::new();
+    for a in 0..PARAMS {
+        for b in a + 1..PARAMS {
+            let denom = (cov[(a, a)] * cov[(b, b)]).sqrt();
+            if denom > 0.0 && denom.is_finite() {
+                let r = (cov[(a, b)] / denom).clamp(-1.0, 1.0);
+                out.push(Correlation {
+                    first: a,
+                    second: b,
+                    r,
+                });
+            }
+        }
+    }
+    out.sort_by(|x, y| y.r.abs().total_cmp(&x.r.abs()));
+    out.truncate(top);
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::align::Pose;
-    use calib_core::{Scenario, ScenarioConfig, SUIT_PARAMS};
+    use calib_core::{identify_ls, Scenario, ScenarioConfig, SUIT_PARAMS};
     use nalgebra::Rotation3;
 
     /// Aligned samples from calib-core's Section 4 scenario (Table 4 arm, drift, noise).
@@ -243,6 +410,11 @@ mod tests {
                 }
             })
             .collect()
+    }
+
+    /// The pipeline's summary of `samples`.
+    fn run(samples: &[AlignedSample], config: &Config) -> Result<Outcome, CalibrateError> {
+        super::run(samples, config).map(|c| c.outcome)
     }
 
     /// The default configuration with fewer samples required, to keep the tests short.
@@ -452,5 +624,65 @@ mod tests {
             "{:?}",
             v.reasons
         );
+    }
+
+    fn paper_samples(k: usize, seed: u64) -> Vec<Sample<JOINTS>> {
+        Scenario::new(ScenarioConfig::paper(), seed)
+            .take(k)
+            .map(|s| s.sample)
+            .collect()
+    }
+
+    #[test]
+    fn ls_then_em_matches_calib_core_and_keeps_the_detail() {
+        let fit = paper_samples(800, 3);
+        let nominal = DhTable::paper_nominal();
+        let ls_opts = LsOptions::new();
+        let em_opts = DriftEmOptions {
+            max_iterations: 15,
+            ..DriftEmOptions::new(0.01)
+        };
+        let c = ls_then_em(&nominal, &fit, &ls_opts, &em_opts).unwrap();
+        let ls = identify_ls::<JOINTS, PARAMS>(&nominal, &fit, &ls_opts).unwrap();
+        assert_eq!(c.ls.table, ls.table);
+        let em = c.em.as_ref().unwrap();
+        assert_eq!(c.calibrated, em.table);
+        assert_eq!(em.drift_series.len(), fit.len());
+        assert!(em.log_likelihood.len() >= 2);
+        assert!(em.std_errors.iter().all(|s| s.is_finite() && *s > 0.0));
+        assert!(c.ls.std_errors.iter().all(|s| s.is_finite() && *s > 0.0));
+        assert_eq!(c.correlations.len(), TOP_CORRELATIONS);
+        assert!(c
+            .correlations
+            .windows(2)
+            .all(|w| w[0].r.abs() >= w[1].r.abs()));
+    }
+
+    #[test]
+    fn a_still_joint_shows_as_perfectly_correlated_parameters() {
+        // Joint 7 still at θ7 + offset7 = 0: Tx(a6) Rx(α6) Tx(a7) Rx(α7) = Tx(a6 + a7)
+        // Rx(α6 + α7), so only the sums are identifiable (calib-core README) and the
+        // pseudo-inverse leaves each pair fully correlated.
+        let mut fit = paper_samples(400, 5);
+        for s in &mut fit {
+            s.joints[6] = 0.0;
+        }
+        let c = strongest_correlations(&DhTable::paper_nominal(), &fit, 3);
+        assert!(c[0].r.abs() > 0.999, "{c:?}");
+        let moving = strongest_correlations(&DhTable::paper_nominal(), &paper_samples(400, 5), 1);
+        assert!(moving[0].r.abs() < c[0].r.abs());
+    }
+
+    #[test]
+    fn the_report_detail_is_of_the_pushed_table_and_the_split_is_kept() {
+        let c = super::run(&scenario(12.0, 4), &config()).unwrap();
+        assert_eq!(c.detail.calibrated, c.outcome.table());
+        assert_eq!(c.fit().len(), c.outcome.fit_samples);
+        assert_eq!(c.held_out().len(), c.outcome.heldout_samples);
+        assert_eq!(c.samples.len(), 1200);
+        // The pushed table is fitted on every sample, the judged one on the fit only.
+        let em = c.detail.em.as_ref().unwrap();
+        assert_eq!(em.drift_series.len(), 1200);
+        assert_ne!(c.judged, c.detail.calibrated);
     }
 }

@@ -1,8 +1,9 @@
-//! A report on the paper's simulated Section 4 session, without any CAN or daemon:
-//! `cargo run -p exocal-report --release --example paper_report -- [out.html] [seconds] [seed]`.
+//! A report on the paper's simulated Section 4 session, without any CAN: LS then EM as the
+//! daemon's pipeline runs them, rendered by exocal-report.
+//! `cargo run -p exocald --release --example paper_report -- [out.html] [seconds] [seed]`.
 
 use calib_core::{DhTable, DriftEmOptions, LsOptions, Scenario, ScenarioConfig};
-use exocal_report::{analysis, html, Quality, ReportInput, TimedSample};
+use exocal_report::{html, Quality, ReportInput, TimedSample};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -24,7 +25,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let nominal = DhTable::paper_nominal();
     let fit_samples: Vec<_> = fit.iter().map(|s| s.sample).collect();
     let started = std::time::Instant::now();
-    let calibration = analysis::calibrate(
+    let calibration = exocald::pipeline::ls_then_em(
         &nominal,
         &fit_samples,
         &LsOptions::new(),
@@ -36,6 +37,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         source: "calib-core's simulated Section 4 session (Table 4 arm, Gauss-Markov drift)".into(),
         nominal,
         calibration,
+        judged: None,
         fit: fit.to_vec(),
         held_out: held.to_vec(),
         quality: Quality {
