@@ -1,8 +1,10 @@
 //! Benchmarks: FK + identification Jacobian per sample, LS at K = 1,000 / 6,000 / 20,000, both
-//! EMs at K = 1,000 / 6,000 (Section 4 scenario, seed 1). `cargo bench -p calib-core`.
+//! EMs at K = 1,000 / 6,000, one exact-information pass of our EM (Section 4 scenario, seed 1).
+//! `cargo bench -p calib-core`.
 
 use calib_core::{
-    em_drift_vec, identify_ls, paper_em, DhTable, DriftEmOptions, LsOptions, PaperEmOptions, Sample, Scenario, ScenarioConfig,
+    cramer_rao, em_drift_vec, identify_ls, paper_em, DhTable, DriftEmOptions, LsOptions, PaperEmOptions, Sample, Scenario,
+    ScenarioConfig,
 };
 use divan::{black_box, Bencher};
 
@@ -42,4 +44,23 @@ fn our_em(bencher: Bencher, k: usize) {
     let ls = identify_ls::<7, 28>(&DhTable::paper_nominal(), &s, &LsOptions::paper()).expect("LS");
     let opts = DriftEmOptions::new(0.01);
     bencher.bench(|| em_drift_vec::<7, 28>(&ls.table, black_box(&s), &opts).map(|r| r.0.iterations));
+}
+
+/// One pass of our EM's two-stage filter over every sample (linearisation, filter, normal
+/// equations): what `cramer_rao` does, and what the EM does once over all samples at the end.
+#[divan::bench(args = [1_000, 6_000], sample_count = 5, sample_size = 1)]
+fn em_information_pass(bencher: Bencher, k: usize) {
+    let s = samples(k);
+    let d = ScenarioConfig::paper().drift;
+    bencher.bench(|| {
+        cramer_rao::<7, 28>(
+            &DhTable::paper_actual(),
+            black_box(&s),
+            [d.phi(); 7],
+            [d.process_variance(); 7],
+            [1e-9; 6],
+            1e-14,
+        )
+        .map(|a| a.rank)
+    });
 }

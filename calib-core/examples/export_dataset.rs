@@ -31,8 +31,8 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use calib_core::{
-    em_drift_vec, identify_ls, objective_y, pose_error, DhTable, DriftEmOptions, LsOptions, LsResult, ParamErrors, ParamKind,
-    Sample, Scenario, ScenarioConfig, SUIT_PARAMS,
+    em_drift_vec, identify_ls, objective_y, pose_error, table_error, DhTable, DriftEmOptions, LsOptions, LsResult, ParamErrors,
+    ParamKind, Sample, Scenario, ScenarioConfig, SUIT_PARAMS,
 };
 
 struct Args {
@@ -237,15 +237,26 @@ fn bench(args: &Args) -> Result<(), String> {
             last = Some(em);
         }
         let em = last.ok_or("no run")?;
+        // Table error over 2,000 fresh drift-free poses (as the paper example computes it).
+        let fresh: Vec<[f64; 7]> = Scenario::new(cfg, args.seed ^ 0xF2E5_4000_0000)
+            .step_by(3)
+            .take(2000)
+            .map(|s| s.sample.joints)
+            .collect();
+        let te = table_error(&em.table, &cfg.actual, &fresh);
         println!(
-            "{{\"bench\":\"calib-core\",\"solver\":\"ls+em\",\"k\":{k},\"seed\":{},\"median_s\":{:e},\"runs_s\":{},\"wall_median_s\":{:e},\"em_median_s\":{:e},\"em_iterations\":{},\"em_converged\":{},{}}}",
+            "{{\"bench\":\"calib-core\",\"solver\":\"ls+em\",\"k\":{k},\"seed\":{},\"median_s\":{:e},\"runs_s\":{},\"wall_median_s\":{:e},\"em_median_s\":{:e},\"em_iterations\":{},\"em_stride\":{},\"em_informations\":{},\"em_converged\":{},\"table_error_mm\":{:e},\"table_error_mrad\":{:e},{}}}",
             args.seed,
             median(&times),
             json_list(&times),
             median(&walls),
             median(&em_times),
             em.iterations,
+            em.stride,
+            em.information_passes,
             em.converged,
+            1e3 * te.position_m,
+            1e3 * te.rotation_rad,
             accuracy(&em.table, samples)
         );
     }

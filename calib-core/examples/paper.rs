@@ -7,9 +7,13 @@
 use std::time::Instant;
 
 use calib_core::{
-    em_drift_vec, identify_ls, objective_y, objective_y_corrected, paper_em, DhTable, DriftEmOptions, LsOptions, PaperEmForm,
-    PaperEmOptions, ParamErrors, ParamKind, Sample, Scenario, ScenarioConfig, SUIT_PARAMS,
+    cramer_rao, em_drift_vec, expected_table_error, identify_ls, objective_y, objective_y_corrected, paper_em, table_error,
+    DhTable, DriftEmOptions, LsOptions, PaperEmForm, PaperEmOptions, ParamErrors, ParamKind, Sample, Scenario, ScenarioConfig,
+    TableError, SUIT_PARAMS,
 };
+
+/// Fresh drift-free poses the table error is averaged over (another motion of the same arm).
+const FRESH_POSES: usize = 2000;
 
 fn arg(name: &str, default: f64) -> f64 {
     let args: Vec<String> = std::env::args().collect();
@@ -32,6 +36,20 @@ fn errs(label: &str, t: &DhTable<7>) {
     );
 }
 
+/// `mm / mrad` of a table error.
+fn te(e: &TableError) -> String {
+    format!("{:.3} / {:.3}", 1e3 * e.position_m, 1e3 * e.rotation_rad)
+}
+
+/// A table error against the bound, `×` per component.
+fn vs_bound(e: &TableError, bound: &TableError) -> String {
+    format!(
+        "{:.2}× / {:.2}×",
+        e.position_m / bound.position_m,
+        e.rotation_rad / bound.rotation_rad
+    )
+}
+
 fn main() {
     let seed = arg("--seed", 1.0) as u64;
     let seconds = arg("--seconds", 60.0);
@@ -41,6 +59,11 @@ fn main() {
     let k = (seconds / cfg.drift.dt).round() as usize;
     let cal: Vec<_> = Scenario::new(cfg, seed).take(k).collect();
     let held: Vec<_> = Scenario::new(cfg, seed.wrapping_add(0x5EED_0F4E_1D00)).take(k).collect();
+    let fresh: Vec<[f64; 7]> = Scenario::new(cfg, seed ^ 0xF2E5_4000_0000)
+        .step_by(3)
+        .take(FRESH_POSES)
+        .map(|s| s.sample.joints)
+        .collect();
     let samples: Vec<Sample<7>> = cal.iter().map(|s| s.sample).collect();
     let held_samples: Vec<Sample<7>> = held.iter().map(|s| s.sample).collect();
     let nominal = DhTable::paper_nominal();
@@ -87,43 +110,81 @@ fn main() {
     let y_em_h = objective_y(&em.table, &held_samples);
     let y_true = objective_y(&truth, &samples);
     let y_true_h = objective_y(&truth, &held_samples);
+    let (pn, rn) = (cfg.position_noise.powi(2), cfg.rotation_noise.powi(2));
+    let q = cfg.drift.process_variance();
+    let crb = cramer_rao::<7, SUIT_PARAMS>(
+        &truth,
+        &samples,
+        [cfg.drift.phi(); 7],
+        [q; 7],
+        [pn, pn, pn, rn, rn, rn],
+        1e-14,
+    )
+    .expect("Cramér-Rao bound");
+    let bound = expected_table_error::<7, SUIT_PARAMS>(&truth, &fresh, |u| crb.variance_along(u));
+    let te_of = |t: &DhTable<7>| table_error(t, &truth, &fresh);
+    let (te_nom, te_ls, te_ps, te_pv, te_em) = (
+        te_of(&nominal),
+        te_of(&ls.table),
+        te_of(&pem_s.table),
+        te_of(&pem_v.table),
+        te_of(&em.table),
+    );
 
     println!(
         "Section 4 scenario: seed {seed}, {seconds} s, K = {k} samples per session, Δt = 0.01 s, τ = 1 s, σ = 1 (paper discretisation), pose noise {} m / {} rad",
         cfg.position_noise, cfg.rotation_noise
     );
     println!();
-    println!("| method | y calibration | vs | y held-out | vs |");
-    println!("|---|---|---|---|---|");
-    println!("| nominal (Table 1) | {y_nom:.4} | | {y_nom_h:.4} | |");
+    println!("| method | y calibration | vs | y held-out | vs | table error mm / mrad | vs bound |");
+    println!("|---|---|---|---|---|---|---|");
     println!(
-        "| LS (28 params) | {y_ls:.4} | {} vs nominal | {y_ls_h:.4} | {} vs nominal |",
+        "| nominal (Table 1) | {y_nom:.4} | | {y_nom_h:.4} | | {} | {} |",
+        te(&te_nom),
+        vs_bound(&te_nom, &bound)
+    );
+    println!(
+        "| LS (28 params) | {y_ls:.4} | {} vs nominal | {y_ls_h:.4} | {} vs nominal | {} | {} |",
         pct(y_ls, y_nom),
-        pct(y_ls_h, y_nom_h)
+        pct(y_ls_h, y_nom_h),
+        te(&te_ls),
+        vs_bound(&te_ls, &bound)
     );
     println!(
-        "| paper EM, scalar (eq. 11 z = row 1) | {y_ps:.4} | {} vs LS | {y_ps_h:.4} | {} vs LS |",
+        "| paper EM, scalar (eq. 11 z = row 1) | {y_ps:.4} | {} vs LS | {y_ps_h:.4} | {} vs LS | {} | {} |",
         pct(y_ps, y_ls),
-        pct(y_ps_h, y_ls_h)
+        pct(y_ps_h, y_ls_h),
+        te(&te_ps),
+        vs_bound(&te_ps, &bound)
     );
     println!(
-        "| paper EM, 6-vector | {y_pv:.4} | {} vs LS | {y_pv_h:.4} | {} vs LS |",
+        "| paper EM, 6-vector | {y_pv:.4} | {} vs LS | {y_pv_h:.4} | {} vs LS | {} | {} |",
         pct(y_pv, y_ls),
-        pct(y_pv_h, y_ls_h)
+        pct(y_pv_h, y_ls_h),
+        te(&te_pv),
+        vs_bound(&te_pv, &bound)
     );
     println!(
-        "| our EM (table + smoothed drift) | {y_em:.4} | {} vs LS | {y_em_h:.4} | {} vs LS |",
+        "| our EM (table + smoothed drift) | {y_em:.4} | {} vs LS | {y_em_h:.4} | {} vs LS | {} | {} |",
         pct(y_em, y_ls),
-        pct(y_em_h, y_ls_h)
+        pct(y_em_h, y_ls_h),
+        te(&te_em),
+        vs_bound(&te_em, &bound)
     );
     println!(
-        "| our EM table only (no drift) | {y_em_static:.4} | {} vs LS | | |",
+        "| our EM table only (no drift) | {y_em_static:.4} | {} vs LS | | | | |",
         pct(y_em_static, y_ls)
     );
     println!(
-        "| truth (Table 4, drift unknown) | {y_true:.4} | {} vs LS | {y_true_h:.4} | {} vs LS |",
+        "| truth (Table 4, drift unknown) | {y_true:.4} | {} vs LS | {y_true_h:.4} | {} vs LS | 0 / 0 | |",
         pct(y_true, y_ls),
         pct(y_true_h, y_ls_h)
+    );
+    println!();
+    println!(
+        "Table error: RMS over {FRESH_POSES} fresh drift-free poses of FK(table) against FK(Table 4). Bound: the Cramér-Rao bound at the truth (drift integrated out), {} mm / mrad; our EM's own expected error (the bound at its estimates) {} mm / mrad.",
+        te(&bound),
+        te(&em.expected_error)
     );
     println!();
     println!("Parameter errors against Table 4:");
@@ -165,24 +226,19 @@ fn main() {
         pem_v.pi.map(|p| (p * 1e4).round() / 1e4)
     );
     println!(
-        "our EM: {} iterations (converged: {}), log-likelihood {:.1} → {:.1}, noise std {:?}",
+        "our EM: {} maps on every {}th sample, {} exact informations (converged: {}), log-likelihood of all samples {:.1}, noise std {:?}",
         em.iterations,
+        em.stride,
+        em.information_passes,
         em.converged,
-        em.log_likelihood[0],
-        em.log_likelihood[em.log_likelihood.len() - 1],
+        em.final_log_likelihood,
         em.measurement_variance.map(|v| format!("{:.1e}", v.sqrt()))
     );
     let h = &em.log_likelihood;
-    let picks: Vec<String> = [0, 1, 2, 3, 5, 10, 20, 50, 100, 200]
-        .iter()
-        .filter(|&&i| i < h.len())
-        .map(|&i| format!("[{i}] {:.1}", h[i]))
-        .collect();
+    let hist: Vec<String> = h.iter().map(|v| format!("{v:.1}")).collect();
     println!(
-        "our EM log-likelihood history: {} … [{}] {:.1}",
-        picks.join(", "),
-        h.len() - 1,
-        h[h.len() - 1]
+        "our EM log-likelihood of the iterated samples at each accepted iterate: {}",
+        hist.join(", ")
     );
     println!();
     println!(

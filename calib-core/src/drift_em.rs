@@ -5,91 +5,97 @@
 //! `e_k = H_k Δg + J_k δ_k + v_k`, with H_k the `6 × 4N` residual Jacobian, J_k its θ block,
 //! `v_k ~ N(0, diag(r))` and, per joint j, the Gauss-Markov drift
 //! `δ_{k+1,j} = φ_j δ_{k,j} + ρ`, `ρ ~ N(0, q_j)`, `δ_{0,j} ~ N(0, q_j / (1 − φ_j²))`.
+//! The estimate is the maximum of the exact likelihood `p(e_1..K | G, φ, q, r)` (the drift
+//! integrated out); the per-sample kernels are in [`crate::kalman`].
 //!
-//! # Iteration (an ECME algorithm: every step raises the likelihood)
-//! 1. **Geometry.** The static errors Δg are carried in the filter state with zero process
-//!    noise, in the two-stage (Friedland) form: the filtered drift mean is kept affine in Δg,
-//!    `a_k + B_k Δg`, so one forward pass yields the exact likelihood as a quadratic in Δg,
-//!    whose whitened rows go into the same streaming QR as the LS. Its maximiser is the
-//!    geometry step (backtracked on the exact likelihood at the re-linearised geometry).
-//!    Updating the static offsets only in an M-step against the smoothed drift converges very
-//!    slowly (the drift absorbs them); carried in the state they converge in a few iterations.
-//! 2. **E-step.** Kalman filter and RTS smoother of δ at the new geometry (the caller's
-//!    workspace stores one [`DriftSlot`] per sample: fixed memory, no allocation).
-//! 3. **M-step.** Per joint, φ_j and q_j maximise the expected complete-data log-likelihood
-//!    (including the stationary prior of δ_0; a 1-D profile search, kept only if it improves),
-//!    and `r_i = mean E[(e − Jδ)_i²]`, floored at `noise_floor`.
+//! # Iteration
+//! 1. **Iterate on every `stride`-th sample** (at most [`DriftEmOptions::max_stride`], and at
+//!    least [`MIN_ITERATION_SAMPLES`] of them): the drift of a decimated session is the same
+//!    Gauss-Markov process at the step `stride·Δt`, so φ, q and r are estimated from it at a
+//!    fraction of the cost; the table is fitted on every sample at the end (5.). The iterated
+//!    samples are linearised once; the geometry is an offset `x` from that linearisation. A
+//!    drift faster than [`TAU_STEPS`] iterated steps is hard to tell from white pose noise on
+//!    decimated samples: when the iteration converges with such a τ, it goes on at a smaller
+//!    stride (from where it is).
+//! 2. **ECME map.** One filter + smoother pass at `(x, φ, q, r)` gives the likelihood, the
+//!    M-step of φ and q (per joint, a 1-D profile search of the expected complete-data
+//!    log-likelihood with the stationary prior of δ_0), the noise update and the exact
+//!    gradient of the log-likelihood in `x`, `Hᵀ R⁻¹ (y − J E[δ])`. The noise update is EM's
+//!    `r = Σ E[(y − Jδ)²] / K` corrected for the leverage of the drift, `r = Σ res² / (K − Σ
+//!    Var[Jδ] / r)`: the same fixed point, reached at once where EM creeps (with small noise
+//!    the drift absorbs nearly all of each sample's residual). The geometry step is the
+//!    gradient times the inverse of the exact information `Hᵀ Σ⁻¹ H` from the two-stage
+//!    (Friedland) filter that carries `x` in the drift mean; that information is recomputed,
+//!    with an exact step, whenever a drift parameter has moved by more than a factor
+//!    `1 + `[`REFRESH`] since, or a map lowered the likelihood.
+//! 3. **SQUAREM** (Varadhan & Roland 2008) extrapolates two maps at a time along the slow
+//!    directions, in coordinates scaled by standard errors (`x`) and logarithms (φ, q, r). Every
+//!    iterate is accepted only if its likelihood is no lower than the last accepted one
+//!    (otherwise the iteration returns to it with fresh information and a plain EM update), so
+//!    the recorded likelihood never decreases.
+//! 4. **Stops** when, between accepted iterates, the geometry moved less than
+//!    [`DriftEmOptions::se_tolerance`] of its standard errors and either every τ, q, r changed
+//!    by less than [`DriftEmOptions::param_tolerance`] (relative) or the likelihood rose by less
+//!    than [`DriftEmOptions::tolerance`].
+//! 5. **All samples, once.** The drift parameters are converted to the step Δt, every sample
+//!    is linearised at the iterated geometry and one two-stage pass gives the exact geometry
+//!    step (the final table), the Fisher information of the geometry with the drift integrated
+//!    out (`std_errors`, `expected_error`) and the likelihood. A filter and smoother pass at the
+//!    final table (on the same linearisation) leaves the smoothed drift trajectory in the
+//!    workspace ([`DriftSlot::drift`]).
 //!
-//! The log-likelihood `ln p(e_1..K | G, φ, q, r)` (from the filter innovations) is recorded at
-//! the start of every iteration and never decreases. After the last iteration the workspace
-//! holds the smoothed drift trajectory ([`DriftSlot::drift`]).
+//! On the paper's scenario (K = 6,000) that is about 14 maps on 1,500 samples, 4 exact
+//! informations and one pass over all samples (`cargo run -p calib-core --release --example
+//! paper` prints the counts).
 //!
 //! A static θ offset and a slow drift are separable only to about `σ·√(2τ/T)` for a session of
 //! length T (the standard error of the mean of a Gauss-Markov process); the result reports this
 //! per joint as [`DriftEmResult::separability`].
 
-use nalgebra::{Cholesky, Const, SMatrix, SVector, Vector6};
+use nalgebra::Vector6;
 
 use crate::drift::DriftParams;
 use crate::error::CalibError;
-use crate::linalg::{Analysis, QrAccumulator};
+pub use crate::kalman::DriftSlot;
+use crate::kalman::{filter, linearise_into, smooth, Params, Stats, TwoStage};
+use crate::linalg::{Analysis, GramAccumulator, QrAccumulator};
 use crate::ls::{positive, validate_samples, InputChecks};
 use crate::metrics::{expected_table_error, TableError};
-use crate::model::{error_jacobian, pose_error, DhTable, Sample};
+use crate::model::{DhTable, Sample};
 use crate::paper_em::MAX_EM_ITERATIONS;
 
-const LN_2PI: f64 = 1.837_877_066_409_345_3;
+/// The iteration runs on at least this many samples (fewer only if the session is shorter).
+pub const MIN_ITERATION_SAMPLES: usize = 1000;
 
-/// Per-sample storage of the E-step (filtered, then smoothed, drift moments and the sample's
-/// linearisation). One slot per sample; 104 `f64` for N = 7.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct DriftSlot<const N: usize> {
-    mean: SVector<f64, N>,
-    cov: SMatrix<f64, N, N>,
-    e: Vector6<f64>,
-    jt: SMatrix<f64, 6, N>,
-}
+/// The iteration moves to a smaller stride when a joint's estimated correlation time is below
+/// this many iterated steps.
+pub const TAU_STEPS: f64 = 10.0;
 
-impl<const N: usize> Default for DriftSlot<N> {
-    fn default() -> Self {
-        DriftSlot {
-            mean: SVector::zeros(),
-            cov: SMatrix::zeros(),
-            e: Vector6::zeros(),
-            jt: SMatrix::zeros(),
-        }
-    }
-}
-
-impl<const N: usize> DriftSlot<N> {
-    /// Smoothed drift estimate E[δ_k | all data] (rad) after [`em_drift`].
-    pub fn drift(&self) -> [f64; N] {
-        self.mean.into()
-    }
-
-    /// Its posterior standard deviation per joint (rad).
-    pub fn drift_std(&self) -> [f64; N] {
-        core::array::from_fn(|j| libm::sqrt(self.cov[(j, j)].max(0.0)))
-    }
-}
+/// The geometry step's information is recomputed when a drift parameter has changed by more
+/// than a factor `1 + REFRESH` since it was (measured: a stale information still gives steps
+/// that raise the likelihood at a factor of 4; a refresh costs about two maps).
+pub const REFRESH: f64 = 3.0;
 
 /// Options of [`em_drift`].
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DriftEmOptions<const N: usize> {
     /// Sample period Δt (s).
     pub dt: f64,
-    /// Iteration limit (below [`MAX_EM_ITERATIONS`]).
+    /// Limit on ECME maps (filter + smoother passes over the iterated samples; below
+    /// [`MAX_EM_ITERATIONS`]).
     pub max_iterations: usize,
-    /// Converged when the log-likelihood changes by less than this (relative).
+    /// Also converged when the geometry settled (see `se_tolerance`) and one SQUAREM cycle
+    /// raised the log-likelihood by less than this (absolute: a gain of 0.01 is what a step of
+    /// about 0.14 standard errors gives near the maximum), however the drift parameters still
+    /// move (the likelihood is flat along the measurement noise on noise-free data).
     pub tolerance: f64,
-    /// Also converged when, in one iteration, the geometry moved less than
-    /// `geometry_tolerance` and every τ_j and q_j changed by less than `param_tolerance`
-    /// (relative). The likelihood is a poor stopping signal on noise-free data: the noise
-    /// variance creeps towards `noise_floor` for hundreds of iterations (EM's linear rate) while
-    /// the geometry stays put to 1e-6.
+    /// Converged when, over one SQUAREM cycle, every τ_j, q_j and r_i changed by less than
+    /// this (relative) and the geometry by less than `se_tolerance`.
     pub param_tolerance: f64,
-    /// See `param_tolerance` (m, rad).
-    pub geometry_tolerance: f64,
+    /// See `param_tolerance`: the geometry's change in units of its own standard errors.
+    pub se_tolerance: f64,
+    /// Largest stride of the iterated samples (1: iterate on every sample).
+    pub max_stride: usize,
     /// Fail with [`CalibError::NotConverged`] when the limit is reached first.
     pub require_convergence: bool,
     /// Starting correlation time (s) of every joint.
@@ -113,9 +119,10 @@ impl<const N: usize> DriftEmOptions<N> {
         DriftEmOptions {
             dt,
             max_iterations: 100,
-            tolerance: 1e-9,
-            param_tolerance: 2e-3,
-            geometry_tolerance: 1e-5,
+            tolerance: 1.0,
+            param_tolerance: 1e-2,
+            se_tolerance: 0.1,
+            max_stride: 4,
             require_convergence: false,
             initial_tau: 3.0,
             initial_drift_std: 0.02,
@@ -142,10 +149,18 @@ pub struct DriftEmResult<const N: usize> {
     pub measurement_variance: [f64; 6],
     /// Per joint `σ·√(2τ/T)`: how well a static θ offset can be told from the drift (rad).
     pub separability: [f64; N],
-    /// Log-likelihood at the start of every iteration, then at the final parameters.
+    /// Log-likelihood of the iterated samples (every `stride`-th, at the final stride) at every
+    /// accepted iterate. It never decreases.
     pub log_likelihood: heapless::Vec<f64, MAX_EM_ITERATIONS>,
-    /// Iterations run.
+    /// Log-likelihood of all samples at the final table and drift parameters (linearised at
+    /// the iterated geometry).
+    pub final_log_likelihood: f64,
+    /// The iteration ended on every `stride`-th sample.
+    pub stride: usize,
+    /// ECME maps (filter + smoother passes over the iterated samples).
     pub iterations: usize,
+    /// Exact geometry informations (two-stage passes over the iterated samples).
+    pub information_passes: usize,
     /// Whether the tolerance was reached.
     pub converged: bool,
     /// Numerical rank of the last geometry step.
@@ -163,201 +178,8 @@ pub struct DriftEmResult<const N: usize> {
 /// Most poses of the session [`DriftEmResult::expected_error`] is averaged over.
 pub const EXPECTED_ERROR_POSES: usize = 256;
 
-#[derive(Clone, Copy, Debug)]
-struct Params<const N: usize> {
-    phi: [f64; N],
-    q: [f64; N],
-    r: [f64; 6],
-}
-
-impl<const N: usize> Params<N> {
-    fn p0(&self) -> SMatrix<f64, N, N> {
-        SMatrix::from_fn(|i, j| {
-            if i == j {
-                self.q[i] / (1.0 - self.phi[i] * self.phi[i])
-            } else {
-                0.0
-            }
-        })
-    }
-
-    fn predict(&self, cov: &mut SMatrix<f64, N, N>) {
-        for i in 0..N {
-            for j in 0..N {
-                cov[(i, j)] *= self.phi[i] * self.phi[j];
-            }
-            cov[(i, i)] += self.q[i];
-        }
-    }
-}
-
 fn degenerate(what: &'static str) -> CalibError {
     CalibError::InvalidInput { what }
-}
-
-/// Residual and its Jacobians at `g`: (e, H (6 × P), J (θ block, 6 × N)).
-fn linearise<const N: usize, const P: usize>(
-    g: &DhTable<N>,
-    s: &Sample<N>,
-) -> (Vector6<f64>, SMatrix<f64, 6, P>, SMatrix<f64, 6, N>) {
-    let (t, cols) = g.fk_jacobian(&s.joints);
-    let e = pose_error(&t, &s.pose);
-    let m = error_jacobian(&e);
-    let h = SMatrix::<f64, 6, P>::from_fn(|r, p| (m * cols[p / N][p % N])[r]);
-    let jt = SMatrix::<f64, 6, N>::from_fn(|r, j| h[(r, 3 * N + j)]);
-    (e, h, jt)
-}
-
-fn innovation_cov<const N: usize>(
-    jt: &SMatrix<f64, 6, N>,
-    cov: &SMatrix<f64, N, N>,
-    r: &[f64; 6],
-) -> Result<Cholesky<f64, Const<6>>, CalibError> {
-    let mut s = jt * cov * jt.transpose();
-    for i in 0..6 {
-        s[(i, i)] += r[i];
-    }
-    Cholesky::new(0.5 * (s + s.transpose())).ok_or(degenerate("innovation covariance not positive definite"))
-}
-
-fn log_det(ch: &Cholesky<f64, Const<6>>) -> f64 {
-    2.0 * (0..6).map(|i| libm::log(ch.l_dirty()[(i, i)])).sum::<f64>()
-}
-
-/// Forward pass of the two-stage filter: likelihood at Δg = 0 and the whitened Δg rows.
-fn geometry_pass<const N: usize, const P: usize>(
-    g: &DhTable<N>,
-    samples: &[Sample<N>],
-    par: &Params<N>,
-) -> Result<(f64, QrAccumulator<P>), CalibError> {
-    let mut acc = QrAccumulator::<P>::new();
-    let mut a = SVector::<f64, N>::zeros();
-    let mut b = SMatrix::<f64, N, P>::zeros();
-    let mut cov = par.p0();
-    let mut ll = 0.0;
-    for (k, s) in samples.iter().enumerate() {
-        if k > 0 {
-            for i in 0..N {
-                a[i] *= par.phi[i];
-                b.row_mut(i).scale_mut(par.phi[i]);
-            }
-            par.predict(&mut cov);
-        }
-        let (e, h, jt) = linearise::<N, P>(g, s);
-        let c = e - jt * a;
-        let d = h + jt * b;
-        let ch = innovation_cov(&jt, &cov, &par.r)?;
-        let sinv_c = ch.solve(&c);
-        ll -= 0.5 * (c.dot(&sinv_c) + log_det(&ch) + 6.0 * LN_2PI);
-        let l = ch.l();
-        let wd = l.solve_lower_triangular(&d).ok_or(degenerate("singular innovation factor"))?;
-        let wc = l.solve_lower_triangular(&c).ok_or(degenerate("singular innovation factor"))?;
-        for r in 0..6 {
-            let row: [f64; P] = core::array::from_fn(|p| wd[(r, p)]);
-            acc.add_row(&row, wc[r]);
-        }
-        // Gain K = P Jᵀ S⁻¹ (N × 6).
-        let kg = ch.solve(&(jt * cov)).transpose();
-        a += kg * c;
-        b -= kg * d;
-        cov -= kg * jt * cov;
-        cov = 0.5 * (cov + cov.transpose());
-    }
-    Ok((ll, acc))
-}
-
-/// Kalman filter at fixed geometry, storing every sample in `ws`; returns the likelihood.
-fn filter_pass<const N: usize, const P: usize>(
-    g: &DhTable<N>,
-    samples: &[Sample<N>],
-    par: &Params<N>,
-    ws: &mut [DriftSlot<N>],
-) -> Result<f64, CalibError> {
-    let mut m = SVector::<f64, N>::zeros();
-    let mut cov = par.p0();
-    let mut ll = 0.0;
-    for (k, (s, slot)) in samples.iter().zip(ws.iter_mut()).enumerate() {
-        if k > 0 {
-            for i in 0..N {
-                m[i] *= par.phi[i];
-            }
-            par.predict(&mut cov);
-        }
-        let (e, _h, jt) = linearise::<N, P>(g, s);
-        let nu = e - jt * m;
-        let ch = innovation_cov(&jt, &cov, &par.r)?;
-        ll -= 0.5 * (nu.dot(&ch.solve(&nu)) + log_det(&ch) + 6.0 * LN_2PI);
-        let kg = ch.solve(&(jt * cov)).transpose();
-        m += kg * nu;
-        cov -= kg * jt * cov;
-        cov = 0.5 * (cov + cov.transpose());
-        *slot = DriftSlot { mean: m, cov, e, jt };
-    }
-    Ok(ll)
-}
-
-/// Sufficient statistics of the M-step.
-struct Stats<const N: usize> {
-    e0: [f64; N],
-    s00: [f64; N],
-    s10: [f64; N],
-    s11: [f64; N],
-    r: [f64; 6],
-}
-
-/// RTS smoother over the filtered workspace (in place) and the M-step statistics.
-fn smooth<const N: usize>(ws: &mut [DriftSlot<N>], par: &Params<N>) -> Result<Stats<N>, CalibError> {
-    let kn = ws.len();
-    let mut st = Stats {
-        e0: [0.0; N],
-        s00: [0.0; N],
-        s10: [0.0; N],
-        s11: [0.0; N],
-        r: [0.0; 6],
-    };
-    let mut add = |k: usize, slot: &DriftSlot<N>| {
-        for j in 0..N {
-            let ex = slot.mean[j] * slot.mean[j] + slot.cov[(j, j)];
-            if k == 0 {
-                st.e0[j] = ex;
-            }
-            if k + 1 < kn {
-                st.s00[j] += ex;
-            }
-            if k > 0 {
-                st.s11[j] += ex;
-            }
-        }
-        let res = slot.e - slot.jt * slot.mean;
-        let jpj = slot.jt * slot.cov * slot.jt.transpose();
-        for i in 0..6 {
-            st.r[i] += res[i] * res[i] + jpj[(i, i)];
-        }
-    };
-    add(kn - 1, &ws[kn - 1]);
-    let mut s10 = [0.0; N];
-    for k in (0..kn - 1).rev() {
-        let (lo, hi) = ws.split_at_mut(k + 1);
-        let (cur, next) = (&mut lo[k], &hi[0]);
-        let mut pred = cur.cov;
-        par.predict(&mut pred);
-        let fp = SMatrix::<f64, N, N>::from_fn(|i, j| par.phi[i] * cur.cov[(i, j)]);
-        let ch = Cholesky::new(0.5 * (pred + pred.transpose())).ok_or(degenerate("predicted drift covariance"))?;
-        // Smoother gain G = P_k F P⁻¹_{k+1} = (P⁻¹ F P_k)ᵀ.
-        let gain = ch.solve(&fp).transpose();
-        let fm = SVector::<f64, N>::from_fn(|i, _| par.phi[i] * cur.mean[i]);
-        let mean = cur.mean + gain * (next.mean - fm);
-        let cov = cur.cov + gain * (next.cov - pred) * gain.transpose();
-        let lag = next.cov * gain.transpose();
-        for j in 0..N {
-            s10[j] += next.mean[j] * mean[j] + lag[(j, j)];
-        }
-        cur.mean = mean;
-        cur.cov = 0.5 * (cov + cov.transpose());
-        add(k, cur);
-    }
-    st.s10 = s10;
-    Ok(st)
 }
 
 /// Expected complete-data log-likelihood of one joint's drift (constants dropped).
@@ -366,7 +188,7 @@ fn q_joint(phi: f64, q: f64, k: f64, e0: f64, s00: f64, s10: f64, s11: f64) -> f
     -0.5 * (libm::log(p0) + e0 / p0 + (k - 1.0) * libm::log(q) + (s11 - 2.0 * phi * s10 + phi * phi * s00) / q)
 }
 
-fn m_step<const N: usize>(st: &Stats<N>, par: &Params<N>, kn: usize, noise_floor: f64) -> Params<N> {
+fn m_step<const N: usize>(st: &Stats<N>, par: &Params<N>, kn: usize, noise_floor: f64, leverage: bool) -> Params<N> {
     let k = kn as f64;
     let mut out = *par;
     for j in 0..N {
@@ -401,10 +223,157 @@ fn m_step<const N: usize>(st: &Stats<N>, par: &Params<N>, kn: usize, noise_floor
         }
     }
     for i in 0..6 {
-        out.r[i] = (st.r[i] / k).max(noise_floor);
+        // EM: r = (res + var) / K. With small noise each sample's drift absorbs most of its
+        // residual (leverage c = var / (K r) near 1) and EM creeps at the rate c; the
+        // leverage-corrected update res / (K (1 − c)) has the same fixed point and gets there
+        // at once when res and var scale with r.
+        let c = st.var[i] / (k * par.r[i]);
+        out.r[i] = if leverage && c < 0.995 {
+            st.res[i] / (k * (1.0 - c))
+        } else {
+            (st.res[i] + st.var[i]) / k
+        }
+        .max(noise_floor);
     }
     out
 }
+
+/// The iterate of the ECME map: the geometry offset and the drift parameters, the latter as
+/// logarithms (`ln(−ln φ)`, `ln q`, `ln r`) so that any extrapolation stays admissible.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Iterate<const N: usize, const P: usize> {
+    x: [f64; P],
+    lphi: [f64; N],
+    lq: [f64; N],
+    lr: [f64; 6],
+}
+
+impl<const N: usize, const P: usize> Iterate<N, P> {
+    fn new(x: [f64; P], par: &Params<N>) -> Self {
+        Iterate {
+            x,
+            lphi: par.phi.map(|p| libm::log(-libm::log(p))),
+            lq: par.q.map(libm::log),
+            lr: par.r.map(libm::log),
+        }
+    }
+
+    fn params(&self, noise_floor: f64) -> Params<N> {
+        Params {
+            // φ ≤ 1 − 1e-9 (the M-step's range), and a finite, positive q.
+            phi: self.lphi.map(|l| libm::exp(-libm::exp(l)).min(1.0 - 1e-9)),
+            q: self.lq.map(|l| libm::exp(l).clamp(1e-300, 1e300)),
+            r: self.lr.map(|l| libm::exp(l).clamp(noise_floor, 1e300)),
+        }
+    }
+
+    /// `self + a·u + b·w` (componentwise).
+    fn combine(&self, a: f64, u: &Self, b: f64, w: &Self) -> Self {
+        fn mix<const M: usize>(s: &[f64; M], a: f64, u: &[f64; M], b: f64, w: &[f64; M]) -> [f64; M] {
+            core::array::from_fn(|i| s[i] + a * u[i] + b * w[i])
+        }
+        Iterate {
+            x: mix(&self.x, a, &u.x, b, &w.x),
+            lphi: mix(&self.lphi, a, &u.lphi, b, &w.lphi),
+            lq: mix(&self.lq, a, &u.lq, b, &w.lq),
+            lr: mix(&self.lr, a, &u.lr, b, &w.lr),
+        }
+    }
+
+    /// `self − other`.
+    fn minus(&self, other: &Self) -> Self {
+        self.combine(-1.0, other, 0.0, other)
+    }
+
+    /// Squared norm with the geometry in units of `se`.
+    fn norm2(&self, se: &[f64; P]) -> f64 {
+        let g: f64 = self.x.iter().zip(se).map(|(x, s)| (x / s) * (x / s)).sum();
+        let d: f64 = self.lphi.iter().chain(&self.lq).chain(&self.lr).map(|v| v * v).sum();
+        g + d
+    }
+
+    /// Largest geometry change in units of `se`, and largest change of a drift parameter's
+    /// logarithm, from `other` to `self`.
+    fn change(&self, other: &Self, se: &[f64; P]) -> (f64, f64) {
+        let g = (0..P).fold(0.0f64, |m, p| m.max(((self.x[p] - other.x[p]) / se[p]).abs()));
+        let tau = (0..N).fold(0.0f64, |m, j| m.max((self.lphi[j] - other.lphi[j]).abs()));
+        let q = (0..N).fold(0.0f64, |m, j| m.max((self.lq[j] - other.lq[j]).abs()));
+        let r = (0..6).fold(0.0f64, |m, i| m.max((self.lr[i] - other.lr[i]).abs()));
+        (g, tau.max(q).max(r))
+    }
+
+    fn is_finite(&self) -> bool {
+        self.x
+            .iter()
+            .chain(&self.lphi)
+            .chain(&self.lq)
+            .chain(&self.lr)
+            .all(|v| v.is_finite())
+    }
+}
+
+/// One exact two-stage pass over stored linearisations at offset `x`: the likelihood and the
+/// analysis of the geometry step (normal equations, or the QR when they are ill-conditioned).
+fn information<const N: usize, const P: usize>(
+    slots: &mut [DriftSlot<N>],
+    x: &[f64; P],
+    par: &Params<N>,
+    rank_tolerance: f64,
+) -> Result<(f64, Analysis<P>), CalibError> {
+    for slot in slots.iter_mut() {
+        for i in 0..6 {
+            slot.y[i] = slot.e[i] - crate::kalman::row_dot(&slot.h[i], x);
+        }
+    }
+    let mut gram = GramAccumulator::<P>::new();
+    let mut ts = TwoStage::<N, P>::new(par);
+    for slot in slots.iter() {
+        ts.absorb(&slot.y, &slot.h, par, &mut |rows, rhs| gram.add_rows(rows, rhs, 0))?;
+    }
+    let analysis = match gram.analyse(rank_tolerance) {
+        Some(a) => a,
+        None => qr_information(slots, par, rank_tolerance)?,
+    };
+    Ok((ts.ll, analysis))
+}
+
+/// [`information`] through the QR (rank-deficient or ill-conditioned geometry), from the
+/// residuals the slots hold.
+#[inline(never)]
+fn qr_information<const N: usize, const P: usize>(
+    slots: &[DriftSlot<N>],
+    par: &Params<N>,
+    rank_tolerance: f64,
+) -> Result<Analysis<P>, CalibError> {
+    let mut qr = QrAccumulator::<P>::new();
+    let mut ts = TwoStage::<N, P>::new(par);
+    for slot in slots {
+        ts.absorb(&slot.y, &slot.h, par, &mut |rows, rhs| {
+            for (row, y) in rows.iter().zip(rhs) {
+                qr.add_row(row, *y);
+            }
+        })?;
+    }
+    Ok(qr.analyse(rank_tolerance))
+}
+
+/// The drift parameters at the step `from·Δt` converted to the step `to·Δt` (a decimated
+/// session's drift is the same Gauss-Markov process): the same stationary variance,
+/// `φ_to = φ_from^{to/from}`.
+fn restride<const N: usize>(par: &Params<N>, from: usize, to: usize) -> Params<N> {
+    let mut out = *par;
+    for j in 0..N {
+        let v = par.q[j] / (1.0 - par.phi[j] * par.phi[j]);
+        let phi = libm::pow(par.phi[j], to as f64 / from as f64).min(1.0 - 1e-9);
+        out.phi[j] = phi;
+        out.q[j] = v * (1.0 - phi * phi);
+    }
+    out
+}
+
+/// SQUAREM's extrapolation steps are bounded by this, then by four times more after each
+/// extrapolation that used the whole bound (the scheme of Varadhan & Roland's `squarem`).
+const STEP_MAX0: f64 = 1.0;
 
 /// Runs our EM from the geometry `start` (normally the LS result).
 ///
@@ -423,12 +392,13 @@ pub fn em_drift<const N: usize, const P: usize>(
     let valid = positive(opts.dt)
         && positive(opts.tolerance)
         && positive(opts.param_tolerance)
-        && positive(opts.geometry_tolerance)
+        && positive(opts.se_tolerance)
         && positive(opts.initial_tau)
         && positive(opts.initial_drift_std)
         && positive(opts.initial_noise_std)
         && positive(opts.noise_floor)
         && positive(opts.rank_tolerance)
+        && opts.max_stride > 0
         && opts.max_iterations > 0
         && opts.max_iterations < MAX_EM_ITERATIONS;
     if !valid {
@@ -447,97 +417,215 @@ pub fn em_drift<const N: usize, const P: usize>(
             need: samples.len(),
         });
     }
-    let ws = &mut workspace[..samples.len()];
-    let phi0 = libm::exp(-opts.dt / opts.initial_tau);
-    let mut par = Params {
+    let kn = samples.len();
+    let mut stride = (kn / MIN_ITERATION_SAMPLES).clamp(1, opts.max_stride);
+    let mut ks = kn.div_ceil(stride);
+    let floor = opts.noise_floor;
+
+    // 1. The iterated samples, linearised at the start.
+    let mut g_ref = *start;
+    let mut cols = [[Vector6::zeros(); N]; 4];
+    let mut linearise_subset = |g: &DhTable<N>, stride: usize, ws: &mut [DriftSlot<N>]| {
+        let prepared = g.prepare();
+        for (slot, s) in ws.iter_mut().zip(samples.iter().step_by(stride)) {
+            linearise_into(&prepared, s, &mut cols, slot);
+        }
+    };
+    linearise_subset(&g_ref, stride, &mut workspace[..ks]);
+    let dt_s = opts.dt * stride as f64;
+    let phi0 = libm::exp(-dt_s / opts.initial_tau);
+    let par0 = Params {
         phi: [phi0; N],
         q: [opts.initial_drift_std * opts.initial_drift_std * (1.0 - phi0 * phi0); N],
         r: [opts.initial_noise_std * opts.initial_noise_std; 6],
     };
-    let mut g = *start;
+
+    // 2-4. ECME maps, accelerated. `best` is the last accepted iterate (its likelihood known);
+    // `z` the next candidate, accepted when the filter pass that starts its map finds its
+    // likelihood no lower.
     let mut history: heapless::Vec<f64, MAX_EM_ITERATIONS> = heapless::Vec::new();
-    let mut converged = false;
-    let mut rank = 0;
     let mut iterations = 0;
-    let mut settled = false;
+    let mut information_passes = 0;
+    let mut z = Iterate::<N, P>::new([0.0; P], &par0);
+    let mut best: Option<(f64, Iterate<N, P>)> = None;
+    let mut pre: Option<(Analysis<P>, Iterate<N, P>, [f64; P])> = None;
+    let mut step_max = STEP_MAX0;
+    let mut converged = false;
+    // After a rejected candidate: plain EM updates (monotone) for one map.
+    let mut safe = false;
+    let stale = |z: &Iterate<N, P>, pre: &Option<(Analysis<P>, Iterate<N, P>, [f64; P])>| match pre {
+        None => true,
+        Some((_, at, _)) => z.change(at, &[1.0; P]).1 > libm::log(1.0 + REFRESH),
+    };
     while iterations < opts.max_iterations {
-        let (ll, acc) = geometry_pass::<N, P>(&g, samples, &par)?;
-        if let Some(&prev) = history.last() {
-            if settled || (ll - prev).abs() <= opts.tolerance * ll.abs().max(1.0) {
+        let sub = &mut workspace[..ks];
+        if stale(&z, &pre) {
+            // The exact information at the current drift parameters, and an exact step.
+            let par = z.params(floor);
+            let (_, analysis) = information(sub, &z.x, &par, opts.rank_tolerance)?;
+            information_passes += 1;
+            let step = analysis.step(0.0);
+            for (x, s) in z.x.iter_mut().zip(&step) {
+                *x += s;
+            }
+            let se = analysis
+                .std_errors(1.0)
+                .map(|s| if s > 0.0 && s.is_finite() { s } else { 1.0 });
+            pre = Some((analysis, z, se));
+        }
+        let Some((pre_an, _, se)) = &pre else {
+            return Err(degenerate("geometry information"));
+        };
+        let map = |z: &Iterate<N, P>,
+                   sub: &mut [DriftSlot<N>],
+                   ll: Option<f64>,
+                   safe: bool|
+         -> Result<(f64, Iterate<N, P>), CalibError> {
+            let par = z.params(floor);
+            let ll = match ll {
+                Some(ll) => ll,
+                None => filter(sub, &z.x, &par)?,
+            };
+            let (st, grad) = smooth::<N, P>(sub, &par)?;
+            let new = m_step(&st, &par, ks, floor, !safe);
+            let dx = pre_an.solve(&grad);
+            Ok((ll, Iterate::new(core::array::from_fn(|p| z.x[p] + dx[p]), &new)))
+        };
+        let (ll0, z1) = map(&z, sub, None, safe)?;
+        iterations += 1;
+        if let Some((ll_b, z_b)) = best {
+            if ll0 < ll_b {
+                z = z_b;
+                pre = None;
+                safe = true;
+                continue;
+            }
+            let (dg, dp) = z.change(&z_b, se);
+            if dg < opts.se_tolerance && (dp < opts.param_tolerance || ll0 - ll_b <= opts.tolerance) {
+                // A drift faster than TAU_STEPS iterated steps is poorly told from white noise on the
+                // decimated samples: iterate on more of them (from the current estimate).
+                let par = z.params(floor);
+                let tau_steps = par.phi.iter().fold(f64::INFINITY, |m, p| m.min(-1.0 / libm::log(*p)));
+                if stride > 1 && tau_steps < TAU_STEPS {
+                    let finer = ((tau_steps * stride as f64 / (1.5 * TAU_STEPS)) as usize).clamp(1, stride - 1);
+                    g_ref = g_ref.perturbed(&z.x);
+                    let par = restride(&par, stride, finer);
+                    stride = finer;
+                    ks = kn.div_ceil(stride);
+                    linearise_subset(&g_ref, stride, &mut workspace[..ks]);
+                    z = Iterate::new([0.0; P], &par);
+                    best = None;
+                    pre = None;
+                    history.clear();
+                    continue;
+                }
+                let _ = history.push(ll0);
+                best = Some((ll0, z));
                 converged = true;
+                break;
             }
         }
-        // Capacity MAX_EM_ITERATIONS exceeds max_iterations + 1.
-        let _ = history.push(ll);
-        if converged {
-            break;
+        let _ = history.push(ll0);
+        best = Some((ll0, z));
+        if safe || stale(&z1, &pre) || iterations + 2 > opts.max_iterations {
+            // Warming up (the drift parameters still move fast), or recovering: plain maps.
+            safe = false;
+            z = z1;
+            continue;
         }
+        let (ll1, z2) = map(&z1, sub, None, false)?;
         iterations += 1;
-        let analysis = acc.analyse(opts.rank_tolerance);
-        rank = analysis.rank;
-        let step = analysis.step(0.0);
-        let mut accepted = false;
-        let mut t = 1.0;
-        let mut moved = 0.0f64;
-        for _ in 0..12 {
-            let delta: [f64; P] = core::array::from_fn(|p| t * step[p]);
-            moved = delta.iter().fold(0.0, |m, d| m.max(d.abs()));
-            let candidate = g.perturbed(&delta);
-            if let Ok(ll_c) = filter_pass::<N, P>(&candidate, samples, &par, ws) {
-                if ll_c >= ll - 1e-12 * ll.abs() {
-                    g = candidate;
-                    accepted = true;
-                    break;
+        if ll1 < ll0 {
+            // The geometry step's information is stale after all: recompute it.
+            pre = None;
+            continue;
+        }
+        // SQUAREM: z' = z − 2α r + α² v with r = z1 − z, v = z2 − z1 − r; α = −1 gives z2.
+        let r = z1.minus(&z);
+        let v = z2.minus(&z1).minus(&r);
+        let (nr, nv) = (libm::sqrt(r.norm2(se)), libm::sqrt(v.norm2(se)));
+        let mut alpha = if nv > 0.0 { -(nr / nv) } else { -1.0 };
+        alpha = alpha.min(-1.0).max(-step_max);
+        if alpha == -step_max {
+            step_max *= 4.0;
+        }
+        let mut next: Option<(f64, Iterate<N, P>)> = None;
+        while alpha < -1.0 {
+            let cand = z.combine(-2.0 * alpha, &r, alpha * alpha, &v);
+            if cand.is_finite() {
+                let par = cand.params(floor);
+                if let Ok(ll_c) = filter(sub, &cand.x, &par) {
+                    if ll_c >= ll1 {
+                        next = Some((ll_c, cand));
+                        break;
+                    }
                 }
             }
-            t *= 0.5;
+            alpha = (alpha - 1.0) / 2.0;
+            if alpha > -1.01 {
+                alpha = -1.0;
+            }
         }
-        if !accepted {
-            moved = 0.0;
-            filter_pass::<N, P>(&g, samples, &par, ws)?;
-        }
-        let st = smooth(ws, &par)?;
-        let new = m_step(&st, &par, samples.len(), opts.noise_floor);
-        let rel = |a: f64, b: f64| (a - b).abs() / b.abs().max(1e-300);
-        settled = moved < opts.geometry_tolerance
-            && (0..N).all(|j| {
-                rel(new.phi[j], par.phi[j]) < opts.param_tolerance * (1.0 - par.phi[j])
-                    && rel(new.q[j], par.q[j]) < opts.param_tolerance
-            });
-        par = new;
+        // The stabilising map from the extrapolated point (its filter pass is done), or the
+        // plain one from z2.
+        let (cand, ll_c) = match next {
+            Some((ll_c, cand)) => (cand, Some(ll_c)),
+            None => (z2, None),
+        };
+        let (_, z_new) = map(&cand, sub, ll_c, false)?;
+        iterations += 1;
+        z = z_new;
     }
-    let (ll, acc) = geometry_pass::<N, P>(&g, samples, &par)?;
-    let analysis = acc.analyse(opts.rank_tolerance);
+    let (ll_z, z) = best.ok_or(degenerate("no iteration"))?;
+    if !converged && opts.require_convergence {
+        let prev = history.iter().rev().nth(1).copied().unwrap_or(ll_z);
+        return Err(CalibError::NotConverged {
+            iterations,
+            last_change: (ll_z - prev).abs() / ll_z.abs().max(1.0),
+        });
+    }
+
+    // 5. Every sample, at the iterated geometry and the drift parameters at the step Δt.
+    let par = restride(&z.params(floor), stride, 1);
+    let g1 = g_ref.perturbed(&z.x);
+    let ws = &mut workspace[..kn];
+    let prepared = g1.prepare();
+    let mut gram = GramAccumulator::<P>::new();
+    let mut ts = TwoStage::<N, P>::new(&par);
+    for (slot, s) in ws.iter_mut().zip(samples) {
+        linearise_into(&prepared, s, &mut cols, slot);
+        slot.y = slot.e;
+        ts.absorb(&slot.y, &slot.h, &par, &mut |rows, rhs| gram.add_rows(rows, rhs, 0))?;
+    }
+    let analysis = match gram.analyse(opts.rank_tolerance) {
+        Some(a) => a,
+        None => qr_information(ws, &par, opts.rank_tolerance)?,
+    };
+    let step = analysis.step(0.0);
+    let final_ll = filter(ws, &step, &par)?;
+    smooth::<N, P>(ws, &par)?;
+    let table = g1.perturbed(&step);
     let crb = analysis.std_errors(1.0);
-    let stride = samples.len().div_ceil(EXPECTED_ERROR_POSES);
-    let expected_error = expected_table_error::<N, P>(&g, samples.iter().step_by(stride).map(|s| &s.joints), |u| {
+    let pose_stride = kn.div_ceil(EXPECTED_ERROR_POSES);
+    let expected_error = expected_table_error::<N, P>(&table, samples.iter().step_by(pose_stride).map(|s| &s.joints), |u| {
         analysis.variance_along(u)
     });
-    filter_pass::<N, P>(&g, samples, &par, ws)?;
-    smooth(ws, &par)?;
-    if !converged {
-        let _ = history.push(ll);
-        if opts.require_convergence {
-            let prev = history.iter().rev().nth(1).copied().unwrap_or(ll);
-            return Err(CalibError::NotConverged {
-                iterations,
-                last_change: (ll - prev).abs() / ll.abs().max(1.0),
-            });
-        }
-    }
-    let t_total = samples.len() as f64 * opts.dt;
+    let t_total = kn as f64 * opts.dt;
     let drift: [DriftParams; N] = core::array::from_fn(|j| DriftParams::from_discrete(par.phi[j], par.q[j], opts.dt));
     Ok(DriftEmResult {
-        table: g,
+        table,
         phi: par.phi,
         process_variance: par.q,
         drift,
         measurement_variance: par.r,
         separability: core::array::from_fn(|j| drift[j].stationary_sigma * libm::sqrt(2.0 * drift[j].tau / t_total)),
         log_likelihood: history,
+        final_log_likelihood: final_ll,
+        stride,
         iterations,
+        information_passes,
         converged,
-        rank,
+        rank: analysis.rank,
         std_errors: core::array::from_fn(|k| core::array::from_fn(|j| crb[k * N + j])),
         expected_error,
     })
@@ -569,8 +657,29 @@ pub fn cramer_rao<const N: usize, const P: usize>(
         q,
         r: r.map(|v| v.max(noise_floor)),
     };
-    let (_, acc) = geometry_pass::<N, P>(table, samples, &par)?;
-    Ok(acc.analyse(1e-12))
+    let prepared = table.prepare();
+    let mut cols = [[Vector6::zeros(); N]; 4];
+    let mut slot = DriftSlot::<N>::default();
+    let mut gram = GramAccumulator::<P>::new();
+    let mut ts = TwoStage::<N, P>::new(&par);
+    for s in samples {
+        linearise_into(&prepared, s, &mut cols, &mut slot);
+        ts.absorb(&slot.e, &slot.h, &par, &mut |rows, rhs| gram.add_rows(rows, rhs, 0))?;
+    }
+    if let Some(analysis) = gram.analyse(1e-12) {
+        return Ok(analysis);
+    }
+    let mut qr = QrAccumulator::<P>::new();
+    let mut ts = TwoStage::<N, P>::new(&par);
+    for s in samples {
+        linearise_into(&prepared, s, &mut cols, &mut slot);
+        ts.absorb(&slot.e, &slot.h, &par, &mut |rows, rhs| {
+            for (row, y) in rows.iter().zip(rhs) {
+                qr.add_row(row, *y);
+            }
+        })?;
+    }
+    Ok(qr.analyse(1e-12))
 }
 
 /// [`em_drift`] with an allocated workspace; returns the result and the smoothed drift.
@@ -582,7 +691,7 @@ pub fn em_drift_vec<const N: usize, const P: usize>(
 ) -> Result<(DriftEmResult<N>, std::vec::Vec<[f64; N]>), CalibError> {
     let mut ws = std::vec![DriftSlot::default(); samples.len()];
     let r = em_drift::<N, P>(start, samples, opts, &mut ws)?;
-    Ok((r, ws.iter().map(DriftSlot::drift).collect()))
+    Ok((r, ws.iter().take(samples.len()).map(DriftSlot::drift).collect()))
 }
 
 #[cfg(test)]

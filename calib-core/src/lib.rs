@@ -14,6 +14,7 @@
 //! | a calibration sample | [`Sample`] `{ joints: [f64; N], pose: Frame }` |
 //! | Gauss-Markov drift and the Section 4 simulator | [`GaussMarkov`], [`Scenario`] |
 //! | least squares | [`identify_ls`]`::<N, P>(&start, &samples, &LsOptions) -> Result<LsResult, CalibError>` |
+//! | least squares with the per-sample work split by the caller (e.g. over cores) | [`identify_ls_with`], [`Linearise`], [`normal_equations`], [`GramAccumulator::merge`] |
 //! | least squares with base and tool frames (`P = 4N + 12`) | [`identify_ls_frames`] |
 //! | the paper's EM (eqs. 33–36) | [`paper_em()`] |
 //! | our EM (Kalman + RTS smoother over the drift) | [`em_drift()`] |
@@ -63,6 +64,7 @@ pub mod drift;
 pub mod drift_em;
 pub mod error;
 pub mod frames;
+mod kalman;
 pub mod linalg;
 pub mod ls;
 pub mod metrics;
@@ -82,7 +84,10 @@ pub use drift_em::{cramer_rao, em_drift, DriftEmOptions, DriftEmResult, DriftSlo
 pub use error::CalibError;
 pub use frames::{identify_ls_frames, LsFramesResult, Mounting, Param, FRAME_PARAMS};
 pub use linalg::{GramAccumulator, Observability, QrAccumulator, QrPanel, GRAM_MAX_CONDITION};
-pub use ls::{identify_ls, validate_samples, BoundsOutcome, BoundsPolicy, InputChecks, LsOptions, LsResult, NullDirection};
+pub use ls::{
+    identify_ls, identify_ls_with, normal_equations, validate_samples, BoundsOutcome, BoundsPolicy, InputChecks, Linearise,
+    LsOptions, LsResult, NullDirection, Sequential,
+};
 pub use metrics::{expected_table_error, objective_y, objective_y_corrected, table_error, ParamErrors, TableError};
 pub use model::{
     bound_violations, check_bounds, clamp_to_bounds, pose_error, BoundViolation, Bounds, DhRow, DhTable, Frame, JointRanges,

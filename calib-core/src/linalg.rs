@@ -195,6 +195,21 @@ impl<const P: usize> GramAccumulator<P> {
         self.rows = 0;
     }
 
+    /// Adds the rows absorbed by `other` (e.g. another block of the same session, accumulated
+    /// on another core): the accumulator of both sets of rows.
+    pub fn merge(&mut self, other: &Self) {
+        for (row, orow) in self.g.iter_mut().zip(&other.g) {
+            for (x, y) in row.iter_mut().zip(orow) {
+                *x += y;
+            }
+        }
+        for (x, y) in self.b.iter_mut().zip(&other.b) {
+            *x += y;
+        }
+        self.yy += other.yy;
+        self.rows += other.rows;
+    }
+
     /// Adds the `R` rows `h[r] · x ≈ y[r]`, which must be zero in the columns `0..first`.
     pub fn add_rows<const R: usize>(&mut self, h: &[[f64; P]; R], y: &[f64; R], first: usize) {
         self.update(core::array::from_fn(|r| &h[r]), y, first, P);
@@ -406,7 +421,7 @@ fn dot_prefix<const P: usize>(x: &[f64; P], y: &[f64; P], n: usize) -> f64 {
     x[..n].iter().zip(&y[..n]).map(|(a, b)| a * b).sum()
 }
 
-fn dot<const P: usize>(x: &[f64; P], y: &[f64; P]) -> f64 {
+pub(crate) fn dot<const P: usize>(x: &[f64; P], y: &[f64; P]) -> f64 {
     x.iter().zip(y).map(|(a, b)| a * b).sum()
 }
 
@@ -537,6 +552,33 @@ impl<const P: usize> Analysis<P> {
             }
         }
         core::array::from_fn(|p| xs[p] / self.scale[p])
+    }
+
+    /// `C g` for the parameter covariance `C` (physical units, row noise variance 1): the
+    /// Gauss-Newton step of this problem for another gradient `g = Hᵀ(y − H x)`, truncated to
+    /// the numerical rank like [`Analysis::step`] (`solve(Hᵀy) = step(0.0)`).
+    pub fn solve(&self, g: &[f64; P]) -> [f64; P] {
+        let gs: [f64; P] = core::array::from_fn(|p| g[p] / self.scale[p]);
+        let mut xs = [0.0; P];
+        for k in 0..self.rank {
+            let w = dot(&self.v[k], &gs) / (self.singular[k] * self.singular[k]);
+            for (x, vk) in xs.iter_mut().zip(&self.v[k]) {
+                *x += w * vk;
+            }
+        }
+        core::array::from_fn(|p| xs[p] / self.scale[p])
+    }
+
+    /// The decrease of the residual sum of squares that the Gauss-Newton step
+    /// ([`Analysis::step`]`(0.0)`) predicts: the squared projection of the right-hand side on
+    /// the identifiable directions.
+    pub fn predicted_decrease(&self) -> f64 {
+        (0..self.rank)
+            .map(|k| {
+                let c = self.az[k] / self.singular[k];
+                c * c
+            })
+            .sum()
     }
 
     /// Condition number `σ_max / σ_min` of the scaled Jacobian (infinite if rank-deficient).

@@ -11,6 +11,7 @@
 //! | [`report`] | progress bar / systemd `STATUS=` / plain lines; READY and WATCHDOG |
 //! | [`collect`] | what a session gathers, live or replayed: frames → aligned samples and their quality |
 //! | [`pipeline`] | aligned samples → split, LS, drift EM, validation, node rows, report detail (pure) |
+//! | [`parallel`] | the LS linearisation in sample blocks on several cores (std scoped threads) |
 //! | [`validate`] | bounds, condition number and held-out accuracy before any push |
 //! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
 //! | [`runner`] | one session on any transport: collect, align, calibrate, validate, push, log |
@@ -36,6 +37,7 @@ pub mod ingest;
 pub mod mcaplog;
 pub mod nodes;
 pub mod offline;
+pub mod parallel;
 pub mod pipeline;
 pub mod push;
 pub mod recover;

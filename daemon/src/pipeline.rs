@@ -1,10 +1,12 @@
 //! The calibration pipeline: a session's aligned samples and the configuration in, everything
 //! the daemon pushes, logs and reports out.
 //!
-//! Contract: [`run`] is pure (no I/O, no clock, no threads) and deterministic; the live session
+//! Contract: [`run`] is pure (no I/O, no clock) and deterministic (the LS linearises fixed
+//! blocks of samples on every core, [`crate::parallel`], merged in block order: the same bits
+//! on any number of cores); the live session
 //! and `exocald offline` both call it, and the report renders what it returns. In order:
 //! 1. **split**: the end of the session (`validation.holdout_fraction`) is held out;
-//! 2. **LS**: calib-core's `identify_ls` from the nominal table on the rest;
+//! 2. **LS**: calib-core's `identify_ls_with` from the nominal table on the rest;
 //! 3. **EM**: calib-core's drift EM (Kalman + RTS smoother) from the LS table; it also yields
 //!    each joint's drift τ and σ and the table's expected error (its Cramér-Rao bound);
 //!    that EM table — or the LS table if the EM fails — is the one the held-out slice judges
@@ -21,8 +23,9 @@
 //! gaps are skipped, so a gap shortens the step sequence slightly (gaps are rare and short: a
 //! session with many is refused earlier for lack of samples).
 
+use crate::parallel::Parallel;
 use calib_core::{
-    em_drift_vec, identify_ls, DhTable, DriftEmOptions, Frame, InputChecks, LsOptions, Sample,
+    em_drift_vec, identify_ls_with, DhTable, DriftEmOptions, Frame, InputChecks, LsOptions, Sample,
 };
 use exocal_report::{Calibration, Correlation, EmDetail, LsDetail, TimedSample};
 use nalgebra::{DMatrix, Quaternion, SMatrix, UnitQuaternion, Vector3};
@@ -287,7 +290,9 @@ pub fn ls_then_em(
     ls_opts: &LsOptions<JOINTS>,
     em_opts: &DriftEmOptions<JOINTS>,
 ) -> Result<Calibration, CalibrateError> {
-    let ls = identify_ls::<JOINTS, PARAMS>(nominal, fit, ls_opts).map_err(CalibrateError::Ls)?;
+    let lin = Parallel::on_all_cores(fit);
+    let ls = identify_ls_with::<JOINTS, PARAMS>(nominal, fit, ls_opts, &lin)
+        .map_err(CalibrateError::Ls)?;
     let ls = LsDetail {
         table: ls.table,
         iterations: ls.iterations,
@@ -378,7 +383,7 @@ pub fn strongest_correlations(
 mod tests {
     use super::*;
     use crate::align::Pose;
-    use calib_core::{Scenario, ScenarioConfig, SUIT_PARAMS};
+    use calib_core::{identify_ls, Scenario, ScenarioConfig, SUIT_PARAMS};
     use nalgebra::Rotation3;
 
     /// Aligned samples from calib-core's Section 4 scenario (Table 4 arm, drift, noise).

@@ -310,9 +310,9 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
         }
         Source::PaperSeeds => {
             let mut rows = vec![
-                "| seed | LS, y held-out | our EM vs LS, held-out | true table vs LS, held-out | LS condition |"
+                "| seed | LS, y held-out | our EM vs LS, held-out | true table vs LS, held-out | LS condition | table error LS, mm / mrad | our EM | our EM vs bound |"
                     .to_string(),
-                "|---|---|---|---|---|".to_string(),
+                "|---|---|---|---|---|---|---|---|".to_string(),
             ];
             for seed in 1..=5 {
                 let out = paper(root, seed, &[])?;
@@ -323,10 +323,13 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
                     .and_then(|c| c.split(',').next())
                     .context("no `LS: … condition` line")?;
                 rows.push(format!(
-                    "| {seed} | {} | {} | {} | {condition} |",
+                    "| {seed} | {} | {} | {} | {condition} | {} | {} | {} |",
                     cell(&table, "LS", 3)?,
                     cell(&table, "our EM (", 4)?,
                     cell(&table, "truth", 4)?,
+                    cell(&table, "LS", 5)?,
+                    cell(&table, "our EM (", 5)?,
+                    cell(&table, "our EM (", 6)?,
                 ));
             }
             Ok(format!("{}\n", rows.join("\n")))

@@ -49,6 +49,22 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
     ]);
     let rust_cmd = show(&rust);
     let rust_out = json_lines(&capture(&mut rust)?);
+    // The multi-core figure: the daemon's parallel linearisation, not pinned (it needs cores).
+    let mut build_par = Command::new(paths::cargo());
+    build_par.current_dir(&ctx.root).args([
+        "build",
+        "--release",
+        "-p",
+        "exocald",
+        "--example",
+        "parallel_ls",
+    ]);
+    let build_par_cmd = show(&build_par);
+    run(&mut build_par)?;
+    let mut par = Command::new(ctx.target.join("release/examples/parallel_ls"));
+    par.current_dir(&ctx.root).args(["--repeats", repeats]);
+    let par_cmd = show(&par);
+    let par_out = json_lines(&capture(&mut par)?);
     let (python, venv_cmds) = venv_python(ctx)?;
     let dirs: Vec<PathBuf> = ks.split(',').map(|k| data.join(format!("k{k}"))).collect();
     let mut py = pinned(ctx, &python);
@@ -214,7 +230,7 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
     }
     // LS + EM.
     let _ = writeln!(body, "\nLS followed by our EM (Kalman filter + RTS smoother over the drift), calib-core only (scipy has no counterpart):\n");
-    let _ = writeln!(body, "| K | LS + EM, CPU ms (wall) | of which EM (CPU ms) | EM iterations | converged | y (static table) |\n|---|---|---|---|---|---|");
+    let _ = writeln!(body, "| K | LS + EM, CPU ms (wall) | of which EM (CPU ms) | EM maps (on every n-th sample) | exact informations | converged | y (static table) | table error mm / mrad |\n|---|---|---|---|---|---|---|---|");
     let mut em6000 = None;
     for r in ls.iter().filter(|v| s(v, "solver") == "ls+em") {
         if f(r, "k") == 6000.0 {
@@ -222,7 +238,7 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
         }
         let _ = writeln!(
             body,
-            "| {} | {} ({}) | {} | {} | {} | {:.4} |",
+            "| {} | {} ({}) | {} | {} (n = {}) | {} | {} | {:.4} | {:.3} / {:.3} |",
             f(r, "k"),
             ms(f(r, "median_s")),
             ms(f(r, "wall_median_s")),
@@ -230,12 +246,50 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
             r.get("em_iterations")
                 .map(Value::to_string)
                 .unwrap_or_default(),
+            r.get("em_stride").map(Value::to_string).unwrap_or_default(),
+            r.get("em_informations")
+                .map(Value::to_string)
+                .unwrap_or_default(),
             r.get("em_converged")
                 .map(Value::to_string)
                 .unwrap_or_default(),
-            f(r, "y")
+            f(r, "y"),
+            f(r, "table_error_mm"),
+            f(r, "table_error_mrad")
         );
     }
+    let _ = writeln!(
+        body,
+        "\nOur EM iterates on every n-th sample (the drift of a decimated session is the same \
+         Gauss-Markov process), accelerated by SQUAREM, with the geometry step preconditioned by \
+         an exact information recomputed only when the drift parameters have moved; one pass \
+         over all samples then gives the final table and its Cramér-Rao bound \
+         (`calib-core/src/drift_em.rs`). Table error: RMS over 2,000 fresh drift-free poses of \
+         FK(table) against FK(Table 4).\n"
+    );
+    // Several cores: the daemon's parallel linearisation (wall clock; not pinned).
+    let par_rows = by(&par_out, "calib-parallel");
+    let _ = writeln!(body, "**Several cores** (`daemon/src/parallel.rs`: the LS linearisation in one block of samples per thread, merged in order; the EM is sequential in time), K = 6,000, wall-clock medians of {repeats} runs, not pinned, on this machine ({} cores available):\n", std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let _ = writeln!(body, "| threads | LS, wall ms | LS + our EM, wall ms | CPU ms per LS + EM (all threads) | cost |\n|---|---|---|---|---|");
+    for r in &par_rows {
+        let _ = writeln!(
+            body,
+            "| {} | {} | {} | {} | {:.10e} |",
+            f(r, "threads"),
+            ms(f(r, "ls_wall_median_s")),
+            ms(f(r, "ls_em_wall_median_s")),
+            ms(f(r, "cpu_per_run_s")),
+            f(r, "cost")
+        );
+    }
+    let par_of = |t: f64| par_rows.iter().find(|r| f(r, "threads") == t);
+    let speedup = match (par_of(1.0), par_of(2.0)) {
+        (Some(a), Some(b)) => Some((
+            f(a, "ls_wall_median_s") / f(b, "ls_wall_median_s"),
+            f(a, "ls_em_wall_median_s") / f(b, "ls_em_wall_median_s"),
+        )),
+        _ => None,
+    };
     // What the LS time is made of: the model evaluation per sample (kernels measured by the
     // export), on the number of linearisations each solve took.
     let jac_cost = f(&kernels, "fk_jacobian_s") + f(&kernels, "residual_jacobian_s");
@@ -246,7 +300,8 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
          calib-core's LS accumulates the column-scaled normal equations per linearisation (a \
          rank-6 update per sample; a blocked Householder QR over 8-sample panels instead when the \
          scaled problem is ill-conditioned), evaluates likely-rejected trial steps on the cost \
-         alone, and stops at the cost's rounding floor. Per-kernel figures (normal-equation \
+         alone, and takes the last Gauss-Newton step (predicted gain below 3e-10 of the cost) on \
+         the cost alone. Per-kernel figures (normal-equation \
          update, QR panel, SVD analysis): `cargo bench -p calib-core --bench kernels`.\n",
         f(&kernels, "fk_jacobian_s") * 1e6,
         f(&kernels, "residual_jacobian_s") * 1e6,
@@ -313,7 +368,7 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
     );
     let _ = writeln!(
         body,
-        "Reproduce:\n\n```sh\n{build_cmd}\n{rust_cmd}\n{}\n{py_cmd}\n```\n",
+        "Reproduce:\n\n```sh\n{build_cmd}\n{rust_cmd}\n{}\n{py_cmd}\n{build_par_cmd}\n{par_cmd}\n```\n",
         venv_cmds.join("\n")
     );
     goals.push(Goal {
@@ -333,7 +388,19 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
         what: "LS + our EM ≤ 100 ms at K = 6,000 on one core".into(),
         met: em6000.is_some_and(|t| t <= 0.1),
         detail: em6000.map_or("not measured".into(), |t| {
-            format!("{} ms median: bounded by our EM's full filter/smoother passes over the samples (its iteration count is in the table above); the LS part is the table above", ms(t))
+            format!(
+                "{} ms median (CPU). Most of it is our EM: its filter/smoother maps on every 4th sample, a few exact informations, and one two-stage pass plus one filter/smoother pass over all 6,000 samples (counts in the table above); the rest is the LS",
+                ms(t)
+            )
+        }),
+    });
+    goals.push(Goal {
+        what: "the daemon linearises on several cores (multi-core figure)".into(),
+        met: speedup.is_some_and(|(ls, _)| ls >= 1.3),
+        detail: speedup.map_or("not measured".into(), |(ls, all)| {
+            format!(
+                "2 threads against 1 at K = 6,000 (wall clock, not pinned): LS {ls:.2}× faster, LS + our EM {all:.2}×. Bounded by the machine's second core being free (see the load average: other processes share both cores) and by the EM, a Kalman filter and smoother sequential in time: only the LS parallelises"
+            )
         }),
     });
     Ok(Section {
