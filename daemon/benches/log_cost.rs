@@ -10,7 +10,8 @@
 use std::time::{Duration, Instant};
 
 use exocald::ingest::{Event, Ingest};
-use exocald::mcaplog::{CanFrameRecord, SessionLog, Transform};
+use exocald::mcaplog::SessionLog;
+use exocald::record::{frame_record, Recorder, Transform};
 
 const REPEATS: usize = 5;
 
@@ -18,7 +19,8 @@ fn pass(frames: &[exocal_bus::Received], log: bool, dir: &std::path::Path) -> (D
     let mut ingest = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
     let t0 = frames.first().map_or(0, |f| f.timestamp.as_nanos() as u64);
     let mut session = if log {
-        Some(SessionLog::create_in(dir, t0, 500_000_000).expect("log").1)
+        let log = SessionLog::create_in(dir, t0, 500_000_000).expect("log").1;
+        Some(Recorder::new(log, None))
     } else {
         None
     };
@@ -27,25 +29,13 @@ fn pass(frames: &[exocal_bus::Received], log: bool, dir: &std::path::Path) -> (D
         let t = rx.timestamp.as_nanos() as u64;
         let event = ingest.on_frame(rx);
         if let Some(s) = session.as_mut() {
-            use exocal_bus::embedded_can::Frame as _;
-            let record = CanFrameRecord {
-                id: rx.frame.raw_id(),
-                extended: rx.frame.is_extended(),
-                dlc: rx.frame.dlc() as u8,
-                data: rx.frame.data().to_vec(),
-                host_ns: t,
-                kernel_ns: Some(t),
-            };
-            s.can_frame(false, &record).expect("write");
+            // As the session's loop records each frame (runner.rs, `take_frame`).
+            s.can_frame(false, &frame_record(&rx.frame, rx.timestamp))
+                .expect("write");
             match event {
                 Event::Joint {
-                    joint,
-                    node_timestamp_us,
-                    angle,
-                    rate,
-                } => s
-                    .joint_state(t, joint + 1, node_timestamp_us, angle, rate)
-                    .expect("write"),
+                    joint, angle, rate, ..
+                } => s.joint_state(t, joint + 1, angle, rate).expect("write"),
                 Event::Pose(p) => s
                     .ee_pose(
                         t,

@@ -6,7 +6,9 @@
 //! | [`ingest`] | frames → decoded messages → per-node streams; counts unknown/malformed |
 //! | [`config`] | strict TOML configuration; errors name key and line |
 //! | [`cli`] | the command line (clap) |
-//! | [`mcaplog`] | the per-session MCAP log (zstd chunks, flushed on an interval, Foxglove schemas) |
+//! | [`record`] | what a session records, once, for every observer (the log, the live view) |
+//! | [`mcaplog`] | the per-session MCAP log (zstd chunks, flushed on an interval, protobuf with Foxglove's schemas) |
+//! | [`live`] | the live view: the session over the Foxglove WebSocket protocol (`[live]`) |
 //! | [`session`] | the collection window: coverage, sample counts, ready/failed |
 //! | [`report`] | progress bar / systemd `STATUS=` / plain lines; READY and WATCHDOG |
 //! | [`calibrate`] | LS, then drift EM, then validation, on aligned samples (pure) |
@@ -30,9 +32,11 @@ pub mod config;
 pub mod demo;
 pub mod exit;
 pub mod ingest;
+pub mod live;
 pub mod mcaplog;
 pub mod offline;
 pub mod push;
+pub mod record;
 pub mod report;
 pub mod runner;
 pub mod session;

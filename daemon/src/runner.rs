@@ -31,10 +31,10 @@ use crate::calibrate::{self, Outcome};
 use crate::config::{Config, JOINTS};
 use crate::exit::DaemonError;
 use crate::ingest::{ClockReport, Event, FrameStats, Ingest, StallReport};
-use crate::mcaplog::{
-    CanFrameRecord, CollectionEnd, Counts, Level, LogError, SessionLog, Transform,
-};
+use crate::live::LiveView;
+use crate::mcaplog::{CollectionEnd, Counts, Level, LogError, SessionLog};
 use crate::push::{push_tables, PushObserver, PushReport};
+use crate::record::{self, Recorder, Transform};
 use crate::report::{Notifier, Reporter};
 use crate::session::{Phase, Session};
 
@@ -138,21 +138,10 @@ fn ns(d: Duration) -> u64 {
     d.as_nanos().min(u128::from(u64::MAX)) as u64
 }
 
-fn record(frame: &Frame, t: Duration) -> CanFrameRecord {
-    use exocal_bus::embedded_can::Frame as _;
-    CanFrameRecord {
-        id: frame.raw_id(),
-        extended: frame.is_extended(),
-        dlc: frame.dlc() as u8,
-        data: frame.data().to_vec(),
-        host_ns: ns(t),
-        kernel_ns: Some(ns(t)),
-    }
-}
-
-/// The log, the notifier and the reporter, and the real-time start, bundled for the loop.
+/// The log (and the session's other observers), the notifier and the reporter, and the
+/// real-time start, bundled for the loop.
 struct Io<'a> {
-    log: SessionLog<BufWriter<std::fs::File>>,
+    log: Recorder<'a, BufWriter<std::fs::File>>,
     notifier: &'a mut Notifier,
     reporter: &'a mut Reporter,
     started: Instant,
@@ -183,7 +172,7 @@ impl Io<'_> {
     }
 
     fn frame(&mut self, sent: bool, frame: &Frame, t: Duration) {
-        let r = self.log.can_frame(sent, &record(frame, t));
+        let r = self.log.can_frame(sent, &record::frame_record(frame, t));
         self.check(r);
     }
 }
@@ -204,15 +193,10 @@ fn take_frame(rx: &Received, ingest: &mut Ingest, session: &mut Session, io: &mu
     let t = ns(rx.timestamp);
     match ingest.on_frame(rx) {
         Event::Joint {
-            joint,
-            node_timestamp_us,
-            angle,
-            rate,
+            joint, angle, rate, ..
         } => {
             session.joint_sample(joint, angle);
-            let r = io
-                .log
-                .joint_state(t, joint + 1, node_timestamp_us, angle, rate);
+            let r = io.log.joint_state(t, joint + 1, angle, rate);
             io.check(r);
         }
         Event::Pose(p) => {
@@ -291,25 +275,6 @@ fn session_report(
     summary.gaps = aligned.gaps;
 }
 
-/// The arm's link frames for Foxglove, from `table` at joint angles `q`.
-fn arm_transforms(table: &calib_core::DhTable<JOINTS>, q: &[f64; JOINTS]) -> Vec<Transform> {
-    table
-        .rows
-        .iter()
-        .zip(q)
-        .map(|(row, &qi)| {
-            let f = row.transform(qi);
-            let rot = nalgebra::UnitQuaternion::from_rotation_matrix(
-                &nalgebra::Rotation3::from_matrix(&f.r),
-            );
-            Transform {
-                translation: [f.p.x, f.p.y, f.p.z],
-                rotation_wxyz: [rot.w, rot.i, rot.j, rot.k],
-            }
-        })
-        .collect()
-}
-
 /// Node tables to push, from the calibrated rows.
 pub fn node_tables(outcome: &Outcome, config: &Config) -> Result<Vec<(NodeId, Table)>, String> {
     outcome
@@ -326,7 +291,8 @@ pub fn node_tables(outcome: &Outcome, config: &Config) -> Result<Vec<(NodeId, Ta
         .collect()
 }
 
-/// Runs one session on `bus` (see the module docs). `clock` is the bus clock.
+/// Runs one session on `bus` (see the module docs). `clock` is the bus clock. With
+/// `[live] enabled`, the live view serves the session (started here, stopped at its end).
 pub async fn run_session<T: Transport>(
     bus: &mut T,
     clock: &Clock,
@@ -335,6 +301,42 @@ pub async fn run_session<T: Transport>(
     shutdown: impl Future<Output = ()>,
     notifier: &mut Notifier,
     reporter: &mut Reporter,
+) -> Result<SessionSummary, SessionError> {
+    let live = match config.live.enabled {
+        true => Some(LiveView::start(config.live.listen, config)?),
+        false => None,
+    };
+    if let Some(live) = &live {
+        reporter.message(&format!(
+            "live view: connect Foxglove to ws://{}:{}",
+            config.live.listen.ip(),
+            live.port()
+        ));
+    }
+    run_session_with(
+        bus,
+        clock,
+        config,
+        dry_run,
+        shutdown,
+        notifier,
+        reporter,
+        live.as_ref(),
+    )
+    .await
+}
+
+/// [`run_session`] with the live view `live` (whoever started it keeps it after the session).
+#[allow(clippy::too_many_arguments)]
+pub async fn run_session_with<T: Transport>(
+    bus: &mut T,
+    clock: &Clock,
+    config: &Config,
+    dry_run: bool,
+    shutdown: impl Future<Output = ()>,
+    notifier: &mut Notifier,
+    reporter: &mut Reporter,
+    live: Option<&LiveView>,
 ) -> Result<SessionSummary, SessionError> {
     let start = clock.now();
     let flush_ns = (config.output.flush_interval_s * 1e9) as u64;
@@ -346,7 +348,7 @@ pub async fn run_session<T: Transport>(
             )
         })?;
     let mut io = Io {
-        log,
+        log: Recorder::new(log, live),
         notifier,
         reporter,
         started: Instant::now(),
@@ -456,7 +458,7 @@ async fn session_body<T: Transport>(
                 }
                 let progress = session.progress(elapsed);
                 io.reporter.update(&progress, required, io.notifier);
-                let r = io.log.write(crate::mcaplog::Topic::Progress, ns(clock.now()), &progress);
+                let r = io.log.progress(ns(clock.now()), &progress);
                 io.check(r);
                 match session.phase(elapsed) {
                     Phase::Collecting => {}
@@ -666,19 +668,17 @@ async fn session_body<T: Transport>(
         let t = ns(origin + Duration::from_secs_f64(s.t.max(0.0)));
         let r = io
             .log
-            .arm_transforms(t, &arm_transforms(&calibrated, &s.joints));
+            .arm_transforms(t, &record::arm_transforms(&calibrated, &s.joints));
         io.check(r);
     }
-    let report = serde_json::json!({
-        "outcome": &outcome,
-        "frames": &summary.frames,
-        "clocks": &summary.clocks,
-        "aligned_samples": summary.aligned_samples,
-        "gaps": summary.gaps,
-    });
-    let r = io
-        .log
-        .write(crate::mcaplog::Topic::Calibration, ns(clock.now()), &report);
+    let calibration = record::calibration_record(
+        &outcome,
+        &summary.clocks,
+        summary.aligned_samples,
+        summary.gaps,
+        None,
+    );
+    let r = io.log.calibration(ns(clock.now()), &calibration);
     io.check(r);
     let v = &outcome.verdict;
     io.event(
@@ -728,9 +728,16 @@ async fn session_body<T: Transport>(
     for line in report.lines() {
         io.event(clock.now(), Level::Info, &line);
     }
-    let r = io
-        .log
-        .write(crate::mcaplog::Topic::Calibration, ns(clock.now()), &report);
+    let r = io.log.calibration(
+        ns(clock.now()),
+        &record::calibration_record(
+            outcome,
+            &summary.clocks,
+            summary.aligned_samples,
+            summary.gaps,
+            Some(&report),
+        ),
+    );
     io.check(r);
     let complete = report.complete();
     let failed: Vec<String> = report
