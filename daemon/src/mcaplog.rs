@@ -267,6 +267,9 @@ impl<W: Write + Seek> SessionLog<W> {
         let options = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .compression_level(ZSTD_LEVEL)
+            // No message indexes: 16 uncompressed bytes per message (more than a compressed
+            // frame), and readers find every message through the chunk indexes.
+            .emit_message_indexes(false)
             .profile("")
             .library(concat!("exocald ", env!("CARGO_PKG_VERSION")))
             // Chunks close on time (tick) or at this size, whichever first.
