@@ -5,10 +5,10 @@
     mcap_counts.py --events FILE.mcap   one line `EVENT <log_time_ns> <message>` per /events message
 """
 
-import json
 import sys
 
 from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
 
 
 def counts(path):
@@ -22,10 +22,11 @@ def counts(path):
 
 
 def events(path):
+    # foxglove.Log messages, decoded with the protobuf schema the file carries.
     with open(path, "rb") as f:
-        for _schema, _channel, message in make_reader(f).iter_messages(topics=["/events"]):
-            text = json.loads(message.data).get("message", "")
-            print(f"EVENT {message.log_time} {' '.join(text.split())}")
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _schema, _channel, message, log in reader.iter_decoded_messages(topics=["/events"]):
+            print(f"EVENT {message.log_time} {' '.join(log.message.split())}")
 
 
 def main():

@@ -6,7 +6,7 @@
 //! `v_k ~ N(0, diag(r))` and, per joint j, the Gauss-Markov drift
 //! `δ_{k+1,j} = φ_j δ_{k,j} + ρ`, `ρ ~ N(0, q_j)`, `δ_{0,j} ~ N(0, q_j / (1 − φ_j²))`.
 //! The estimate is the maximum of the exact likelihood `p(e_1..K | G, φ, q, r)` (the drift
-//! integrated out); the per-sample kernels are in [`crate::kalman`].
+//! integrated out); the per-sample kernels are in the private `kalman` module.
 //!
 //! # Iteration
 //! 1. **Iterate on every `stride`-th sample** (at most [`DriftEmOptions::max_stride`], and at

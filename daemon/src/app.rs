@@ -129,11 +129,13 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
         Command::Demo(args) => {
             let (config, source) = resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
             eprintln!("exocald: configuration from {source}");
-            let config = crate::demo::demo_config(config, &args.output, 1.0);
+            let mut config = crate::demo::demo_config(config, &args.output, 1.0);
+            config.live.enabled |= args.live;
             let opts = crate::demo::DemoOptions {
                 seed: args.seed,
                 speed: args.speed,
                 output: args.output.clone(),
+                hold: args.live,
             };
             match crate::demo::run(&config, &opts).map_err(|e| *e) {
                 Ok(result) => {

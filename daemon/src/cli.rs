@@ -168,6 +168,11 @@ pub struct DemoArgs {
     /// Folder for the session's MCAP log and report, and the emulated nodes' flash (DIR/flash).
     #[arg(long, short = 'o', value_name = "DIR", default_value = "exocal-demo")]
     pub output: PathBuf,
+    /// Serve the session over the Foxglove WebSocket protocol on `[live] listen`
+    /// (127.0.0.1:8765 by default) and keep serving after it until Ctrl-C: open Foxglove,
+    /// connect to ws://127.0.0.1:8765 and watch the arm, the progress and the result.
+    #[arg(long)]
+    pub live: bool,
 }
 
 /// Options of `check-config`.

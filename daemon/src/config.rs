@@ -119,6 +119,24 @@ pub struct OutputConfig {
     pub flush_interval_s: f64,
 }
 
+/// The live view (`[live]`, optional: absent means disabled).
+#[derive(Debug, Clone, PartialEq)]
+pub struct LiveConfig {
+    /// Serve the session over the Foxglove WebSocket protocol.
+    pub enabled: bool,
+    /// Address and port to listen on.
+    pub listen: std::net::SocketAddr,
+}
+
+impl Default for LiveConfig {
+    fn default() -> Self {
+        LiveConfig {
+            enabled: false,
+            listen: std::net::SocketAddr::from(([127, 0, 0, 1], 8765)),
+        }
+    }
+}
+
 /// Table push policy.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PushPolicy {
@@ -153,6 +171,7 @@ pub struct Config {
     pub validation: ValidationRules,
     pub output: OutputConfig,
     pub push: PushPolicy,
+    pub live: LiveConfig,
 }
 
 /// A configuration error: which key, on which line, what is wrong.
@@ -260,6 +279,7 @@ struct RawConfig {
     validation: RawValidation,
     output: RawOutput,
     push: RawPush,
+    live: Option<RawLive>,
 }
 
 #[derive(Deserialize)]
@@ -318,6 +338,13 @@ struct RawValidation {
 struct RawOutput {
     directory: PathBuf,
     flush_interval_s: f64,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawLive {
+    enabled: bool,
+    listen: String,
 }
 
 #[derive(Deserialize)]
@@ -764,6 +791,22 @@ impl Checker<'_> {
             return Err(self.err("push.timeout_ms", "must be at least 1"));
         }
 
+        let live = match raw.live {
+            None => LiveConfig::default(),
+            Some(l) => LiveConfig {
+                enabled: l.enabled,
+                listen: l.listen.parse().map_err(|_| {
+                    self.err(
+                        "live.listen",
+                        format!(
+                            "{:?} is not an address and port (e.g. \"127.0.0.1:8765\")",
+                            l.listen
+                        ),
+                    )
+                })?,
+            },
+        };
+
         Ok(Config {
             interface,
             joint_nodes,
@@ -773,6 +816,7 @@ impl Checker<'_> {
             validation,
             output,
             push,
+            live,
         })
     }
 }
@@ -856,10 +900,16 @@ impl Config {
             text(&self.output.directory.to_string_lossy()),
             num(self.output.flush_interval_s),
         );
-        let _ = write!(
+        let _ = writeln!(
             w,
             "[push]\nretries = {}\nbackoff_initial_ms = {}\nbackoff_max_ms = {}\ntimeout_ms = {}\n",
             p.retries, p.backoff_initial_ms, p.backoff_max_ms, p.timeout_ms,
+        );
+        let _ = write!(
+            w,
+            "[live]\nenabled = {}\nlisten = {}\n",
+            self.live.enabled,
+            text(&self.live.listen.to_string()),
         );
         out
     }

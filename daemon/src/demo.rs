@@ -12,7 +12,10 @@
 //! ([`crate::runner::run_session`]) on the other end of the bus, and when it is done the hil is
 //! stopped and each joint node's flash file is read back: the demo succeeds only if every node
 //! persisted exactly the table the daemon pushed (same CRC). SIGTERM or SIGINT interrupts the
-//! session as in `calibrate`: the log is finished before the process exits.
+//! session as in `calibrate`: the log is finished before the process exits. With the live view
+//! (`[live] enabled`, `exocald demo --live`) the session is served over the Foxglove WebSocket
+//! protocol ([`crate::live`]); with [`DemoOptions::hold`] it stays up after the session until
+//! SIGTERM or SIGINT, so a person can look at the calibrated arm.
 //!
 //! [`RunningSuit`] and [`session_against_suit`] are that pairing on any transport, with any
 //! scenario and configuration: the fault matrix, the atomic-push trials and the vcan
@@ -29,9 +32,10 @@ use exocal_hil::{Hil, HilError, Linger, Scenario};
 
 use crate::config::Config;
 use crate::exit::DaemonError;
+use crate::live::LiveView;
 use crate::push::Holds;
 use crate::report::{Notifier, Reporter};
-use crate::runner::{run_session, SessionError, SessionSummary};
+use crate::runner::{run_session_with, SessionError, SessionSummary};
 
 /// Options of a demo run.
 #[derive(Debug, Clone)]
@@ -42,6 +46,8 @@ pub struct DemoOptions {
     pub speed: f64,
     /// Session logs go to `output/`, the emulated nodes' flash to `output/flash/`.
     pub output: PathBuf,
+    /// With the live view: keep serving after the session until SIGTERM or SIGINT.
+    pub hold: bool,
 }
 
 /// The demo's result: the session, and per joint node the CRC of its flash after the run.
@@ -65,7 +71,33 @@ pub fn demo_config(base: Config, output: &Path, speed: f64) -> Config {
 }
 
 /// Runs the demo on its own paused runtime (see the module docs); call it outside any runtime.
+/// With `[live] enabled`, the live view is started for it on `[live] listen`.
 pub fn run(config: &Config, opts: &DemoOptions) -> Result<DemoResult, Box<SessionError>> {
+    let live = match config.live.enabled {
+        true => Some(LiveView::start(config.live.listen, config)?),
+        false => None,
+    };
+    if let Some(live) = &live {
+        eprintln!(
+            "exocald: live view: connect Foxglove to ws://{}:{}{}",
+            config.live.listen.ip(),
+            live.port(),
+            if opts.hold {
+                " (it stays up after the session: Ctrl-C to stop)"
+            } else {
+                ""
+            }
+        );
+    }
+    run_with(config, opts, live.as_ref())
+}
+
+/// [`run`] with the live view `live` (or none), whoever started it.
+pub fn run_with(
+    config: &Config,
+    opts: &DemoOptions,
+    live: Option<&LiveView>,
+) -> Result<DemoResult, Box<SessionError>> {
     if !(opts.speed.is_finite() && opts.speed > 0.0) {
         return Err(DaemonError::Usage(format!(
             "speed {} (must be finite and positive)",
@@ -81,7 +113,9 @@ pub fn run(config: &Config, opts: &DemoOptions) -> Result<DemoResult, Box<Sessio
             what: "starting the async runtime".into(),
             source,
         })?;
-    runtime.block_on(session(config, opts)).map_err(Box::new)
+    runtime
+        .block_on(session(config, opts, live))
+        .map_err(Box::new)
 }
 
 /// Simulated time between two looks at the pace.
@@ -102,7 +136,11 @@ async fn pace(clock: SimClock, speed: f64) {
     }
 }
 
-async fn session(config: &Config, opts: &DemoOptions) -> Result<DemoResult, SessionError> {
+async fn session(
+    config: &Config,
+    opts: &DemoOptions,
+    live: Option<&LiveView>,
+) -> Result<DemoResult, SessionError> {
     let flash_dir = opts.output.join("flash");
     std::fs::create_dir_all(&flash_dir).map_err(|source| DaemonError::Io {
         what: format!("creating {}", flash_dir.display()),
@@ -126,15 +164,27 @@ async fn session(config: &Config, opts: &DemoOptions) -> Result<DemoResult, Sess
     let pacer = tokio::spawn(pace(clock, opts.speed));
     // SIGTERM/SIGINT end the session like `calibrate`'s: the log is finished, nothing is lost.
     let shutdown = crate::shutdown::Shutdown::on_signals();
-    let run = session_against_suit(
+    let run = session_against_suit_with(
         suit,
         &mut daemon_end,
         &clock.bus_clock(),
         config,
         shutdown.wait(),
+        live,
     )
     .await;
     pacer.abort();
+    if opts.hold && live.is_some() {
+        // Real time from here on: the paused clock would skip any wait.
+        let signal = shutdown.wait();
+        tokio::task::spawn_blocking(move || {
+            tokio::runtime::Builder::new_current_thread()
+                .build()
+                .map(|rt| rt.block_on(signal))
+        })
+        .await
+        .ok();
+    }
     let summary = run.result?;
     let flash_crc = run
         .flash
@@ -274,10 +324,22 @@ pub async fn session_against_suit<D: Transport>(
     config: &Config,
     shutdown: impl Future<Output = ()>,
 ) -> SuitSession {
+    session_against_suit_with(suit, daemon_end, clock, config, shutdown, None).await
+}
+
+/// [`session_against_suit`], the session served on the live view `live` too.
+pub async fn session_against_suit_with<D: Transport>(
+    suit: RunningSuit,
+    daemon_end: &mut D,
+    clock: &Clock,
+    config: &Config,
+    shutdown: impl Future<Output = ()>,
+    live: Option<&LiveView>,
+) -> SuitSession {
     let mut notifier = Notifier::disabled();
     let mut reporter = Reporter::detect(&notifier);
     let started = Instant::now();
-    let result = run_session(
+    let result = run_session_with(
         daemon_end,
         clock,
         config,
@@ -285,6 +347,7 @@ pub async fn session_against_suit<D: Transport>(
         shutdown,
         &mut notifier,
         &mut reporter,
+        live,
     )
     .await;
     let wall = started.elapsed();
@@ -414,6 +477,7 @@ mod tests {
             seed: 2024,
             speed: 1e6,
             output: dir.clone(),
+            hold: false,
         };
         let config = demo_config(Config::default_config(), &dir, 1.0);
         let result = match run(&config, &opts).map_err(|e| *e) {

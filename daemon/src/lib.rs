@@ -6,7 +6,10 @@
 //! | [`ingest`] | frames → decoded messages → per-node streams; counts unknown/malformed |
 //! | [`config`] | strict TOML configuration; errors name key and line |
 //! | [`cli`] | the command line (clap) |
-//! | [`mcaplog`] | the per-session MCAP log (zstd chunks, flushed on an interval, Foxglove schemas) |
+//! | [`record`] | what a session records, once: the records and their content (frames, arm, calibration) |
+//! | [`recorder`] | every record to every observer: the log, the live view |
+//! | [`mcaplog`] | the per-session MCAP log (zstd chunks, flushed on an interval, protobuf with Foxglove's schemas) |
+//! | [`live`] | the live view: the session over the Foxglove WebSocket protocol (`[live]`) |
 //! | [`session`] | the collection window: coverage, sample counts, ready/failed |
 //! | [`report`] | progress bar / systemd `STATUS=` / plain lines; READY and WATCHDOG |
 //! | [`collect`] | what a session gathers, live or replayed: frames → aligned samples and their quality |
@@ -34,12 +37,15 @@ pub mod config;
 pub mod demo;
 pub mod exit;
 pub mod ingest;
+pub mod live;
 pub mod mcaplog;
 pub mod nodes;
 pub mod offline;
 pub mod parallel;
 pub mod pipeline;
 pub mod push;
+pub mod record;
+pub mod recorder;
 pub mod recover;
 pub mod report;
 pub mod runner;

@@ -1,8 +1,11 @@
 //! The per-session MCAP log.
 //!
 //! Contract:
-//! - one file per session, zstd-compressed chunks, JSON messages with JSON-Schema schemas
-//!   (readable by Foxglove, the `mcap` crate, and Python's `mcap` without generated code);
+//! - one file per session, zstd-compressed chunks, protobuf messages with protobuf schemas, as
+//!   the `exocal-log` crate defines them (Foxglove's well-known types for joint states, poses,
+//!   transforms and events; ours for raw frames and the rest): Foxglove's 3D, plot and log
+//!   panels, the `mcap` crate and Python's `mcap-protobuf-support` read it without generated
+//!   code;
 //! - [`SessionLog::tick`] closes the open chunk, flushes and `fdatasync`s whenever the flush
 //!   interval has passed, so a hard kill loses at most that interval (≤ 1 s by config): the
 //!   file stays readable by a linear scan up to its last closed chunk;
@@ -17,157 +20,38 @@
 //!
 //! | topic | schema | what |
 //! |---|---|---|
-//! | `/can/rx`, `/can/tx` | `exocal.CanFrame` | every raw frame received / sent: id, data, host and kernel timestamps |
-//! | `/joint_states` | `exocal.JointState` | each decoded `JointState` frame, shaped like ROS `sensor_msgs/JointState` (`header`, `name`, `position`, `velocity`) plus the node's µs timestamp |
-//! | `/ee_pose` | `foxglove.PoseInFrame` | each assembled end-effector reference pose, frame `base` |
-//! | `/tf` | `foxglove.FrameTransforms` | the arm's link frames (FK of the aligned joint angles): Foxglove's 3D panel draws the arm |
+//! | `/can/rx`, `/can/tx` | `exocal.CanFrame` | every raw frame received / sent: id, flags, DLC, data, kernel and host timestamps |
+//! | `/joint_states` | `foxglove.JointStates` | each decoded joint reading (`jointN`: position, velocity), as the exported URDF names the joints |
+//! | `/ee_pose` | `foxglove.PoseInFrame` | each assembled end-effector reference pose, frame `base_link` |
+//! | `/tf` | `foxglove.FrameTransforms` | the arm's frames on the calibrated table (`base_link → link1 … link7 → tool0`, the URDF's): Foxglove's 3D panel draws the arm |
 //! | `/aligned` | `exocal.AlignedSample` | samples on the common time grid, as fed to the calibration |
 //! | `/progress` | `exocal.Progress` | collection progress: coverage per joint, samples, condition number |
 //! | `/collection` | `exocal.CollectionEnd` | once, when collection ends: frames received in the window (a replay calibrates on exactly those), the window's end, bad-frame and drop counts |
-//! | `/calibration` | `exocal.Calibration` | tables before and after, τ and σ, metrics, validation verdict |
+//! | `/calibration` | `exocal.Calibration` | tables before and after, τ and σ, metrics, validation verdict; again with the push report |
 //! | `/events` | `foxglove.Log` | what happened, human-readable, with a level |
 //!
-//! Foxglove has no well-known joint-state schema for JSON; ROS-shaped JSON keeps the field names
-//! every robotics user knows and plots directly. Log time is host wall-clock time in ns.
+//! Log time is host wall-clock time in ns. Messages on a topic are numbered from 1 (the MCAP
+//! `sequence`, per channel).
 
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::{BufWriter, Seek, Write};
 use std::path::{Path, PathBuf};
 
-use serde::Serialize;
+use exocal_log::{fox, timestamp, MESSAGE_ENCODING};
+pub use exocal_log::{proto, CanFrameRecord, CollectionEnd, Level, Topic};
 
-pub use exocal_log::{schemas, CanFrameRecord, CollectionEnd, Level, Time, Topic};
-use exocal_log::{MESSAGE_ENCODING, SCHEMA_ENCODING};
+use crate::record::{Record, Transform, BASE_FRAME};
 
-#[derive(Serialize)]
-struct LogMessage<'a> {
-    timestamp: Time,
-    level: u8,
-    message: &'a str,
-    name: &'a str,
-    file: &'a str,
-    line: u32,
-}
-
-#[derive(Serialize)]
-struct Header {
-    stamp: Time,
-    frame_id: &'static str,
-}
-
-#[derive(Serialize)]
-struct JointStateMsg<'a> {
-    header: Header,
-    name: [&'a str; 1],
-    position: [f64; 1],
-    velocity: [f64; 1],
-    node_timestamp_us: u32,
-}
-
-#[derive(Serialize)]
-struct Vector3 {
-    x: f64,
-    y: f64,
-    z: f64,
-}
-
-#[derive(Serialize)]
-struct Quaternion {
-    x: f64,
-    y: f64,
-    z: f64,
-    w: f64,
-}
-
-#[derive(Serialize)]
-struct PoseMsg {
-    position: Vector3,
-    orientation: Quaternion,
-}
-
-#[derive(Serialize)]
-struct PoseInFrame<'a> {
-    timestamp: Time,
-    frame_id: &'a str,
-    pose: PoseMsg,
-}
-
-#[derive(Serialize)]
-struct FrameTransform<'a> {
-    timestamp: Time,
-    parent_frame_id: &'a str,
-    child_frame_id: &'a str,
-    translation: Vector3,
-    rotation: Quaternion,
-}
-
-#[derive(Serialize)]
-struct FrameTransforms<'a> {
-    transforms: Vec<FrameTransform<'a>>,
-}
-
-#[derive(Serialize)]
-struct AlignedMsg<'a> {
-    t: f64,
-    joints: &'a [f64],
-    position: [f64; 3],
-    orientation_wxyz: [f64; 4],
-}
-
-/// A rigid transform: translation (m) and unit quaternion `[w, x, y, z]`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Transform {
-    pub translation: [f64; 3],
-    pub rotation_wxyz: [f64; 4],
-}
-
-/// The arm's link frames (`link_{i-1}` → `link_i`) of `table` at joint angles `q`, as
-/// [`SessionLog::arm_transforms`] takes them.
-pub fn link_transforms<const N: usize>(
-    table: &calib_core::DhTable<N>,
-    q: &[f64; N],
-) -> Vec<Transform> {
-    table
-        .rows
-        .iter()
-        .zip(q)
-        .map(|(row, &qi)| {
-            let f = row.transform(qi);
-            let rot = nalgebra::UnitQuaternion::from_rotation_matrix(
-                &nalgebra::Rotation3::from_matrix(&f.r),
-            );
-            Transform {
-                translation: [f.p.x, f.p.y, f.p.z],
-                rotation_wxyz: [rot.w, rot.i, rot.j, rot.k],
-            }
-        })
-        .collect()
-}
-
-fn v3(p: [f64; 3]) -> Vector3 {
-    Vector3 {
-        x: p[0],
-        y: p[1],
-        z: p[2],
-    }
-}
-
-fn quat(q: [f64; 4]) -> Quaternion {
-    Quaternion {
-        w: q[0],
-        x: q[1],
-        y: q[2],
-        z: q[3],
-    }
-}
+/// zstd level of the chunks: the best size per CPU time on the demo's log (BENCHMARKS.md,
+/// "Session log").
+pub const ZSTD_LEVEL: u32 = 3;
 
 /// Why the log could not be written.
 #[derive(Debug)]
 pub enum LogError {
     Io(std::io::Error),
     Mcap(mcap::McapError),
-    Json(serde_json::Error),
 }
 
 impl std::fmt::Display for LogError {
@@ -175,7 +59,6 @@ impl std::fmt::Display for LogError {
         match self {
             LogError::Io(e) => write!(f, "MCAP log I/O: {e}"),
             LogError::Mcap(e) => write!(f, "MCAP log: {e}"),
-            LogError::Json(e) => write!(f, "MCAP log message encoding: {e}"),
         }
     }
 }
@@ -185,7 +68,6 @@ impl std::error::Error for LogError {
         match self {
             LogError::Io(e) => Some(e),
             LogError::Mcap(e) => Some(e),
-            LogError::Json(e) => Some(e),
         }
     }
 }
@@ -202,9 +84,102 @@ impl From<mcap::McapError> for LogError {
     }
 }
 
-impl From<serde_json::Error> for LogError {
-    fn from(e: serde_json::Error) -> Self {
-        LogError::Json(e)
+fn v3(p: [f64; 3]) -> fox::Vector3 {
+    fox::Vector3 {
+        x: p[0],
+        y: p[1],
+        z: p[2],
+    }
+}
+
+fn quat(q: [f64; 4]) -> fox::Quaternion {
+    fox::Quaternion {
+        w: q[0],
+        x: q[1],
+        y: q[2],
+        z: q[3],
+    }
+}
+
+/// The name of joint `joint` (1-based), as the exported URDF names it.
+pub fn joint_name(joint: usize) -> String {
+    format!("joint{joint}")
+}
+
+/// `foxglove.JointStates` of one joint reading.
+pub fn joint_states(log_ns: u64, joints: &[(usize, f64, f64)]) -> fox::JointStates {
+    fox::JointStates {
+        timestamp: Some(timestamp(log_ns)),
+        joints: joints
+            .iter()
+            .map(|&(j, angle, rate)| fox::JointState {
+                name: joint_name(j),
+                position: Some(angle),
+                velocity: Some(rate),
+                ..Default::default()
+            })
+            .collect(),
+    }
+}
+
+/// `foxglove.PoseInFrame` of an end-effector pose in the base frame.
+pub fn pose_in_frame(log_ns: u64, pose: &Transform) -> fox::PoseInFrame {
+    fox::PoseInFrame {
+        timestamp: Some(timestamp(log_ns)),
+        frame_id: BASE_FRAME.to_string(),
+        pose: Some(fox::Pose {
+            position: Some(v3(pose.translation)),
+            orientation: Some(quat(pose.rotation_wxyz)),
+        }),
+    }
+}
+
+/// `foxglove.FrameTransforms` of the arm's frames.
+pub fn frame_transforms(log_ns: u64, links: &[crate::record::Link]) -> fox::FrameTransforms {
+    fox::FrameTransforms {
+        transforms: links
+            .iter()
+            .map(|l| fox::FrameTransform {
+                timestamp: Some(timestamp(log_ns)),
+                parent_frame_id: l.parent.clone(),
+                child_frame_id: l.child.clone(),
+                translation: Some(v3(l.transform.translation)),
+                rotation: Some(quat(l.transform.rotation_wxyz)),
+            })
+            .collect(),
+    }
+}
+
+/// `exocal.Progress`.
+pub fn progress(p: &crate::session::Progress) -> proto::Progress {
+    proto::Progress {
+        elapsed_s: p.elapsed_s,
+        samples: p.samples,
+        coverage: p.coverage.to_vec(),
+        condition_number: p.condition_number,
+        readiness: p.readiness,
+    }
+}
+
+/// `foxglove.Log` of an event.
+pub fn log_message(log_ns: u64, level: Level, message: &str) -> fox::Log {
+    fox::Log {
+        timestamp: Some(timestamp(log_ns)),
+        level: fox::LogLevel::from(level) as i32,
+        message: message.to_string(),
+        name: "exocald".to_string(),
+        file: String::new(),
+        line: 0,
+    }
+}
+
+/// `exocal.AlignedSample`.
+pub fn aligned_sample(s: &crate::align::AlignedSample) -> proto::AlignedSample {
+    proto::AlignedSample {
+        t: s.t,
+        joints: s.joints.to_vec(),
+        position: s.pose.position.to_vec(),
+        orientation_wxyz: s.pose.orientation.to_vec(),
     }
 }
 
@@ -216,7 +191,7 @@ pub struct SessionLog<W: Write + Seek> {
     writer: mcap::Writer<W>,
     channels: [u16; Topic::ALL.len()],
     counts: [u64; Topic::ALL.len()],
-    sequence: u32,
+    sequences: [u32; Topic::ALL.len()],
     flush_interval_ns: u64,
     last_flush_ns: Option<u64>,
     sync: Option<File>,
@@ -291,6 +266,10 @@ impl<W: Write + Seek> SessionLog<W> {
     pub fn new(w: W, flush_interval_ns: u64) -> Result<Self, LogError> {
         let options = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
+            .compression_level(ZSTD_LEVEL)
+            // No message indexes: 16 uncompressed bytes per message (more than a compressed
+            // frame), and readers find every message through the chunk indexes.
+            .emit_message_indexes(false)
             .profile("")
             .library(concat!("exocald ", env!("CARGO_PKG_VERSION")))
             // Chunks close on time (tick) or at this size, whichever first.
@@ -298,8 +277,8 @@ impl<W: Write + Seek> SessionLog<W> {
         let mut writer = mcap::Writer::with_options(w, options)?;
         let mut channels = [0u16; Topic::ALL.len()];
         for (slot, topic) in channels.iter_mut().zip(Topic::ALL) {
-            let (name, schema) = topic.schema();
-            let schema_id = writer.add_schema(name, SCHEMA_ENCODING, schema.as_bytes())?;
+            let schema = topic.schema();
+            let schema_id = writer.add_schema(schema.name, schema.encoding, &schema.data)?;
             *slot =
                 writer.add_channel(schema_id, topic.name(), MESSAGE_ENCODING, &BTreeMap::new())?;
         }
@@ -307,7 +286,7 @@ impl<W: Write + Seek> SessionLog<W> {
             writer,
             channels,
             counts: [0; Topic::ALL.len()],
-            sequence: 0,
+            sequences: [0; Topic::ALL.len()],
             flush_interval_ns: flush_interval_ns.max(1),
             last_flush_ns: None,
             sync: None,
@@ -316,19 +295,21 @@ impl<W: Write + Seek> SessionLog<W> {
     }
 
     /// Writes one message on `topic` at log time `log_ns`.
-    pub fn write<T: Serialize>(
+    pub fn write<M: prost::Message>(
         &mut self,
         topic: Topic,
         log_ns: u64,
-        message: &T,
+        message: &M,
     ) -> Result<(), LogError> {
         self.buffer.clear();
-        serde_json::to_writer(&mut self.buffer, message)?;
+        message
+            .encode(&mut self.buffer)
+            .expect("a Vec grows to fit any message");
         let i = topic.index();
-        self.sequence = self.sequence.wrapping_add(1);
+        self.sequences[i] = self.sequences[i].wrapping_add(1);
         let header = mcap::records::MessageHeader {
             channel_id: self.channels[i],
-            sequence: self.sequence,
+            sequence: self.sequences[i],
             log_time: log_ns,
             publish_time: log_ns,
         };
@@ -337,105 +318,28 @@ impl<W: Write + Seek> SessionLog<W> {
         Ok(())
     }
 
-    /// The end of the collection window (written once per session).
-    pub fn collection_end(&mut self, end: &CollectionEnd) -> Result<(), LogError> {
-        self.write(Topic::Collection, end.window_end_ns, end)
-    }
-
-    /// A raw frame received (`tx == false`) or sent.
-    pub fn can_frame(&mut self, tx: bool, frame: &CanFrameRecord) -> Result<(), LogError> {
-        let topic = if tx { Topic::CanTx } else { Topic::CanRx };
-        self.write(topic, frame.host_ns, frame)
-    }
-
-    /// A decoded joint state of joint `joint` (1-based).
-    pub fn joint_state(
-        &mut self,
-        log_ns: u64,
-        joint: usize,
-        node_timestamp_us: u32,
-        angle: f64,
-        rate: f64,
-    ) -> Result<(), LogError> {
-        let name = format!("joint{joint}");
-        let msg = JointStateMsg {
-            header: Header {
-                stamp: Time::from_ns(log_ns),
-                frame_id: "",
-            },
-            name: [&name],
-            position: [angle],
-            velocity: [rate],
-            node_timestamp_us,
-        };
-        self.write(Topic::JointStates, log_ns, &msg)
-    }
-
-    /// A measured end-effector pose in frame `base`.
-    pub fn ee_pose(&mut self, log_ns: u64, pose: &Transform) -> Result<(), LogError> {
-        let msg = PoseInFrame {
-            timestamp: Time::from_ns(log_ns),
-            frame_id: "base",
-            pose: PoseMsg {
-                position: v3(pose.translation),
-                orientation: quat(pose.rotation_wxyz),
-            },
-        };
-        self.write(Topic::EePose, log_ns, &msg)
-    }
-
-    /// The arm's frames: `links[i]` is frame `link{i+1}` relative to its parent (`base` for the
-    /// first).
-    pub fn arm_transforms(&mut self, log_ns: u64, links: &[Transform]) -> Result<(), LogError> {
-        let names: Vec<String> = (0..=links.len())
-            .map(|i| {
-                if i == 0 {
-                    "base".to_string()
-                } else {
-                    format!("link{i}")
-                }
-            })
-            .collect();
-        let transforms = links
-            .iter()
-            .enumerate()
-            .map(|(i, t)| FrameTransform {
-                timestamp: Time::from_ns(log_ns),
-                parent_frame_id: &names[i],
-                child_frame_id: &names[i + 1],
-                translation: v3(t.translation),
-                rotation: quat(t.rotation_wxyz),
-            })
-            .collect();
-        self.write(Topic::Tf, log_ns, &FrameTransforms { transforms })
-    }
-
-    /// An aligned sample at host time `t` (s since session start).
-    pub fn aligned(
-        &mut self,
-        log_ns: u64,
-        sample: &crate::align::AlignedSample,
-    ) -> Result<(), LogError> {
-        let msg = AlignedMsg {
-            t: sample.t,
-            joints: &sample.joints,
-            position: sample.pose.position,
-            orientation_wxyz: sample.pose.orientation,
-        };
-        self.write(Topic::Aligned, log_ns, &msg)
-    }
-
-    /// A human-readable event.
-    pub fn event(&mut self, log_ns: u64, level: Level, message: &str) -> Result<(), LogError> {
-        let msg = LogMessage {
-            timestamp: Time::from_ns(log_ns),
-            level: level as u8,
-            message,
-            name: "exocald",
-            file: "",
-            line: 0,
-        };
-        self.write(Topic::Events, log_ns, &msg)
+    /// Writes `record` (see [`Record`]) at log time `log_ns`.
+    pub fn write_record(&mut self, log_ns: u64, record: &Record<'_>) -> Result<(), LogError> {
+        match *record {
+            Record::Frame { sent, frame } => {
+                let topic = if sent { Topic::CanTx } else { Topic::CanRx };
+                self.write(topic, log_ns, &frame.to_proto())
+            }
+            Record::Joint { joint, angle, rate } => self.write(
+                Topic::JointStates,
+                log_ns,
+                &joint_states(log_ns, &[(joint, angle, rate)]),
+            ),
+            Record::EePose(pose) => self.write(Topic::EePose, log_ns, &pose_in_frame(log_ns, pose)),
+            Record::Arm(links) => self.write(Topic::Tf, log_ns, &frame_transforms(log_ns, links)),
+            Record::Aligned(s) => self.write(Topic::Aligned, log_ns, &aligned_sample(s)),
+            Record::Progress(p) => self.write(Topic::Progress, log_ns, &progress(p)),
+            Record::CollectionEnd(end) => self.write(Topic::Collection, log_ns, end),
+            Record::Calibration(c) => self.write(Topic::Calibration, log_ns, c),
+            Record::Event { level, message } => {
+                self.write(Topic::Events, log_ns, &log_message(log_ns, level, message))
+            }
+        }
     }
 
     /// Closes the open chunk and syncs the file if `flush_interval` has passed since the last
@@ -486,7 +390,33 @@ impl<W: Write + Seek> SessionLog<W> {
 mod tests {
     use super::*;
     use crate::align::{AlignedSample, Pose};
+    use crate::record::Link;
+    use prost::Message as _;
     use std::io::Cursor;
+
+    fn links(p: Transform, n: usize) -> Vec<Link> {
+        (0..n)
+            .map(|i| Link {
+                parent: if i == 0 {
+                    "base_link".into()
+                } else {
+                    format!("link{i}")
+                },
+                child: format!("link{}", i + 1),
+                transform: p,
+            })
+            .collect()
+    }
+
+    fn progress_of(elapsed_s: f64) -> crate::session::Progress {
+        crate::session::Progress {
+            elapsed_s,
+            samples: 3,
+            coverage: [0.5; 7],
+            condition_number: None,
+            readiness: 0.1,
+        }
+    }
 
     fn sample(t: f64) -> AlignedSample {
         AlignedSample {
@@ -507,61 +437,79 @@ mod tests {
             let frame = CanFrameRecord {
                 id: 0x101 + (k % 7) as u32,
                 extended: false,
+                remote: false,
                 dlc: 8,
                 data: vec![k as u8; 8],
                 host_ns: ns,
                 kernel_ns: Some(ns - 1000),
             };
-            log.can_frame(false, &frame).unwrap();
-            log.joint_state(ns, (k % 7) as usize + 1, k as u32 * 10_000, 0.5, -0.1)
-                .unwrap();
+            log.write_record(
+                ns,
+                &Record::Frame {
+                    sent: false,
+                    frame: &frame,
+                },
+            )
+            .unwrap();
+            let joint = Record::Joint {
+                joint: (k % 7) as usize + 1,
+                angle: 0.5,
+                rate: -0.1,
+            };
+            log.write_record(ns, &joint).unwrap();
             if k % 5 == 0 {
                 let p = Transform {
                     translation: [0.3, 0.1, 0.0],
                     rotation_wxyz: [1.0, 0.0, 0.0, 0.0],
                 };
-                log.ee_pose(ns, &p).unwrap();
-                log.arm_transforms(ns, &[p; 7]).unwrap();
-                log.aligned(ns, &sample(k as f64 * 0.01)).unwrap();
+                log.write_record(ns, &Record::EePose(&p)).unwrap();
+                log.write_record(ns, &Record::Arm(&links(p, 8))).unwrap();
+                log.write_record(ns, &Record::Aligned(&sample(k as f64 * 0.01)))
+                    .unwrap();
             }
             log.tick(k * 10_000_000).unwrap();
         }
-        log.can_frame(
-            true,
-            &CanFrameRecord {
-                id: 0x301,
-                extended: false,
-                dlc: 8,
-                data: vec![1; 8],
-                host_ns: t0,
-                kernel_ns: None,
+        let sent = CanFrameRecord {
+            id: 0x301,
+            extended: false,
+            remote: false,
+            dlc: 8,
+            data: vec![1; 8],
+            host_ns: t0,
+            kernel_ns: None,
+        };
+        log.write_record(
+            t0,
+            &Record::Frame {
+                sent: true,
+                frame: &sent,
             },
         )
         .unwrap();
-        log.write(
-            Topic::Progress,
-            t0,
-            &serde_json::json!({"elapsed_s": 1.0, "samples": 3, "coverage": (vec![0.5; 7]), "condition_number": null}),
-        )
-        .unwrap();
-        log.collection_end(&CollectionEnd {
+        log.write_record(t0, &Record::Progress(&progress_of(1.0)))
+            .unwrap();
+        let end = CollectionEnd {
             frames: 250,
             window_end_ns: t0,
             unknown: 0,
             malformed: 0,
             invalid_angles: 0,
             dropped: 0,
-        })
-        .unwrap();
-        log.write(
-            Topic::Calibration,
-            t0,
-            &serde_json::json!({"before": [], "after": []}),
-        )
-        .unwrap();
-        log.event(t0, Level::Info, "session started").unwrap();
-        log.event(t0, Level::Warning, "node 3: 2 malformed frames")
+        };
+        log.write_record(t0, &Record::CollectionEnd(&end)).unwrap();
+        let calibration = proto::Calibration {
+            condition_number: 22.4,
+            ..Default::default()
+        };
+        log.write_record(t0, &Record::Calibration(&calibration))
             .unwrap();
+        for (level, message) in [
+            (Level::Info, "session started"),
+            (Level::Warning, "node 3: 2 malformed frames"),
+        ] {
+            log.write_record(t0, &Record::Event { level, message })
+                .unwrap();
+        }
         BTreeMap::from([
             ("/can/rx", 250),
             ("/can/tx", 1),
@@ -576,12 +524,27 @@ mod tests {
         ])
     }
 
+    /// Decodes a message of `topic` as the schema says, panicking if it does not.
+    fn decode_any(topic: &str, data: &[u8]) {
+        match Topic::from_name(topic).unwrap() {
+            Topic::CanRx | Topic::CanTx => drop(proto::CanFrame::decode(data).unwrap()),
+            Topic::JointStates => drop(fox::JointStates::decode(data).unwrap()),
+            Topic::EePose => drop(fox::PoseInFrame::decode(data).unwrap()),
+            Topic::Tf => drop(fox::FrameTransforms::decode(data).unwrap()),
+            Topic::Aligned => drop(proto::AlignedSample::decode(data).unwrap()),
+            Topic::Progress => drop(proto::Progress::decode(data).unwrap()),
+            Topic::Collection => drop(proto::CollectionEnd::decode(data).unwrap()),
+            Topic::Calibration => drop(proto::Calibration::decode(data).unwrap()),
+            Topic::Events => drop(fox::Log::decode(data).unwrap()),
+        }
+    }
+
     fn read_counts(bytes: &[u8]) -> BTreeMap<String, u64> {
         let mut counts = BTreeMap::new();
         for m in mcap::MessageStream::new(bytes).unwrap() {
             let m = m.unwrap();
-            // Every message is valid JSON.
-            let _: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+            // Every message decodes as its topic's type.
+            decode_any(&m.channel.topic, &m.data);
             *counts.entry(m.channel.topic.clone()).or_insert(0) += 1;
         }
         counts
@@ -613,9 +576,10 @@ mod tests {
         assert_eq!(stats.message_count, expected.values().sum::<u64>());
         for ch in summary.channels.values() {
             let schema = ch.schema.as_ref().unwrap();
-            assert_eq!(schema.encoding, "jsonschema");
-            let _: serde_json::Value = serde_json::from_slice(&schema.data).unwrap();
-            assert_eq!(ch.message_encoding, "json");
+            let topic = Topic::from_name(&ch.topic).unwrap();
+            assert_eq!(schema.name, topic.message_type());
+            assert_eq!(schema.encoding, "protobuf");
+            assert_eq!(ch.message_encoding, "protobuf");
         }
         // ~250 messages at 10 ms over 2.5 s with a 0.5 s flush: several chunks, all zstd.
         assert!(
@@ -636,49 +600,45 @@ mod tests {
             translation: [1.0, 2.0, 3.0],
             rotation_wxyz: [0.5, 0.5, 0.5, 0.5],
         };
-        log.ee_pose(1_500_000_123, &p).unwrap();
-        log.arm_transforms(7, &[p, p]).unwrap();
-        log.joint_state(5, 3, 42, 0.25, 1.5).unwrap();
+        log.write_record(1_500_000_123, &Record::EePose(&p))
+            .unwrap();
+        log.write_record(7, &Record::Arm(&links(p, 2))).unwrap();
+        let joint = Record::Joint {
+            joint: 3,
+            angle: 0.25,
+            rate: 1.5,
+        };
+        log.write_record(5, &joint).unwrap();
         let bytes = {
             let SessionLog { mut writer, .. } = log;
             writer.finish().unwrap();
             writer.into_inner().into_inner()
         };
-        let msgs: Vec<(String, serde_json::Value)> = mcap::MessageStream::new(&bytes)
+        let msgs: Vec<_> = mcap::MessageStream::new(&bytes)
             .unwrap()
-            .map(|m| {
-                let m = m.unwrap();
-                (
-                    m.channel.topic.clone(),
-                    serde_json::from_slice(&m.data).unwrap(),
-                )
-            })
+            .map(|m| m.unwrap())
             .collect();
-        let pose = &msgs[0].1;
-        assert_eq!(pose["timestamp"]["sec"], 1);
-        assert_eq!(pose["timestamp"]["nsec"], 500_000_123);
-        assert_eq!(pose["frame_id"], "base");
-        assert_eq!(pose["pose"]["orientation"]["w"], 0.5);
-        assert_eq!(pose["pose"]["position"]["z"], 3.0);
-        let tf = &msgs[1].1["transforms"];
-        assert_eq!(tf[0]["parent_frame_id"], "base");
-        assert_eq!(tf[0]["child_frame_id"], "link1");
-        assert_eq!(tf[1]["parent_frame_id"], "link1");
-        assert_eq!(tf[1]["child_frame_id"], "link2");
-        let js = &msgs[2].1;
-        assert_eq!(js["name"][0], "joint3");
-        assert_eq!(js["position"][0], 0.25);
-        assert_eq!(js["velocity"][0], 1.5);
-        assert_eq!(js["node_timestamp_us"], 42);
-    }
-
-    #[test]
-    fn schemas_are_valid_json_with_their_titles() {
-        for t in Topic::ALL {
-            let (name, text) = t.schema();
-            let v: serde_json::Value = serde_json::from_str(text).unwrap();
-            assert_eq!(v["title"], name, "{}", t.name());
-        }
+        assert_eq!(
+            msgs[0].channel.schema.as_ref().unwrap().name,
+            "foxglove.PoseInFrame"
+        );
+        let pose = fox::PoseInFrame::decode(&msgs[0].data[..]).unwrap();
+        let t = pose.timestamp.unwrap();
+        assert_eq!((t.sec(), t.nsec()), (1, 500_000_123));
+        assert_eq!(pose.frame_id, "base_link");
+        let inner = pose.pose.unwrap();
+        assert_eq!(inner.orientation.unwrap().w, 0.5);
+        assert_eq!(inner.position.unwrap().z, 3.0);
+        let tf = fox::FrameTransforms::decode(&msgs[1].data[..]).unwrap();
+        assert_eq!(tf.transforms[0].parent_frame_id, "base_link");
+        assert_eq!(tf.transforms[0].child_frame_id, "link1");
+        assert_eq!(tf.transforms[1].parent_frame_id, "link1");
+        assert_eq!(tf.transforms[1].child_frame_id, "link2");
+        let js = fox::JointStates::decode(&msgs[2].data[..]).unwrap();
+        assert_eq!(js.joints[0].name, "joint3");
+        assert_eq!(js.joints[0].position, Some(0.25));
+        assert_eq!(js.joints[0].velocity, Some(1.5));
+        assert_eq!(msgs[2].sequence, 1, "numbered per topic");
     }
 
     #[test]
@@ -702,13 +662,17 @@ mod tests {
             .to_str()
             .unwrap()
             .starts_with("exocal-20231114T2213"));
+        let event = |message| Record::Event {
+            level: Level::Info,
+            message,
+        };
         for k in 0..100u64 {
-            log.event(t0 + k, Level::Info, "flushed").unwrap();
+            log.write_record(t0 + k, &event("flushed")).unwrap();
         }
         log.tick(0).unwrap();
         assert!(log.tick(200).unwrap());
         for k in 0..10u64 {
-            log.event(t0 + 1000 + k, Level::Info, "not flushed")
+            log.write_record(t0 + 1000 + k, &event("not flushed"))
                 .unwrap();
         }
         // Simulate kill -9: forget the writer without finishing (no Drop runs).
@@ -718,8 +682,8 @@ mod tests {
         for m in mcap::MessageStream::new(&bytes).unwrap() {
             match m {
                 Ok(m) => {
-                    let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
-                    assert_eq!(v["message"], "flushed");
+                    let v = fox::Log::decode(&m.data[..]).unwrap();
+                    assert_eq!(v.message, "flushed");
                     ok += 1;
                 }
                 Err(_) => break,
@@ -733,15 +697,16 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
-    /// Cross-check with another implementation: Python's `mcap`, every CRC validated.
+    /// Cross-check with another implementation: Python's `mcap`, every CRC validated, every
+    /// message decoded by `mcap-protobuf-support` from the schemas in the file alone.
     /// Run: `EXOCAL_PYTHON=<venv>/bin/python cargo test -p exocald -- --ignored python`.
     #[test]
     #[ignore = "needs the project venv (EXOCAL_PYTHON): `cargo xtask test` runs it"]
-    fn python_mcap_reader_validates_crcs_and_counts() {
+    fn python_mcap_reader_validates_crcs_and_decodes_the_samples() {
         let python = std::env::var("EXOCAL_PYTHON").unwrap_or_else(|_| "python3".into());
         let dir = std::env::temp_dir().join(format!("exocald-py-{}", std::process::id()));
-        let (path, mut log) =
-            SessionLog::create_in(&dir, 1_700_000_000_000_000_000, 500_000_000).unwrap();
+        let t0 = 1_700_000_000_000_000_000u64;
+        let (path, mut log) = SessionLog::create_in(&dir, t0, 500_000_000).unwrap();
         let expected = write_session(&mut log);
         log.finish().unwrap();
         let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tools/check_mcap.py");
@@ -755,12 +720,35 @@ mod tests {
             "python mcap reader failed: {}",
             String::from_utf8_lossy(&out.stderr)
         );
-        let got: BTreeMap<String, u64> = serde_json::from_slice(&out.stdout).unwrap();
+        let got: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        let counts: BTreeMap<String, u64> = serde_json::from_value(got["counts"].clone()).unwrap();
         let expected: BTreeMap<String, u64> = expected
             .into_iter()
             .map(|(k, v)| (k.to_string(), v))
             .collect();
-        assert_eq!(got, expected);
+        assert_eq!(counts, expected);
+        // The same samples as written (see `write_session`).
+        let s = &got["samples"];
+        assert_eq!(
+            s["can_rx"],
+            serde_json::json!({"id": 0x101, "flags": 0, "dlc": 8, "data": [0, 0, 0, 0, 0, 0, 0, 0],
+                "kernel_ns": t0 - 1000, "host_ns": t0})
+        );
+        assert_eq!(
+            s["joint_state"],
+            serde_json::json!({"name": "joint1", "position": 0.5, "velocity": -0.1,
+                "sec": 1_700_000_000u64, "nsec": 0})
+        );
+        assert_eq!(
+            s["aligned"],
+            serde_json::json!({"t": 0.0, "joints": [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6]})
+        );
+        assert_eq!(s["collection_frames"], 250);
+        assert_eq!(s["condition_number"], 22.4);
+        assert_eq!(
+            s["event"],
+            serde_json::json!({"level": 2, "message": "session started"})
+        );
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

@@ -458,6 +458,7 @@ pub fn recover_in_memory(bytes: &[u8]) -> Result<(Recovery, Vec<u8>), RecoverErr
 mod tests {
     use super::*;
     use crate::mcaplog::{CanFrameRecord, Level, SessionLog, Topic};
+    use crate::record::Record;
     use std::collections::BTreeMap;
 
     /// A finished session log of 30 flushed chunks (two message kinds each), its bytes.
@@ -473,15 +474,30 @@ mod tests {
                 let frame = CanFrameRecord {
                     id: 0x101 + (i % 7) as u32,
                     extended: false,
+                    remote: false,
                     dlc: 2,
                     data: vec![k as u8, i as u8],
                     host_ns: ns,
                     kernel_ns: Some(ns),
                 };
-                log.can_frame(false, &frame).unwrap();
-            }
-            log.event(t0 + k * 100_000_000, Level::Info, &format!("chunk {k}"))
+                log.write_record(
+                    ns,
+                    &Record::Frame {
+                        sent: false,
+                        frame: &frame,
+                    },
+                )
                 .unwrap();
+            }
+            let message = format!("chunk {k}");
+            log.write_record(
+                t0 + k * 100_000_000,
+                &Record::Event {
+                    level: Level::Info,
+                    message: &message,
+                },
+            )
+            .unwrap();
             assert!(log.tick((k + 1) * 2_000).unwrap(), "chunk {k} flushed");
         }
         log.finish().unwrap();

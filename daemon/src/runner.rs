@@ -31,11 +31,12 @@ use crate::collect::{Collected, Collector};
 use crate::config::{Config, JOINTS};
 use crate::exit::DaemonError;
 use crate::ingest::{ClockReport, Event, FrameStats, StallReport};
-use crate::mcaplog::{
-    CanFrameRecord, CollectionEnd, Counts, Level, LogError, SessionLog, Topic, Transform,
-};
+use crate::live::LiveView;
+use crate::mcaplog::{CollectionEnd, Counts, Level, LogError, SessionLog};
 use crate::pipeline::{self, Calibrated, Outcome};
 use crate::push::{push_tables, PushObserver, PushReport};
+use crate::record::{self, Transform};
+use crate::recorder::Recorder;
 use crate::report::{Notifier, Reporter};
 use crate::session::Phase;
 
@@ -154,21 +155,10 @@ fn ns(d: Duration) -> u64 {
     d.as_nanos().min(u128::from(u64::MAX)) as u64
 }
 
-fn record(frame: &Frame, t: Duration) -> CanFrameRecord {
-    use exocal_bus::embedded_can::Frame as _;
-    CanFrameRecord {
-        id: frame.raw_id(),
-        extended: frame.is_extended(),
-        dlc: frame.dlc() as u8,
-        data: frame.data().to_vec(),
-        host_ns: ns(t),
-        kernel_ns: Some(ns(t)),
-    }
-}
-
-/// The log, the notifier and the reporter, and the real-time start, bundled for the loop.
+/// The log (and the session's other observers), the notifier and the reporter, and the
+/// real-time start, bundled for the loop.
 struct Io<'a> {
-    log: SessionLog<BufWriter<std::fs::File>>,
+    log: Recorder<'a, BufWriter<std::fs::File>>,
     notifier: &'a mut Notifier,
     reporter: &'a mut Reporter,
     started: Instant,
@@ -207,7 +197,7 @@ impl Io<'_> {
     }
 
     fn frame(&mut self, sent: bool, frame: &Frame, t: Duration) {
-        let r = self.log.can_frame(sent, &record(frame, t));
+        let r = self.log.can_frame(sent, &record::frame_record(frame, t));
         self.check(r);
     }
 
@@ -217,14 +207,9 @@ impl Io<'_> {
         let t = ns(rx.timestamp);
         match collector.on_frame(rx) {
             Event::Joint {
-                joint,
-                node_timestamp_us,
-                angle,
-                rate,
+                joint, angle, rate, ..
             } => {
-                let r = self
-                    .log
-                    .joint_state(t, joint + 1, node_timestamp_us, angle, rate);
+                let r = self.log.joint_state(t, joint + 1, angle, rate);
                 self.check(r);
             }
             Event::Pose(p) => {
@@ -282,7 +267,8 @@ pub fn node_tables(outcome: &Outcome, config: &Config) -> Result<Vec<(NodeId, Ta
         .collect()
 }
 
-/// Runs one session on `bus` (see the module docs). `clock` is the bus clock.
+/// Runs one session on `bus` (see the module docs). `clock` is the bus clock. With
+/// `[live] enabled`, the live view serves the session (started here, stopped at its end).
 pub async fn run_session<T: Transport>(
     bus: &mut T,
     clock: &Clock,
@@ -291,6 +277,42 @@ pub async fn run_session<T: Transport>(
     shutdown: impl Future<Output = ()>,
     notifier: &mut Notifier,
     reporter: &mut Reporter,
+) -> Result<SessionSummary, SessionError> {
+    let live = match config.live.enabled {
+        true => Some(LiveView::start(config.live.listen, config)?),
+        false => None,
+    };
+    if let Some(live) = &live {
+        reporter.message(&format!(
+            "live view: connect Foxglove to ws://{}:{}",
+            config.live.listen.ip(),
+            live.port()
+        ));
+    }
+    run_session_with(
+        bus,
+        clock,
+        config,
+        dry_run,
+        shutdown,
+        notifier,
+        reporter,
+        live.as_ref(),
+    )
+    .await
+}
+
+/// [`run_session`] with the live view `live` (whoever started it keeps it after the session).
+#[allow(clippy::too_many_arguments)]
+pub async fn run_session_with<T: Transport>(
+    bus: &mut T,
+    clock: &Clock,
+    config: &Config,
+    dry_run: bool,
+    shutdown: impl Future<Output = ()>,
+    notifier: &mut Notifier,
+    reporter: &mut Reporter,
+    live: Option<&LiveView>,
 ) -> Result<SessionSummary, SessionError> {
     let start = clock.now();
     let flush_ns = (config.output.flush_interval_s * 1e9) as u64;
@@ -302,7 +324,7 @@ pub async fn run_session<T: Transport>(
             )
         })?;
     let mut io = Io {
-        log,
+        log: Recorder::new(log, live),
         notifier,
         reporter,
         started: Instant::now(),
@@ -437,7 +459,7 @@ impl<T: Transport> Live<'_, '_, T> {
                     let session = &self.collector.session;
                     let progress = session.progress(elapsed);
                     self.io.reporter.update(&progress, required, self.io.notifier);
-                    let r = self.io.log.write(Topic::Progress, ns(self.clock.now()), &progress);
+                    let r = self.io.log.progress(ns(self.clock.now()), &progress);
                     self.io.check(r);
                     match session.phase(elapsed) {
                         Phase::Collecting => {}
@@ -602,20 +624,20 @@ impl<T: Transport> Live<'_, '_, T> {
         let table = calibrated.outcome.table();
         let step = ((self.config.session.grid_hz / TF_HZ).round() as usize).max(1);
         for s in collected.samples.iter().step_by(step) {
-            let links = crate::mcaplog::link_transforms(&table, &s.joints);
+            let links = record::arm_transforms(&table, &s.joints);
             let r = self.io.log.arm_transforms(self.log_time(s.t), &links);
             self.io.check(r);
         }
         let s = &self.summary;
-        let record = serde_json::json!({
-            "outcome": &calibrated.outcome,
-            "frames": &s.frames,
-            "clocks": &s.clocks,
-            "aligned_samples": s.aligned_samples,
-            "gaps": s.gaps,
-        });
+        let record = record::calibration_record(
+            &calibrated.outcome,
+            &s.clocks,
+            s.aligned_samples,
+            s.gaps,
+            None,
+        );
         let now = self.clock.now();
-        let r = self.io.log.write(Topic::Calibration, ns(now), &record);
+        let r = self.io.log.calibration(ns(now), &record);
         self.io.check(r);
         let v = &calibrated.outcome.verdict;
         self.io.event(
@@ -663,7 +685,15 @@ impl<T: Transport> Live<'_, '_, T> {
         for line in report.lines() {
             self.io.event(now, Level::Info, &line);
         }
-        let r = self.io.log.write(Topic::Calibration, ns(now), &report);
+        let s = &self.summary;
+        let record = record::calibration_record(
+            outcome,
+            &s.clocks,
+            s.aligned_samples,
+            s.gaps,
+            Some(&report),
+        );
+        let r = self.io.log.calibration(ns(now), &record);
         self.io.check(r);
         let failed: Vec<String> = report
             .lines()

@@ -27,6 +27,7 @@ fn pushed_session(dir: &Path) -> (Config, SessionSummary) {
         seed: 3,
         speed: 1e6,
         output: dir.to_path_buf(),
+        hold: false,
     };
     let mut config = exocald::demo::demo_config(Config::default_config(), dir, 1.0);
     config.session.min_duration_s = 20.0;

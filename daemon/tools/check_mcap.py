@@ -1,17 +1,22 @@
 #!/usr/bin/env python3
-"""Reads an exocald MCAP log with the Python `mcap` package, validating every CRC.
+"""Reads an exocald MCAP log with the Python `mcap` package, validating every CRC and decoding
+every message with the protobuf schemas the file carries (`mcap-protobuf-support`: no generated
+code, the same way Foxglove reads it).
 
 Usage: check_mcap.py FILE.mcap
-Prints a JSON object {topic: message count} on stdout; exits non-zero (with the reason on
-stderr) if the file is not a valid, finished MCAP, a CRC does not match, or a message is not
-valid JSON. Setup: `python3 -m venv .venv && .venv/bin/pip install mcap zstandard`.
+Prints a JSON object on stdout: {"counts": {topic: message count}, "samples": {...}} where
+samples are decoded values the Rust test compares with what it wrote (the first /can/rx frame,
+the first joint state, the first aligned sample, the collection end, the calibration's condition
+number); exits non-zero (with the reason on stderr) if the file is not a valid, finished MCAP, a
+CRC does not match, or a message does not decode. Setup: `pip install -r tests/requirements.txt`.
 """
 import json
 import sys
 
 from mcap.reader import make_reader
-from mcap.stream_reader import StreamReader
 from mcap.records import Footer
+from mcap.stream_reader import StreamReader
+from mcap_protobuf.decoder import DecoderFactory
 
 
 def main(path: str) -> int:
@@ -24,16 +29,49 @@ def main(path: str) -> int:
     if not footer_seen:
         print(f"{path}: no footer (file not finished)", file=sys.stderr)
         return 1
-    # 2. Indexed read through the summary, chunk CRCs checked again, messages decoded.
+    # 2. Indexed read through the summary, chunk CRCs checked again, every message decoded
+    #    with its channel's protobuf schema.
     counts = {}
+    samples = {}
     with open(path, "rb") as f:
-        reader = make_reader(f, validate_crcs=True)
+        reader = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
         summary = reader.get_summary()
         for channel in summary.channels.values():
             counts.setdefault(channel.topic, 0)
-        for _schema, channel, message in reader.iter_messages():
-            json.loads(message.data)
+            if channel.message_encoding != "protobuf":
+                print(f"{path}: {channel.topic} is {channel.message_encoding}", file=sys.stderr)
+                return 1
+        for _schema, channel, message, proto in reader.iter_decoded_messages():
             counts[channel.topic] += 1
+            if counts[channel.topic] != 1 and channel.topic != "/calibration":
+                continue
+            if channel.topic == "/can/rx":
+                samples["can_rx"] = {
+                    "id": proto.id,
+                    "flags": proto.flags,
+                    "dlc": proto.dlc,
+                    "data": list(proto.data),
+                    "kernel_ns": proto.kernel_ns,
+                    "host_ns": proto.host_ns,
+                }
+            elif channel.topic == "/joint_states":
+                j = proto.joints[0]
+                samples["joint_state"] = {
+                    "name": j.name,
+                    "position": j.position,
+                    "velocity": j.velocity,
+                    # foxglove's timestamps are google.protobuf.Timestamp
+                    "sec": proto.timestamp.seconds,
+                    "nsec": proto.timestamp.nanos,
+                }
+            elif channel.topic == "/aligned":
+                samples["aligned"] = {"t": proto.t, "joints": list(proto.joints)}
+            elif channel.topic == "/collection":
+                samples["collection_frames"] = proto.frames
+            elif channel.topic == "/calibration":
+                samples["condition_number"] = proto.condition_number
+            elif channel.topic == "/events":
+                samples["event"] = {"level": proto.level, "message": proto.message}
         stats = summary.statistics
         if stats is not None and stats.message_count != sum(counts.values()):
             print(
@@ -41,7 +79,7 @@ def main(path: str) -> int:
                 file=sys.stderr,
             )
             return 1
-    print(json.dumps(counts, sort_keys=True))
+    print(json.dumps({"counts": counts, "samples": samples}, sort_keys=True))
     return 0
 
 

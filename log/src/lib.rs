@@ -1,26 +1,60 @@
 //! The session log's schema, defined once: the MCAP topics of an exocald session log, their
-//! message types and JSON Schemas. The daemon writes with it (`exocald::mcaplog`), every
+//! message types, schemas and encoding. The daemon writes with it (`exocald::mcaplog`), every
 //! reader reads with it (the offline replay and the report's readers); a change of the log's
 //! layout or encoding is a change here.
 //!
 //! Contract:
 //! - every topic of [`Topic::ALL`] is a channel of every session log, even when empty;
-//!   messages are JSON ([`MESSAGE_ENCODING`]) described by a JSON Schema ([`SCHEMA_ENCODING`],
-//!   [`Topic::schema`]), readable by Foxglove and by any `mcap` reader without generated code;
-//! - [`CanFrameRecord`] is a raw frame on `/can/rx` and `/can/tx`;
+//!   messages are protobuf ([`MESSAGE_ENCODING`]) with protobuf schemas ([`Topic::schema`]:
+//!   a `FileDescriptorSet`), so Foxglove and any MCAP reader decode them without generated
+//!   code. Poses, transforms, joint states and events use Foxglove's well-known schemas
+//!   ([`fox`]); raw frames and the rest are ours ([`proto`], from `proto/exocal.proto`);
+//! - [`CanFrameRecord`] is a raw frame on `/can/rx` and `/can/tx` ([`proto::CanFrame`] in the
+//!   file);
 //! - [`CollectionEnd`] on `/collection` is written once, when the session stops collecting: a
 //!   replay calibrates on exactly the first [`CollectionEnd::frames`] frames of `/can/rx`, as
-//!   the live session did; a log without it never finished collecting.
+//!   the live session did; a log without it never finished collecting;
+//! - logs written before the log was binary (JSON messages, [`LEGACY_MESSAGE_ENCODING`]) stay
+//!   readable: [`decode_can_frame`] and [`decode_collection_end`] read either encoding, by the
+//!   channel's message encoding.
 
 #![deny(unsafe_code)]
 #![warn(missing_docs)]
 
+use std::borrow::Cow;
+use std::fmt;
+
 use serde::{Deserialize, Serialize};
 
 /// The encoding of every message.
-pub const MESSAGE_ENCODING: &str = "json";
-/// The encoding of every schema.
-pub const SCHEMA_ENCODING: &str = "jsonschema";
+pub const MESSAGE_ENCODING: &str = "protobuf";
+/// The encoding of every schema (a serialized `google.protobuf.FileDescriptorSet`).
+pub const SCHEMA_ENCODING: &str = "protobuf";
+/// The message encoding of logs written before the log was binary (JSON with JSON Schemas).
+pub const LEGACY_MESSAGE_ENCODING: &str = "json";
+
+/// Our message types, generated from `proto/exocal.proto` (package `exocal`).
+#[allow(missing_docs, clippy::doc_markdown)]
+pub mod proto {
+    include!(concat!(env!("OUT_DIR"), "/exocal.rs"));
+
+    /// [`CanFrame::flags`] bit: a 29-bit identifier.
+    pub const FLAG_EXTENDED: u32 = 1;
+    /// [`CanFrame::flags`] bit: a remote-transmission request.
+    pub const FLAG_REMOTE: u32 = 2;
+
+    /// The `FileDescriptorSet` of `exocal.proto`: the schema data of every `exocal.*` message.
+    pub const DESCRIPTOR_SET: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/exocal.bin"));
+}
+
+/// Foxglove's well-known message types the log uses.
+pub mod fox {
+    pub use foxglove::schemas::log::Level as LogLevel;
+    pub use foxglove::schemas::{
+        FrameTransform, FrameTransforms, JointState, JointStates, Log, Pose, PoseInFrame,
+        Quaternion, Timestamp, Vector3,
+    };
+}
 
 /// The log's topics.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -45,6 +79,36 @@ pub enum Topic {
     Calibration,
     /// What happened, human-readable.
     Events,
+}
+
+/// A channel's schema: name, encoding and data, as MCAP stores it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Schema {
+    /// The fully qualified message name (`foxglove.JointStates`, `exocal.CanFrame`).
+    pub name: &'static str,
+    /// [`SCHEMA_ENCODING`].
+    pub encoding: &'static str,
+    /// A serialized `FileDescriptorSet` that defines `name`.
+    pub data: Cow<'static, [u8]>,
+}
+
+fn ours(name: &'static str) -> Schema {
+    Schema {
+        name,
+        encoding: SCHEMA_ENCODING,
+        data: Cow::Borrowed(proto::DESCRIPTOR_SET),
+    }
+}
+
+fn foxglove_schema<T: foxglove::Encode>(name: &'static str) -> Schema {
+    let s = T::get_schema().expect("Foxglove's well-known types have a schema");
+    debug_assert_eq!(s.name, name);
+    debug_assert_eq!(s.encoding, SCHEMA_ENCODING);
+    Schema {
+        name,
+        encoding: SCHEMA_ENCODING,
+        data: s.data,
+    }
 }
 
 impl Topic {
@@ -83,18 +147,30 @@ impl Topic {
         Topic::ALL.into_iter().find(|t| t.name() == name)
     }
 
-    /// Schema name and JSON Schema text.
-    pub fn schema(self) -> (&'static str, &'static str) {
+    /// The fully qualified name of the topic's message type.
+    pub const fn message_type(self) -> &'static str {
         match self {
-            Topic::CanRx | Topic::CanTx => ("exocal.CanFrame", schemas::CAN_FRAME),
-            Topic::JointStates => ("exocal.JointState", schemas::JOINT_STATE),
-            Topic::EePose => ("foxglove.PoseInFrame", schemas::POSE_IN_FRAME),
-            Topic::Tf => ("foxglove.FrameTransforms", schemas::FRAME_TRANSFORMS),
-            Topic::Aligned => ("exocal.AlignedSample", schemas::ALIGNED),
-            Topic::Progress => ("exocal.Progress", schemas::PROGRESS),
-            Topic::Collection => ("exocal.CollectionEnd", schemas::COLLECTION_END),
-            Topic::Calibration => ("exocal.Calibration", schemas::CALIBRATION),
-            Topic::Events => ("foxglove.Log", schemas::LOG),
+            Topic::CanRx | Topic::CanTx => "exocal.CanFrame",
+            Topic::JointStates => "foxglove.JointStates",
+            Topic::EePose => "foxglove.PoseInFrame",
+            Topic::Tf => "foxglove.FrameTransforms",
+            Topic::Aligned => "exocal.AlignedSample",
+            Topic::Progress => "exocal.Progress",
+            Topic::Collection => "exocal.CollectionEnd",
+            Topic::Calibration => "exocal.Calibration",
+            Topic::Events => "foxglove.Log",
+        }
+    }
+
+    /// The topic's schema.
+    pub fn schema(self) -> Schema {
+        let name = self.message_type();
+        match self {
+            Topic::JointStates => foxglove_schema::<fox::JointStates>(name),
+            Topic::EePose => foxglove_schema::<fox::PoseInFrame>(name),
+            Topic::Tf => foxglove_schema::<fox::FrameTransforms>(name),
+            Topic::Events => foxglove_schema::<fox::Log>(name),
+            _ => ours(name),
         }
     }
 
@@ -104,77 +180,22 @@ impl Topic {
     }
 }
 
-/// JSON Schemas of the messages (Foxglove's well-known ones reduced to their required fields).
-pub mod schemas {
-
-    macro_rules! with_time {
-        ($head:literal, $tail:literal) => {
-            concat!(
-                $head,
-                r#"{"type":"object","properties":{"sec":{"type":"integer","minimum":0},"nsec":{"type":"integer","minimum":0,"maximum":999999999}}}"#,
-                $tail
-            )
-        };
-    }
-
-    /// `exocal.CanFrame`.
-    pub const CAN_FRAME: &str = r#"{"title":"exocal.CanFrame","type":"object","properties":{"id":{"type":"integer"},"extended":{"type":"boolean"},"dlc":{"type":"integer"},"data":{"type":"array","items":{"type":"integer"}},"host_ns":{"type":"integer"},"kernel_ns":{"type":["integer","null"]}},"required":["id","extended","dlc","data","host_ns"]}"#;
-    /// `exocal.JointState` (ROS `sensor_msgs/JointState` shape).
-    pub const JOINT_STATE: &str = with_time!(
-        r#"{"title":"exocal.JointState","type":"object","properties":{"header":{"type":"object","properties":{"frame_id":{"type":"string"},"stamp":"#,
-        r#"}},"name":{"type":"array","items":{"type":"string"}},"position":{"type":"array","items":{"type":"number"}},"velocity":{"type":"array","items":{"type":"number"}},"node_timestamp_us":{"type":"integer"}},"required":["header","name","position","velocity"]}"#
-    );
-    /// `foxglove.PoseInFrame`.
-    pub const POSE_IN_FRAME: &str = with_time!(
-        r#"{"title":"foxglove.PoseInFrame","type":"object","properties":{"timestamp":"#,
-        r#","frame_id":{"type":"string"},"pose":{"type":"object","properties":{"position":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"}}},"orientation":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"},"w":{"type":"number"}}}}}},"required":["timestamp","frame_id","pose"]}"#
-    );
-    /// `foxglove.FrameTransforms`.
-    pub const FRAME_TRANSFORMS: &str = with_time!(
-        r#"{"title":"foxglove.FrameTransforms","type":"object","properties":{"transforms":{"type":"array","items":{"type":"object","properties":{"timestamp":"#,
-        r#","parent_frame_id":{"type":"string"},"child_frame_id":{"type":"string"},"translation":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"}}},"rotation":{"type":"object","properties":{"x":{"type":"number"},"y":{"type":"number"},"z":{"type":"number"},"w":{"type":"number"}}}},"required":["timestamp","parent_frame_id","child_frame_id","translation","rotation"]}}},"required":["transforms"]}"#
-    );
-    /// `exocal.AlignedSample`.
-    pub const ALIGNED: &str = r#"{"title":"exocal.AlignedSample","type":"object","properties":{"t":{"type":"number"},"joints":{"type":"array","items":{"type":"number"}},"position":{"type":"array","items":{"type":"number"}},"orientation_wxyz":{"type":"array","items":{"type":"number"}}},"required":["t","joints","position","orientation_wxyz"]}"#;
-    /// `exocal.Progress`.
-    pub const PROGRESS: &str = r#"{"title":"exocal.Progress","type":"object","properties":{"elapsed_s":{"type":"number"},"samples":{"type":"integer"},"coverage":{"type":"array","items":{"type":"number"}},"condition_number":{"type":["number","null"]}},"required":["elapsed_s","samples","coverage"]}"#;
-    /// `exocal.CollectionEnd`.
-    pub const COLLECTION_END: &str = r#"{"title":"exocal.CollectionEnd","type":"object","properties":{"frames":{"type":"integer","minimum":0,"description":"frames received in the window: a replay calibrates on the first this many of /can/rx"},"window_end_ns":{"type":"integer","minimum":0},"unknown":{"type":"integer","minimum":0},"malformed":{"type":"integer","minimum":0},"invalid_angles":{"type":"integer","minimum":0},"dropped":{"type":"integer","minimum":0,"description":"frames the kernel dropped for this receiver (SO_RXQ_OVFL)"}},"required":["frames","window_end_ns","unknown","malformed","invalid_angles","dropped"]}"#;
-    /// `exocal.Calibration` (free-form object: see the daemon's calibration report).
-    pub const CALIBRATION: &str = r#"{"title":"exocal.Calibration","type":"object","description":"tables before/after, drift tau and sigma, metrics, validation verdict"}"#;
-    /// `foxglove.Log`.
-    pub const LOG: &str = with_time!(
-        r#"{"title":"foxglove.Log","type":"object","properties":{"timestamp":"#,
-        r#","level":{"type":"integer","description":"0 unknown, 1 debug, 2 info, 3 warning, 4 error, 5 fatal"},"message":{"type":"string"},"name":{"type":"string"},"file":{"type":"string"},"line":{"type":"integer","minimum":0}},"required":["timestamp","level","message","name","file","line"]}"#
-    );
-}
-
-/// Foxglove/ROS time `{sec, nsec}`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub struct Time {
-    /// Whole seconds.
-    pub sec: u64,
-    /// Nanoseconds, below 1e9.
-    pub nsec: u32,
-}
-
-impl Time {
-    /// From nanoseconds.
-    pub fn from_ns(ns: u64) -> Time {
-        Time {
-            sec: ns / 1_000_000_000,
-            nsec: (ns % 1_000_000_000) as u32,
-        }
-    }
+/// Nanoseconds since the epoch as a Foxglove timestamp (saturating after 2106).
+pub fn timestamp(ns: u64) -> fox::Timestamp {
+    let sec = u32::try_from(ns / 1_000_000_000).unwrap_or(u32::MAX);
+    fox::Timestamp::new(sec, (ns % 1_000_000_000) as u32)
 }
 
 /// A raw CAN frame as logged.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct CanFrameRecord {
     /// The identifier (11 or 29 bits).
     pub id: u32,
     /// A 29-bit identifier.
     pub extended: bool,
+    /// A remote-transmission request (no data).
+    #[serde(default)]
+    pub remote: bool,
     /// Data length code.
     pub dlc: u8,
     /// The data bytes (at most 8: classic CAN).
@@ -183,6 +204,40 @@ pub struct CanFrameRecord {
     pub host_ns: u64,
     /// Kernel receive timestamp (ns since the epoch), when the socket provides one.
     pub kernel_ns: Option<u64>,
+}
+
+impl CanFrameRecord {
+    /// The message as written.
+    pub fn to_proto(&self) -> proto::CanFrame {
+        let mut flags = 0;
+        if self.extended {
+            flags |= proto::FLAG_EXTENDED;
+        }
+        if self.remote {
+            flags |= proto::FLAG_REMOTE;
+        }
+        proto::CanFrame {
+            id: self.id,
+            flags,
+            dlc: u32::from(self.dlc),
+            data: self.data.clone(),
+            kernel_ns: self.kernel_ns.unwrap_or(0),
+            host_ns: self.host_ns,
+        }
+    }
+
+    /// The record of a message as read; `None` for a DLC above 15.
+    pub fn from_proto(m: proto::CanFrame) -> Option<CanFrameRecord> {
+        Some(CanFrameRecord {
+            id: m.id,
+            extended: m.flags & proto::FLAG_EXTENDED != 0,
+            remote: m.flags & proto::FLAG_REMOTE != 0,
+            dlc: u8::try_from(m.dlc).ok().filter(|&d| d <= 15)?,
+            data: m.data,
+            host_ns: m.host_ns,
+            kernel_ns: (m.kernel_ns != 0).then_some(m.kernel_ns),
+        })
+    }
 }
 
 /// Severity of an event (foxglove.Log levels).
@@ -198,30 +253,83 @@ pub enum Level {
     Error = 4,
 }
 
-/// The end of the collection window, on `/collection` (see the crate docs).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub struct CollectionEnd {
-    /// Frames received in the window: the live session calibrated on exactly the first this
-    /// many frames of `/can/rx` (frames after them arrived while it calibrated and pushed).
-    pub frames: u64,
-    /// When the window closed (log time, ns since the epoch).
-    pub window_end_ns: u64,
-    /// Of `frames`, not frames of the DBC.
-    pub unknown: u64,
-    /// Of `frames`, DBC frames that did not decode.
-    pub malformed: u64,
-    /// Joint angles rejected as invalid.
-    pub invalid_angles: u64,
-    /// Frames the kernel dropped for this receiver (`SO_RXQ_OVFL`).
-    pub dropped: u64,
+impl From<Level> for fox::LogLevel {
+    fn from(l: Level) -> Self {
+        match l {
+            Level::Debug => fox::LogLevel::Debug,
+            Level::Info => fox::LogLevel::Info,
+            Level::Warning => fox::LogLevel::Warning,
+            Level::Error => fox::LogLevel::Error,
+        }
+    }
+}
+
+/// The end of the collection window, on `/collection` (see the crate docs and
+/// `proto/exocal.proto`).
+pub type CollectionEnd = proto::CollectionEnd;
+
+/// A message that does not decode: which encoding, and why.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DecodeError {
+    /// The channel's message encoding.
+    pub encoding: String,
+    /// What is wrong.
+    pub what: String,
+}
+
+impl fmt::Display for DecodeError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{} message: {}", self.encoding, self.what)
+    }
+}
+
+impl std::error::Error for DecodeError {}
+
+/// Decodes a message of a channel whose message encoding is `encoding`: protobuf as written
+/// now, JSON as written before (`legacy` reads the JSON shape).
+fn decode<T: prost::Message + Default, J: serde::de::DeserializeOwned>(
+    encoding: &str,
+    data: &[u8],
+    legacy: impl FnOnce(J) -> Option<T>,
+) -> Result<T, DecodeError> {
+    let err = |what: String| DecodeError {
+        encoding: encoding.to_string(),
+        what,
+    };
+    match encoding {
+        MESSAGE_ENCODING => T::decode(data).map_err(|e| err(e.to_string())),
+        LEGACY_MESSAGE_ENCODING => {
+            let j: J = serde_json::from_slice(data).map_err(|e| err(e.to_string()))?;
+            legacy(j).ok_or_else(|| err("out of range".into()))
+        }
+        other => Err(err(format!(
+            "unknown encoding {other:?} (expected {MESSAGE_ENCODING:?}, or {LEGACY_MESSAGE_ENCODING:?} for older logs)"
+        ))),
+    }
+}
+
+/// A raw frame of `/can/rx` or `/can/tx`, in either encoding (see the crate docs).
+pub fn decode_can_frame(encoding: &str, data: &[u8]) -> Result<CanFrameRecord, DecodeError> {
+    let m: proto::CanFrame = decode(encoding, data, |r: CanFrameRecord| Some(r.to_proto()))?;
+    let dlc = m.dlc;
+    CanFrameRecord::from_proto(m).ok_or_else(|| DecodeError {
+        encoding: encoding.to_string(),
+        what: format!("DLC {dlc} (at most 15)"),
+    })
+}
+
+/// The `/collection` record, in either encoding (see the crate docs).
+pub fn decode_collection_end(encoding: &str, data: &[u8]) -> Result<CollectionEnd, DecodeError> {
+    decode(encoding, data, |r: CollectionEnd| Some(r))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use prost::Message as _;
 
     #[test]
-    fn every_topic_has_a_unique_name_and_a_schema_that_is_json() {
+    fn every_topic_has_a_unique_name_and_a_schema_that_defines_its_type() {
         let mut names: Vec<&str> = Topic::ALL.iter().map(|t| t.name()).collect();
         names.sort_unstable();
         names.dedup();
@@ -229,14 +337,32 @@ mod tests {
         for t in Topic::ALL {
             assert_eq!(Topic::from_name(t.name()), Some(t));
             assert_eq!(Topic::ALL[t.index()], t);
-            let (title, schema) = t.schema();
-            let v: serde_json::Value = serde_json::from_str(schema).expect(title);
-            assert_eq!(v["title"], title);
+            let schema = t.schema();
+            assert_eq!(schema.encoding, "protobuf");
+            let fds =
+                prost_types::FileDescriptorSet::decode(&*schema.data).expect("a FileDescriptorSet");
+            let (package, message) = schema.name.split_once('.').unwrap();
+            let defined = fds.file.iter().any(|f| {
+                f.package() == package && f.message_type.iter().any(|m| m.name() == message)
+            });
+            assert!(defined, "{}: {} not in its schema", t.name(), schema.name);
+        }
+    }
+
+    fn frame() -> CanFrameRecord {
+        CanFrameRecord {
+            id: 0x1ABC_DEF0,
+            extended: true,
+            remote: false,
+            dlc: 2,
+            data: vec![1, 2],
+            host_ns: 1_795_000_000_123_456_789,
+            kernel_ns: Some(1_795_000_000_123_000_000),
         }
     }
 
     #[test]
-    fn records_read_back_as_written() {
+    fn records_read_back_as_written_in_both_encodings() {
         let end = CollectionEnd {
             frames: 340_861,
             window_end_ns: 1_795_000_000_123_456_789,
@@ -245,27 +371,52 @@ mod tests {
             invalid_angles: 1,
             dropped: 0,
         };
-        let text = serde_json::to_string(&end).unwrap();
-        assert_eq!(serde_json::from_str::<CollectionEnd>(&text).unwrap(), end);
-        let frame = CanFrameRecord {
-            id: 0x101,
-            extended: false,
-            dlc: 2,
-            data: vec![1, 2],
-            host_ns: 5,
-            kernel_ns: None,
-        };
-        let text = serde_json::to_string(&frame).unwrap();
+        let bin = end.encode_to_vec();
+        assert_eq!(decode_collection_end("protobuf", &bin).unwrap(), end);
+        let json = serde_json::to_vec(&end).unwrap();
+        assert_eq!(decode_collection_end("json", &json).unwrap(), end);
+
+        for f in [
+            frame(),
+            CanFrameRecord {
+                remote: true,
+                extended: false,
+                id: 0x7FF,
+                data: vec![],
+                kernel_ns: None,
+                ..frame()
+            },
+        ] {
+            let bin = f.to_proto().encode_to_vec();
+            assert_eq!(decode_can_frame("protobuf", &bin).unwrap(), f);
+        }
+        // A JSON frame as the old writer wrote it (no `remote`).
+        let old =
+            br#"{"id":257,"extended":false,"dlc":2,"data":[1,2],"host_ns":5,"kernel_ns":null}"#;
+        let f = decode_can_frame("json", old).unwrap();
         assert_eq!(
-            serde_json::from_str::<CanFrameRecord>(&text).unwrap(),
-            frame
+            (f.id, f.remote, f.data, f.kernel_ns),
+            (257, false, vec![1, 2], None)
         );
-        assert_eq!(
-            Time::from_ns(1_500_000_001),
-            Time {
-                sec: 1,
-                nsec: 500_000_001
-            }
-        );
+    }
+
+    #[test]
+    fn bad_messages_name_the_encoding_and_the_problem() {
+        let e = decode_can_frame("cdr", b"").unwrap_err();
+        assert!(e.to_string().contains("unknown encoding \"cdr\""), "{e}");
+        let e = decode_can_frame("json", b"{\"id\":1}").unwrap_err();
+        assert!(e.to_string().starts_with("json message: "), "{e}");
+        let e = decode_collection_end("protobuf", &[0xFF, 0xFF]).unwrap_err();
+        assert!(e.to_string().starts_with("protobuf message: "), "{e}");
+        let mut m = frame().to_proto();
+        m.dlc = 16;
+        let e = decode_can_frame("protobuf", &m.encode_to_vec()).unwrap_err();
+        assert!(e.to_string().contains("DLC 16"), "{e}");
+    }
+
+    #[test]
+    fn timestamps_split_nanoseconds() {
+        let t = timestamp(1_500_000_001);
+        assert_eq!((t.sec(), t.nsec()), (1, 500_000_001));
     }
 }

@@ -29,7 +29,7 @@ use std::time::Duration;
 use calib_core::{Frame, Sample};
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
-use exocal_log::{CanFrameRecord, CollectionEnd, Topic};
+use exocal_log::Topic;
 
 use crate::input::{TimedSample, JOINTS};
 
@@ -226,7 +226,7 @@ pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
     for (i, message) in stream.enumerate() {
         let m = message.map_err(|e| err(e.to_string()))?;
         if m.channel.topic == Topic::Collection.name() {
-            let end: CollectionEnd = serde_json::from_slice(&m.data)
+            let end = exocal_log::decode_collection_end(&m.channel.message_encoding, &m.data)
                 .map_err(|e| err(format!("message {i} on {}: {e}", Topic::Collection.name())))?;
             if collection_end.is_none() {
                 collection_end = Some(Duration::from_nanos(end.window_end_ns));
@@ -238,13 +238,7 @@ pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
             continue;
         }
         seen_channel = true;
-        if m.channel.message_encoding != exocal_log::MESSAGE_ENCODING {
-            return Err(err(format!(
-                "{MCAP_RX_TOPIC} is {:?}-encoded, expected json",
-                m.channel.message_encoding
-            )));
-        }
-        let f: CanFrameRecord = serde_json::from_slice(&m.data)
+        let f = exocal_log::decode_can_frame(&m.channel.message_encoding, &m.data)
             .map_err(|e| err(format!("message {i} on {MCAP_RX_TOPIC}: {e}")))?;
         if f.data.len() > 8 {
             return Err(err(format!(
@@ -256,7 +250,7 @@ pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
             t: Duration::from_nanos(f.kernel_ns.unwrap_or(f.host_ns)),
             id: f.id,
             extended: f.extended,
-            remote: false,
+            remote: f.remote,
             data: f.data,
         });
     }
@@ -500,6 +494,7 @@ mod tests {
             .contains("no samples"));
     }
 
+    /// A log as written before the log was binary (JSON messages): still read.
     #[test]
     fn mcap_frames_are_read_from_the_rx_topic_only() {
         let mut buf = std::io::Cursor::new(Vec::new());
@@ -547,15 +542,16 @@ mod tests {
     }
 
     /// A log with `frames` received frames and, if given, a collection-end record after
-    /// `end_after` of them, written with the schema's names and records.
-    fn session_log(frames: u64, end: Option<(u64, &str)>) -> Vec<u8> {
+    /// `end_after` of them, written with the schema's names, types and encoding.
+    fn session_log(frames: u64, end: Option<(u64, &[u8])>) -> Vec<u8> {
+        use prost::Message as _;
         let mut buf = std::io::Cursor::new(Vec::new());
         {
             let mut w = mcap::Writer::new(&mut buf).unwrap();
             let mut channel = |t: Topic| {
-                let (name, schema) = t.schema();
+                let schema = t.schema();
                 let id = w
-                    .add_schema(name, exocal_log::SCHEMA_ENCODING, schema.as_bytes())
+                    .add_schema(schema.name, schema.encoding, &schema.data)
                     .unwrap();
                 w.add_channel(
                     id,
@@ -567,7 +563,7 @@ mod tests {
             };
             let (rx, collection) = (channel(Topic::CanRx), channel(Topic::Collection));
             let mut seq = 0;
-            let mut put = |w: &mut mcap::Writer<_>, ch: u16, t: u64, body: String| {
+            let mut put = |w: &mut mcap::Writer<_>, ch: u16, t: u64, body: &[u8]| {
                 seq += 1;
                 let header = mcap::records::MessageHeader {
                     channel_id: ch,
@@ -575,21 +571,22 @@ mod tests {
                     log_time: t,
                     publish_time: t,
                 };
-                w.write_to_known_channel(&header, body.as_bytes()).unwrap();
+                w.write_to_known_channel(&header, body).unwrap();
             };
             for i in 0..frames {
-                let f = CanFrameRecord {
+                let f = exocal_log::CanFrameRecord {
                     id: 0x100 + i as u32,
                     extended: false,
+                    remote: false,
                     dlc: 1,
                     data: vec![i as u8],
                     host_ns: 1_000 + i,
                     kernel_ns: None,
                 };
-                put(&mut w, rx, f.host_ns, serde_json::to_string(&f).unwrap());
+                put(&mut w, rx, f.host_ns, &f.to_proto().encode_to_vec());
                 if let Some((after, body)) = end {
                     if i + 1 == after {
-                        put(&mut w, collection, 5_000, body.to_string());
+                        put(&mut w, collection, 5_000, body);
                     }
                 }
             }
@@ -600,7 +597,8 @@ mod tests {
 
     #[test]
     fn the_collection_end_is_the_structured_record_not_prose() {
-        let end = CollectionEnd {
+        use prost::Message as _;
+        let end = exocal_log::CollectionEnd {
             frames: 3,
             window_end_ns: 4_999,
             unknown: 0,
@@ -608,16 +606,18 @@ mod tests {
             invalid_angles: 0,
             dropped: 0,
         };
-        let body = serde_json::to_string(&end).unwrap();
+        let body = end.encode_to_vec();
         let s = read_mcap_session(&session_log(5, Some((3, &body)))).unwrap();
         assert_eq!(s.frames.len(), 5);
+        assert_eq!(s.frames[4].data, vec![4]);
+        assert_eq!(s.frames[4].t, Duration::from_nanos(1_004));
         assert_eq!(s.collection_frames, Some(3));
         assert_eq!(s.collection_end, Some(Duration::from_nanos(4_999)));
         // A session that never finished collecting has no record: replayed whole.
         let s = read_mcap_session(&session_log(5, None)).unwrap();
         assert_eq!((s.collection_frames, s.collection_end), (None, None));
         // A damaged record is an error naming the topic, not a silent whole replay.
-        let e = read_mcap_session(&session_log(5, Some((2, r#"{"frames":"x"}"#)))).unwrap_err();
+        let e = read_mcap_session(&session_log(5, Some((2, &[0xFF, 0xFF])))).unwrap_err();
         assert!(e.to_string().contains("/collection"), "{e}");
     }
 }

@@ -6,6 +6,7 @@ use exocal_report::export::config_toml;
 use exocal_report::readers::{read_mcap_frames, read_mcap_session};
 use exocald::config::{Config, DEFAULT_TOML};
 use exocald::mcaplog::{CanFrameRecord, CollectionEnd, Level, SessionLog};
+use exocald::record::Record;
 
 #[test]
 fn the_exported_configuration_loads_in_the_daemon_with_the_calibrated_table() {
@@ -37,16 +38,25 @@ fn the_mcap_reader_reads_the_frames_the_daemon_logged() {
         let record = CanFrameRecord {
             id: 0x100 + (i % 7) as u32,
             extended: false,
+            remote: false,
             dlc: 8,
             data: (0..8).map(|b| (i as u8).wrapping_mul(b)).collect(),
             host_ns: 1_700_000_000_000_000_000 + i * 1_234_567,
             kernel_ns: (i % 2 == 0).then_some(1_700_000_000_000_000_000 + i * 1_234_567 - 5),
         };
-        log.can_frame(i % 50 == 49, &record).unwrap();
+        let sent_frame = Record::Frame {
+            sent: i % 50 == 49,
+            frame: &record,
+        };
+        log.write_record(record.host_ns, &sent_frame).unwrap();
         if i == 200 {
             // Prose is for people; the replay reads the structured record only.
             let msg = "collection done: 999 frames (0 unknown, 0 malformed)";
-            log.event(record.host_ns, Level::Info, msg).unwrap();
+            let event = Record::Event {
+                level: Level::Info,
+                message: msg,
+            };
+            log.write_record(record.host_ns, &event).unwrap();
             let end = CollectionEnd {
                 frames: 200,
                 window_end_ns: record.host_ns,
@@ -55,7 +65,8 @@ fn the_mcap_reader_reads_the_frames_the_daemon_logged() {
                 invalid_angles: 0,
                 dropped: 0,
             };
-            log.collection_end(&end).unwrap();
+            log.write_record(end.window_end_ns, &Record::CollectionEnd(&end))
+                .unwrap();
         }
         if i % 50 != 49 {
             sent.push(record);

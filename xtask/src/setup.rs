@@ -307,9 +307,9 @@ fn check_chromium(dir: &Path) -> Result<String> {
 fn check_python() -> Result<String> {
     let python = venv_python();
     process::output(
-        Command::new(&python).args(["-c", "import cantools, mcap, zstandard"]),
+        Command::new(&python).args(["-c", "import cantools, mcap, zstandard, mcap_protobuf"]),
         &format!(
-            "{} imports cantools, mcap, zstandard (cargo xtask setup makes the venv)",
+            "{} imports cantools, mcap, zstandard, mcap_protobuf (cargo xtask setup makes the venv)",
             python.display()
         ),
     )?;

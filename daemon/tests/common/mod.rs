@@ -15,6 +15,7 @@ pub fn live_session(dir: &Path, seed: u64) -> (Config, SessionSummary) {
         seed,
         speed: 1e6,
         output: dir.to_path_buf(),
+        hold: false,
     };
     let mut config = exocald::demo::demo_config(Config::default_config(), dir, 1.0);
     config.session.min_duration_s = 20.0;

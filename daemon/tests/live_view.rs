@@ -1,0 +1,183 @@
+//! The live view, end to end and in process: a WebSocket client (tokio-tungstenite, speaking the
+//! Foxglove WebSocket protocol by hand) connects to `exocald demo` with the live view on,
+//! subscribes, and receives the URDF, joint states of all seven joints, the arm's frames,
+//! collection progress and the calibration result — the same table the session pushed.
+
+use std::time::Duration;
+
+use exocal_log::{fox, proto};
+use futures_util::{SinkExt, StreamExt};
+use prost::Message as _;
+use tokio_tungstenite::tungstenite::client::IntoClientRequest;
+use tokio_tungstenite::tungstenite::Message;
+
+use exocald::config::Config;
+use exocald::demo::{demo_config, run_with, DemoOptions};
+use exocald::live::LiveView;
+
+/// What the client got, per topic.
+#[derive(Default)]
+struct Got {
+    joint_states: Vec<fox::JointStates>,
+    tf: usize,
+    progress: usize,
+    calibrations: Vec<proto::Calibration>,
+    urdf: Vec<String>,
+}
+
+impl Got {
+    fn done(&self) -> bool {
+        !self.joint_states.is_empty()
+            && self.tf > 0
+            && self.progress > 0
+            && self.calibrations.iter().any(|c| !c.push.is_empty())
+            && self.urdf.len() >= 2
+    }
+}
+
+async fn watch(port: u16, started: std::sync::mpsc::Sender<()>) -> Got {
+    let mut request = format!("ws://127.0.0.1:{port}")
+        .into_client_request()
+        .unwrap();
+    request
+        .headers_mut()
+        .insert("sec-websocket-protocol", "foxglove.sdk.v1".parse().unwrap());
+    let (mut ws, _) = tokio_tungstenite::connect_async(request)
+        .await
+        .expect("connect to the live view");
+    // serverInfo, then the channels.
+    let mut topics = std::collections::HashMap::new();
+    while topics.len() < 7 {
+        let Some(Ok(Message::Text(text))) = ws.next().await else {
+            panic!("the server closed before advertising its channels");
+        };
+        let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+        if v["op"] == "advertise" {
+            for ch in v["channels"].as_array().unwrap() {
+                let topic = ch["topic"].as_str().unwrap().to_string();
+                topics.insert(topic, ch["id"].as_u64().unwrap());
+            }
+        }
+    }
+    let wanted = [
+        "/joint_states",
+        "/tf",
+        "/progress",
+        "/calibration",
+        "/robot_description",
+    ];
+    let subscriptions: Vec<serde_json::Value> = wanted
+        .iter()
+        .enumerate()
+        .map(|(i, t)| serde_json::json!({"id": i, "channelId": topics[*t]}))
+        .collect();
+    let subscribe = serde_json::json!({"op": "subscribe", "subscriptions": subscriptions});
+    ws.send(Message::text(subscribe.to_string())).await.unwrap();
+    started.send(()).unwrap();
+    let mut got = Got::default();
+    while !got.done() {
+        let next = tokio::time::timeout(Duration::from_secs(300), ws.next()).await;
+        let Ok(Some(Ok(message))) = next else {
+            panic!(
+                "stream ended: {} joint states, {} tf, {} progress, {} calibrations, {} URDFs",
+                got.joint_states.len(),
+                got.tf,
+                got.progress,
+                got.calibrations.len(),
+                got.urdf.len()
+            );
+        };
+        let Message::Binary(bytes) = message else {
+            continue;
+        };
+        // messageData: opcode 1, subscription id (u32 LE), log time (u64 LE), payload.
+        assert_eq!(bytes[0], 1, "a messageData frame");
+        let subscription = u32::from_le_bytes(bytes[1..5].try_into().unwrap()) as usize;
+        let payload = &bytes[13..];
+        match wanted[subscription] {
+            "/joint_states" => got
+                .joint_states
+                .push(fox::JointStates::decode(payload).unwrap()),
+            "/tf" => {
+                let tf = fox::FrameTransforms::decode(payload).unwrap();
+                assert_eq!(tf.transforms.len(), 8, "base_link → link1 … link7 → tool0");
+                got.tf += 1;
+            }
+            "/progress" => {
+                let p = proto::Progress::decode(payload).unwrap();
+                assert_eq!(p.coverage.len(), 7);
+                got.progress += 1;
+            }
+            "/calibration" => got
+                .calibrations
+                .push(proto::Calibration::decode(payload).unwrap()),
+            _ => {
+                let v: serde_json::Value = serde_json::from_slice(payload).unwrap();
+                got.urdf.push(v["data"].as_str().unwrap().to_string());
+            }
+        }
+    }
+    got
+}
+
+#[test]
+fn a_foxglove_client_watches_the_demo_and_gets_the_calibration() {
+    let dir = std::env::temp_dir().join(format!("exocald-live-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let mut config = demo_config(Config::default_config(), &dir, 1.0);
+    config.live.enabled = true;
+    let live = LiveView::start("127.0.0.1:0".parse().unwrap(), &config).unwrap();
+    let port = live.port();
+    assert_ne!(port, 0);
+    let opts = DemoOptions {
+        seed: 2024,
+        speed: 1e6,
+        output: dir.clone(),
+        hold: false,
+    };
+    let (got, demo) = std::thread::scope(|s| {
+        let (started_tx, started_rx) = std::sync::mpsc::channel();
+        let client = s.spawn(move || {
+            tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+                .unwrap()
+                .block_on(watch(port, started_tx))
+        });
+        // The session starts once the client listens, so it sees the collection too.
+        started_rx
+            .recv_timeout(Duration::from_secs(60))
+            .expect("the client subscribed");
+        let demo = run_with(&config, &opts, Some(&live));
+        (client.join().unwrap(), demo)
+    });
+    let demo = demo
+        .map_err(|e| e.error)
+        .expect("the demo calibrates and pushes");
+    let outcome = demo.summary.outcome.as_ref().unwrap();
+
+    // Joint states of all seven joints, named as the URDF names them.
+    let js = got.joint_states.last().unwrap();
+    let names: Vec<&str> = js.joints.iter().map(|j| j.name.as_str()).collect();
+    assert_eq!(
+        names,
+        ["joint1", "joint2", "joint3", "joint4", "joint5", "joint6", "joint7"]
+    );
+    assert!(js
+        .joints
+        .iter()
+        .all(|j| j.position.is_some_and(f64::is_finite)));
+    // The calibration result: the table the session pushed, then the push report.
+    let last = got.calibrations.last().unwrap();
+    let after: Vec<f64> = last.after.iter().map(|r| r.a).collect();
+    let pushed: Vec<f64> = outcome.node_rows.iter().map(|r| r.a).collect();
+    assert_eq!(after, pushed);
+    assert_eq!(last.push.len(), 7);
+    assert!(last.push.iter().all(|n| n.holds == "new"));
+    // The URDF: nominal at first, the calibrated table once calibrated.
+    assert!(got.urdf[0].contains("<robot name=\"exocal_suit\">"));
+    assert_ne!(got.urdf[0], *got.urdf.last().unwrap());
+    assert!(got.urdf.last().unwrap().contains("joint7"));
+    drop(live);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
