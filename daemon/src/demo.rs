@@ -13,6 +13,12 @@
 //! stopped and each joint node's flash file is read back: the demo succeeds only if every node
 //! persisted exactly the table the daemon pushed (same CRC). SIGTERM or SIGINT interrupts the
 //! session as in `calibrate`: the log is finished before the process exits.
+//!
+//! Keys: with `push.authenticate` (the default) the demo needs no setup: it derives one AES-128
+//! key per node from the seed, in-process ([`exocal_dbc::auth::KeySet::derived`]), writes them
+//! to the emulated nodes' key slots and gives them to the daemon, so the push is the
+//! authenticated one a suit gets. Anyone who knows the seed knows these keys: they are for the
+//! emulated suit only (a suit's keys come from the `exocal-keys` credential).
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -107,6 +113,17 @@ async fn session(config: &Config, opts: &DemoOptions) -> Result<DemoResult, Sess
     scenario.duration_s = scenario
         .duration_s
         .max(config.session.max_duration_s + 120.0);
+    let mut config = config.clone();
+    if config.push.authenticate {
+        config.push.keys = exocal_dbc::auth::KeySet::derived(opts.seed);
+        exocal_hil::flash::provision(&flash_dir, &config.push.keys).map_err(|source| {
+            DaemonError::Io {
+                what: format!("provisioning the demo keys in {}", flash_dir.display()),
+                source,
+            }
+        })?;
+    }
+    let config = &config;
     let mut hil = Hil::new(scenario, &flash_dir).map_err(|e| DaemonError::Interface {
         name: "in-process hil".into(),
         reason: e.to_string(),

@@ -8,6 +8,7 @@ use std::fmt;
 
 use crate::calibrate::CalibrateError;
 use crate::config::ConfigError;
+use crate::keys::KeyError;
 use crate::mcaplog::LogError;
 use exocal_bus::BusError;
 
@@ -30,7 +31,7 @@ pub mod code {
     pub const IOERR: u8 = 74;
     /// EX_TEMPFAIL: interrupted (SIGTERM/SIGINT) before pushing; nothing was pushed.
     pub const TEMPFAIL: u8 = 75;
-    /// EX_CONFIG: the configuration is invalid.
+    /// EX_CONFIG: the configuration is invalid, or its keys are missing.
     pub const CONFIG: u8 = 78;
 }
 
@@ -39,6 +40,8 @@ pub mod code {
 pub enum DaemonError {
     /// Bad configuration (78).
     Config(ConfigError),
+    /// Authentication is on but the keys are missing or invalid (78).
+    Keys(KeyError),
     /// The CAN interface does not exist or cannot be opened (69).
     Interface { name: String, reason: String },
     /// A node did not accept the table (69); the report says which.
@@ -75,7 +78,7 @@ impl DaemonError {
     /// The process exit status for this error.
     pub fn exit_code(&self) -> u8 {
         match self {
-            DaemonError::Config(_) => code::CONFIG,
+            DaemonError::Config(_) | DaemonError::Keys(_) => code::CONFIG,
             DaemonError::Interface { .. } | DaemonError::Push(_) => code::UNAVAILABLE,
             DaemonError::Session(_) | DaemonError::Calibration(_) => code::NOINPUT,
             DaemonError::Validation(_) => code::DATAERR,
@@ -94,6 +97,7 @@ impl fmt::Display for DaemonError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             DaemonError::Config(e) => write!(f, "bad configuration: {e}"),
+            DaemonError::Keys(e) => write!(f, "bad configuration: {e}"),
             DaemonError::Interface { name, reason } => {
                 write!(f, "CAN interface `{name}`: {reason}")
             }
@@ -127,6 +131,7 @@ impl std::error::Error for DaemonError {
     fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
         match self {
             DaemonError::Config(e) => Some(e),
+            DaemonError::Keys(e) => Some(e),
             DaemonError::Calibration(e) => Some(e),
             DaemonError::Io { source, .. } => Some(source),
             DaemonError::Bus { source, .. } => Some(source),
@@ -140,6 +145,12 @@ impl std::error::Error for DaemonError {
 impl From<ConfigError> for DaemonError {
     fn from(e: ConfigError) -> Self {
         DaemonError::Config(e)
+    }
+}
+
+impl From<KeyError> for DaemonError {
+    fn from(e: KeyError) -> Self {
+        DaemonError::Keys(e)
     }
 }
 
@@ -184,9 +195,10 @@ mod tests {
                 what: "writing the log".into(),
                 source: LogError::Io(std::io::Error::other("disk full")),
             },
+            DaemonError::Keys(KeyError::Missing { looked: None }),
         ];
         let codes: Vec<u8> = errors.iter().map(DaemonError::exit_code).collect();
-        assert_eq!(codes, [78, 69, 66, 65, 74, 75, 70, 65, 64, 74, 66, 74]);
+        assert_eq!(codes, [78, 69, 66, 65, 74, 75, 70, 65, 64, 74, 66, 74, 78]);
         assert!(errors[1].to_string().contains("can9"));
         // The causes are kept, not flattened to strings: a caller can walk to the root.
         use std::error::Error as _;

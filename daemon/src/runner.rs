@@ -853,6 +853,8 @@ mod tests {
         c.output.directory = dir.to_path_buf();
         c.session.min_duration_s = 15.0;
         c.push.timeout_ms = 400;
+        // The hil's nodes here hold no keys (authenticated pushes: push.rs, demo, atomic_push).
+        c.push.authenticate = false;
         c
     }
 

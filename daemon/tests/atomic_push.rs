@@ -16,6 +16,7 @@ use std::time::Duration;
 
 use exocal_bus::InProcessBus;
 use exocal_bus::SimClock;
+use exocal_dbc::auth::KeySet;
 use exocal_dbc::table::{Field, Table};
 use exocal_dbc::NodeId;
 use exocal_hil::scenario::{Reboot, Scenario, TransferBehaviour, TransferFault};
@@ -122,6 +123,9 @@ struct Tally {
 async fn one_run(seed: u64, tally: &mut Tally) {
     let dir = temp_dir(seed);
     let scenario = scenario(seed);
+    // Authenticated, as on a suit: every node holds its key, the daemon has them all.
+    let keys = KeySet::derived(seed);
+    exocal_hil::flash::provision(&dir, &keys).expect("key slots");
     let hil = Hil::new(scenario.clone(), &dir).expect("hil");
     let old: Vec<(NodeId, Table)> = NodeId::JOINTS
         .iter()
@@ -145,6 +149,8 @@ async fn one_run(seed: u64, tally: &mut Tally) {
         backoff_initial_ms: 100,
         backoff_max_ms: 800,
         timeout_ms: (SPEED * 20.0) as u64,
+        authenticate: true,
+        keys,
     };
     let mut ignore = |_: bool, _: &exocal_bus::Frame, _: Duration| {};
     let report = push_tables(

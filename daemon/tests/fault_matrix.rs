@@ -282,6 +282,9 @@ async fn run_case(case: &Case) -> Outcome {
         };
     }
     scenario.duration_s = config.session.max_duration_s + 120.0;
+    // Authenticated, as on a suit (the demo's derived keys).
+    config.push.keys = exocal_dbc::auth::KeySet::derived(7);
+    exocal_hil::flash::provision(&flash_dir, &config.push.keys).expect("key slots");
     let mut hil = Hil::new(scenario, &flash_dir).expect("hil");
     let factory: Vec<(NodeId, u32)> = NodeId::JOINTS
         .iter()

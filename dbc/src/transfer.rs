@@ -421,6 +421,8 @@ pub struct Upload {
     deadline_us: Option<u64>,
     held_crc: Option<u32>,
     auth: Option<UploadAuth>,
+    /// Only the readback ([`Upload::verify`]): a NACK ends it instead of restarting a transfer.
+    verify_only: bool,
 }
 
 impl Upload {
@@ -437,6 +439,7 @@ impl Upload {
             deadline_us: None,
             held_crc: None,
             auth: None,
+            verify_only: false,
         }
     }
 
@@ -461,7 +464,8 @@ impl Upload {
     }
 
     /// Only the readback of an upload (authenticated when `key` is given): `Ok(crc)` if the
-    /// node holds `table`, [`UploadError::ReadbackMismatch`] if it holds another one.
+    /// node holds `table`, [`UploadError::ReadbackMismatch`] if it holds another one, a NACK
+    /// (`NoTable`) ends it.
     pub fn verify(
         node: NodeId,
         session: u8,
@@ -474,6 +478,7 @@ impl Upload {
             None => Upload::new(node, session, table, policy),
         };
         up.step = Step::Readback(Answer::default());
+        up.verify_only = true;
         up
     }
 
@@ -638,7 +643,7 @@ impl Upload {
                 reason,
             } if cmd == current.code() => {
                 self.held_crc = Some(held_crc);
-                if self.restarts >= self.policy.max_restarts {
+                if self.restarts >= self.policy.max_restarts || self.verify_only {
                     self.advance(Step::Done(Err(UploadError::Nacked(cmd, reason))));
                 } else {
                     self.restarts += 1;

@@ -73,6 +73,25 @@ fn config(dir: &Path, out: &Path, min_s: f64) -> PathBuf {
     path
 }
 
+/// A credentials directory as systemd makes it, holding `exocal-keys` (test keys): the
+/// daemon reads it through `$CREDENTIALS_DIRECTORY`, the hil's nodes are provisioned from it.
+fn credentials(dir: &Path) -> PathBuf {
+    let creds = dir.join("credentials");
+    if !creds.join("exocal-keys").exists() {
+        std::fs::create_dir_all(&creds).unwrap();
+        let text: String = (1..=7u128)
+            .map(|n| {
+                format!(
+                    "Joint{n} {:032x}\n",
+                    n * 0x0123_4567_89ab_cdef_0f1e_2d3c_4b5a_6978
+                )
+            })
+            .collect();
+        std::fs::write(creds.join("exocal-keys"), text).unwrap();
+    }
+    creds
+}
+
 struct Hil {
     child: Child,
     flash: PathBuf,
@@ -93,6 +112,8 @@ impl Hil {
             .arg(duration_s.to_string())
             .arg("--flash-dir")
             .arg(&flash)
+            .arg("--keys")
+            .arg(credentials(dir).join("exocal-keys"))
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .spawn()
@@ -291,6 +312,7 @@ fn calibrate_on_vcan0_pushes_a_table_every_node_holds_and_logs_every_frame() {
         .arg("--config")
         .arg(&cfg)
         .arg("calibrate")
+        .env("CREDENTIALS_DIRECTORY", credentials(&dir))
         .stdin(Stdio::null())
         .output()
         .expect("run exocald");
@@ -444,6 +466,7 @@ fn sigterm_during_collection_finishes_the_log_and_pushes_nothing() {
         .arg("--config")
         .arg(&cfg)
         .arg("calibrate")
+        .env("CREDENTIALS_DIRECTORY", credentials(&dir))
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
