@@ -308,7 +308,7 @@ mod tests {
         assert_eq!(gate.counter(), 4);
     }
 
-    /// A flood: every 10 ms for an hour of monotonic time, an authentic fresh trigger, its
+    /// A flood: every 10 ms for ten minutes of monotonic time, an authentic fresh trigger, its
     /// replay and a forgery. Sessions start exactly once per cooldown; without a key (authenticate
     /// = false) the cooldown alone bounds them the same way.
     #[test]
@@ -319,7 +319,7 @@ mod tests {
             let mut gate = TriggerGate::new(authenticated.then(|| key.clone()), 0, COOLDOWN);
             let mut starts = Vec::new();
             let mut refused = 0u64;
-            for i in 0..360_000u32 {
+            for i in 0..60_000u32 {
                 let now = Duration::from_millis(10 * u64::from(i));
                 let fresh = trigger(key, TriggerCommand::StartCalibration, i + 1);
                 let mut forged = fresh;
@@ -332,10 +332,10 @@ mod tests {
                     }
                 }
             }
-            assert_eq!(starts.len(), 60, "one per minute for an hour");
+            assert_eq!(starts.len(), 10, "one per minute for ten minutes");
             assert!(starts.windows(2).all(|w| w[1] - w[0] >= COOLDOWN));
             if authenticated {
-                assert_eq!(refused, 2 * 360_000);
+                assert_eq!(refused, 2 * 60_000);
             }
         }
     }
@@ -353,5 +353,70 @@ mod tests {
             .to_string()
             .contains("trigger-counter"));
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// The serve loop itself on the in-process bus, on virtual time: for 150 s, every 50 ms,
+    /// an authentic fresh trigger, its replay and a forgery, with a 60 s cooldown. Exactly
+    /// three sessions start (at 0, 60 and 120 s; each fails for want of motion: no suit is
+    /// on this bus), and the counter file holds the last accepted counter.
+    #[tokio::test(start_paused = true)]
+    async fn the_serve_loop_under_a_trigger_flood_starts_one_session_per_cooldown() {
+        use exocal_bus::{InProcessBus, SimClock};
+        let dir = std::env::temp_dir().join(format!("exocald-flood-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let mut config = Config::default_config();
+        config.output.directory = dir.clone();
+        config.session.min_duration_s = 1.0;
+        config.session.max_duration_s = 2.0;
+        config.session.min_samples = 10;
+        config.trigger.cooldown_s = 60.0;
+        config.push.keys = KeySet::derived(4);
+        let key = config.push.keys.trigger().unwrap().clone();
+        let clock = SimClock::new(1.0).unwrap();
+        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+        let mut daemon = bus.attach();
+        let flood = bus.attach();
+        let (stop, shutdown) = Shutdown::manual();
+        let flooder = tokio::spawn(async move {
+            for i in 0..3000u32 {
+                let fresh = trigger(&key, TriggerCommand::StartCalibration, i + 1);
+                let mut forged = fresh;
+                forged.mac ^= 1;
+                for t in [fresh, fresh, forged] {
+                    flood.send_now(&Message::Trigger(t).to_frame().unwrap());
+                }
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            let _ = stop.send(true);
+        });
+        let (_keep, mut local) = tokio::sync::mpsc::channel(1);
+        let mut notifier = Notifier::disabled();
+        let mut reporter = Reporter::Plain { last_line: None };
+        let stats = serve(
+            &mut daemon,
+            &clock.bus_clock(),
+            &config,
+            true,
+            &shutdown,
+            &mut local,
+            &mut notifier,
+            &mut reporter,
+        )
+        .await
+        .unwrap();
+        flooder.await.unwrap();
+        let logs = std::fs::read_dir(&dir)
+            .unwrap()
+            .filter(|e| {
+                e.as_ref()
+                    .is_ok_and(|e| e.path().extension().is_some_and(|x| x == "mcap"))
+            })
+            .count();
+        let counter = load_counter(&dir).unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
+        assert_eq!((stats.sessions, logs), (3, 3), "{stats:?}");
+        assert!(stats.refused > 1000 && stats.cooled > 500, "{stats:?}");
+        // The last authentic trigger came while idle, at 150 s.
+        assert!((2990..=3000).contains(&counter), "{counter}");
     }
 }

@@ -397,8 +397,9 @@ struct UploadAuth {
     counter: Option<u32>,
     /// The CRC of the current Begin's ACK, while the counter is still missing.
     begin_ack: Option<u32>,
-    /// The nonce of the Readback in flight.
-    nonce: u32,
+    /// The nonce of the current readback (kept over its resends, so that the pieces of the
+    /// answer may come from different resends: they all answer the same nonce).
+    nonce: Option<u32>,
     /// Answers whose MAC did not verify.
     bad_answers: u32,
 }
@@ -457,7 +458,7 @@ impl Upload {
             key,
             counter: None,
             begin_ack: None,
-            nonce: 0,
+            nonce: None,
             bad_answers: 0,
         });
         up
@@ -505,7 +506,7 @@ impl Upload {
         match self.step {
             Step::Send(c) => Some(c),
             Step::Readback(_) => Some(Command::Readback {
-                nonce: self.auth.as_ref().map_or(0, |a| a.nonce),
+                nonce: self.auth.as_ref().and_then(|a| a.nonce).unwrap_or(0),
             }),
             Step::Done(_) => None,
         }
@@ -531,11 +532,10 @@ impl Upload {
         self.deadline_us = Some(now_us.saturating_add(self.policy.timeout_us));
         let (node, session) = (self.node, self.session);
         match (&mut self.step, self.auth.as_mut()) {
-            (Step::Readback(answer), auth) => {
-                *answer = Answer::default();
-                if let Some(a) = auth {
-                    a.nonce = auth::nonce(&a.key, node, session, now_us);
-                }
+            (Step::Readback(answer), None) => *answer = Answer::default(),
+            (Step::Readback(_), Some(a)) => {
+                a.nonce
+                    .get_or_insert_with(|| auth::nonce(&a.key, node, session, now_us));
             }
             (Step::Send(Command::Begin), Some(a)) => {
                 a.counter = None;
@@ -554,6 +554,9 @@ impl Upload {
         self.step = step;
         self.attempts = 0;
         self.deadline_us = None;
+        if let Some(a) = self.auth.as_mut() {
+            a.nonce = None;
+        }
     }
 
     /// The step after the last segment: `CommitAuth` (with the counter above the node's) when
@@ -669,8 +672,9 @@ impl Upload {
     }
 
     /// Decides the readback once its answer is complete: for an unauthenticated upload at the
-    /// ACK; for an authenticated one when the six fields, the MAC and the ACK are in. An answer
-    /// whose MAC does not verify is dropped (the upload waits for a resend's answer).
+    /// ACK; for an authenticated one when the six fields, the MAC and the ACK are in, from any
+    /// of the readback's resends (one nonce for all). An answer whose MAC does not verify is
+    /// dropped (the upload waits for a resend's answer).
     fn judge_answer(&mut self) {
         let Step::Readback(answer) = self.step else {
             return;
@@ -687,10 +691,10 @@ impl Upload {
         let held = fields.and_then(|raw| Table::from_raw(raw).ok());
         let (node, table) = (self.node, self.table);
         if let Some(a) = self.auth.as_mut() {
-            let (Some(held), Some(mac)) = (held, answer.mac) else {
+            let (Some(held), Some(mac), Some(nonce)) = (held, answer.mac, a.nonce) else {
                 return;
             };
-            if !auth::verify_readback(&a.key, node, a.nonce, ack_crc, &held.to_bytes(), mac) {
+            if !auth::verify_readback(&a.key, node, nonce, ack_crc, &held.to_bytes(), mac) {
                 a.bad_answers += 1;
                 self.step = Step::Readback(Answer::default());
                 return;
