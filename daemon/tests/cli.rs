@@ -85,7 +85,13 @@ fn missing_keys_exit_78_and_authentication_off_is_said() {
     let shipped = temp("shipped.toml", exocald::config::DEFAULT_TOML);
     for cmd in ["calibrate", "run"] {
         let out = Command::new(env!("CARGO_BIN_EXE_exocald"))
-            .args(["--config", shipped.to_str().unwrap(), cmd, "--interface", "lo"])
+            .args([
+                "--config",
+                shipped.to_str().unwrap(),
+                cmd,
+                "--interface",
+                "lo",
+            ])
             .env_remove("CREDENTIALS_DIRECTORY")
             .output()
             .unwrap();
@@ -98,7 +104,13 @@ fn missing_keys_exit_78_and_authentication_off_is_said() {
     }
     let creds = temp("exocal-keys", "Joint1 000102030405060708090a0b0c0d0e0f\n");
     let out = Command::new(env!("CARGO_BIN_EXE_exocald"))
-        .args(["--config", shipped.to_str().unwrap(), "calibrate", "-i", "lo"])
+        .args([
+            "--config",
+            shipped.to_str().unwrap(),
+            "calibrate",
+            "-i",
+            "lo",
+        ])
         .env("CREDENTIALS_DIRECTORY", creds.parent().unwrap())
         .output()
         .unwrap();

@@ -476,9 +476,10 @@ fn provisioned_keys() -> Vec<String> {
 fn the_push_was_authenticated_with_the_credential_and_no_key_leaked() {
     let run = boot_run();
     assert!(
-        run.journal
-            .contains("table transfers are authenticated")
-            && run.journal.contains("provisioned the key slots of 7 joint node(s)"),
+        run.journal.contains("table transfers are authenticated")
+            && run
+                .journal
+                .contains("provisioned the key slots of 7 joint node(s)"),
         "the journal does not say the transfers were authenticated"
     );
     let push = boot_push();
