@@ -322,12 +322,18 @@ async fn fence_step<T: Transport>(
         job.held_crc = Some(answer);
         match &job.key {
             Some(key) => {
+                // Resent as often as the fence's Begin: a signed answer is eight frames, all
+                // of which must arrive (from any of the resends).
+                let policy = RetryPolicy {
+                    max_attempts: fence_sends,
+                    ..retry
+                };
                 let key = Some(key.clone());
                 fence.verify = Some(Upload::verify(
                     job.node,
                     fence.session,
                     job.table,
-                    retry,
+                    policy,
                     key,
                 ));
             }
