@@ -18,7 +18,19 @@ use std::process::{Command, Stdio};
 
 use anyhow::{bail, Context, Result};
 
-use crate::host::workspace_root;
+use crate::paths::{self, workspace_root};
+
+/// Check (or regenerate) every figure the READMEs quote.
+///
+/// Regenerate every figure the READMEs quote (the demo's summary for its seeds, the paper
+/// example's tables, the config-error example, the unit's security deductions) from the command
+/// that prints it, and fail naming each block that differs.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Rewrite the stale blocks in place.
+    #[arg(long)]
+    pub write: bool,
+}
 
 /// What a block quotes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
@@ -58,14 +70,10 @@ const BLOCKS: &[(&str, &str, Source)] = &[
 ];
 
 /// `cargo xtask figures [--write]`.
-pub fn main(args: &[String]) -> Result<u8> {
-    let write = match args {
-        [] => false,
-        [w] if w == "--write" => true,
-        _ => bail!("figures: usage: cargo xtask figures [--write]"),
-    };
+pub fn run(args: Args) -> Result<u8> {
+    let write = args.write;
     let root = workspace_root();
-    let stale = run(&root, write)?;
+    let stale = regenerate(&root, write)?;
     if stale.is_empty() {
         println!("figures: every quoted block matches its command's output");
         Ok(0)
@@ -83,7 +91,7 @@ pub fn main(args: &[String]) -> Result<u8> {
 
 /// Regenerates every block; returns the `file#block` names that differed (and, with `write`,
 /// were rewritten).
-pub fn run(root: &Path, write: bool) -> Result<Vec<String>> {
+pub fn regenerate(root: &Path, write: bool) -> Result<Vec<String>> {
     build(root)?;
     let scratch = root.join("target/xtask/figures");
     let _ = std::fs::remove_dir_all(&scratch);
@@ -167,7 +175,7 @@ fn markers(text: &str) -> Vec<&str> {
 
 /// Release builds of what the blocks run.
 fn build(root: &Path) -> Result<()> {
-    let status = Command::new(crate::host::cargo())
+    let status = Command::new(paths::cargo())
         .current_dir(root)
         .args(["build", "--release", "-p", "exocald", "--bins"])
         .args(["-p", "calib-core", "--example", "paper"])

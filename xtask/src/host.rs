@@ -1,5 +1,5 @@
-//! What this machine has: Debian packages, programs on `PATH`, rustup targets, and installing
-//! the missing ones.
+//! What this machine has: Debian packages (apt), programs on `PATH`, rustup targets, root, and
+//! installing the missing ones.
 //!
 //! A leaf module: it imports no other xtask module, so every command can use it.
 
@@ -101,31 +101,4 @@ pub fn which(program: &str) -> Option<PathBuf> {
         .chain(["/usr/sbin", "/sbin"].map(PathBuf::from))
         .map(|d| d.join(program))
         .find(|p| p.is_file())
-}
-
-/// The cargo that runs us (`$CARGO`), else `cargo` from `PATH`.
-pub fn cargo() -> String {
-    std::env::var("CARGO").unwrap_or_else(|_| "cargo".into())
-}
-
-/// The workspace root (xtask sits in it).
-pub fn workspace_root() -> PathBuf {
-    let here = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
-    here.parent().unwrap_or(here).to_path_buf()
-}
-
-/// Runs `cmd` with no stdin; returns its stdout, or an error with `what`, the exit status and
-/// the tail of its stderr.
-pub fn output(cmd: &mut Command, what: &str) -> Result<String> {
-    let out = cmd
-        .stdin(Stdio::null())
-        .output()
-        .with_context(|| format!("{what}: cannot start {:?}", cmd.get_program()))?;
-    if !out.status.success() {
-        let stderr = String::from_utf8_lossy(&out.stderr);
-        let tail: Vec<&str> = stderr.lines().rev().take(6).collect();
-        let tail: Vec<&str> = tail.into_iter().rev().collect();
-        bail!("{what}: {} ({})", out.status, tail.join(" | "));
-    }
-    Ok(String::from_utf8_lossy(&out.stdout).into_owned())
 }

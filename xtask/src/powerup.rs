@@ -14,9 +14,22 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 
-use crate::harness;
-use crate::suite::Counts;
-use crate::HarnessArgs;
+use crate::libtest::{self, Counts};
+use crate::process::shell_quote;
+use crate::{deb, harness, paths, targets};
+
+/// The power-up test: the Debian package booted under systemd in the guest.
+///
+/// The power-up test: build this machine's Debian package, boot systemd as PID 1 in the guest
+/// with the package installed (dpkg -i), vcan0 from systemd-networkd and exocal-hil as a service,
+/// and check exocald.service's boot-time calibration from inside (READY, watchdog, no
+/// capabilities, read-only system, every node holds the pushed table, MCAP in the
+/// StateDirectory, systemctl stop mid-session).
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    #[command(flatten)]
+    pub harness: harness::Opts,
+}
 
 /// The suite's result, and how long the boot took.
 pub struct PowerUp {
@@ -55,15 +68,15 @@ impl PowerUp {
 }
 
 /// Builds the package and the suite, boots, runs it. `opts` gives the time limit and verbosity.
-pub fn run(opts: &HarnessArgs) -> Result<PowerUp> {
-    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-    let root = crate::host::workspace_root();
-    let host = crate::ship::TARGETS[0];
+pub fn power_up(opts: &harness::Opts) -> Result<PowerUp> {
+    let cargo = paths::cargo();
+    let root = paths::workspace_root();
+    let host = targets::TARGETS[0];
     println!("==> power-up: building the {} package", host.deb_arch);
-    let bins = crate::ship::build(&host)?;
-    let deb = crate::ship::package(&host, &bins)?;
-    crate::ship::lintian(&deb)?;
-    let suites = crate::suite::build_suites(&cargo, "powerup")?;
+    let bins = targets::build(&host)?;
+    let deb = deb::package(&host, &bins)?;
+    deb::lintian(&deb)?;
+    let suites = libtest::build_suites(&cargo, "powerup")?;
     let Some(suite) = suites.into_iter().find(|s| {
         Path::new(s)
             .file_name()
@@ -79,14 +92,13 @@ pub fn run(opts: &HarnessArgs) -> Result<PowerUp> {
         &setup,
         format!(
             "#!/bin/sh\nEXOCAL_DEB={}\n{bench}",
-            harness::shell_quote(&deb.display().to_string())
+            shell_quote(&deb.display().to_string())
         ),
     )?;
 
-    let mut opts = opts.clone();
-    opts.systemd = true;
-    opts.setup = Some(setup);
     let mut req = opts.request(vec![suite, "--test-threads=1".into(), "--nocapture".into()])?;
+    req.systemd = true;
+    req.setup = Some(setup);
     req.capture_stdout = true;
     println!("==> power-up: booting systemd with {}", deb.display());
     let outcome = harness::run(&req)?;
@@ -103,8 +115,8 @@ pub fn run(opts: &HarnessArgs) -> Result<PowerUp> {
 }
 
 /// `cargo xtask powerup`: exit 0 only if every power-up test passed.
-pub fn main(opts: &HarnessArgs) -> Result<u8> {
-    let r = run(opts)?;
+pub fn run(args: Args) -> Result<u8> {
+    let r = power_up(&args.harness)?;
     println!("{}", r.summary());
     Ok(if r.code == 0 && r.counts.failed == 0 {
         0

@@ -16,11 +16,26 @@ use std::process::{Command, Stdio};
 
 use anyhow::{bail, Context, Result};
 
-use crate::host;
+use crate::{harness, host, paths, process, targets};
+
+/// Install what `test` needs (root, Debian), then self-check.
+///
+/// Install everything `test` needs on a fresh Debian machine (as root): the Debian packages
+/// (cross gcc and the target C libraries, qemu-user-static, Chromium, lintian, python3-venv,
+/// systemd, and where this kernel has no vcan QEMU, Debian's kernel, busybox-static, cpio), the
+/// rustup targets and the Python venv; then the self-check: C and Rust hello-worlds built for
+/// every cross target and run under qemu-user, headless Chromium, lintian, the venv's modules,
+/// the guest's kernel, modules and busybox.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Run the self-check only (install nothing).
+    #[arg(long)]
+    pub check: bool,
+}
 
 /// Debian packages every machine that runs `cargo xtask test` needs, with what needs each. The
-/// cross targets' packages are in [`crate::ship::TARGETS`], the QEMU guest's in
-/// [`crate::vm::PACKAGES`] (needed only where this kernel has no vcan).
+/// cross targets' packages are in [`crate::targets::TARGETS`], the QEMU guest's in
+/// [`harness::VM_PACKAGES`] (needed only where this kernel has no vcan).
 pub const PACKAGES: &[(&str, &str)] = &[
     (
         "gcc",
@@ -51,11 +66,11 @@ pub const PACKAGES: &[(&str, &str)] = &[
 pub const EMBEDDED_TARGET: &str = "thumbv7em-none-eabihf";
 
 /// `cargo xtask setup [--check]`.
-pub fn main(args: &[String]) -> Result<u8> {
-    match args {
-        [] => install_all()?,
-        [flag] if flag == "--check" => report(check())?,
-        other => bail!("setup: unexpected arguments {other:?} (only --check)"),
+pub fn run(args: Args) -> Result<u8> {
+    if args.check {
+        report(check())?;
+    } else {
+        install_all()?;
     }
     Ok(0)
 }
@@ -68,22 +83,19 @@ pub fn packages() -> Vec<&'static str> {
         all.extend(t.packages);
     }
     if !native_vcan() {
-        all.extend(crate::vm::PACKAGES);
+        all.extend(harness::VM_PACKAGES);
     }
     all.sort();
     all.dedup();
     all
 }
 
-fn cross_targets() -> impl Iterator<Item = crate::ship::Target> {
-    crate::ship::TARGETS
-        .iter()
-        .copied()
-        .filter(|t| t.qemu.is_some())
+fn cross_targets() -> impl Iterator<Item = targets::Target> {
+    targets::controllers()
 }
 
 fn native_vcan() -> bool {
-    crate::native::available().is_ok()
+    harness::native_available().is_ok()
 }
 
 /// Installs everything (rustup targets, Debian packages, the Python venv), then runs [`check`].
@@ -142,7 +154,7 @@ pub fn check() -> Vec<Result<String>> {
             "native vcan works here: the QEMU guest is not needed".into()
         ));
     } else {
-        lines.push(crate::vm::check_parts().context("the QEMU guest (this kernel has no vcan)"));
+        lines.push(harness::vm_check_parts().context("the QEMU guest (this kernel has no vcan)"));
     }
     let _ = std::fs::remove_dir_all(&scratch);
     lines
@@ -161,7 +173,7 @@ fn check_packages() -> Result<String> {
 }
 
 /// A package hint for a failed check of `t`: the target's packages that are missing, or all.
-fn hint(t: &crate::ship::Target) -> String {
+fn hint(t: &targets::Target) -> String {
     let missing = host::missing(t.packages.iter().copied());
     let named = if missing.is_empty() {
         t.packages.to_vec()
@@ -172,9 +184,9 @@ fn hint(t: &crate::ship::Target) -> String {
 }
 
 /// Runs `bin` for `t` under qemu-user and expects `want` on its stdout.
-fn run_under_qemu(t: &crate::ship::Target, bin: &Path, want: &str) -> Result<()> {
-    let out = host::output(
-        &mut crate::ship::runner(t, bin),
+fn run_under_qemu(t: &targets::Target, bin: &Path, want: &str) -> Result<()> {
+    let out = process::output(
+        &mut targets::runner(t, bin),
         &format!("run {} under qemu-user", bin.display()),
     )?;
     if out.trim() != want {
@@ -185,7 +197,7 @@ fn run_under_qemu(t: &crate::ship::Target, bin: &Path, want: &str) -> Result<()>
 
 /// A C hello-world that includes libc headers, cross-compiled and linked with the target's gcc
 /// (as the cc crate does for zstd-sys), run under qemu-user.
-fn check_cross_c(t: &crate::ship::Target, dir: &Path) -> Result<String> {
+fn check_cross_c(t: &targets::Target, dir: &Path) -> Result<String> {
     let src = dir.join("hello.c");
     std::fs::write(
         &src,
@@ -194,7 +206,7 @@ fn check_cross_c(t: &crate::ship::Target, dir: &Path) -> Result<String> {
     )?;
     let bin = dir.join(format!("hello-c-{}", t.deb_arch));
     let gcc = format!("{}-gcc", t.gnu);
-    host::output(
+    process::output(
         Command::new(&gcc).arg(&src).arg("-o").arg(&bin),
         &format!("{gcc} hello.c"),
     )
@@ -205,11 +217,11 @@ fn check_cross_c(t: &crate::ship::Target, dir: &Path) -> Result<String> {
 
 /// A Rust hello-world for the target, linked by its gcc (as `.cargo/config.toml` says), run
 /// under qemu-user.
-fn check_cross_rust(t: &crate::ship::Target, dir: &Path) -> Result<String> {
+fn check_cross_rust(t: &targets::Target, dir: &Path) -> Result<String> {
     let src = dir.join("hello.rs");
     std::fs::write(&src, "fn main() { println!(\"hello {}\", 6 * 7); }\n")?;
     let bin = dir.join(format!("hello-rs-{}", t.deb_arch));
-    host::output(
+    process::output(
         Command::new(rustc())
             .args(["--edition", "2021", "--target", t.triple])
             .arg(format!("-Clinker={}-gcc", t.gnu))
@@ -236,7 +248,7 @@ fn rustc() -> String {
 
 /// The embedded target's standard library is there (`rustc --print sysroot` has it).
 fn check_embedded_target() -> Result<String> {
-    let sysroot = host::output(
+    let sysroot = process::output(
         Command::new(rustc()).args(["--print", "sysroot"]),
         "rustc --print sysroot",
     )?;
@@ -248,7 +260,7 @@ fn check_embedded_target() -> Result<String> {
 }
 
 fn check_program(argv: &[&str], package: &str) -> Result<String> {
-    let out = host::output(
+    let out = process::output(
         Command::new(argv[0]).args(&argv[1..]),
         &format!("{} (package {package})", argv.join(" ")),
     )?;
@@ -269,7 +281,7 @@ fn check_chromium(dir: &Path) -> Result<String> {
          document.getElementById('plot').getBBox().width;</script></body></html>",
     )?;
     let chromium = host::which("chromium").context("chromium is not on PATH (package chromium)")?;
-    let dom = host::output(
+    let dom = process::output(
         Command::new(chromium)
             .args([
                 "--headless",
@@ -294,7 +306,7 @@ fn check_chromium(dir: &Path) -> Result<String> {
 /// The venv has every module the cross-checks import.
 fn check_python() -> Result<String> {
     let python = venv_python();
-    host::output(
+    process::output(
         Command::new(&python).args(["-c", "import cantools, mcap, zstandard"]),
         &format!(
             "{} imports cantools, mcap, zstandard (cargo xtask setup makes the venv)",
@@ -311,7 +323,7 @@ fn check_python() -> Result<String> {
 fn venv_dir() -> PathBuf {
     std::env::var_os("EXOCAL_PYENV")
         .map(PathBuf::from)
-        .unwrap_or_else(|| host::workspace_root().join("target/exocal-pyenv"))
+        .unwrap_or_else(|| paths::workspace_root().join("target/exocal-pyenv"))
 }
 
 fn venv_python() -> PathBuf {
@@ -323,7 +335,7 @@ fn venv_python() -> PathBuf {
 pub fn python_env() -> Result<PathBuf> {
     let venv = venv_dir();
     let python = venv_python();
-    let requirements = host::workspace_root().join("tests/requirements.txt");
+    let requirements = paths::workspace_root().join("tests/requirements.txt");
     let wanted = std::fs::read_to_string(&requirements)
         .with_context(|| format!("read {}", requirements.display()))?;
     let stamp = venv.join("exocal-requirements.txt");

@@ -17,7 +17,15 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 
-use crate::host;
+use crate::process::{self, shell_quote};
+use crate::{host, paths};
+
+/// Prove setup's package list complete in a freshly bootstrapped Debian root.
+///
+/// Prove setup's package list complete: bootstrap a minimal Debian root of this release
+/// (mmdebstrap, this machine's apt sources) and run `setup` inside it (as root).
+#[derive(Debug, clap::Args)]
+pub struct Args {}
 
 /// What the check itself needs on the host (not part of setup's list: only this check uses it).
 const PACKAGES: &[&str] = &["mmdebstrap", "mount", "util-linux"];
@@ -26,20 +34,17 @@ const PACKAGES: &[&str] = &["mmdebstrap", "mount", "util-linux"];
 const TMPFS_SIZE: &str = "size=8g";
 
 /// `cargo xtask clean-root`.
-pub fn main(args: &[String]) -> Result<u8> {
-    if !args.is_empty() {
-        bail!("clean-root: unexpected arguments {args:?}");
-    }
+pub fn run(_: Args) -> Result<u8> {
     if !host::is_root() {
         bail!("clean-root bootstraps and chroots into a Debian root: run it as root");
     }
     host::install_packages(&host::missing(PACKAGES.iter().copied()))?;
-    let scratch = host::workspace_root().join("target/xtask");
+    let scratch = paths::workspace_root().join("target/xtask");
     std::fs::create_dir_all(&scratch)?;
     let root = scratch.join("clean-root");
     std::fs::create_dir_all(&root).with_context(|| format!("create {}", root.display()))?;
     private_mount_namespace()?;
-    run(&["mount", "-t", "tmpfs", "-o", TMPFS_SIZE, "tmpfs"], &root)?;
+    run_on(&["mount", "-t", "tmpfs", "-o", TMPFS_SIZE, "tmpfs"], &root)?;
 
     let started = Instant::now();
     let release = codename()?;
@@ -109,12 +114,12 @@ fn private_mount_namespace() -> Result<()> {
     if unsafe { libc::unshare(libc::CLONE_NEWNS) } != 0 {
         bail!("unshare(CLONE_NEWNS): {}", std::io::Error::last_os_error());
     }
-    run(&["mount", "--make-rprivate"], Path::new("/"))
+    run_on(&["mount", "--make-rprivate"], Path::new("/"))
 }
 
 /// Runs `argv` followed by `path`, failing with its stderr.
-fn run(argv: &[&str], path: &Path) -> Result<()> {
-    host::output(
+fn run_on(argv: &[&str], path: &Path) -> Result<()> {
+    process::output(
         Command::new(argv[0]).args(&argv[1..]).arg(path),
         &format!("{} {}", argv.join(" "), path.display()),
     )
@@ -134,8 +139,8 @@ fn chroot_script(root: &Path) -> Result<String> {
     };
     let rustup = env_dir("RUSTUP_HOME", ".rustup");
     let cargo = env_dir("CARGO_HOME", ".cargo");
-    let workspace = host::workspace_root();
-    let q = |p: &Path| crate::harness::shell_quote(&p.to_string_lossy());
+    let workspace = paths::workspace_root();
+    let q = |p: &Path| shell_quote(&p.to_string_lossy());
     let r = q(root);
     let mut script = format!(
         "mount -t proc proc {r}/proc\nmount --rbind /dev {r}/dev\nmount -t sysfs sys {r}/sys\n"
@@ -205,7 +210,7 @@ fn site_environment(root: &Path) -> Vec<String> {
                 || k.to_ascii_lowercase().ends_with("_proxy")
         })
         .filter(|(_, v)| !v.starts_with('/') || root.join(&v[1..]).exists())
-        .map(|(k, v)| crate::harness::shell_quote(&format!("{k}={v}")))
+        .map(|(k, v)| shell_quote(&format!("{k}={v}")))
         .collect()
 }
 

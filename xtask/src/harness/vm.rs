@@ -20,7 +20,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 
-use crate::harness::{exit_code, note, shell_quote, Request, TIMED_OUT};
+use super::request::{note, Request, TIMED_OUT};
+use crate::host;
+use crate::process::{exit_code, shell_quote};
 
 /// Modules the guest needs; their dependencies are added from `modules.dep`.
 const MODULES: &[&str] = &[
@@ -377,9 +379,9 @@ pub const BUSYBOX: &str = "/bin/busybox";
 
 /// Finds QEMU and busybox, installing them (as root on Debian) when missing.
 fn ensure_tools() -> Result<PathBuf> {
-    let missing = crate::host::missing(PACKAGES.iter().copied());
+    let missing = host::missing(PACKAGES.iter().copied());
     if !missing.is_empty() {
-        crate::host::install_packages(&missing).with_context(|| {
+        host::install_packages(&missing).with_context(|| {
             format!(
                 "the QEMU path needs the Debian packages {}: install them \
                  (`sudo apt-get install {}`) or run on a kernel with vcan",
@@ -388,8 +390,7 @@ fn ensure_tools() -> Result<PathBuf> {
             )
         })?;
     }
-    let qemu =
-        crate::host::which("qemu-system-x86_64").context("qemu-system-x86_64 not found on PATH")?;
+    let qemu = host::which("qemu-system-x86_64").context("qemu-system-x86_64 not found on PATH")?;
     if !is_static_elf(Path::new(BUSYBOX))? {
         bail!("{BUSYBOX} is not statically linked: install busybox-static");
     }
@@ -400,20 +401,20 @@ fn ensure_tools() -> Result<PathBuf> {
 /// QEMU starts, busybox is static and runs, the kernel resolves and has every module the guest
 /// loads. Returns a one-line summary.
 pub fn check_parts() -> Result<String> {
-    let qemu = crate::host::which("qemu-system-x86_64")
+    let qemu = host::which("qemu-system-x86_64")
         .context("qemu-system-x86_64 is not on PATH (package qemu-system-x86)")?;
-    let version = crate::host::output(
+    let version = crate::process::output(
         Command::new(&qemu).arg("--version"),
         "qemu-system-x86_64 --version (package qemu-system-x86)",
     )?;
     if !is_static_elf(Path::new(BUSYBOX)).unwrap_or(false) {
         bail!("{BUSYBOX} is missing or not statically linked (package busybox-static)");
     }
-    crate::host::output(
+    crate::process::output(
         Command::new(BUSYBOX).arg("true"),
         "busybox true (package busybox-static)",
     )?;
-    crate::host::which("cpio").context("cpio is not on PATH (package cpio)")?;
+    host::which("cpio").context("cpio is not on PATH (package cpio)")?;
     let kernel = find_kernel()?;
     let modules = module_order(&kernel.modules).with_context(|| {
         format!(
@@ -714,7 +715,7 @@ kernel/net/can/can.ko.xz:
             argv: vec!["echo".into(), "it's $HOME".into()],
             cwd: "/work dir".into(),
             timeout: Duration::from_secs(1),
-            mode: crate::harness::Mode::Vm,
+            mode: super::super::request::Mode::Vm,
             mem_mib: 512,
             verbose: false,
             capture_stdout: false,

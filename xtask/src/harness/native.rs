@@ -12,7 +12,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 
-use crate::harness::{exit_code, note, Request, TIMED_OUT};
+use super::request::{note, Request, TIMED_OUT};
+use crate::host;
+use crate::process::exit_code;
 
 /// Creates the interfaces, then execs the command given as "$@".
 const SETUP: &str = "set -e
@@ -38,7 +40,7 @@ pub fn available() -> Result<(), String> {
         libc::close(fd)
     };
 
-    if !std::path::Path::new("/sys/module/vcan").exists() && crate::host::is_root() {
+    if !std::path::Path::new("/sys/module/vcan").exists() && host::is_root() {
         let _ = Command::new("modprobe")
             .arg("vcan")
             .stdin(Stdio::null())

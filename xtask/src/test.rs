@@ -1,0 +1,191 @@
+//! `cargo xtask test`: the one command that runs every test.
+//!
+//! 1. `cargo test --workspace`: unit, integration and doc tests of every crate.
+//! 2. The suites that need real vcan (`exocal-tests` built with `--features vcan`) are built on
+//!    the host, then run one after another inside the vcan harness (`run-suites`), one test
+//!    thread each, since they share the bus.
+//! 3. The power-up test ([`crate::powerup`]): the Debian package installed in a guest that boots
+//!    systemd as PID 1, checked from inside.
+//! 4. The cross-builds for the controller ([`crate::cross::check`]): aarch64 and armv7 binaries
+//!    run under qemu-user (`--help`, an offline calibration equal to the host's), their Debian
+//!    packages through lintian.
+//!
+//! Counts are read from libtest's `test result:` lines, and the last line is the total.
+
+use std::process::Command;
+
+use anyhow::{bail, Context, Result};
+
+use crate::libtest::{self, Counts};
+use crate::{cross, figures, harness, paths, powerup, setup, targets};
+
+/// Run every test: workspace tests, vcan suites, power-up, cross-builds, README figures.
+///
+/// Run every test: `cargo test --workspace` (unit, integration and doc tests), the suites that
+/// need real vcan (crate exocal-tests, feature `vcan`) inside the vcan harness, the power-up test
+/// under systemd (`powerup`), the cross-builds under qemu-user (`cross`), and the README figures
+/// (`figures`).
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    #[command(flatten)]
+    pub harness: harness::Opts,
+}
+
+pub fn run(args: Args) -> Result<u8> {
+    let opts = &args.harness;
+    let cargo = paths::cargo();
+    let mut host = Counts::default();
+
+    // Everything the suites need (Chromium, lintian, the cross toolchain, the VM packages when
+    // this kernel has no vcan): installed when missing, as root on Debian.
+    setup::install_all()?;
+    // The Python cross-checks (cantools, mcap) need their venv before any suite runs; the
+    // guest is offline, so it is made here, and every suite finds it through EXOCAL_PYTHON.
+    let python = setup::python_env()?;
+    std::env::set_var("EXOCAL_PYTHON", &python);
+    std::env::set_var(
+        "EXOCAL_PYENV",
+        python.parent().and_then(|b| b.parent()).unwrap_or(&python),
+    );
+    // The end-to-end suites run the real binaries, optimised as shipped (in the TCG guest a
+    // debug emulator cannot keep its nodes' clocks in step with real time): build them, and
+    // tell the suites where.
+    let bins = targets::build(&targets::TARGETS[0])?;
+    let bin_dir = bins[0].parent().context("binary directory")?;
+    std::env::set_var("EXOCAL_BIN_DIR", bin_dir);
+
+    println!(
+        "==> [1/5] cargo test --workspace -- --include-ignored (unit, integration and doc tests)"
+    );
+    let ok_host = libtest::run_teed(
+        // `--include-ignored`: tests ignored for plain `cargo test` because they need the
+        // project's Python venv (EXOCAL_PYTHON, made above) run here.
+        Command::new(&cargo).args([
+            "test",
+            "--workspace",
+            "--color",
+            "never",
+            "--",
+            "--include-ignored",
+        ]),
+        &mut host,
+    )?;
+    if !ok_host && host.failed == 0 {
+        host.broken += 1;
+    }
+
+    println!("==> [2/5] vcan suites (exocal-tests --features vcan) in the vcan harness");
+    let bins = libtest::build_suites(&cargo, "vcan")?;
+    let mut vcan = Counts::default();
+    if bins.is_empty() {
+        bail!("no vcan suites were built: exocal-tests has no test targets with feature vcan");
+    }
+    // `cargo test` may have rebuilt xtask's own binary under us: run a copy of this one.
+    let exe = paths::workspace_root().join("target/xtask/suite-runner");
+    std::fs::create_dir_all(exe.parent().context("target/xtask")?)?;
+    std::fs::copy("/proc/self/exe", &exe).context("copy the running xtask")?;
+    let mut argv = vec![exe.display().to_string(), "run-suites".to_string()];
+    argv.extend(bins);
+    let mut req = opts.request(argv)?;
+    req.capture_stdout = true;
+    let outcome = harness::run(&req)?;
+    vcan.scan(&String::from_utf8_lossy(&outcome.stdout));
+    if outcome.code != 0 && vcan.failed == 0 {
+        vcan.broken += 1;
+    }
+
+    println!("==> [3/5] the power-up test under systemd (cargo xtask powerup)");
+    let power = match powerup::power_up(opts) {
+        Ok(p) => p,
+        Err(e) => {
+            eprintln!("power-up test could not run: {e:#}");
+            powerup::PowerUp::broken()
+        }
+    };
+
+    println!(
+        "==> [4/5] cross-builds under qemu-user, Debian packages, lintian (cargo xtask cross)"
+    );
+    let mut cross = Counts::default();
+    let cross_lines = match cross::check(&targets::or_default(&[], true)) {
+        Ok(lines) => {
+            cross.passed = lines.len() as u64;
+            lines
+        }
+        Err(e) => {
+            cross.failed = 1;
+            vec![format!("FAILED: {e:#}")]
+        }
+    };
+
+    println!("==> [5/5] every figure the READMEs quote, from its command (cargo xtask figures)");
+    let mut figures = Counts::default();
+    let figures_line = match figures::regenerate(&paths::workspace_root(), false) {
+        Ok(stale) if stale.is_empty() => {
+            figures.passed = 1;
+            "every quoted block matches its command's output".to_string()
+        }
+        Ok(stale) => {
+            figures.failed = stale.len() as u64;
+            format!(
+                "stale: {} (`cargo xtask figures --write` regenerates them)",
+                stale.join(", ")
+            )
+        }
+        Err(e) => {
+            figures.failed = 1;
+            format!("FAILED: {e:#}")
+        }
+    };
+
+    let total = Counts {
+        passed: host.passed + vcan.passed + power.counts.passed + cross.passed + figures.passed,
+        failed: host.failed
+            + vcan.failed
+            + host.broken
+            + vcan.broken
+            + power.counts.failed
+            + power.counts.broken
+            + cross.failed
+            + figures.failed,
+        ignored: host.ignored + vcan.ignored + power.counts.ignored,
+        broken: host.broken + vcan.broken + power.counts.broken,
+    };
+    println!();
+    println!(
+        "host suites: {} passed, {} failed, {} ignored{}",
+        host.passed,
+        host.failed,
+        host.ignored,
+        if host.broken > 0 {
+            " (cargo test itself failed)"
+        } else {
+            ""
+        }
+    );
+    println!(
+        "vcan suites ({}, {:.1} s): {} passed, {} failed{}",
+        outcome.path,
+        outcome.elapsed.as_secs_f64(),
+        vcan.passed,
+        vcan.failed,
+        if vcan.broken > 0 {
+            format!(" (harness run exited {})", outcome.code)
+        } else {
+            String::new()
+        }
+    );
+    println!("{}", power.summary());
+    println!(
+        "cross-builds: {} checks passed, {} failed\n  {}",
+        cross.passed,
+        cross.failed,
+        cross_lines.join("\n  ")
+    );
+    println!("README figures: {figures_line}");
+    println!(
+        "exocal: {} passed, {} failed, {} skipped",
+        total.passed, total.failed, total.ignored
+    );
+    Ok(if total.failed == 0 { 0 } else { 1 })
+}
