@@ -114,15 +114,22 @@ async fn session(config: &Config, opts: &DemoOptions) -> Result<DemoResult, Sess
         .duration_s
         .max(config.session.max_duration_s + 120.0);
     let mut config = config.clone();
-    if config.push.authenticate {
+    let provisioned = if config.push.authenticate {
         config.push.keys = exocal_dbc::auth::KeySet::derived(opts.seed);
-        exocal_hil::flash::provision(&flash_dir, &config.push.keys).map_err(|source| {
-            DaemonError::Io {
-                what: format!("provisioning the demo keys in {}", flash_dir.display()),
-                source,
+        exocal_hil::flash::provision(&flash_dir, &config.push.keys).map(|_| ())
+    } else {
+        // Unauthenticated: the emulated nodes must not keep keys from an earlier demo here.
+        NodeId::JOINTS.iter().try_for_each(|&n| {
+            match std::fs::remove_file(exocal_hil::flash::key_path(&flash_dir, n)) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e),
+                _ => Ok(()),
             }
-        })?;
-    }
+        })
+    };
+    provisioned.map_err(|source| DaemonError::Io {
+        what: format!("setting up the demo keys in {}", flash_dir.display()),
+        source,
+    })?;
     let config = &config;
     let mut hil = Hil::new(scenario, &flash_dir).map_err(|e| DaemonError::Interface {
         name: "in-process hil".into(),
