@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use exocal_bus::{Clock, SocketCan, Transport};
+use exocal_bus::{Clock, SocketCan};
 use tokio::signal::unix::{signal, SignalKind};
 
 use crate::cli::{
@@ -14,6 +14,7 @@ use crate::exit::DaemonError;
 use crate::report::{Notifier, Reporter};
 use crate::runner::{run_session, SessionError, SessionSummary};
 use crate::shutdown::Shutdown;
+use exocal_dbc::NodeId;
 
 /// Where a configuration came from.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -80,11 +81,13 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
     match cli.command {
         Command::CheckConfig(args) => check_config(cli.config.as_deref(), &args),
         Command::Calibrate(args) => {
-            let config = session_config(cli.config.as_deref(), &args)?;
+            let mut config = session_config(cli.config.as_deref(), &args)?;
+            attach_keys(&mut config, false)?;
             runtime()?.block_on(calibrate_on_can(config, args.dry_run))
         }
         Command::Run(args) => {
-            let config = session_config(cli.config.as_deref(), &args)?;
+            let mut config = session_config(cli.config.as_deref(), &args)?;
+            attach_keys(&mut config, true)?;
             runtime()?.block_on(serve_on_can(config, args.dry_run))
         }
         Command::Offline(args) => {
@@ -131,6 +134,13 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
             eprintln!("exocald: configuration from {source}");
             let mut config = crate::demo::demo_config(config, &args.output, 1.0);
             config.live.enabled |= args.live;
+            if config.push.authenticate {
+                eprintln!(
+                    "exocald: demo keys: one AES-128 key per node derived in-process from the \
+                     seed ({}): not secret, for the emulated suit only",
+                    args.seed
+                );
+            }
             let opts = crate::demo::DemoOptions {
                 seed: args.seed,
                 speed: args.speed,
@@ -162,6 +172,35 @@ fn session_config(path: Option<&Path>, args: &SessionArgs) -> Result<Config, Dae
     eprintln!("exocald: configuration from {source}");
     require_interface(&config.interface)?;
     Ok(config)
+}
+
+/// With `push.authenticate`, loads the keys from the `exocal-keys` credential into `config`
+/// (a key for every joint node, and the trigger key for `run`), or fails (exit 78) before the
+/// bus is touched; says on stderr (the journal) which way it is, never the keys.
+pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError> {
+    if !config.push.authenticate {
+        eprintln!(
+            "exocald: WARNING: authentication is off ([push] authenticate = false): any sender on \
+             the bus can change a node's table{}",
+            if trigger { " or start a session" } else { "" }
+        );
+        return Ok(());
+    }
+    let nodes: Vec<NodeId> = config
+        .joint_nodes
+        .iter()
+        .filter_map(|&n| NodeId::new(n))
+        .collect();
+    config.push.keys = crate::keys::load_credential(&nodes, trigger)?;
+    eprintln!(
+        "exocald: table transfers{} are authenticated (AES-128-CMAC, freshness counters): keys \
+         of {} joint node(s){} from the credential {}",
+        if trigger { " and triggers" } else { "" },
+        nodes.len(),
+        if trigger { " and the trigger key" } else { "" },
+        crate::keys::CREDENTIAL
+    );
+    Ok(())
 }
 
 fn runtime() -> Result<tokio::runtime::Runtime, DaemonError> {
@@ -269,85 +308,38 @@ pub fn finish(result: Result<SessionSummary, SessionError>) -> Result<(), Daemon
     }
 }
 
-/// `exocald run`: wait for a `Trigger` frame (StartCalibration) or SIGUSR1, run a session,
-/// and wait again, until SIGTERM/SIGINT.
-///
-/// A trigger that arrives while a session runs is ignored, and said so (a line on stderr; a
-/// Trigger frame also in the session's log): one trigger, one session. SIGTERM while idle exits
-/// 0; during a session it ends as `calibrate` does (75, the log finished, nothing pushed).
+/// `exocald run`: wait for an authentic `Trigger` frame (StartCalibration) or SIGUSR1, run a
+/// session, and wait again, until SIGTERM/SIGINT; at most one session per cooldown
+/// ([`crate::serve`]).
 /// Each state change is a line on stderr (`idle: …`, `trigger received (…)`), which is what
 /// a supervisor or a test waits on.
 pub async fn serve_on_can(config: Config, dry_run: bool) -> Result<(), DaemonError> {
-    const IDLE: &str = "idle: waiting for a trigger (CAN Trigger frame or SIGUSR1)";
     let shutdown = Shutdown::on_signals();
     let mut bus = open_can(&config)?;
     let mut notifier = Notifier::from_env();
     let mut reporter = Reporter::detect(&notifier);
-    let clock = Clock::Wall;
     let mut usr1 = signal(SignalKind::user_defined1()).map_err(|source| DaemonError::Io {
         what: "installing the SIGUSR1 handler".into(),
         source,
     })?;
-    let started = std::time::Instant::now();
-    let mut tick = tokio::time::interval(crate::runner::TICK);
-    notifier.ready(IDLE);
-    reporter.message(IDLE);
-    let stop = shutdown.wait();
-    tokio::pin!(stop);
-    loop {
-        let trigger = tokio::select! {
-            () = &mut stop => return Ok(()),
-            _ = usr1.recv() => Some("SIGUSR1"),
-            rx = bus.recv() => {
-                let rx = rx.map_err(|source| DaemonError::Bus {
-                    what: "receiving CAN".into(),
-                    source,
-                })?;
-                matches!(
-                    exocal_dbc::decode_frame(&rx.frame),
-                    Ok(exocal_dbc::Message::Trigger(exocal_dbc::TriggerCommand::StartCalibration))
-                )
-                .then_some("CAN Trigger frame")
-            }
-            _ = tick.tick() => {
-                notifier.watchdog(started.elapsed());
-                None
-            }
-        };
-        let Some(by) = trigger else {
-            continue;
-        };
-        reporter.message(&format!("trigger received ({by}): starting a session"));
-        // SIGUSR1 during the session is drained here, so it does not start another one after
-        // it (a Trigger frame during the session goes to the session, which logs it).
-        let result = {
-            let session = run_session(
-                &mut bus,
-                &clock,
-                &config,
-                dry_run,
-                shutdown.wait(),
-                &mut notifier,
-                &mut reporter,
-            );
-            tokio::pin!(session);
-            loop {
-                tokio::select! {
-                    result = &mut session => break result,
-                    _ = usr1.recv() => {
-                        eprintln!("exocald: trigger ignored (SIGUSR1): a session is running");
-                    }
-                }
-            }
-        };
-        match finish(result) {
-            Ok(()) => {}
-            Err(DaemonError::Interrupted) => return Err(DaemonError::Interrupted),
-            Err(e) => reporter.message(&format!("session failed: {e}")),
+    let (tx, mut local) = tokio::sync::mpsc::channel(1);
+    tokio::spawn(async move {
+        while usr1.recv().await.is_some() {
+            let _ = tx.try_send(());
         }
-        notifier.status(IDLE);
-        reporter.message(IDLE);
-    }
+    });
+    crate::serve::serve(
+        &mut bus,
+        &Clock::Wall,
+        &config,
+        dry_run,
+        &shutdown,
+        &mut local,
+        &mut notifier,
+        &mut reporter,
+    )
+    .await
+    .map(|_| ())
 }
 
 /// `exocald nodes`: the listing on stdout (a table, or JSON), then 69 if a node is missing.

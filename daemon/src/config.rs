@@ -50,6 +50,12 @@ pub mod limits {
     pub const MAX_TIMEOUT_MS: u64 = 60_000;
     /// Longest backoff between push attempts, ms.
     pub const MAX_BACKOFF_MS: u64 = 600_000;
+    /// Largest expected-accuracy limit on position, mm (a table a metre off is no table).
+    pub const MAX_EXPECTED_POSITION_ERROR_MM: f64 = 1_000.0;
+    /// Largest expected-accuracy limit on rotation, mrad.
+    pub const MAX_EXPECTED_ROTATION_ERROR_MRAD: f64 = 1_000.0;
+    /// Longest cooldown between triggered sessions, s: a day.
+    pub const MAX_COOLDOWN_S: f64 = 86_400.0;
 }
 
 /// Anatomical bounds a table must respect to be pushed, as the file states them (SI units).
@@ -145,6 +151,13 @@ pub struct PushPolicy {
     pub backoff_initial_ms: u64,
     pub backoff_max_ms: u64,
     pub timeout_ms: u64,
+    /// `CommitAuth` before every Commit and only a MAC-verified readback counts as `New`; the
+    /// serve mode's `Trigger` frames must verify too. Off only when the file says
+    /// `authenticate = false`.
+    pub authenticate: bool,
+    /// The keys (never from the file: `exocald` loads them from its systemd credential,
+    /// [`crate::keys`], the demo derives them from its seed). Empty after parsing.
+    pub keys: exocal_dbc::auth::KeySet,
 }
 
 impl PushPolicy {
@@ -156,6 +169,13 @@ impl PushPolicy {
             .saturating_mul(1u64 << shift)
             .min(self.backoff_max_ms)
     }
+}
+
+/// The serve mode's trigger rules (`exocald run`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct TriggerRules {
+    /// Least time between the starts of two triggered sessions, s.
+    pub cooldown_s: f64,
 }
 
 /// The validated configuration.
@@ -172,6 +192,7 @@ pub struct Config {
     pub output: OutputConfig,
     pub push: PushPolicy,
     pub live: LiveConfig,
+    pub trigger: TriggerRules,
 }
 
 /// A configuration error: which key, on which line, what is wrong.
@@ -280,6 +301,7 @@ struct RawConfig {
     output: RawOutput,
     push: RawPush,
     live: Option<RawLive>,
+    trigger: RawTrigger,
 }
 
 #[derive(Deserialize)]
@@ -354,6 +376,13 @@ struct RawPush {
     backoff_initial_ms: u64,
     backoff_max_ms: u64,
     timeout_ms: u64,
+    authenticate: bool,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawTrigger {
+    cooldown_s: f64,
 }
 
 // ---- parsing ----------------------------------------------------------------------------------
@@ -728,13 +757,15 @@ impl Checker<'_> {
                 v.holdout_fraction,
                 false,
             )?,
-            max_expected_position_error_mm: self.positive(
+            max_expected_position_error_mm: self.positive_at_most(
                 "validation.max_expected_position_error_mm",
                 v.max_expected_position_error_mm,
+                MAX_EXPECTED_POSITION_ERROR_MM,
             )?,
-            max_expected_rotation_error_mrad: self.positive(
+            max_expected_rotation_error_mrad: self.positive_at_most(
                 "validation.max_expected_rotation_error_mrad",
                 v.max_expected_rotation_error_mrad,
+                MAX_EXPECTED_ROTATION_ERROR_MRAD,
             )?,
         };
         if validation.max_condition_number < 1.0 {
@@ -774,6 +805,8 @@ impl Checker<'_> {
                 MAX_BACKOFF_MS,
             )?,
             timeout_ms: self.count_at_most("push.timeout_ms", p.timeout_ms, MAX_TIMEOUT_MS)?,
+            authenticate: p.authenticate,
+            keys: exocal_dbc::auth::KeySet::default(),
         };
         if push.backoff_initial_ms == 0 {
             return Err(self.err("push.backoff_initial_ms", "must be at least 1"));
@@ -806,6 +839,13 @@ impl Checker<'_> {
                 })?,
             },
         };
+        let trigger = TriggerRules {
+            cooldown_s: self.positive_at_most(
+                "trigger.cooldown_s",
+                raw.trigger.cooldown_s,
+                MAX_COOLDOWN_S,
+            )?,
+        };
 
         Ok(Config {
             interface,
@@ -817,6 +857,7 @@ impl Checker<'_> {
             output,
             push,
             live,
+            trigger,
         })
     }
 }
@@ -902,14 +943,20 @@ impl Config {
         );
         let _ = writeln!(
             w,
-            "[push]\nretries = {}\nbackoff_initial_ms = {}\nbackoff_max_ms = {}\ntimeout_ms = {}\n",
-            p.retries, p.backoff_initial_ms, p.backoff_max_ms, p.timeout_ms,
+            "[push]\nretries = {}\nbackoff_initial_ms = {}\nbackoff_max_ms = {}\ntimeout_ms = {}\n\
+             authenticate = {}\n",
+            p.retries, p.backoff_initial_ms, p.backoff_max_ms, p.timeout_ms, p.authenticate,
         );
-        let _ = write!(
+        let _ = writeln!(
             w,
             "[live]\nenabled = {}\nlisten = {}\n",
             self.live.enabled,
             text(&self.live.listen.to_string()),
+        );
+        let _ = write!(
+            w,
+            "[trigger]\ncooldown_s = {}\n",
+            num(self.trigger.cooldown_s)
         );
         out
     }
@@ -1229,13 +1276,51 @@ mod tests {
                 "joint_range_deg = [[-90.0, 361.0],",
                 "bounds.joint_range_deg[0]",
             ),
+            (
+                "max_expected_position_error_mm = 3.0",
+                "max_expected_position_error_mm = 1e9",
+                "validation.max_expected_position_error_mm",
+            ),
+            (
+                "max_expected_rotation_error_mrad = 10.0",
+                "max_expected_rotation_error_mrad = 1000.5",
+                "validation.max_expected_rotation_error_mrad",
+            ),
+            (
+                "cooldown_s = 300.0",
+                "cooldown_s = 1e30",
+                "trigger.cooldown_s",
+            ),
+            (
+                "a          = [0.04, 0.04, 0.431",
+                "a          = [1e300, 0.04, 0.431",
+                "nominal.a[0]",
+            ),
+            (
+                "flush_interval_s = 0.5",
+                "flush_interval_s = 1e20",
+                "output.flush_interval_s",
+            ),
+            (
+                "joints = [1, 2, 3, 4, 5, 6, 7]",
+                "joints = [1, 2, 3, 4, 5, 6, 200]",
+                "nodes.joints[6]",
+            ),
         ];
         for (from, to, want) in cases {
             let text = edited(from, to);
             let (key, line, message) = invalid(&text);
             assert_eq!(key, want, "{to}: {message}");
             assert!(
-                message.contains("limit") || message.contains("never"),
+                [
+                    "limit",
+                    "never",
+                    "outside bounds",
+                    "at most 1 s",
+                    "joint nodes are"
+                ]
+                .iter()
+                .any(|m| message.contains(m)),
                 "{message}"
             );
             let needle = to.split(" = ").next().unwrap();

@@ -20,6 +20,12 @@
 //! [`RunningSuit`] and [`session_against_suit`] are that pairing on any transport, with any
 //! scenario and configuration: the fault matrix, the atomic-push trials and the vcan
 //! reliability suites run the suit through them.
+//!
+//! Keys: with `push.authenticate` (the default) the demo needs no setup: it derives one AES-128
+//! key per node from the seed, in-process ([`exocal_dbc::auth::KeySet::derived`]), writes them
+//! to the emulated nodes' key slots and gives them to the daemon, so the push is the
+//! authenticated one a suit gets. Anyone who knows the seed knows these keys: they are for the
+//! emulated suit only (a suit's keys come from the `exocal-keys` credential).
 
 use std::future::Future;
 use std::path::{Path, PathBuf};
@@ -152,6 +158,24 @@ async fn session(
     scenario.duration_s = scenario
         .duration_s
         .max(config.session.max_duration_s + 120.0);
+    let mut config = config.clone();
+    let provisioned = if config.push.authenticate {
+        config.push.keys = exocal_dbc::auth::KeySet::derived(opts.seed);
+        exocal_hil::flash::provision(&flash_dir, &config.push.keys).map(|_| ())
+    } else {
+        // Unauthenticated: the emulated nodes must not keep keys from an earlier demo here.
+        NodeId::JOINTS.iter().try_for_each(|&n| {
+            match std::fs::remove_file(exocal_hil::flash::key_path(&flash_dir, n)) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e),
+                _ => Ok(()),
+            }
+        })
+    };
+    provisioned.map_err(|source| DaemonError::Io {
+        what: format!("setting up the demo keys in {}", flash_dir.display()),
+        source,
+    })?;
+    let config = &config;
     let hil = Hil::new(scenario, &flash_dir).map_err(|e| DaemonError::Interface {
         name: "in-process hil".into(),
         reason: e.to_string(),

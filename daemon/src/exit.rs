@@ -7,6 +7,7 @@
 use std::fmt;
 
 use crate::config::ConfigError;
+use crate::keys::KeyError;
 use crate::mcaplog::LogError;
 use crate::pipeline::CalibrateError;
 use exocal_bus::BusError;
@@ -31,7 +32,7 @@ pub mod code {
     pub const IOERR: u8 = 74;
     /// EX_TEMPFAIL: interrupted (SIGTERM/SIGINT) before pushing; nothing was pushed.
     pub const TEMPFAIL: u8 = 75;
-    /// EX_CONFIG: the configuration is invalid.
+    /// EX_CONFIG: the configuration is invalid, or its keys are missing.
     pub const CONFIG: u8 = 78;
 }
 
@@ -40,6 +41,8 @@ pub mod code {
 pub enum DaemonError {
     /// Bad configuration (78).
     Config(ConfigError),
+    /// Authentication is on but the keys are missing or invalid (78).
+    Keys(KeyError),
     /// The CAN interface does not exist or cannot be opened (69).
     Interface { name: String, reason: String },
     /// A node did not accept the table (69); the report says which.
@@ -78,7 +81,7 @@ impl DaemonError {
     /// The process exit status for this error.
     pub fn exit_code(&self) -> u8 {
         match self {
-            DaemonError::Config(_) => code::CONFIG,
+            DaemonError::Config(_) | DaemonError::Keys(_) => code::CONFIG,
             DaemonError::Interface { .. } | DaemonError::Push(_) | DaemonError::NoAnswer(_) => {
                 code::UNAVAILABLE
             }
@@ -99,6 +102,7 @@ impl fmt::Display for DaemonError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             DaemonError::Config(e) => write!(f, "bad configuration: {e}"),
+            DaemonError::Keys(e) => write!(f, "bad configuration: {e}"),
             DaemonError::Interface { name, reason } => {
                 write!(f, "CAN interface `{name}`: {reason}")
             }
@@ -133,6 +137,7 @@ impl std::error::Error for DaemonError {
     fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
         match self {
             DaemonError::Config(e) => Some(e),
+            DaemonError::Keys(e) => Some(e),
             DaemonError::Calibration(e) => Some(e),
             DaemonError::Io { source, .. } => Some(source),
             DaemonError::Bus { source, .. } => Some(source),
@@ -146,6 +151,12 @@ impl std::error::Error for DaemonError {
 impl From<ConfigError> for DaemonError {
     fn from(e: ConfigError) -> Self {
         DaemonError::Config(e)
+    }
+}
+
+impl From<KeyError> for DaemonError {
+    fn from(e: KeyError) -> Self {
+        DaemonError::Keys(e)
     }
 }
 
@@ -191,9 +202,13 @@ mod tests {
                 source: LogError::Io(std::io::Error::other("disk full")),
             },
             DaemonError::NoAnswer(vec!["Joint4".into(), "Joint6".into()]),
+            DaemonError::Keys(KeyError::Missing { looked: None }),
         ];
         let codes: Vec<u8> = errors.iter().map(DaemonError::exit_code).collect();
-        assert_eq!(codes, [78, 69, 66, 65, 74, 75, 70, 65, 64, 74, 66, 74, 69]);
+        assert_eq!(
+            codes,
+            [78, 69, 66, 65, 74, 75, 70, 65, 64, 74, 66, 74, 69, 78]
+        );
         assert_eq!(errors[12].to_string(), "no answer from Joint4, Joint6");
         assert!(errors[1].to_string().contains("can9"));
         // The causes are kept, not flattened to strings: a caller can walk to the root.

@@ -17,6 +17,8 @@
 //! | [`parallel`] | the LS linearisation in sample blocks on several cores (std scoped threads) |
 //! | [`validate`] | bounds, condition number and held-out accuracy before any push |
 //! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
+//! | [`keys`] | the node and trigger keys, from the systemd credential `exocal-keys` |
+//! | [`serve`] | `exocald run`: which `Trigger` frames start a session (authenticated, cooldown) |
 //! | [`runner`] | one session on any transport: collect, align, calibrate, validate, push, log |
 //! | `demo` | exocal-hil and the daemon in one process on the in-process bus (feature `demo`, on by default) |
 //! | [`offline`] | recalibration from a recorded MCAP, candump or CSV file, through the same pipeline |
@@ -37,6 +39,7 @@ pub mod config;
 pub mod demo;
 pub mod exit;
 pub mod ingest;
+pub mod keys;
 pub mod live;
 pub mod mcaplog;
 pub mod nodes;
@@ -49,6 +52,7 @@ pub mod recorder;
 pub mod recover;
 pub mod report;
 pub mod runner;
+pub mod serve;
 pub mod session;
 pub mod shutdown;
 pub mod validate;

@@ -6,7 +6,9 @@
 //!   [`RetryPolicy::max_attempts`] times; the answer — six fields, then an ACK carrying the CRC
 //!   of the table held, or a NACK `NoTable` — is folded by [`TableRead::on_reply`], the one
 //!   place that judges a node's answer; an answer whose fields do not give the CRC it states is
-//!   not an answer;
+//!   not an answer. With keys (`push.authenticate`), each Readback carries a fresh nonce and an
+//!   answer counts only with a `ReadbackMac` that verifies over it (a forged answer is no
+//!   answer, as in the push); the tables read back from a log are not re-verified;
 //! - "the last session's pushed table" of a node is the table it returned to the last complete
 //!   readback in the newest session log (by modification time) of the output directory that
 //!   holds one: the push's verification readback, which is what the node confirmed holding when
@@ -20,6 +22,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use exocal_bus::{Clock, Frame, Transport};
+use exocal_dbc::auth::{self, Key, KeySet};
 use exocal_dbc::message::{CmdCode, Command, NackReason, Reply, TableCmd, TableReply};
 use exocal_dbc::table::{Field, Table};
 use exocal_dbc::transfer::RetryPolicy;
@@ -44,6 +47,9 @@ pub struct TableRead {
     node: NodeId,
     session: u8,
     fields: [Option<i64>; 6],
+    /// The node's key and this read's nonce: the answer must carry a MAC over them.
+    auth: Option<(Key, u32)>,
+    mac: Option<u32>,
     answer: Option<Answer>,
 }
 
@@ -54,7 +60,17 @@ impl TableRead {
             node,
             session,
             fields: [None; 6],
+            auth: None,
+            mac: None,
             answer: None,
+        }
+    }
+
+    /// A read whose answer counts only with a `ReadbackMac` by `key` over `nonce`.
+    pub fn authenticated(node: NodeId, session: u8, key: Key, nonce: u32) -> Self {
+        TableRead {
+            auth: Some((key, nonce)),
+            ..TableRead::new(node, session)
         }
     }
 
@@ -63,7 +79,9 @@ impl TableRead {
         TableCmd {
             node: self.node,
             session: self.session,
-            cmd: Command::Readback,
+            cmd: Command::Readback {
+                nonce: self.auth.as_ref().map_or(0, |(_, nonce)| *nonce),
+            },
         }
     }
 
@@ -80,16 +98,31 @@ impl TableRead {
         }
         match reply.reply {
             Reply::Readback(field, raw) => self.fields[field as usize] = Some(raw),
+            Reply::ReadbackMac { mac } => self.mac = Some(mac),
             Reply::Ack {
                 cmd: CmdCode::Readback,
                 held_crc,
             } => {
                 let raw = self.fields.map(|f| f.unwrap_or(i64::MIN));
+                let signed = |t: &Table| match &self.auth {
+                    None => true,
+                    Some((key, nonce)) => {
+                        self.mac
+                            == Some(auth::readback_mac(
+                                key,
+                                self.node,
+                                *nonce,
+                                held_crc,
+                                &t.to_bytes(),
+                            ))
+                    }
+                };
                 self.answer = Table::from_raw(raw)
                     .ok()
-                    .filter(|t| t.crc() == held_crc)
+                    .filter(|t| t.crc() == held_crc && signed(t))
                     .map(Answer::Holds);
                 self.fields = [None; 6];
+                self.mac = None;
             }
             Reply::Nack {
                 cmd: CmdCode::Readback,
@@ -107,7 +140,9 @@ fn micros(d: Duration) -> u64 {
 
 /// Reads the table of every node in `nodes` (see the module docs): its answer, or `None` for a
 /// node that did not answer after `attempts` sends `timeout` apart. `first_session` numbers the
-/// transfer sessions (one per node, mod 256).
+/// transfer sessions (one per node, mod 256). With `keys`, a node's answer counts only if it
+/// is signed by its key ([`TableRead::authenticated`]); a node without a key in `keys` is read
+/// unauthenticated.
 pub async fn read_tables<T: Transport>(
     bus: &mut T,
     clock: &Clock,
@@ -115,6 +150,7 @@ pub async fn read_tables<T: Transport>(
     timeout: Duration,
     attempts: u32,
     first_session: u8,
+    keys: Option<&KeySet>,
 ) -> Result<Vec<(NodeId, Option<Answer>)>, exocal_bus::BusError> {
     struct Pending {
         read: TableRead,
@@ -125,7 +161,16 @@ pub async fn read_tables<T: Transport>(
         .iter()
         .enumerate()
         .map(|(i, &node)| Pending {
-            read: TableRead::new(node, first_session.wrapping_add(i as u8)),
+            read: {
+                let session = first_session.wrapping_add(i as u8);
+                match keys.and_then(|k| k.node(node)) {
+                    Some(key) => {
+                        let nonce = auth::nonce(key, node, session, micros(clock.now()));
+                        TableRead::authenticated(node, session, key.clone(), nonce)
+                    }
+                    None => TableRead::new(node, session),
+                }
+            },
             sends: 0,
             deadline_us: 0,
         })
@@ -259,6 +304,7 @@ pub async fn list<T: Transport>(
         Duration::from_millis(config.push.timeout_ms),
         RetryPolicy::default().max_attempts,
         session,
+        config.push.authenticate.then_some(&config.push.keys),
     )
     .await
     .map_err(|source| DaemonError::Bus {

@@ -3,12 +3,20 @@
 //! Contract:
 //! - every node gets its own [`exocal_dbc::transfer::Upload`] (Begin, six segments, Commit with
 //!   the CRC, then a Readback compared field by field), all nodes in parallel on the bus;
+//! - with `push.authenticate` (the default) each upload is authenticated with the node's key
+//!   ([`exocal_dbc::transfer::Upload::authenticated`]): a `CommitAuth` (freshness counter above
+//!   the node's, AES-128-CMAC) before the Commit, and a Readback with a fresh nonce whose answer
+//!   must carry the node's MAC. **`New` is reported only on such an answer**, so forged ACK or
+//!   readback frames can make a push fail but never report `New`; a node without a key in
+//!   `push.keys` is not pushed to (`Unknown`, "no key");
 //! - a failed upload is retried up to `push.retries` times, each in a fresh transfer session,
 //!   after an exponential backoff ([`crate::config::PushPolicy::backoff_ms`]);
 //! - the node-side state machine installs a table only whole, at a Commit whose CRC matches, so
 //!   a node is never left with a partial table; the [`NodeReport`] says which table each node
 //!   holds afterwards, by CRC: the new one (verified by readback), the old one, or unknown —
-//!   never a wrong `New` or `Old`;
+//!   never a wrong `New`, and without an attacker on the bus never a wrong `Old` (`Old` rests on
+//!   the CRC in a node's ACK or NACK, which carry no MAC: a forger can turn `New` into `Old` or
+//!   `Unknown`, as anyone who can jam the bus can, but nothing into `New`);
 //! - a Commit sent by a failed attempt may still be processed after that attempt gave up (a
 //!   lagging node, a delayed frame), so a CRC the node reported earlier is not final. When a job
 //!   fails after sending any Commit, the push waits one `timeout_ms`, then *fences* the node:
@@ -16,7 +24,9 @@
 //!   `RetryPolicy::max_attempts` times (as many as one command over all attempts). It discards
 //!   every older staging, so no stale Commit can install anything afterwards, and its ACK or
 //!   NACK carries the CRC the node holds from then on; an `Abort` of that session follows. The
-//!   report takes the node's answer to the fence; with no answer it says `Unknown`;
+//!   report takes the node's answer to the fence (authenticated: it then reads the table back
+//!   with a nonce, [`exocal_dbc::transfer::Upload::verify`], and says `New` only if the signed
+//!   answer is the new table); with no answer it says `Unknown`;
 //! - time comes from the bus clock (simulated in the demo), never from the system directly;
 //!   timeouts and backoffs run on its monotonic reading ([`Clock::monotonic`]), so a step of
 //!   the wall clock cannot stall or hurry a push.
@@ -24,9 +34,10 @@
 use std::time::Duration;
 
 use exocal_bus::{Clock, Frame, Received, Transport};
+use exocal_dbc::auth::Key;
 use exocal_dbc::message::{CmdCode, Command, Reply, TableCmd};
 use exocal_dbc::table::Table;
-use exocal_dbc::transfer::{RetryPolicy, Upload};
+use exocal_dbc::transfer::{RetryPolicy, Upload, UploadError};
 use exocal_dbc::{Message, NodeId};
 use serde::Serialize;
 
@@ -35,13 +46,14 @@ use crate::config::PushPolicy;
 /// Which table a node holds after the push.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 pub enum Holds {
-    /// The new table, committed and read back identical.
+    /// The new table, committed and read back identical (authenticated: in an answer carrying
+    /// the node's MAC over our nonce).
     New,
     /// Its previous table (the CRC it reported last, after which no Commit of this push can
     /// land, is not the new one).
     Old,
     /// Nothing is known: the node never answered, or did not answer the final CRC query
-    /// after a Commit was sent.
+    /// after a Commit was sent, or (authenticated) never in an answer whose MAC verifies.
     Unknown,
 }
 
@@ -56,6 +68,8 @@ pub struct NodeReport {
     pub holds: Holds,
     /// Uploads started (1 + retries used).
     pub attempts: u32,
+    /// Whether the transfer was authenticated (CommitAuth, signed readback).
+    pub authenticated: bool,
     /// The last failure, if the node does not hold the new table.
     pub error: Option<String>,
 }
@@ -111,6 +125,8 @@ impl<F: FnMut(bool, &Frame, Duration)> PushObserver for F {
 struct Job {
     node: NodeId,
     table: Table,
+    /// The node's key, when the push is authenticated.
+    key: Option<Key>,
     upload: Option<Upload>,
     attempts: u32,
     /// Start of the next attempt (µs on the bus clock), after a backoff.
@@ -122,11 +138,15 @@ struct Job {
     commit_sent: bool,
     /// The final CRC query of a failed job that sent a Commit (see the module doc).
     fence: Option<Fence>,
+    /// What an authenticated readback after the fence proved: `Some(true)` the node holds the
+    /// new table, `Some(false)` another one.
+    verified: Option<bool>,
     done: bool,
     ok: bool,
 }
 
-/// The fence of a failed job: `Begin` in its own session until answered, then `Abort`.
+/// The fence of a failed job: `Begin` in its own session until answered, then `Abort` (and,
+/// authenticated, a signed readback).
 struct Fence {
     session: u8,
     /// When the next `Begin` is due (µs on the bus clock).
@@ -134,6 +154,8 @@ struct Fence {
     sends: u32,
     /// The CRC from the node's answer, once answered.
     answer: Option<u32>,
+    /// The authenticated readback after the answer.
+    verify: Option<Upload>,
 }
 
 fn micros(d: Duration) -> u64 {
@@ -160,18 +182,29 @@ pub async fn push_tables<T: Transport>(
         .saturating_mul(policy.retries.saturating_add(1));
     let mut jobs: Vec<Job> = tables
         .iter()
-        .map(|&(node, table)| Job {
-            node,
-            table,
-            upload: None,
-            attempts: 0,
-            next_start_us: 0,
-            last_error: None,
-            held_crc: None,
-            commit_sent: false,
-            fence: None,
-            done: false,
-            ok: false,
+        .map(|&(node, table)| {
+            let key = policy
+                .keys
+                .node(node)
+                .filter(|_| policy.authenticate)
+                .cloned();
+            // Authenticated without a key: nothing is sent to this node.
+            let keyless = policy.authenticate && key.is_none();
+            Job {
+                node,
+                table,
+                key,
+                upload: None,
+                attempts: 0,
+                next_start_us: 0,
+                last_error: keyless.then(|| format!("no key for {node}: not pushed")),
+                held_crc: None,
+                commit_sent: false,
+                fence: None,
+                verified: None,
+                done: keyless,
+                ok: false,
+            }
         })
         .collect();
     while jobs.iter().any(|j| !j.done) {
@@ -180,30 +213,18 @@ pub async fn push_tables<T: Transport>(
         let now = clock.now();
         let now_us = micros(clock.monotonic());
         for job in jobs.iter_mut().filter(|j| !j.done) {
-            if let Some(fence) = job.fence.as_mut() {
-                if fence.answer.is_some() {
-                    // Best effort: an unanswered Abort only leaves an empty staging, which the
-                    // node drops on its own timeout.
-                    let abort = fence_cmd(job.node, fence.session, Command::Abort);
-                    send(bus, &abort, now, observer).await?;
-                    job.held_crc = fence.answer;
-                    job.done = true;
-                } else if now_us >= fence.next_send_us {
-                    if fence.sends >= fence_sends {
-                        job.held_crc = None;
-                        job.done = true;
-                    } else {
-                        fence.sends += 1;
-                        fence.next_send_us = now_us + retry.timeout_us;
-                        let begin = fence_cmd(job.node, fence.session, Command::Begin);
-                        send(bus, &begin, now, observer).await?;
-                    }
-                }
+            if job.fence.is_some() {
+                fence_step(bus, job, retry, fence_sends, now, now_us, observer).await?;
                 continue;
             }
             if job.upload.is_none() && now_us >= job.next_start_us {
                 job.attempts += 1;
-                job.upload = Some(Upload::new(job.node, session, job.table, retry));
+                job.upload = Some(match &job.key {
+                    Some(key) => {
+                        Upload::authenticated(job.node, session, job.table, retry, key.clone())
+                    }
+                    None => Upload::new(job.node, session, job.table, retry),
+                });
                 session = session.wrapping_add(1);
             }
             let Some(up) = job.upload.as_mut() else {
@@ -231,6 +252,7 @@ pub async fn push_tables<T: Transport>(
                                     next_send_us: now_us + retry.timeout_us,
                                     sends: 0,
                                     answer: None,
+                                    verify: None,
                                 });
                                 session = session.wrapping_add(1);
                             } else {
@@ -258,40 +280,116 @@ pub async fn push_tables<T: Transport>(
     Ok(PushReport {
         nodes: jobs
             .iter()
-            .map(|j| {
-                let new_crc = j.table.crc();
-                // After a fence, `held_crc` is the fence's answer (or None); without one, no
-                // Commit was ever sent, so the node's last reported CRC cannot change.
-                let holds = if j.ok {
-                    Holds::New
-                } else {
-                    match j.held_crc {
-                        Some(c) if c == new_crc => Holds::New,
-                        Some(_) => Holds::Old,
-                        None => Holds::Unknown,
-                    }
-                };
-                let error = if j.ok {
-                    None
-                } else if j.fence.is_some() && j.held_crc.is_none() {
-                    Some(format!(
-                        "{}; no answer to the final CRC query",
-                        j.last_error.as_deref().unwrap_or("failed")
-                    ))
-                } else {
-                    j.last_error.clone()
-                };
-                NodeReport {
-                    node: j.node.name().to_string(),
-                    new_crc,
-                    held_crc: j.held_crc,
-                    holds,
-                    attempts: j.attempts,
-                    error,
-                }
-            })
+            .map(|j| report(j, policy.authenticate))
             .collect(),
     })
+}
+
+/// One turn of a job's fence (see the module doc).
+async fn fence_step<T: Transport>(
+    bus: &mut T,
+    job: &mut Job,
+    retry: RetryPolicy,
+    fence_sends: u32,
+    now: Duration,
+    now_us: u64,
+    observer: &mut dyn PushObserver,
+) -> Result<(), exocal_bus::BusError> {
+    let Some(fence) = job.fence.as_mut() else {
+        return Ok(());
+    };
+    if let Some(verify) = fence.verify.as_mut() {
+        if let Some(cmd) = verify.poll(now_us) {
+            send(bus, &cmd, now, observer).await?;
+        }
+        if let Some(result) = verify.outcome() {
+            job.verified = match result {
+                Ok(_) => Some(true),
+                Err(UploadError::ReadbackMismatch) => Some(false),
+                Err(_) => None,
+            };
+            job.held_crc = match result {
+                Ok(crc) => Some(crc),
+                _ => verify.held_crc().or(fence.answer),
+            };
+            job.done = true;
+        }
+    } else if let Some(answer) = fence.answer {
+        // Best effort: an unanswered Abort only leaves an empty staging, which the node drops
+        // on its own timeout.
+        let abort = fence_cmd(job.node, fence.session, Command::Abort);
+        send(bus, &abort, now, observer).await?;
+        job.held_crc = Some(answer);
+        match &job.key {
+            Some(key) => {
+                // Resent as often as the fence's Begin: a signed answer is eight frames, all
+                // of which must arrive (from any of the resends).
+                let policy = RetryPolicy {
+                    max_attempts: fence_sends,
+                    ..retry
+                };
+                let key = Some(key.clone());
+                fence.verify = Some(Upload::verify(
+                    job.node,
+                    fence.session,
+                    job.table,
+                    policy,
+                    key,
+                ));
+            }
+            None => job.done = true,
+        }
+    } else if now_us >= fence.next_send_us {
+        if fence.sends >= fence_sends {
+            job.held_crc = None;
+            job.done = true;
+        } else {
+            fence.sends += 1;
+            fence.next_send_us = now_us + retry.timeout_us;
+            let begin = fence_cmd(job.node, fence.session, Command::Begin);
+            send(bus, &begin, now, observer).await?;
+        }
+    }
+    Ok(())
+}
+
+/// What a finished job reports.
+fn report(j: &Job, authenticated: bool) -> NodeReport {
+    let new_crc = j.table.crc();
+    // After a fence, `held_crc` is the fence's answer (or None); without one, no Commit was
+    // ever sent, so the node's last reported CRC cannot change. Authenticated, only a signed
+    // answer says `New`; an unsigned CRC can still say the node holds another table.
+    let holds = match (j.ok, j.verified, j.held_crc) {
+        (true, _, _) | (false, Some(true), _) => Holds::New,
+        (false, Some(false), _) => Holds::Old,
+        (false, None, Some(c)) if c != new_crc => Holds::Old,
+        (false, None, Some(_)) if !authenticated => Holds::New,
+        _ => Holds::Unknown,
+    };
+    let error = if j.ok {
+        None
+    } else if j.fence.is_some() && j.held_crc.is_none() {
+        Some(format!(
+            "{}; no answer to the final CRC query",
+            j.last_error.as_deref().unwrap_or("failed")
+        ))
+    } else if authenticated && j.held_crc == Some(new_crc) {
+        Some(format!(
+            "{}; the node's CRC is the new table's, but no answer with a valid MAC proved it",
+            j.last_error.as_deref().unwrap_or("failed")
+        ))
+    } else {
+        j.last_error.clone()
+    };
+    NodeReport {
+        node: j.node.name().to_string(),
+        new_crc,
+        held_crc: j.held_crc,
+        holds,
+        attempts: j.attempts,
+        authenticated,
+        error,
+    }
 }
 
 fn fence_cmd(node: NodeId, session: u8, cmd: Command) -> TableCmd {
@@ -321,7 +419,9 @@ fn on_received(rx: &Received, jobs: &mut [Job], observer: &mut dyn PushObserver)
                 up.on_reply(&reply);
             }
             if let Some(fence) = job.fence.as_mut() {
-                if reply.session == fence.session {
+                if let Some(verify) = fence.verify.as_mut() {
+                    verify.on_reply(&reply);
+                } else if reply.session == fence.session {
                     if let Reply::Ack {
                         cmd: CmdCode::Begin,
                         held_crc,
@@ -345,16 +445,27 @@ mod tests {
     use super::*;
     use crate::config::Config;
     use exocal_bus::InProcessBus;
+    use exocal_dbc::auth::KeySet;
     use exocal_dbc::transfer::{NodeTransfer, StorageError, TableStorage};
     use std::sync::{Arc, Mutex};
 
     #[derive(Default, Clone)]
     struct Flash(Arc<Mutex<Option<Table>>>);
     impl TableStorage for Flash {
-        fn store(&mut self, t: &Table) -> Result<(), StorageError> {
+        fn store(&mut self, t: &Table, _counter: u32) -> Result<(), StorageError> {
             *self.0.lock().unwrap() = Some(*t);
             Ok(())
         }
+    }
+
+    fn keys() -> KeySet {
+        KeySet::derived(9)
+    }
+
+    /// A node booted holding what `flash` holds and its key from [`keys`].
+    fn keyed(node: NodeId, flash: &Flash) -> NodeTransfer {
+        let held = *flash.0.lock().unwrap();
+        NodeTransfer::new(node, held).with_key(keys().node(node).unwrap().clone(), 0)
     }
 
     fn table(k: f64) -> Table {
@@ -373,10 +484,7 @@ mod tests {
         tokio::spawn(async move {
             let mut nodes: Vec<(NodeTransfer, Flash)> = flashes
                 .into_iter()
-                .map(|(n, f)| {
-                    let held = *f.0.lock().unwrap();
-                    (NodeTransfer::new(n, held), f)
-                })
+                .map(|(n, f)| (keyed(n, &f), f))
                 .collect();
             let mut n = 0u64;
             while let Ok(rx) = ep.recv().await {
@@ -428,6 +536,8 @@ mod tests {
             backoff_initial_ms: 5,
             backoff_max_ms: 20,
             timeout_ms: 20,
+            authenticate: true,
+            keys: keys(),
         }
     }
 
@@ -447,8 +557,8 @@ mod tests {
         for ((_, flash), (_, t)) in flashes.iter().zip(&tables) {
             assert_eq!(flash.0.lock().unwrap().unwrap().crc(), t.crc());
         }
-        // Begin, 6 segments, Commit, Readback per node.
-        assert_eq!(sent, 7 * 9);
+        // Begin, 6 segments, CommitAuth, Commit, Readback per node.
+        assert_eq!(sent, 7 * 10);
         nodes.abort();
     }
 
@@ -496,8 +606,7 @@ mod tests {
         let mut ep = bus.attach();
         tokio::spawn(async move {
             let mut flash = flash;
-            let held = *flash.0.lock().unwrap();
-            let mut nt = NodeTransfer::new(node, held);
+            let mut nt = keyed(node, &flash);
             let mut queued: Option<Vec<(TableCmd, u64)>> = None;
             let mut lagged = false;
             while let Ok(rx) = ep.recv().await {
@@ -542,6 +651,10 @@ mod tests {
         let sends = RetryPolicy::default().max_attempts as usize;
         // The Commit's own resends, then every Begin of the later attempts (each unanswered).
         let lag = (sends - 1) + policy.retries as usize * sends;
+        assert!(
+            policy.authenticate,
+            "the fence's answer is then proved by a signed readback"
+        );
         let emulated = spawn_lagging_node(&bus, node, flash.clone(), lag);
         let mut ep = bus.attach();
         let clock = Clock::Wall;
@@ -593,9 +706,103 @@ mod tests {
         );
     }
 
+    /// The node stays silent; a forger on the bus answers every command as the node would
+    /// (right session, right CRCs and fields, a Freshness, a guessed MAC). Authenticated, the
+    /// report never says `New`; without authentication the same forgery is believed.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn forged_replies_never_report_new() {
+        for authenticate in [true, false] {
+            let bus = InProcessBus::new();
+            let node = NodeId::JOINTS[5];
+            let mut forger = bus.attach();
+            let forging = tokio::spawn(async move {
+                let mut guess = 1u32;
+                while let Ok(rx) = forger.recv().await {
+                    let Ok(Message::TableCmd(cmd)) = exocal_dbc::decode_frame(&rx.frame) else {
+                        continue;
+                    };
+                    let mut replies = Vec::new();
+                    let held_crc = table(4.0).crc();
+                    match cmd.cmd {
+                        Command::Begin => replies.push(Reply::Freshness { counter: 3 }),
+                        Command::Readback { .. } => {
+                            for f in exocal_dbc::Field::ALL {
+                                replies.push(Reply::Readback(f, table(4.0).raw(f)));
+                            }
+                            guess = guess.wrapping_mul(0x9e37_79b9).wrapping_add(7);
+                            replies.push(Reply::ReadbackMac { mac: guess });
+                        }
+                        _ => {}
+                    }
+                    replies.push(Reply::Ack {
+                        cmd: cmd.cmd.code(),
+                        held_crc,
+                    });
+                    for reply in replies {
+                        let m = Message::TableReply(exocal_dbc::TableReply {
+                            node: cmd.node,
+                            session: cmd.session,
+                            reply,
+                        });
+                        forger.send_now(&m.to_frame().unwrap());
+                    }
+                }
+            });
+            let mut ep = bus.attach();
+            let policy = PushPolicy {
+                authenticate,
+                ..policy()
+            };
+            let mut sink = |_: bool, _: &Frame, _: Duration| {};
+            let report = push_tables(
+                &mut ep,
+                &Clock::Wall,
+                &[(node, table(4.0))],
+                &policy,
+                3,
+                &mut sink,
+            )
+            .await
+            .unwrap();
+            forging.abort();
+            let r = &report.nodes[0];
+            if authenticate {
+                assert_ne!(r.holds, Holds::New, "{r:?}");
+                assert!(r.error.as_deref().unwrap().contains("MAC"), "{r:?}");
+            } else {
+                assert_eq!(r.holds, Holds::New, "the forgery works without keys: {r:?}");
+            }
+        }
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_node_without_a_key_is_not_pushed_to() {
+        let bus = InProcessBus::new();
+        let (flashes, tables) = setup(true);
+        let nodes = spawn_nodes(&bus, flashes.clone(), |_| false, vec![]);
+        let mut ep = bus.attach();
+        let mut policy = policy();
+        policy.keys.set_node(NodeId::JOINTS[1], None);
+        let mut sent = 0;
+        let mut sink = |tx: bool, _: &Frame, _: Duration| sent += usize::from(tx);
+        let report = push_tables(&mut ep, &Clock::Wall, &tables, &policy, 1, &mut sink)
+            .await
+            .unwrap();
+        nodes.abort();
+        let r = &report.nodes[1];
+        assert_eq!((r.holds, r.attempts), (Holds::Unknown, 0), "{r:?}");
+        assert!(r.error.as_deref().unwrap().contains("no key"), "{r:?}");
+        assert_eq!(*flashes[1].1 .0.lock().unwrap(), Some(table(0.0)));
+        assert_eq!(sent, 6 * 10);
+    }
+
     #[test]
     fn the_config_policy_is_usable() {
         let p = Config::default_config().push;
         assert!(p.timeout_ms > 0 && p.retries > 0);
+        assert!(
+            p.authenticate && p.keys.is_empty(),
+            "keys never come from the file"
+        );
     }
 }

@@ -227,9 +227,9 @@ impl Io<'_> {
                     self.event(rx.timestamp, Level::Warning, &format!("bad frame: {e}"));
                 }
             }
-            Event::Message(exocal_dbc::Message::Trigger(
-                exocal_dbc::TriggerCommand::StartCalibration,
-            )) => {
+            Event::Message(exocal_dbc::Message::Trigger(t))
+                if t.command == exocal_dbc::TriggerCommand::StartCalibration =>
+            {
                 self.event(
                     rx.timestamp,
                     Level::Warning,
@@ -870,6 +870,8 @@ mod tests {
         c.output.directory = dir.to_path_buf();
         c.session.min_duration_s = 15.0;
         c.push.timeout_ms = 400;
+        // The hil's nodes here hold no keys (authenticated pushes: push.rs, demo, atomic_push).
+        c.push.authenticate = false;
         c
     }
 

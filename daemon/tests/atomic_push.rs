@@ -18,6 +18,7 @@ use std::time::Duration;
 
 use exocal_bus::InProcessBus;
 use exocal_bus::SimClock;
+use exocal_dbc::auth::KeySet;
 use exocal_dbc::table::Table;
 use exocal_dbc::NodeId;
 use exocal_hil::trial::{new_tables, TransferMix};
@@ -55,6 +56,9 @@ fn temp_dir(seed: u64) -> PathBuf {
 async fn one_run(seed: u64, tally: &mut PushTally) {
     let dir = temp_dir(seed);
     let scenario = MIX.scenario(seed);
+    // Authenticated, as on a suit: every node holds its key, the daemon has them all.
+    let keys = KeySet::derived(seed);
+    exocal_hil::flash::provision(&dir, &keys).expect("key slots");
     let hil = Hil::new(scenario.clone(), &dir).expect("hil");
     let trial = new_tables(hil.suit(), seed ^ 0xa5a5);
     let tables: Vec<(NodeId, Table)> = trial.iter().map(|(n, _, new)| (*n, *new)).collect();
@@ -68,6 +72,8 @@ async fn one_run(seed: u64, tally: &mut PushTally) {
         backoff_initial_ms: 100,
         backoff_max_ms: 800,
         timeout_ms: (SPEED * 20.0) as u64,
+        authenticate: true,
+        keys,
     };
     let mut ignore = |_: bool, _: &exocal_bus::Frame, _: Duration| {};
     let report = push_tables(

@@ -76,6 +76,55 @@ fn a_missing_interface_is_a_clear_error() {
     );
 }
 
+/// Authentication on (the default) and no `exocal-keys` credential: exit 78 before the bus is
+/// touched, saying how to provision it; a credential missing a node's key names the node.
+/// Off (`authenticate = false`): the journal says so, and the daemon goes on (here to the CAN
+/// socket, which `lo` cannot give: 69).
+#[test]
+fn missing_keys_exit_78_and_authentication_off_is_said() {
+    let shipped = temp("shipped.toml", exocald::config::DEFAULT_TOML);
+    for cmd in ["calibrate", "run"] {
+        let out = Command::new(env!("CARGO_BIN_EXE_exocald"))
+            .args([
+                "--config",
+                shipped.to_str().unwrap(),
+                cmd,
+                "--interface",
+                "lo",
+            ])
+            .env_remove("CREDENTIALS_DIRECTORY")
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(78), "{cmd}: {err}");
+        assert!(
+            err.contains("exocal-keys") && err.contains("authenticate = false"),
+            "{err}"
+        );
+    }
+    let creds = temp("exocal-keys", "Joint1 000102030405060708090a0b0c0d0e0f\n");
+    let out = Command::new(env!("CARGO_BIN_EXE_exocald"))
+        .args([
+            "--config",
+            shipped.to_str().unwrap(),
+            "calibrate",
+            "-i",
+            "lo",
+        ])
+        .env("CREDENTIALS_DIRECTORY", creds.parent().unwrap())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(78), "{err}");
+    assert!(err.contains("no key for Joint2"), "{err}");
+    assert!(!err.contains("000102"), "a key in the message: {err}");
+    let off = exocald::config::DEFAULT_TOML.replace("authenticate = true", "authenticate = false");
+    let off = temp("off.toml", &off);
+    let (code, _, err) = exocald(&["--config", off.to_str().unwrap(), "calibrate", "-i", "lo"]);
+    assert!(err.contains("authentication is off"), "{err}");
+    assert_eq!(code, 69, "{err}");
+}
+
 #[test]
 fn usage_errors_are_64_and_help_is_0() {
     assert_eq!(exocald(&["calibrat"]).0, 64);

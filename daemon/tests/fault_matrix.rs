@@ -272,6 +272,9 @@ async fn run_case(case: &Case) -> SuitSession {
         config.bounds.a[2] = (0.42, 0.485);
     }
     scenario.duration_s = config.session.max_duration_s + 120.0;
+    // Authenticated, as on a suit (the demo's derived keys).
+    config.push.keys = exocal_dbc::auth::KeySet::derived(7);
+    exocal_hil::flash::provision(&flash_dir, &config.push.keys).expect("key slots");
     let hil = Hil::new(scenario, &flash_dir).expect("hil");
     let clock = SimClock::new(SPEED).unwrap();
     let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());

@@ -1,9 +1,11 @@
 //! Logs already in the field stay readable: `fixtures/json-session-v0.mcap` is a session log as
 //! the daemon wrote it before the log was binary (JSON messages with JSON Schemas): `exocald
 //! demo --seed 7` with `fixtures/json-session-v0.toml` (a 2 s collection window, so the file is
-//! small; that run's summary is `fixtures/json-session-v0.txt`). `exocald offline` replays it to
-//! the table the live run computed (its `/calibration` message), bit for bit, and refuses it for
-//! the same reasons.
+//! small; that run's summary is `fixtures/json-session-v0.txt`; recorded by commit ea84f72, the
+//! last with the JSON writer). `exocald offline` reads from it the frames and samples the live
+//! run collected, and replays them to the table today's demo computes live from the same seed
+//! (its protobuf log), bit for bit, refused for the same reasons: the JSON reader hands the
+//! pipeline exactly what the live session had, whatever the calibration of the day is.
 
 use std::path::{Path, PathBuf};
 
@@ -49,6 +51,23 @@ fn row_values(text: &str, key: &str) -> Vec<f64> {
         .collect()
 }
 
+/// Today's live session of the fixture's seed and configuration (`exocald demo --seed 7`): its
+/// outcome.
+fn todays_live_rows(config: &Config, dir: &Path) -> exocald::pipeline::Outcome {
+    let opts = exocald::demo::DemoOptions {
+        seed: 7,
+        speed: 1e6,
+        output: dir.join("today"),
+        hold: false,
+    };
+    let config = exocald::demo::demo_config(config.clone(), &opts.output, 1.0);
+    let summary = match exocald::demo::run(&config, &opts) {
+        Ok(r) => r.summary,
+        Err(e) => e.summary.expect("a summary"),
+    };
+    summary.outcome.expect("an outcome")
+}
+
 #[test]
 fn a_json_log_of_the_old_writer_replays_offline_to_the_live_table() {
     let log = fixture("json-session-v0.mcap");
@@ -64,7 +83,8 @@ fn a_json_log_of_the_old_writer_replays_offline_to_the_live_table() {
         report: Some(dir.join("offline.html")),
         ..OfflineOptions::default()
     };
-    // The live run was refused (2 s of motion): so is the replay, with the same reasons.
+    // The live run was refused (2 s of motion): so is the replay, for the reasons today's live
+    // run gives.
     let (summary, error) = match offline::run(&config, &text, &opts).map_err(|e| *e) {
         Err(SessionError {
             error: error @ DaemonError::Validation(_),
@@ -73,16 +93,20 @@ fn a_json_log_of_the_old_writer_replays_offline_to_the_live_table() {
         other => panic!("expected a refusal, got {other:?}"),
     };
     let outcome = summary.outcome.expect("an outcome");
-    let reasons: Vec<String> =
-        serde_json::from_value(live["outcome"]["verdict"]["reasons"].clone()).unwrap();
+    let today = todays_live_rows(&config, &dir);
+    let reasons = today.verdict.reasons.clone();
     assert!(!reasons.is_empty());
     assert_eq!(outcome.verdict.reasons, reasons);
     assert!(matches!(error, DaemonError::Validation(r) if r == reasons));
+    let old_reasons: Vec<String> =
+        serde_json::from_value(live["outcome"]["verdict"]["reasons"].clone()).unwrap();
+    assert!(!old_reasons.is_empty(), "the recorded run was refused too");
 
     // The same frames and samples as the live collection window.
     assert_eq!(summary.frames.received, live["frames"]["received"]);
     assert_eq!(summary.aligned_samples as u64, live["aligned_samples"]);
-    // The same table, bit for bit (the old writer wrote f64 in shortest round-trip form).
+    // The recorded table has the right shape (the old writer wrote f64 in shortest round-trip
+    // form); the replay gives today's live table, bit for bit.
     type Field = fn(&exocald::pipeline::NodeRow) -> f64;
     let fields: [(&str, Field); 6] = [
         ("a", |r| r.a),
@@ -93,10 +117,14 @@ fn a_json_log_of_the_old_writer_replays_offline_to_the_live_table() {
         ("sigma", |r| r.sigma),
     ];
     for (name, field) in fields {
-        let live = row_values(&live_text, name);
-        assert_eq!(live.len(), outcome.node_rows.len(), "{name}");
-        for (i, (row, want)) in outcome.node_rows.iter().zip(live).enumerate() {
-            let got = field(row);
+        let recorded = row_values(&live_text, name);
+        assert_eq!(recorded.len(), outcome.node_rows.len(), "{name}");
+        assert!(
+            recorded.iter().all(|v| v.is_finite()),
+            "{name}: {recorded:?}"
+        );
+        for (i, (row, want)) in outcome.node_rows.iter().zip(&today.node_rows).enumerate() {
+            let (got, want) = (field(row), field(want));
             assert_eq!(
                 got.to_bits(),
                 want.to_bits(),

@@ -12,6 +12,8 @@
 //!   1 µm / 1 µrad / 1 µs resolution with its CRC-32.
 //! - [`transfer`] holds the node side ([`transfer::NodeTransfer`]) and the controller side
 //!   ([`transfer::Upload`]) of the table transfer. Time is always an argument.
+//! - [`auth`] authenticates transfers and triggers: AES-128-CMAC truncated to 32 bits
+//!   (`cmac` + `aes`, `no_std`, so node firmware shares it) with freshness counters.
 //! - [`pose::PoseAssembler`] joins the four `EePose` pages of one pose.
 //!
 //! Identifiers: `base | node`, node ids 1..=7 for the joints and 8 for the end-effector
@@ -20,6 +22,7 @@
 #![deny(unsafe_code)]
 #![warn(missing_docs)]
 
+pub mod auth;
 pub mod message;
 pub mod pose;
 pub mod spec;
@@ -28,7 +31,7 @@ pub mod transfer;
 
 pub use message::{
     decode, decode_frame, CmdCode, Command, Heartbeat, ImuVector, JointState, Message, NackReason,
-    NodeState, PoseFrame, PosePage, Reply, TableCmd, TableReply, TriggerCommand,
+    NodeState, PoseFrame, PosePage, Reply, TableCmd, TableReply, Trigger, TriggerCommand,
 };
 pub use table::{Field, Table};
 

@@ -135,6 +135,8 @@ pub enum CmdCode {
     Segment(Field),
     /// Install the staged table if its CRC matches.
     Commit,
+    /// Authenticate the staged table (freshness counter and MAC) before its Commit.
+    CommitAuth,
     /// Send the held table back.
     Readback,
     /// Drop the staging.
@@ -148,6 +150,7 @@ impl CmdCode {
             CmdCode::Begin => 1,
             CmdCode::Segment(f) => 16 + f.seq(),
             CmdCode::Commit => 32,
+            CmdCode::CommitAuth => 33,
             CmdCode::Readback => 48,
             CmdCode::Abort => 63,
         }
@@ -159,6 +162,7 @@ impl CmdCode {
             1 => Some(CmdCode::Begin),
             16..=21 => Field::from_seq(code - 16).map(CmdCode::Segment),
             32 => Some(CmdCode::Commit),
+            33 => Some(CmdCode::CommitAuth),
             48 => Some(CmdCode::Readback),
             63 => Some(CmdCode::Abort),
             _ => None,
@@ -173,13 +177,25 @@ pub enum Command {
     Begin,
     /// One table field, raw units (see [`crate::Table`]).
     Segment(Field, i64),
-    /// Install the staged table if its CRC-32 equals `crc`.
+    /// Install the staged table if its CRC-32 equals `crc` (and, on a node holding a key, the
+    /// staged table was authenticated by a valid `CommitAuth`).
     Commit {
         /// CRC-32 of the table the controller sent.
         crc: u32,
     },
-    /// Ask for the held table.
-    Readback,
+    /// Authenticates the staged table: the MAC covers node, session, the full freshness
+    /// counter, the table and its CRC ([`crate::auth::commit_mac`]).
+    CommitAuth {
+        /// Low 16 bits of the freshness counter.
+        counter_lo: u16,
+        /// The truncated AES-128-CMAC.
+        mac: u32,
+    },
+    /// Ask for the held table; a node holding a key answers with a MAC over `nonce`.
+    Readback {
+        /// Chosen by the controller, covered by the node's [`Reply::ReadbackMac`].
+        nonce: u32,
+    },
     /// Drop the staging.
     Abort,
 }
@@ -191,7 +207,8 @@ impl Command {
             Command::Begin => CmdCode::Begin,
             Command::Segment(f, _) => CmdCode::Segment(f),
             Command::Commit { .. } => CmdCode::Commit,
-            Command::Readback => CmdCode::Readback,
+            Command::CommitAuth { .. } => CmdCode::CommitAuth,
+            Command::Readback { .. } => CmdCode::Readback,
             Command::Abort => CmdCode::Abort,
         }
     }
@@ -229,6 +246,12 @@ pub enum NackReason {
     BadFormat = 8,
     /// Readback asked of a node holding no table.
     NoTable = 9,
+    /// A node holding a key got a Commit without a valid `CommitAuth`, or a `CommitAuth` whose
+    /// MAC does not verify.
+    BadMac = 10,
+    /// A `CommitAuth` whose MAC verifies for a counter at or below the one the node stored: a
+    /// replay or a stale sender.
+    StaleCounter = 11,
 }
 
 impl NackReason {
@@ -244,6 +267,8 @@ impl NackReason {
             FlashError,
             BadFormat,
             NoTable,
+            BadMac,
+            StaleCounter,
         ]
         .into_iter()
         .find(|r| *r as i64 == raw)
@@ -271,6 +296,18 @@ pub enum Reply {
     },
     /// One field of the held table, raw units.
     Readback(Field, i64),
+    /// The freshness counter the node stored with its table (a keyed node's answer to Begin,
+    /// before its ACK).
+    Freshness {
+        /// The stored counter; a CommitAuth must carry a higher one.
+        counter: u32,
+    },
+    /// The MAC of a keyed node's readback (after the six fields, before the ACK): over node,
+    /// nonce, held CRC and table ([`crate::auth::readback_mac`]).
+    ReadbackMac {
+        /// The truncated AES-128-CMAC.
+        mac: u32,
+    },
 }
 
 /// A `TableReply_<node>` frame.
@@ -284,13 +321,25 @@ pub struct TableReply {
     pub reply: Reply,
 }
 
-/// Operator request (`Trigger`).
+/// What an operator asks for (`Trigger.Command`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum TriggerCommand {
     /// Start a calibration session.
     StartCalibration = 1,
     /// Abort the running session.
     Abort = 2,
+}
+
+/// Operator request (`Trigger`), authenticated with the trigger key
+/// ([`crate::auth::trigger_mac`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Trigger {
+    /// What is asked.
+    pub command: TriggerCommand,
+    /// Low 16 bits of the sender's freshness counter.
+    pub counter_lo: u16,
+    /// The truncated AES-128-CMAC.
+    pub mac: u32,
 }
 
 /// Any message of the protocol.
@@ -313,7 +362,7 @@ pub enum Message {
     /// `TableReply_<node>`.
     TableReply(TableReply),
     /// `Trigger`.
-    Trigger(TriggerCommand),
+    Trigger(Trigger),
 }
 
 fn node_of(spec: &MessageSpec, id: u16) -> Option<NodeId> {
@@ -354,10 +403,15 @@ pub fn decode(id: u16, data: &[u8]) -> Result<Message, DecodeError> {
         dlc: data.len().min(255) as u8,
     })?;
     if id == TRIGGER.base_id {
-        return match TRIGGER_COMMAND.decode_raw(id, d)? {
-            1 => Ok(Message::Trigger(TriggerCommand::StartCalibration)),
-            _ => Ok(Message::Trigger(TriggerCommand::Abort)),
+        let command = match TRIGGER_COMMAND.decode_raw(id, d)? {
+            1 => TriggerCommand::StartCalibration,
+            _ => TriggerCommand::Abort,
         };
+        return Ok(Message::Trigger(Trigger {
+            command,
+            counter_lo: get_u(&TRIGGER_COUNTER_LO, id, d)? as u16,
+            mac: get_u(&TRIGGER_MAC, id, d)? as u32,
+        }));
     }
     if let Some(node) = node_of(&JOINT_STATE, id) {
         return Ok(Message::JointState(JointState {
@@ -440,7 +494,13 @@ pub fn decode(id: u16, data: &[u8]) -> Result<Message, DecodeError> {
             Some(CmdCode::Commit) => Command::Commit {
                 crc: get_u(&CMD_TABLE_CRC, id, d)? as u32,
             },
-            Some(CmdCode::Readback) => Command::Readback,
+            Some(CmdCode::CommitAuth) => Command::CommitAuth {
+                counter_lo: get_u(&CMD_COUNTER_LO, id, d)? as u16,
+                mac: get_u(&CMD_COMMIT_MAC, id, d)? as u32,
+            },
+            Some(CmdCode::Readback) => Command::Readback {
+                nonce: get_u(&CMD_NONCE, id, d)? as u32,
+            },
             Some(CmdCode::Abort) => Command::Abort,
             None => return Err(DecodeError::BadMux { id, value }),
         };
@@ -469,6 +529,12 @@ pub fn decode(id: u16, data: &[u8]) -> Result<Message, DecodeError> {
                     signal: NACK_REASON.name,
                 },
             )?,
+        },
+        2 => Reply::Freshness {
+            counter: get_u(&NODE_COUNTER, id, d)? as u32,
+        },
+        3 => Reply::ReadbackMac {
+            mac: get_u(&RB_MAC, id, d)? as u32,
         },
         16..=21 => {
             let f = Field::ALL[usize::from(value - 16)];
@@ -565,7 +631,14 @@ impl Message {
                     Command::Begin => CMD_SEGMENT_COUNT.encode_raw(&mut d, 6)?,
                     Command::Segment(f, raw) => SEGMENTS[f as usize].encode_raw(&mut d, raw)?,
                     Command::Commit { crc } => CMD_TABLE_CRC.encode_raw(&mut d, i64::from(crc))?,
-                    Command::Readback | Command::Abort => {}
+                    Command::CommitAuth { counter_lo, mac } => {
+                        CMD_COUNTER_LO.encode_raw(&mut d, i64::from(counter_lo))?;
+                        CMD_COMMIT_MAC.encode_raw(&mut d, i64::from(mac))?;
+                    }
+                    Command::Readback { nonce } => {
+                        CMD_NONCE.encode_raw(&mut d, i64::from(nonce))?
+                    }
+                    Command::Abort => {}
                 }
                 id
             }
@@ -592,11 +665,21 @@ impl Message {
                         REPLY.encode_raw(&mut d, 16 + i64::from(f.seq()))?;
                         READBACK[f as usize].encode_raw(&mut d, raw)?;
                     }
+                    Reply::Freshness { counter } => {
+                        REPLY.encode_raw(&mut d, 2)?;
+                        NODE_COUNTER.encode_raw(&mut d, i64::from(counter))?;
+                    }
+                    Reply::ReadbackMac { mac } => {
+                        REPLY.encode_raw(&mut d, 3)?;
+                        RB_MAC.encode_raw(&mut d, i64::from(mac))?;
+                    }
                 }
                 id
             }
-            Message::Trigger(c) => {
-                TRIGGER_COMMAND.encode_raw(&mut d, *c as i64)?;
+            Message::Trigger(t) => {
+                TRIGGER_COMMAND.encode_raw(&mut d, t.command as i64)?;
+                TRIGGER_COUNTER_LO.encode_raw(&mut d, i64::from(t.counter_lo))?;
+                TRIGGER_MAC.encode_raw(&mut d, i64::from(t.mac))?;
                 TRIGGER.base_id
             }
         };
@@ -650,12 +733,13 @@ mod tests {
             Just(CmdCode::Begin),
             field().prop_map(CmdCode::Segment),
             Just(CmdCode::Commit),
+            Just(CmdCode::CommitAuth),
             Just(CmdCode::Readback),
             Just(CmdCode::Abort)
         ]
     }
     fn reason() -> impl Strategy<Value = NackReason> {
-        (1i64..=9).prop_map(|r| NackReason::from_raw(r).unwrap())
+        (1i64..=11).prop_map(|r| NackReason::from_raw(r).unwrap())
     }
     /// Any value on the signal's grid, or (for signals with a marker) NaN.
     fn grid(spec: SignalSpec) -> impl Strategy<Value = f64> {
@@ -694,7 +778,9 @@ mod tests {
             Just(Command::Begin),
             field_raw().prop_map(|(f, r)| Command::Segment(f, r)),
             any::<u32>().prop_map(|crc| Command::Commit { crc }),
-            Just(Command::Readback),
+            (any::<u16>(), any::<u32>())
+                .prop_map(|(counter_lo, mac)| Command::CommitAuth { counter_lo, mac }),
+            any::<u32>().prop_map(|nonce| Command::Readback { nonce }),
             Just(Command::Abort),
         ];
         let reply = prop_oneof![
@@ -705,6 +791,8 @@ mod tests {
                 reason
             }),
             field_raw().prop_map(|(f, r)| Reply::Readback(f, r)),
+            any::<u32>().prop_map(|counter| Reply::Freshness { counter }),
+            any::<u32>().prop_map(|mac| Reply::ReadbackMac { mac }),
         ];
         let states = [
             NodeState::Boot,
@@ -768,11 +856,19 @@ mod tests {
                     reply
                 }
             )),
-            prop_oneof![
-                Just(TriggerCommand::StartCalibration),
-                Just(TriggerCommand::Abort)
-            ]
-            .prop_map(Message::Trigger),
+            (
+                prop_oneof![
+                    Just(TriggerCommand::StartCalibration),
+                    Just(TriggerCommand::Abort)
+                ],
+                any::<u16>(),
+                any::<u32>()
+            )
+                .prop_map(|(command, counter_lo, mac)| Message::Trigger(Trigger {
+                    command,
+                    counter_lo,
+                    mac
+                })),
         ]
     }
 
@@ -951,7 +1047,11 @@ mod tests {
                 &self.1
             }
         }
-        let m = Message::Trigger(TriggerCommand::StartCalibration);
+        let m = Message::Trigger(Trigger {
+            command: TriggerCommand::StartCalibration,
+            counter_lo: 7,
+            mac: 0xdead_beef,
+        });
         let f: F = m.to_frame().unwrap();
         assert_eq!(decode_frame(&f), Ok(m));
         let ext = F(

@@ -313,6 +313,9 @@ pub(crate) mod s {
     pub const CMD_SEGMENT_COUNT: SignalSpec =
         sig("SegmentCount", 16, 8, false).range(6.0, 6.0).case(1);
     pub const CMD_TABLE_CRC: SignalSpec = sig("TableCrc", 16, 32, false).case(32);
+    pub const CMD_COUNTER_LO: SignalSpec = sig("CounterLo", 16, 16, false).case(33);
+    pub const CMD_COMMIT_MAC: SignalSpec = sig("CommitMac", 32, 32, false).case(33);
+    pub const CMD_NONCE: SignalSpec = sig("Nonce", 16, 32, false).case(48);
 
     const fn seg(
         name: &'static str,
@@ -342,7 +345,9 @@ pub(crate) mod s {
     pub const HELD_CRC: SignalSpec = sig("HeldCrc", 24, 32, false).case(0);
     pub const NACKED_CMD: SignalSpec = sig("NackedCmd", 16, 8, false).case(1);
     pub const NACK_HELD_CRC: SignalSpec = sig("NackHeldCrc", 24, 32, false).case(1);
-    pub const NACK_REASON: SignalSpec = sig("NackReason", 56, 8, false).range(1.0, 9.0).case(1);
+    pub const NACK_REASON: SignalSpec = sig("NackReason", 56, 8, false).range(1.0, 11.0).case(1);
+    pub const NODE_COUNTER: SignalSpec = sig("NodeCounter", 16, 32, false).case(2);
+    pub const RB_MAC: SignalSpec = sig("RbMac", 16, 32, false).case(3);
     /// Readback segments in sequence order (replies 16..21).
     pub const READBACK: [SignalSpec; 6] = [
         seg("RbA", 16, true, "m", -1.0, 1.0),
@@ -354,6 +359,8 @@ pub(crate) mod s {
     ];
 
     pub const TRIGGER_COMMAND: SignalSpec = sig("Command", 0, 8, false).range(1.0, 2.0);
+    pub const TRIGGER_COUNTER_LO: SignalSpec = sig("CounterLo", 16, 16, false);
+    pub const TRIGGER_MAC: SignalSpec = sig("Mac", 32, 32, false);
 }
 
 use s::*;
@@ -417,6 +424,8 @@ pub static TABLE_REPLY: MessageSpec = MessageSpec {
         NACKED_CMD,
         NACK_HELD_CRC,
         NACK_REASON,
+        NODE_COUNTER,
+        RB_MAC,
         READBACK[0],
         READBACK[1],
         READBACK[2],
@@ -441,6 +450,9 @@ pub static TABLE_CMD: MessageSpec = MessageSpec {
         SEGMENTS[4],
         SEGMENTS[5],
         CMD_TABLE_CRC,
+        CMD_COUNTER_LO,
+        CMD_COMMIT_MAC,
+        CMD_NONCE,
     ],
 };
 /// `Heartbeat_<node>`.
@@ -463,7 +475,7 @@ pub static TRIGGER: MessageSpec = MessageSpec {
     name: "Trigger",
     base_id: 0x020,
     nodes: &[],
-    signals: &[TRIGGER_COMMAND],
+    signals: &[TRIGGER_COMMAND, TRIGGER_COUNTER_LO, TRIGGER_MAC],
 };
 
 /// Every message family of the protocol.

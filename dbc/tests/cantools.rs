@@ -7,7 +7,7 @@
 use exocal_dbc::pose::Pose;
 use exocal_dbc::{
     CmdCode, Command, Field, Heartbeat, ImuVector, JointState, Message, NackReason, NodeId,
-    NodeState, PosePage, Reply, TableCmd, TableReply, TriggerCommand,
+    NodeState, PosePage, Reply, TableCmd, TableReply, Trigger, TriggerCommand,
 };
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -84,7 +84,12 @@ fn signals(m: &Message) -> Vec<(&'static str, f64)> {
                 Command::Begin => v.push(("SegmentCount", 6.0)),
                 Command::Segment(f, raw) => v.push((SEG[f as usize], raw as f64 * 1e-6)),
                 Command::Commit { crc } => v.push(("TableCrc", f64::from(crc))),
-                Command::Readback | Command::Abort => {}
+                Command::CommitAuth { counter_lo, mac } => v.extend([
+                    ("CounterLo", f64::from(counter_lo)),
+                    ("CommitMac", f64::from(mac)),
+                ]),
+                Command::Readback { nonce } => v.push(("Nonce", f64::from(nonce))),
+                Command::Abort => {}
             }
             v
         }
@@ -110,10 +115,18 @@ fn signals(m: &Message) -> Vec<(&'static str, f64)> {
                     ("Reply", 16.0 + f64::from(f.seq())),
                     (RB[f as usize], raw as f64 * 1e-6),
                 ]),
+                Reply::Freshness { counter } => {
+                    v.extend([("Reply", 2.0), ("NodeCounter", f64::from(counter))])
+                }
+                Reply::ReadbackMac { mac } => v.extend([("Reply", 3.0), ("RbMac", f64::from(mac))]),
             }
             v
         }
-        Message::Trigger(t) => vec![("Command", t as u8 as f64)],
+        Message::Trigger(t) => vec![
+            ("Command", t.command as u8 as f64),
+            ("CounterLo", f64::from(t.counter_lo)),
+            ("Mac", f64::from(t.mac)),
+        ],
     }
 }
 
@@ -198,7 +211,11 @@ fn corpus() -> Vec<Message> {
                     Command::Begin,
                     Command::Segment(f, raw),
                     Command::Commit { crc: ts },
-                    Command::Readback,
+                    Command::CommitAuth {
+                        counter_lo: ts as u16,
+                        mac: !ts,
+                    },
+                    Command::Readback { nonce: ts ^ 0x5555 },
                     Command::Abort,
                 ];
                 for cmd in cmds {
@@ -208,6 +225,8 @@ fn corpus() -> Vec<Message> {
                     NackReason::BadSession,
                     NackReason::CrcMismatch,
                     NackReason::NoTable,
+                    NackReason::BadMac,
+                    NackReason::StaleCounter,
                 ];
                 for reply in [
                     Reply::Ack {
@@ -217,9 +236,11 @@ fn corpus() -> Vec<Message> {
                     Reply::Nack {
                         cmd: CmdCode::Commit,
                         held_crc: !ts,
-                        reason: reasons[k % 3],
+                        reason: reasons[k % 5],
                     },
                     Reply::Readback(f, raw),
+                    Reply::Freshness { counter: ts },
+                    Reply::ReadbackMac { mac: !ts },
                 ] {
                     out.push(Message::TableReply(TableReply {
                         node,
@@ -240,8 +261,17 @@ fn corpus() -> Vec<Message> {
         };
         out.extend(pose.pages().map(Message::EePose));
     }
-    out.push(Message::Trigger(TriggerCommand::StartCalibration));
-    out.push(Message::Trigger(TriggerCommand::Abort));
+    for (command, counter_lo, mac) in [
+        (TriggerCommand::StartCalibration, 0, 0),
+        (TriggerCommand::Abort, u16::MAX, u32::MAX),
+        (TriggerCommand::StartCalibration, 0x1234, 0xdead_beef),
+    ] {
+        out.push(Message::Trigger(Trigger {
+            command,
+            counter_lo,
+            mac,
+        }));
+    }
     out
 }
 

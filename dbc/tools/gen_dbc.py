@@ -98,11 +98,11 @@ TABLE = [
     ("SegTau", 20, False, "s", "1E-006", "4294.967295", "Gauss-Markov drift correlation time tau (resolution 1 us)."),
     ("SegSigma", 21, False, "rad/s", "0", "4294.967295", "Gauss-Markov drift deviation sigma (resolution 1 urad/s)."),
 ]
-CMDS = [(1, "Begin")] + [(code, name[3:]) for name, code, *_ in TABLE] + [(32, "Commit"), (48, "Readback"), (63, "Abort")]
+CMDS = [(1, "Begin")] + [(code, name[3:]) for name, code, *_ in TABLE] + [(32, "Commit"), (33, "CommitAuth"), (48, "Readback"), (63, "Abort")]
 CMD_VALS = [(c, n if c < 16 or c > 21 else "Seg" + n) for c, n in CMDS]
 for j in JOINTS:
     mid = 0x600 | NODE_ID[j]
-    msg(mid, f"TableCmd_{j}", CTRL, f"Table transfer, controller to {j}: Begin, six segments (one per table field, in order), Commit with the CRC-32 of the table; Readback asks for the held table; Abort drops the staging.")
+    msg(mid, f"TableCmd_{j}", CTRL, f"Table transfer, controller to {j}: Begin, six segments (one per table field, in order), CommitAuth (freshness counter and MAC; required by a node holding a key), Commit with the CRC-32 of the table; Readback (with a nonce) asks for the held table; Abort drops the staging.")
     sig("Cmd", 0, 8, False, 1, 0, 0, 255, "", j, "M")
     cm(mid, "Cmd", "Multiplexer: the command. Segment commands 16..21 carry their sequence number in the low bits (seq = Cmd - 16).")
     val(mid, "Cmd", CMD_VALS)
@@ -115,12 +115,18 @@ for j in JOINTS:
         cm(mid, name, text)
     sig("TableCrc", 16, 32, False, 1, 0, 0, 4294967295, "", j, "m32")
     cm(mid, "TableCrc", "CRC-32 (ISO-HDLC, as zlib.crc32) of the 24-byte table: the six segment raw values as 32-bit little-endian words in sequence order.")
+    sig("CounterLo", 16, 16, False, 1, 0, 0, 65535, "", j, "m33")
+    cm(mid, "CounterLo", "Low 16 bits of the freshness counter of this commit; the node takes the full counter as the smallest value above the one it stored with these low bits.")
+    sig("CommitMac", 32, 32, False, 1, 0, 0, 4294967295, "", j, "m33")
+    cm(mid, "CommitMac", "First 32 bits (big-endian) of AES-128-CMAC with the node's key over 'C', node id, session, full counter (u32 LE), the 24 table bytes and the CRC (u32 LE).")
+    sig("Nonce", 16, 32, False, 1, 0, 0, 4294967295, "", j, "m48")
+    cm(mid, "Nonce", "Chosen by the controller for this readback; the node's ReadbackMac covers it, so a recorded answer does not replay.")
 
     mid = 0x580 | NODE_ID[j]
     msg(mid, f"TableReply_{j}", j, f"Table transfer, {j} to controller: ACK or NACK of the last command with the CRC of the table the node now holds (installed, not staged), or one readback segment.")
     sig("Reply", 0, 8, False, 1, 0, 0, 255, "", CTRL, "M")
-    cm(mid, "Reply", "Multiplexer: 0 ACK, 1 NACK, 16..21 readback segment (seq = Reply - 16).")
-    val(mid, "Reply", [(0, "Ack"), (1, "Nack")] + [(code, "Readback" + name[3:]) for name, code, *_ in TABLE])
+    cm(mid, "Reply", "Multiplexer: 0 ACK, 1 NACK, 2 freshness counter (after Begin, keyed nodes), 3 readback MAC (before the readback's ACK, keyed nodes), 16..21 readback segment (seq = Reply - 16).")
+    val(mid, "Reply", [(0, "Ack"), (1, "Nack"), (2, "Freshness"), (3, "ReadbackMac")] + [(code, "Readback" + name[3:]) for name, code, *_ in TABLE])
     sig("Session", 8, 8, False, 1, 0, 0, 255, "", CTRL)
     cm(mid, "Session", "Session of the command this replies to.")
     for m in (0, 1):
@@ -131,9 +137,13 @@ for j in JOINTS:
     cm(mid, "NackedCmd", "The command refused.")
     cm(mid, "HeldCrc", "CRC-32 of the table the node holds now (after a successful Commit: the new one).")
     cm(mid, "NackHeldCrc", "CRC-32 of the table the node holds now (unchanged by a refused command).")
-    sig("NackReason", 56, 8, False, 1, 0, 1, 9, "", CTRL, "m1")
+    sig("NackReason", 56, 8, False, 1, 0, 1, 11, "", CTRL, "m1")
     cm(mid, "NackReason", "Why the command was refused.")
-    val(mid, "NackReason", [(1, "BadSession"), (2, "OutOfOrder"), (3, "CrcMismatch"), (4, "Incomplete"), (5, "OutOfRange"), (6, "NotStaging"), (7, "FlashError"), (8, "BadFormat"), (9, "NoTable")])
+    val(mid, "NackReason", [(1, "BadSession"), (2, "OutOfOrder"), (3, "CrcMismatch"), (4, "Incomplete"), (5, "OutOfRange"), (6, "NotStaging"), (7, "FlashError"), (8, "BadFormat"), (9, "NoTable"), (10, "BadMac"), (11, "StaleCounter")])
+    sig("NodeCounter", 16, 32, False, 1, 0, 0, 4294967295, "", CTRL, "m2")
+    cm(mid, "NodeCounter", "The freshness counter the node stored with its table; the next CommitAuth must carry a higher one.")
+    sig("RbMac", 16, 32, False, 1, 0, 0, 4294967295, "", CTRL, "m3")
+    cm(mid, "RbMac", "First 32 bits (big-endian) of AES-128-CMAC with the node's key over 'R', node id, the Readback's nonce (u32 LE), the held CRC (u32 LE) and the 24 held table bytes.")
     for name, code, signed, unit, lo, hi, text in TABLE:
         sig("Rb" + name[3:], 16, 32, signed, "1E-006", 0, lo, hi, unit, CTRL, f"m{code}")
         cm(mid, "Rb" + name[3:], "Readback of the held table: " + text)
@@ -158,12 +168,16 @@ for n in NODES:
     cm(mid, "FwMinor", "Firmware version, minor.")
 
 mid = 0x020
-msg(mid, "Trigger", "Vector__XXX", "Operator request to the controller (a button or a bench tool).")
+msg(mid, "Trigger", "Vector__XXX", "Operator request to the controller (a button or a bench tool), authenticated with the trigger key.")
 sig("Command", 0, 8, False, 1, 0, 1, 2, "", CTRL)
 val(mid, "Command", [(1, "StartCalibration"), (2, "Abort")])
 cm(mid, "Command", "What the operator asks for.")
+sig("CounterLo", 16, 16, False, 1, 0, 0, 65535, "", CTRL)
+cm(mid, "CounterLo", "Low 16 bits of the sender's freshness counter; the controller takes the smallest value above the last one it accepted with these low bits.")
+sig("Mac", 32, 32, False, 1, 0, 0, 4294967295, "", CTRL)
+cm(mid, "Mac", "First 32 bits (big-endian) of AES-128-CMAC with the trigger key over 'T', Command and the full counter (u32 LE).")
 
-header = f"""VERSION "exocal-1"
+header = f"""VERSION "exocal-2"
 
 
 NS_ :

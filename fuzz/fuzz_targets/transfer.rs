@@ -1,17 +1,23 @@
-//! The table transfer under an adversarial bus: a controller [`Upload`] of NEW to a node holding
-//! OLD, through a channel whose losses, duplicates, reorderings and delays are fuzzer-chosen, with
-//! node reboots (state rebuilt from storage), failing storage writes and injected foreign
-//! commands (arbitrary sessions, fields, CRCs).
+//! The table transfer under an adversarial bus: an authenticated controller [`Upload`] of NEW to
+//! a node holding OLD and a key, through a channel whose losses, duplicates, reorderings and
+//! delays are fuzzer-chosen, with node reboots (state rebuilt from storage: table and freshness
+//! counter), failing storage writes, injected foreign commands (arbitrary sessions, fields,
+//! CRCs, counters, MACs), complete foreign transfers of arbitrary tables with correct CRCs (with
+//! no `CommitAuth` or one with a guessed MAC), replays of any command delivered earlier, and
+//! forged replies to the controller (arbitrary, or answering its last command with NEW's CRC
+//! and fields).
 //!
 //! Invariants checked after every step: the node's held table is OLD or NEW, never anything
-//! else (never mixed); storage and the node agree; after a reboot the node holds what storage
-//! holds; an upload that reports `Ok(crc)` has crc = CRC(NEW) and the node holds NEW.
+//! else (never mixed, never a foreign table); storage and the node agree, counter included;
+//! the stored counter never decreases; after a reboot the node holds what storage holds; an
+//! upload that reports `Ok(crc)` has crc = CRC(NEW) and the node holds NEW.
 #![no_main]
 
 use arbitrary::Arbitrary;
+use exocal_dbc::auth::{Key, KeySet};
 use exocal_dbc::table::Table;
 use exocal_dbc::transfer::{NodeTransfer, RetryPolicy, StorageError, TableStorage, Upload};
-use exocal_dbc::{Command, Field, NodeId, TableCmd, TableReply};
+use exocal_dbc::{CmdCode, Command, Field, NodeId, Reply, TableCmd, TableReply};
 use libfuzzer_sys::fuzz_target;
 
 #[derive(Arbitrary, Debug)]
@@ -36,6 +42,29 @@ enum Step {
     FlashFails(bool),
     /// A foreign command reaches the node.
     Foreign(Foreign),
+    /// A complete foreign transfer with the right CRC reaches the node.
+    ForeignTransfer(ForeignTransfer),
+    /// A command delivered earlier (any session, any sender) reaches the node again.
+    Replay(u16),
+    /// A forged reply reaches the controller.
+    ForgedReply(ForgedReply),
+}
+
+#[derive(Arbitrary, Debug)]
+struct ForeignTransfer {
+    session: u8,
+    table: [i32; 6],
+    /// `(counter_lo, mac)` of a `CommitAuth` before the Commit, or none.
+    auth: Option<(u16, u32)>,
+}
+
+#[derive(Arbitrary, Debug)]
+struct ForgedReply {
+    session: u8,
+    kind: u8,
+    field: u8,
+    raw: i64,
+    value: u32,
 }
 
 #[derive(Arbitrary, Debug)]
@@ -45,6 +74,7 @@ struct Foreign {
     field: u8,
     raw: i64,
     crc: u32,
+    counter_lo: u16,
 }
 
 #[derive(Arbitrary, Debug)]
@@ -52,22 +82,34 @@ struct Input {
     old: Option<[i32; 6]>,
     new: [i32; 6],
     session: u8,
+    counter: u32,
     steps: Vec<Step>,
 }
 
 struct Flash {
     table: Option<Table>,
+    counter: u32,
     fail: bool,
 }
 
 impl TableStorage for Flash {
-    fn store(&mut self, t: &Table) -> Result<(), StorageError> {
+    fn store(&mut self, t: &Table, counter: u32) -> Result<(), StorageError> {
         if self.fail {
             return Err(StorageError);
         }
         self.table = Some(*t);
+        self.counter = counter;
         Ok(())
     }
+}
+
+/// The node and the controller share this key; the fuzzer never sees it.
+fn key() -> Key {
+    KeySet::derived(0x00ab_cdef).node(NodeId::JOINTS[2]).unwrap().clone()
+}
+
+fn boot(node: NodeId, flash: &Flash) -> NodeTransfer {
+    NodeTransfer::new(node, flash.table).with_key(key(), flash.counter)
 }
 
 /// A valid table near `raw` (values clamped into each field's bounds).
@@ -99,18 +141,25 @@ fuzz_target!(|input: Input| {
     };
     let mut flash = Flash {
         table: old,
+        counter: input.counter,
         fail: false,
     };
-    let mut nt = NodeTransfer::new(node, flash.table);
-    let mut up = Upload::new(node, input.session, new, policy);
+    let mut nt = boot(node, &flash);
+    let mut up = Upload::authenticated(node, input.session, new, policy, key());
+    let mut history: Vec<TableCmd> = Vec::new();
+    let mut last_counter = flash.counter;
     let mut now = 0u64;
     let mut cmds: Vec<TableCmd> = Vec::new();
     let mut replies: Vec<TableReply> = Vec::new();
-    let mut deliver = |nt: &mut NodeTransfer,
-                       flash: &mut Flash,
-                       cmd: TableCmd,
-                       now: u64,
-                       replies: &mut Vec<TableReply>| {
+    let deliver = |nt: &mut NodeTransfer,
+                   flash: &mut Flash,
+                   cmd: TableCmd,
+                   now: u64,
+                   replies: &mut Vec<TableReply>,
+                   history: &mut Vec<TableCmd>| {
+        if history.len() < 1024 {
+            history.push(cmd);
+        }
         for r in nt.handle(&cmd, now, flash) {
             replies.push(r);
         }
@@ -125,12 +174,12 @@ fuzz_target!(|input: Input| {
             }
             Step::DeliverCmd => {
                 if let Some(c) = pick(&mut cmds, 0) {
-                    deliver(&mut nt, &mut flash, c, now, &mut replies);
+                    deliver(&mut nt, &mut flash, c, now, &mut replies, &mut history);
                 }
             }
             Step::DeliverCmdAt(i) => {
                 if let Some(c) = pick(&mut cmds, i) {
-                    deliver(&mut nt, &mut flash, c, now, &mut replies);
+                    deliver(&mut nt, &mut flash, c, now, &mut replies, &mut history);
                 }
             }
             Step::DeliverReply => {
@@ -162,17 +211,21 @@ fuzz_target!(|input: Input| {
                 }
             }
             Step::Reboot => {
-                nt = NodeTransfer::new(node, flash.table);
+                nt = boot(node, &flash);
                 assert_eq!(nt.held(), flash.table.as_ref(), "boot reads storage");
             }
             Step::FlashFails(f) => flash.fail = f,
             Step::Foreign(f) => {
                 let field = Field::ALL[usize::from(f.field) % 6];
-                let cmd = match f.kind % 5 {
+                let cmd = match f.kind % 6 {
                     0 => Command::Begin,
                     1 => Command::Segment(field, f.raw),
                     2 => Command::Commit { crc: f.crc },
-                    3 => Command::Readback,
+                    3 => Command::Readback { nonce: f.crc },
+                    4 => Command::CommitAuth {
+                        counter_lo: f.counter_lo,
+                        mac: f.crc,
+                    },
                     _ => Command::Abort,
                 };
                 let c = TableCmd {
@@ -180,7 +233,52 @@ fuzz_target!(|input: Input| {
                     session: f.session,
                     cmd,
                 };
-                deliver(&mut nt, &mut flash, c, now, &mut replies);
+                deliver(&mut nt, &mut flash, c, now, &mut replies, &mut history);
+            }
+            Step::ForeignTransfer(f) => {
+                let t = table(f.table);
+                let mut cmds = vec![Command::Begin];
+                cmds.extend(Field::ALL.map(|k| Command::Segment(k, t.raw(k))));
+                if let Some((counter_lo, mac)) = f.auth {
+                    cmds.push(Command::CommitAuth { counter_lo, mac });
+                }
+                cmds.push(Command::Commit { crc: t.crc() });
+                for cmd in cmds {
+                    let c = TableCmd {
+                        node,
+                        session: f.session,
+                        cmd,
+                    };
+                    deliver(&mut nt, &mut flash, c, now, &mut replies, &mut history);
+                }
+            }
+            Step::Replay(i) => {
+                if !history.is_empty() {
+                    let c = history[usize::from(i) % history.len()];
+                    deliver(&mut nt, &mut flash, c, now, &mut replies, &mut history);
+                }
+            }
+            Step::ForgedReply(f) => {
+                let field = Field::ALL[usize::from(f.field) % 6];
+                let reply = match f.kind % 6 {
+                    0 => Reply::Ack {
+                        cmd: CmdCode::Readback,
+                        held_crc: new.crc(),
+                    },
+                    1 => Reply::Readback(field, new.raw(field)),
+                    2 => Reply::ReadbackMac { mac: f.value },
+                    3 => Reply::Freshness { counter: f.value },
+                    4 => Reply::Ack {
+                        cmd: CmdCode::Commit,
+                        held_crc: f.value,
+                    },
+                    _ => Reply::Readback(field, f.raw.clamp(field.raw_bounds().0, field.raw_bounds().1)),
+                };
+                up.on_reply(&TableReply {
+                    node,
+                    session: f.session,
+                    reply,
+                });
             }
         }
         let held = nt.held().copied();
@@ -189,6 +287,9 @@ fuzz_target!(|input: Input| {
             "node holds a table that is neither the old nor the new one: {held:?}"
         );
         assert_eq!(held, flash.table, "node and storage disagree");
+        assert_eq!(nt.counter(), flash.counter, "counter in RAM and storage disagree");
+        assert!(flash.counter >= last_counter, "the stored counter went back");
+        last_counter = flash.counter;
         if let Some(Ok(crc)) = up.outcome() {
             assert_eq!(crc, new.crc());
             assert_eq!(

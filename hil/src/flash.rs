@@ -1,12 +1,29 @@
-//! Emulated node flash: one small file per node holding its installed table.
+//! Emulated node flash: one small file per node holding its installed table, and a key slot.
 //!
-//! Contract: the file is `node<N>.flash` in the flash directory: the magic `EXOF`, format
-//! version 1, the node id, a boot counter, the 24 table bytes of [`Table::to_bytes`], two
-//! spare bytes, and a CRC-32 over everything before it (40 bytes in all, little-endian). Writes go to a temporary file that is
-//! fsynced and renamed over the old one, so a crash leaves either the old or the new content,
-//! never a mix. A file whose CRC or magic is wrong reads as corrupt and the node then holds no
-//! table (as a real node with a blank sector would).
+//! Contract: the table file is `node<N>.flash` in the flash directory, little-endian:
+//!
+//! | bytes | format 2 (written) | format 1 (still read) |
+//! |---|---|---|
+//! | 0..4 | magic `EXOF` | magic `EXOF` |
+//! | 4 | version 2 | version 1 |
+//! | 5 | node id | node id |
+//! | 6..10 | boot counter | boot counter |
+//! | 10..14 | freshness counter of the table | the 24 table bytes ([`Table::to_bytes`]) … |
+//! | 14..38 | the 24 table bytes | … then two spare bytes (34..36) |
+//! | 38..40 | two spare bytes | CRC-32 of bytes 0..36 (36..40) |
+//! | 40..44 | CRC-32 of bytes 0..40 | |
+//!
+//! so the table and the counter that authorised it change in one write (a format-1 image reads
+//! with counter 0). Writes go to a temporary file that is fsynced and renamed over the old one,
+//! so a crash leaves either the old or the new content, never a mix. A file whose CRC, magic or
+//! length is wrong reads as corrupt and the node then holds no table (as a real node with a
+//! blank sector would).
+//!
+//! The key slot is `node<N>.key`: the node's 16-byte AES-128 key, raw, mode 0600, written by
+//! provisioning ([`provision`], `exocal-hil --keys`), never over CAN. A node without one accepts
+//! unauthenticated tables (protocol version 1).
 
+use exocal_dbc::auth::{Key, KeySet, KEY_LEN};
 use exocal_dbc::table::crc32;
 use exocal_dbc::transfer::{StorageError, TableStorage};
 use exocal_dbc::{NodeId, Table};
@@ -14,9 +31,11 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 const MAGIC: &[u8; 4] = b"EXOF";
-const VERSION: u8 = 1;
-/// Size of a flash file.
-pub const FILE_LEN: usize = 40;
+const VERSION: u8 = 2;
+/// Size of a flash file (format 2).
+pub const FILE_LEN: usize = 44;
+/// Size of a format-1 flash file.
+const V1_LEN: usize = 40;
 
 /// The content of a flash file.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -25,6 +44,9 @@ pub struct FlashImage {
     pub boot_count: u32,
     /// Installed table.
     pub table: Table,
+    /// The freshness counter the table was committed with (0 for an unauthenticated commit
+    /// or a format-1 image).
+    pub counter: u32,
 }
 
 /// Why a flash file could not be read.
@@ -58,11 +80,16 @@ fn encode(node: NodeId, image: &FlashImage) -> [u8; FILE_LEN] {
     out[4] = VERSION;
     out[5] = node.raw();
     out[6..10].copy_from_slice(&image.boot_count.to_le_bytes());
-    out[10..34].copy_from_slice(&image.table.to_bytes());
+    out[10..14].copy_from_slice(&image.counter.to_le_bytes());
+    out[14..38].copy_from_slice(&image.table.to_bytes());
     // Two spare bytes before the CRC keep it 4-byte aligned for a real flash layout.
     let crc = crc32(&out[..FILE_LEN - 4]);
     out[FILE_LEN - 4..].copy_from_slice(&crc.to_le_bytes());
     out
+}
+
+fn le32(b: &[u8]) -> u32 {
+    u32::from_le_bytes([b[0], b[1], b[2], b[3]])
 }
 
 /// Reads a node's flash file: `Ok(None)` if it does not exist.
@@ -74,26 +101,79 @@ pub fn read(dir: &Path, node: NodeId) -> Result<Option<FlashImage>, FlashError> 
         Err(e) => return Err(FlashError::Io(p, e)),
     };
     let corrupt = |why| FlashError::Corrupt(p.clone(), why);
-    let b: [u8; FILE_LEN] = bytes
-        .as_slice()
-        .try_into()
-        .map_err(|_| corrupt("wrong length"))?;
-    if &b[..4] != MAGIC || b[4] != VERSION {
+    let b = bytes.as_slice();
+    // (length, where the table starts, where the counter is) of each format.
+    let (len, table_at, counter_at) = match b.get(4) {
+        Some(1) => (V1_LEN, 10, None),
+        Some(2) => (FILE_LEN, 14, Some(10)),
+        _ => return Err(corrupt("bad magic or version")),
+    };
+    if b.len() != len {
+        return Err(corrupt("wrong length"));
+    }
+    if &b[..4] != MAGIC {
         return Err(corrupt("bad magic or version"));
     }
     if b[5] != node.raw() {
         return Err(corrupt("written by another node"));
     }
-    let crc = u32::from_le_bytes([b[36], b[37], b[38], b[39]]);
-    if crc != crc32(&b[..FILE_LEN - 4]) {
+    if le32(&b[len - 4..]) != crc32(&b[..len - 4]) {
         return Err(corrupt("CRC mismatch"));
     }
-    let table = Table::from_bytes(b[10..34].try_into().expect("24 bytes"))
+    let table = Table::from_bytes(b[table_at..table_at + 24].try_into().expect("24 bytes"))
         .map_err(|_| corrupt("table out of range"))?;
     Ok(Some(FlashImage {
-        boot_count: u32::from_le_bytes([b[6], b[7], b[8], b[9]]),
+        boot_count: le32(&b[6..10]),
         table,
+        counter: counter_at.map_or(0, |at| le32(&b[at..at + 4])),
     }))
+}
+
+/// The key slot path of `node` in `dir`.
+pub fn key_path(dir: &Path, node: NodeId) -> PathBuf {
+    dir.join(format!("node{}.key", node.raw()))
+}
+
+/// Reads a node's key slot: `Ok(None)` if it is empty (no file).
+pub fn read_key(dir: &Path, node: NodeId) -> Result<Option<Key>, FlashError> {
+    let p = key_path(dir, node);
+    match std::fs::read(&p) {
+        Ok(b) => <[u8; KEY_LEN]>::try_from(b.as_slice())
+            .map(|k| Some(Key::new(k)))
+            .map_err(|_| FlashError::Corrupt(p, "a key slot holds 16 bytes")),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(e) => Err(FlashError::Io(p, e)),
+    }
+}
+
+/// Writes a node's key slot (mode 0600, atomically).
+pub fn write_key(dir: &Path, node: NodeId, key: &Key) -> std::io::Result<()> {
+    use std::os::unix::fs::OpenOptionsExt;
+    std::fs::create_dir_all(dir)?;
+    let p = key_path(dir, node);
+    let tmp = p.with_extension("key.tmp");
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create(true)
+        .truncate(true)
+        .mode(0o600)
+        .open(&tmp)?;
+    f.write_all(key.bytes())?;
+    f.sync_all()?;
+    std::fs::rename(&tmp, &p)
+}
+
+/// Provisions the key slot of every joint node `keys` has a key for (a factory step: the
+/// nodes read their slots at boot); returns the nodes provisioned.
+pub fn provision(dir: &Path, keys: &KeySet) -> std::io::Result<Vec<NodeId>> {
+    let mut done = Vec::new();
+    for node in NodeId::JOINTS {
+        if let Some(key) = keys.node(node) {
+            write_key(dir, node, key)?;
+            done.push(node);
+        }
+    }
+    Ok(done)
 }
 
 /// Writes a node's flash file atomically.
@@ -130,7 +210,7 @@ impl NodeFlash {
 }
 
 impl TableStorage for NodeFlash {
-    fn store(&mut self, table: &Table) -> Result<(), StorageError> {
+    fn store(&mut self, table: &Table, counter: u32) -> Result<(), StorageError> {
         if self.fail_writes {
             return Err(StorageError);
         }
@@ -140,6 +220,7 @@ impl TableStorage for NodeFlash {
             &FlashImage {
                 boot_count: self.boot_count,
                 table: *table,
+                counter,
             },
         )
         .map_err(|_| StorageError)
@@ -165,6 +246,7 @@ mod tests {
         let image = FlashImage {
             boot_count: 3,
             table: Table::from_si(0.04, 1.0, 0.0, 0.5, 1.0, 1.0).unwrap(),
+            counter: 0x0102_0304,
         };
         write(&d, node, &image).unwrap();
         assert_eq!(read(&d, node).unwrap(), Some(image));
@@ -189,17 +271,74 @@ mod tests {
         let node = NodeId::JOINTS[0];
         let t = Table::from_si(0.1, 0.2, 0.3, 0.4, 0.5, 0.6).unwrap();
         let mut f = NodeFlash::new(&d, node, 7);
-        f.store(&t).unwrap();
+        f.store(&t, 9).unwrap();
         assert_eq!(
-            read(&d, node).unwrap().map(|i| (i.boot_count, i.table)),
-            Some((7, t))
+            read(&d, node)
+                .unwrap()
+                .map(|i| (i.boot_count, i.table, i.counter)),
+            Some((7, t, 9))
         );
         f.fail_writes = true;
         assert_eq!(
-            f.store(&Table::from_si(0.2, 0.2, 0.3, 0.4, 0.5, 0.6).unwrap()),
+            f.store(&Table::from_si(0.2, 0.2, 0.3, 0.4, 0.5, 0.6).unwrap(), 10),
             Err(StorageError)
         );
         assert_eq!(read(&d, node).unwrap().map(|i| i.table), Some(t));
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    /// A format-1 image (as written before authentication) still reads, with counter 0; the
+    /// next write is format 2.
+    #[test]
+    fn a_format_1_image_still_reads() {
+        let d = dir("v1");
+        let node = NodeId::JOINTS[4];
+        let t = Table::from_si(0.04, 1.0, 0.0, 0.5, 1.0, 1.0).unwrap();
+        let mut v1 = [0u8; V1_LEN];
+        v1[..4].copy_from_slice(MAGIC);
+        v1[4] = 1;
+        v1[5] = node.raw();
+        v1[6..10].copy_from_slice(&5u32.to_le_bytes());
+        v1[10..34].copy_from_slice(&t.to_bytes());
+        let crc = crc32(&v1[..V1_LEN - 4]);
+        v1[V1_LEN - 4..].copy_from_slice(&crc.to_le_bytes());
+        std::fs::create_dir_all(&d).unwrap();
+        std::fs::write(path(&d, node), v1).unwrap();
+        let image = read(&d, node).unwrap().unwrap();
+        assert_eq!((image.boot_count, image.table, image.counter), (5, t, 0));
+        NodeFlash::new(&d, node, 6).store(&t, 1).unwrap();
+        assert_eq!(std::fs::read(path(&d, node)).unwrap().len(), FILE_LEN);
+        assert_eq!(read(&d, node).unwrap().unwrap().counter, 1);
+        // A format-1 length with a format-2 version byte is corrupt.
+        v1[4] = 2;
+        std::fs::write(path(&d, node), v1).unwrap();
+        assert!(matches!(
+            read(&d, node),
+            Err(FlashError::Corrupt(_, "wrong length"))
+        ));
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn key_slots_are_provisioned_private_and_read_back() {
+        use std::os::unix::fs::PermissionsExt;
+        let d = dir("keys");
+        let keys = KeySet::derived(11);
+        assert_eq!(read_key(&d, NodeId::JOINTS[0]).unwrap(), None);
+        assert_eq!(provision(&d, &keys).unwrap(), NodeId::JOINTS.to_vec());
+        for node in NodeId::JOINTS {
+            assert_eq!(read_key(&d, node).unwrap().as_ref(), keys.node(node));
+            let mode = std::fs::metadata(key_path(&d, node))
+                .unwrap()
+                .permissions()
+                .mode();
+            assert_eq!(mode & 0o777, 0o600);
+        }
+        std::fs::write(key_path(&d, NodeId::JOINTS[1]), [0u8; 3]).unwrap();
+        assert!(matches!(
+            read_key(&d, NodeId::JOINTS[1]),
+            Err(FlashError::Corrupt(..))
+        ));
         let _ = std::fs::remove_dir_all(&d);
     }
 }

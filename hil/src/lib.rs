@@ -113,8 +113,9 @@ impl std::fmt::Display for RunReport {
         writeln!(
             f,
             "faults: lost {}, duplicated {}, delayed {}, malformed {}, babbled {}, NaN {}, reboots {}; \
-             table commands {}, replies {}, corrupt flash {}",
-            s.lost, s.duplicated, s.delayed, s.malformed, s.babbled, s.nans, s.reboots, s.commands, s.replies, s.flash_corrupt
+             table commands {}, replies {}, refused as unauthenticated {}, corrupt flash {}",
+            s.lost, s.duplicated, s.delayed, s.malformed, s.babbled, s.nans, s.reboots, s.commands, s.replies,
+            s.refused_unauthenticated, s.flash_corrupt
         )?;
         for node in NodeId::ALL {
             let c = s.samples[usize::from(node.raw())];
@@ -435,6 +436,50 @@ mod tests {
             assert_ne!(held, new_table());
             let _ = std::fs::remove_dir_all(&dir);
         }
+    }
+
+    /// Nodes with a provisioned key refuse an unauthenticated transfer (correct CRC, no
+    /// CommitAuth) and take an authenticated one, storing its counter with the table.
+    #[tokio::test(start_paused = true)]
+    async fn keyed_nodes_take_only_authenticated_tables() {
+        let dir = temp_dir("keyed");
+        let keys = exocal_dbc::auth::KeySet::derived(5);
+        flash::provision(&dir, &keys).unwrap();
+        let mut s = Scenario::paper();
+        s.duration_s = 30.0;
+        let mut hil = Hil::new(s, &dir).unwrap();
+        let clock = SimClock::new(1.0).unwrap();
+        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+        let mut hil_end = bus.attach();
+        let mut ctrl = bus.attach();
+        let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await.unwrap() });
+        let node = NodeId::JOINTS[2];
+        let factory = flash::read(&dir, node).unwrap().unwrap();
+        let mut seen = Vec::new();
+        let mut up = Upload::new(node, 1, new_table(), policy());
+        drive(&mut up, &mut ctrl, &clock, &mut seen).await;
+        assert_eq!(
+            up.outcome(),
+            Some(Err(UploadError::Nacked(
+                CmdCode::Commit,
+                NackReason::BadMac
+            )))
+        );
+        assert_eq!(
+            flash::read(&dir, node).unwrap().unwrap().table,
+            factory.table
+        );
+        let key = keys.node(node).unwrap().clone();
+        let mut up = Upload::authenticated(node, 2, new_table(), policy(), key);
+        drive(&mut up, &mut ctrl, &clock, &mut seen).await;
+        assert_eq!(up.outcome(), Some(Ok(new_table().crc())));
+        let image = flash::read(&dir, node).unwrap().unwrap();
+        assert_eq!(
+            (image.table, image.counter),
+            (new_table(), factory.counter + 1)
+        );
+        hil_task.abort();
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// On tokio's paused clock (virtual time, as the demo runs): the schedule is checked exactly,

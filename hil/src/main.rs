@@ -3,8 +3,10 @@
 use anyhow::Context;
 use clap::Parser;
 use exocal_bus::{SimClock, SocketCan};
+use exocal_dbc::auth::KeySet;
+use exocal_dbc::NodeId;
 use exocal_hil::{Ended, Hil, Linger, Scenario};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use tokio::signal::unix::{signal, SignalKind};
 
 /// Emulates the exocal suit's IMU nodes (7 joints + end-effector reference) on a CAN interface.
@@ -42,9 +44,16 @@ struct Cli {
     /// Override the scenario's seed.
     #[arg(long)]
     seed: Option<u64>,
-    /// Directory of the node flash files (node<N>.flash).
+    /// Directory of the node flash files (node<N>.flash) and key slots (node<N>.key).
     #[arg(long, default_value = "hil-flash")]
     flash_dir: PathBuf,
+    /// Provision the nodes' key slots from this key file before they boot (one `JointN HEX`
+    /// line per node, 32 hex digits; exocald reads the same file as its `exocal-keys`
+    /// credential). Default: the systemd credential $CREDENTIALS_DIRECTORY/exocal-keys, when
+    /// the unit has one. A node with a key installs only authenticated tables; one without
+    /// accepts any (protocol version 1).
+    #[arg(long, value_name = "FILE")]
+    keys: Option<PathBuf>,
     /// Print the scenario (after overrides) as TOML and exit.
     #[arg(long)]
     print_scenario: bool,
@@ -77,6 +86,10 @@ fn main() -> anyhow::Result<()> {
         return Ok(());
     }
     let iface = cli.iface.context("--iface is required")?;
+    eprintln!(
+        "exocal-hil: {}",
+        provision_keys(cli.keys.as_deref(), &cli.flash_dir)?
+    );
     let clock = SimClock::new(cli.speed)
         .with_context(|| format!("--speed must be positive, got {}", cli.speed))?;
     let rt = tokio::runtime::Builder::new_current_thread()
@@ -123,6 +136,36 @@ fn main() -> anyhow::Result<()> {
     })
 }
 
+/// The systemd credential holding the node keys.
+const CREDENTIAL: &str = "exocal-keys";
+
+/// Provisions the key slots from `file`, else from the `exocal-keys` credential if there is
+/// one; says what the nodes hold (never the keys).
+fn provision_keys(file: Option<&Path>, flash_dir: &Path) -> anyhow::Result<String> {
+    let credential = std::env::var_os("CREDENTIALS_DIRECTORY")
+        .map(|d| PathBuf::from(d).join(CREDENTIAL))
+        .filter(|p| p.exists());
+    let Some(path) = file.map(Path::to_path_buf).or(credential) else {
+        let keyed = NodeId::JOINTS
+            .into_iter()
+            .filter(|&n| matches!(exocal_hil::flash::read_key(flash_dir, n), Ok(Some(_))))
+            .count();
+        return Ok(format!(
+            "no key file given: {keyed} of 7 joint nodes hold a key from earlier provisioning;              the others accept unauthenticated tables"
+        ));
+    };
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("reading the key file {}", path.display()))?;
+    let keys = KeySet::parse(&text).with_context(|| format!("key file {}", path.display()))?;
+    let done = exocal_hil::flash::provision(flash_dir, &keys)
+        .with_context(|| format!("writing key slots in {}", flash_dir.display()))?;
+    Ok(format!(
+        "provisioned the key slots of {} joint node(s) from {}",
+        done.len(),
+        path.display()
+    ))
+}
+
 /// What the nodes do once the motion has ended, for the readiness line.
 fn readiness(linger: Linger) -> String {
     match linger {
@@ -150,6 +193,29 @@ mod tests {
         let cli = Cli::try_parse_from(["exocal-hil", "--iface", "vcan0", "--linger", "0"]).unwrap();
         assert_eq!(cli.linger, Some(0.0));
         assert!(Cli::try_parse_from(["exocal-hil", "--iface", "vcan0", "--linger=-3"]).is_err());
+    }
+
+    #[test]
+    fn keys_are_provisioned_from_a_file_and_errors_never_show_a_key() {
+        let dir = std::env::temp_dir().join(format!("exocal-hil-keys-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("keys");
+        std::fs::write(&file, "Joint2 000102030405060708090a0b0c0d0e0f\n").unwrap();
+        let said = provision_keys(Some(&file), &dir.join("flash")).unwrap();
+        assert!(said.contains("1 joint node(s)"), "{said}");
+        assert!(
+            exocal_hil::flash::read_key(&dir.join("flash"), NodeId::JOINTS[1])
+                .unwrap()
+                .is_some()
+        );
+        std::fs::write(&file, "Joint2 000102030405060708090a0b0c0d0e0z\n").unwrap();
+        let e = format!(
+            "{:#}",
+            provision_keys(Some(&file), &dir.join("flash")).unwrap_err()
+        );
+        assert!(e.contains("line 1") && !e.contains("0001"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

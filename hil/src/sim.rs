@@ -31,6 +31,7 @@ use calib_core::{DhTable, Discretisation, GaussMarkov, Rng};
 use exocal_bus::embedded_can::{ExtendedId, Frame as _, StandardId};
 use exocal_bus::fault::{Fate, Faults};
 use exocal_bus::Frame;
+use exocal_dbc::auth::Key;
 use exocal_dbc::message::{
     Command, Heartbeat, ImuVector, JointState, Message, NackReason, NodeState, Reply, TableCmd,
     TableReply,
@@ -52,8 +53,8 @@ const EARTH_FIELD_UT: [f64; 3] = [20.0, 0.0, -45.0];
 const TX_LATENCY_S: f64 = 50e-6;
 /// Reply latency after a table command, s.
 const REPLY_LATENCY_S: f64 = 300e-6;
-/// Firmware version the nodes report.
-const FW: (u8, u8) = (1, 0);
+/// Firmware version the nodes report (2: protocol exocal-2, authenticated transfers).
+const FW: (u8, u8) = (2, 0);
 
 /// One IMU channel: value in the sensor frame, noise, full scale, message.
 type ImuChannel = (Vector3<f64>, f64, f64, fn(ImuVector) -> Message);
@@ -106,6 +107,8 @@ pub struct Stats {
     pub reboots: u64,
     /// Flash files that read as corrupt at boot.
     pub flash_corrupt: u64,
+    /// Commands a keyed node refused as unauthenticated (NACK `BadMac` or `StaleCounter`).
+    pub refused_unauthenticated: u64,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -252,24 +255,18 @@ impl Suit {
                     Some(FlashImage {
                         boot_count: 0,
                         table,
+                        counter: 0,
                     })
                 }
                 (None, None) => None,
             };
             let boot_count = image.map_or(0, |i| i.boot_count.wrapping_add(1));
             if let Some(i) = image {
-                flash::write(
-                    flash_dir,
-                    id,
-                    &FlashImage {
-                        boot_count,
-                        table: i.table,
-                    },
-                )
-                .map_err(|e| {
+                flash::write(flash_dir, id, &FlashImage { boot_count, ..i }).map_err(|e| {
                     HilError::Flash(flash::FlashError::Io(flash::path(flash_dir, id), e))
                 })?;
             }
+            let key = flash::read_key(flash_dir, id).map_err(HilError::Flash)?;
             let mut rng = seeded(scenario.seed, 16 + u64::from(id.raw()));
             let joint_dt = 1.0 / scenario.rates.joint_state_hz;
             let gm = match id.joint_index() {
@@ -301,7 +298,7 @@ impl Suit {
                 history: [None; 2],
                 up: true,
                 boot_count,
-                transfer: NodeTransfer::new(id, image.map(|i| i.table)),
+                transfer: node_transfer(id, image, key),
                 flash: NodeFlash::new(flash_dir, id, boot_count),
                 behaviour: scenario.faults.transfer_behaviour(id.raw()),
                 rx_errors: 0,
@@ -513,16 +510,11 @@ impl Suit {
                 // RAM is gone: the table comes back from flash.
                 let image = flash::read(&self.flash_dir, n.id).ok().flatten();
                 if let Some(i) = image {
-                    let _ = flash::write(
-                        &self.flash_dir,
-                        n.id,
-                        &FlashImage {
-                            boot_count: n.boot_count,
-                            table: i.table,
-                        },
-                    );
+                    let boot_count = n.boot_count;
+                    let _ = flash::write(&self.flash_dir, n.id, &FlashImage { boot_count, ..i });
                 }
-                n.transfer = NodeTransfer::new(n.id, image.map(|i| i.table));
+                let key = flash::read_key(&self.flash_dir, n.id).ok().flatten();
+                n.transfer = node_transfer(n.id, image, key);
                 n.flash = NodeFlash::new(&self.flash_dir, n.id, n.boot_count);
                 n.schedules = schedules(scenario, n, t);
             }
@@ -819,6 +811,17 @@ impl Suit {
         if matches!(cmd.cmd, Command::Begin | Command::Segment(..)) && replies.is_empty() {
             node.rx_errors += 1;
         }
+        let unauthenticated = |r: &TableReply| {
+            matches!(
+                r.reply,
+                Reply::Nack {
+                    reason: NackReason::BadMac | NackReason::StaleCounter,
+                    ..
+                }
+            )
+        };
+        self.stats.refused_unauthenticated +=
+            replies.iter().filter(|r| unauthenticated(r)).count() as u64;
         for (i, r) in replies.into_iter().enumerate() {
             self.stats.replies += 1;
             let frame = Message::TableReply(r)
@@ -826,6 +829,15 @@ impl Suit {
                 .expect("replies are always encodable");
             self.emit(t_s + REPLY_LATENCY_S + i as f64 * 20e-6, frame);
         }
+    }
+}
+
+/// A node's transfer state machine as it boots from its flash `image` and key slot.
+fn node_transfer(id: NodeId, image: Option<FlashImage>, key: Option<Key>) -> NodeTransfer {
+    let transfer = NodeTransfer::new(id, image.map(|i| i.table));
+    match key {
+        Some(key) => transfer.with_key(key, image.map_or(0, |i| i.counter)),
+        None => transfer,
     }
 }
 

@@ -10,6 +10,21 @@ export PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin
 # The package: binaries, units, config, DBC; its postinst enables exocald.service.
 dpkg -i "$EXOCAL_DEB"
 
+# The node keys, as systemd/README.md ("Keys") tells a user to provision them: fresh random
+# keys in a key file at /etc/credstore/exocal-keys (0600), which the shipped units pass to
+# exocald and to exocal-hil (whose emulated nodes are provisioned from it) as the credential
+# exocal-keys.
+(
+    umask 077
+    for name in Joint1 Joint2 Joint3 Joint4 Joint5 Joint6 Joint7 Trigger; do
+        echo "$name $(od -An -N16 -tx1 /dev/urandom | tr -d ' \n')"
+    done > /root/exocal-keys
+    install -d -m 0700 /etc/credstore
+    install -m 0600 /root/exocal-keys /etc/credstore/exocal-keys
+    rm /root/exocal-keys
+)
+test "$(grep -c '^Joint[1-7] [0-9a-f]\{32\}$' /etc/credstore/exocal-keys)" = 7
+
 # vcan0 the way a bench makes it: the package's example .netdev/.network, networkd.
 cp /usr/share/exocal/examples/80-vcan0.netdev /usr/share/exocal/examples/80-vcan0.network \
    /etc/systemd/network/

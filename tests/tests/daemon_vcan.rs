@@ -174,6 +174,26 @@ impl Lines {
 /// line, a process's exit), never on how fast a loaded host or the TCG guest runs.
 const HANG: Duration = Duration::from_secs(1800);
 
+/// A credentials directory as systemd makes it, holding `exocal-keys` (test keys): the
+/// daemon reads it through `$CREDENTIALS_DIRECTORY`, the hil's nodes are provisioned from it.
+fn credentials(dir: &Path) -> PathBuf {
+    let creds = dir.join("credentials");
+    if !creds.join("exocal-keys").exists() {
+        std::fs::create_dir_all(&creds).unwrap();
+        let mut text: String = (1..=7u128)
+            .map(|n| {
+                format!(
+                    "Joint{n} {:032x}\n",
+                    n * 0x0123_4567_89ab_cdef_0f1e_2d3c_4b5a_6978
+                )
+            })
+            .collect();
+        text.push_str("Trigger 00112233445566778899aabbccddeeff\n");
+        std::fs::write(creds.join("exocal-keys"), text).unwrap();
+    }
+    creds
+}
+
 struct Hil {
     child: Child,
     flash: PathBuf,
@@ -203,6 +223,8 @@ impl Hil {
             .arg(duration_s.to_string())
             .arg("--flash-dir")
             .arg(&flash)
+            .arg("--keys")
+            .arg(credentials(dir).join("exocal-keys"))
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
@@ -400,6 +422,7 @@ fn calibrate_on_vcan0_pushes_a_table_every_node_holds_and_logs_every_frame() {
         .arg("--config")
         .arg(&cfg)
         .arg("calibrate")
+        .env("CREDENTIALS_DIRECTORY", credentials(&dir))
         .stdin(Stdio::null())
         .output()
         .expect("run exocald");
@@ -552,6 +575,7 @@ fn sigterm_during_collection_finishes_the_log_and_pushes_nothing() {
         .arg("--config")
         .arg(&cfg)
         .arg("calibrate")
+        .env("CREDENTIALS_DIRECTORY", credentials(&dir))
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -662,8 +686,10 @@ fn nodes_lists_what_every_node_holds_and_names_a_silent_one() {
     }
 }
 
-/// `exocald run` on vcan0: sessions on demand, triggers during a session ignored, SIGTERM in
-/// either state. Sessions are short (3 s, any motion; a dry run) so the guest is not kept busy.
+/// `exocald run` on vcan0: sessions on demand by SIGUSR1 or an authentic Trigger frame (the
+/// keys from `$CREDENTIALS_DIRECTORY`, as systemd gives them), triggers during a session
+/// ignored, a forged and a replayed Trigger frame refused, SIGTERM in either state. Sessions
+/// are short (3 s, any motion; a dry run) so the guest is not kept busy; the cooldown is 1 s.
 #[test]
 fn serve_runs_a_session_per_trigger_and_stops_on_sigterm() {
     use socketcan::{CanFrame, Socket};
@@ -679,16 +705,30 @@ fn serve_runs_a_session_per_trigger_and_stops_on_sigterm() {
             ("excitation_required", "0.01".into()),
             ("min_samples", "50".into()),
             ("grid_hz", "50.0".into()),
+            ("cooldown_s", "1.0".into()),
         ],
     );
     let hil = Hil::start(&dir, 600);
+    let keys = exocal_dbc::auth::KeySet::parse(
+        &std::fs::read_to_string(credentials(&dir).join("exocal-keys")).unwrap(),
+    )
+    .unwrap();
     let can = socketcan::CanSocket::open("vcan0").expect("a socket to send triggers");
-    let trigger = || {
-        let frame: CanFrame =
-            exocal_dbc::Message::Trigger(exocal_dbc::TriggerCommand::StartCalibration)
-                .to_frame()
-                .unwrap();
+    let counter = std::cell::Cell::new(0u32);
+    let send = |t: exocal_dbc::Trigger| {
+        let frame: CanFrame = exocal_dbc::Message::Trigger(t).to_frame().unwrap();
         can.write_frame(&frame).expect("send a Trigger frame");
+    };
+    // An authentic, fresh Trigger frame (the next counter); returns it for replays.
+    let trigger = || {
+        counter.set(counter.get() + 1);
+        let t = exocal_dbc::auth::trigger(
+            keys.trigger().unwrap(),
+            exocal_dbc::TriggerCommand::StartCalibration,
+            counter.get(),
+        );
+        send(t);
+        t
     };
     let signal = |child: &Child, sig: i32| {
         // SAFETY: plain kill(2) on our child.
@@ -701,6 +741,7 @@ fn serve_runs_a_session_per_trigger_and_stops_on_sigterm() {
             .arg("--config")
             .arg(&cfg)
             .args(["run", "--dry-run"])
+            .env("CREDENTIALS_DIRECTORY", credentials(&dir))
             .stdin(Stdio::null())
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
@@ -728,8 +769,18 @@ fn serve_runs_a_session_per_trigger_and_stops_on_sigterm() {
     );
     lines.wait_for("idle: waiting for a trigger", HANG);
 
-    // 2. By frame: the next session is this one (the ignored triggers were not queued).
-    trigger();
+    // 2. A forged frame starts nothing; by a fresh frame: the next session is this one (the
+    // ignored triggers were not queued).
+    std::thread::sleep(Duration::from_millis(1500)); // past the cooldown
+    let mut forged = exocal_dbc::auth::trigger(
+        keys.trigger().unwrap(),
+        exocal_dbc::TriggerCommand::StartCalibration,
+        counter.get() + 1,
+    );
+    forged.mac ^= 1;
+    send(forged);
+    lines.wait_for("Trigger frame(s) refused", HANG);
+    let second = trigger();
     let next = lines.wait_for("trigger received", HANG);
     assert!(next.contains("(CAN Trigger frame)"), "{next}");
     lines.wait_for("logging to", HANG);
@@ -771,15 +822,19 @@ fn serve_runs_a_session_per_trigger_and_stops_on_sigterm() {
         "{events:?}"
     );
 
-    // 4. SIGTERM while idle: a clean exit, no session.
+    // 4. Restarted, it remembers the last accepted counter: a replay of the frame that started
+    // the second session is refused. SIGTERM while idle: a clean exit, no session.
     let (mut idle, mut lines) = serve();
     lines.wait_for("idle: waiting for a trigger", HANG);
+    send(second);
+    lines.wait_for("Trigger frame(s) refused", HANG);
     signal(&idle, libc::SIGTERM);
     let status = idle.wait().unwrap();
     hil.stop();
     assert_eq!(status.code(), Some(0), "{}", lines.seen.join("\n"));
     println!(
-        "serve: two sessions, two ignored triggers, SIGTERM collecting and idle in {:.1} s",
+        "serve: two sessions, two ignored triggers, a forged and a replayed trigger refused, \
+         SIGTERM collecting and idle in {:.1} s",
         started.elapsed().as_secs_f64()
     );
 }

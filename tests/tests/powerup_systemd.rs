@@ -12,8 +12,11 @@
 //! write outside its directories; every emulated node holds the pushed table by CRC; the MCAP log
 //! is in the unit's StateDirectory; `systemctl stop` mid-session leaves a finished MCAP and no
 //! partial table; `exocald run` (serve), idle under its own unit with the same short watchdog,
-//! keeps it fed and stops cleanly (0) on `systemctl stop`. The unit's journal is printed for the
-//! test's output.
+//! keeps it fed and stops cleanly (0) on `systemctl stop`; the push was authenticated with the
+//! keys the bench provisioned as the credential `exocal-keys` (`/etc/credstore`, as
+//! systemd/README.md says), and no key reached the journal or the log; a missing credential is
+//! not a systemd failure (exocald's own exit 78 then says what is missing). The unit's journal
+//! is printed for the test's output.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -141,6 +144,8 @@ struct BootRun {
     props: BTreeMap<&'static str, String>,
     held: BTreeMap<u8, Option<u32>>,
     logs: Vec<PathBuf>,
+    /// The boot's journal of exocald and exocal-hil.
+    journal: String,
 }
 
 /// Writes a file as `uid`:`gid` inside the mount namespace of `pid` (nsenter), then removes it.
@@ -253,17 +258,15 @@ fn boot_run() -> &'static BootRun {
         .map(|p| (p, prop(p)))
         .collect();
         let held = held_crcs();
-        println!(
-            "--- journal: exocald, exocal-hil, systemd-networkd (boot) ---\n{}\n---",
-            journal(&[
-                "-u",
-                "exocald",
-                "-u",
-                "exocal-hil",
-                "-u",
-                "systemd-networkd"
-            ])
-        );
+        let journal = journal(&[
+            "-u",
+            "exocald",
+            "-u",
+            "exocal-hil",
+            "-u",
+            "systemd-networkd",
+        ]);
+        println!("--- journal: exocald, exocal-hil, systemd-networkd (boot) ---\n{journal}\n---");
         let run = BootRun {
             enabled,
             sampling_from_us,
@@ -274,6 +277,7 @@ fn boot_run() -> &'static BootRun {
             props,
             held,
             logs: mcap_files(),
+            journal,
         };
         println!(
             "boot run: {:.0} s, {} pings, {:#?}, flash {:x?}, logs {:?}",
@@ -493,7 +497,7 @@ fn serve_feeds_the_watchdog_while_idle() {
     const SERVE: &str = "exocald-serve.service";
     boot_run();
     let unit = format!(
-        "[Service]\nType=notify\nNotifyAccess=main\nWatchdogSec={}s\n\
+        "[Service]\nType=notify\nNotifyAccess=main\nWatchdogSec={}s\nLoadCredential=exocal-keys\n\
          ExecStart=/usr/bin/exocald --config /etc/exocal/exocald.toml run --dry-run --output /run/exocald-serve\n",
         WATCHDOG.as_secs()
     );
@@ -539,4 +543,78 @@ fn serve_feeds_the_watchdog_while_idle() {
     assert!(pings.len() >= 3, "watchdog pings while idle: {pings:?}");
     assert_eq!(show("Result"), "success");
     assert_eq!(show("ExecMainStatus"), "0", "SIGTERM while idle exits 0");
+}
+
+/// The key file the bench provisioned (`tests/powerup/bench-setup.sh`): its hex keys.
+fn provisioned_keys() -> Vec<String> {
+    let text = std::fs::read_to_string("/etc/credstore/exocal-keys").expect("the bench's key file");
+    text.lines()
+        .filter_map(|l| l.split_whitespace().nth(1))
+        .map(str::to_string)
+        .collect()
+}
+
+#[test]
+fn the_push_was_authenticated_with_the_credential_and_no_key_leaked() {
+    let run = boot_run();
+    assert!(
+        run.journal.contains("table transfers are authenticated")
+            && run
+                .journal
+                .contains("provisioned the key slots of 7 joint node(s)"),
+        "the journal does not say the transfers were authenticated"
+    );
+    let push = boot_push();
+    for node in push["nodes"].as_array().expect("nodes") {
+        assert_eq!(node["authenticated"], true, "{node}");
+    }
+    // The emulated nodes stored the freshness counter of the commit with the table.
+    for n in 1..=7u8 {
+        let node = NodeId::new(n).unwrap();
+        let image = exocal_hil::flash::read(Path::new(HIL_FLASH), node)
+            .unwrap()
+            .unwrap();
+        assert!(image.counter >= 1, "node {n}: counter {}", image.counter);
+    }
+    let keys = provisioned_keys();
+    assert_eq!(keys.len(), 8);
+    let bytes = std::fs::read(&run.logs[0]).unwrap();
+    let mut messages = Vec::new();
+    for m in mcap::MessageStream::new(&bytes).expect("message stream") {
+        messages.push(String::from_utf8_lossy(&m.expect("message").data).into_owned());
+    }
+    for key in &keys {
+        assert!(!run.journal.contains(key.as_str()), "a key in the journal");
+        assert!(
+            messages.iter().all(|m| !m.contains(key.as_str())),
+            "a key in the log"
+        );
+    }
+}
+
+/// `LoadCredential=` of a credential no store holds: systemd 252 starts the unit anyway (so
+/// exocald, not systemd, reports a missing key, with exit 78 and what to do).
+#[test]
+fn a_missing_credential_is_not_a_systemd_failure() {
+    require_booted_systemd();
+    let out = Command::new("systemd-run")
+        .args([
+            "--wait",
+            "--quiet",
+            "-p",
+            "DynamicUser=yes",
+            "-p",
+            "LoadCredential=exocal-absent",
+            "/bin/sh",
+            "-c",
+            "test ! -e \"$CREDENTIALS_DIRECTORY/exocal-absent\"",
+        ])
+        .output()
+        .expect("systemd-run");
+    assert!(
+        out.status.success(),
+        "{:?}: {}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
 }

@@ -1,4 +1,4 @@
-//! Reliability subsets on real vcan (issue 7): the daemon's code and the emulated suit
+//! Reliability subsets on real vcan (issues 7 and 20): the daemon's code and the emulated suit
 //! (exocal-hil: node state machines and flash files) in this process, each on its own SocketCAN
 //! socket on vcan0, so every frame crosses the kernel's CAN stack.
 //!
@@ -10,6 +10,9 @@
 //!   node clock jump, malformed frames and NaN values; no panic, the degraded node reported, no
 //!   table that fails validation pushed, every flash the factory table or exactly the pushed
 //!   one, agreeing with the report.
+//! - the rogue sender (issue 20): four attacks on the keyed nodes by a third socket
+//!   (`common/rogue.rs`, also run on the in-process bus by `rogue.rs`); no flash changes, no
+//!   `New` for a node that never answered.
 //!
 //! Sized for the harness's TCG guest (~80× slower than native): the suit plays at real time
 //! with low IMU rates, and sessions are a few seconds long. Needs vcan0: run through
@@ -20,6 +23,7 @@ use std::time::{Duration, Instant};
 
 use exocal_bus::SimClock;
 use exocal_bus::SocketCan;
+use exocal_dbc::auth::KeySet;
 use exocal_dbc::table::Table;
 use exocal_dbc::NodeId;
 use exocal_hil::scenario::{
@@ -31,6 +35,9 @@ use exocald::config::{Config, PushPolicy};
 use exocald::demo::{session_against_suit, PushTally, RunningSuit};
 use exocald::push::{push_tables, Holds};
 use exocald::runner::SessionSummary;
+
+#[path = "common/rogue.rs"]
+mod rogue;
 
 /// Seeded atomic-push runs on vcan0.
 const PUSH_RUNS: u64 = 10;
@@ -63,6 +70,8 @@ const MIX: TransferMix = TransferMix {
 async fn push_run(seed: u64, tally: &mut PushTally) {
     let dir = scratch(&format!("push-{seed}"));
     let scenario = MIX.scenario(seed);
+    let keys = KeySet::derived(seed);
+    exocal_hil::flash::provision(&dir, &keys).expect("key slots");
     let hil = Hil::new(scenario.clone(), &dir).expect("hil");
     let trial = new_tables(hil.suit(), seed ^ 0xa5a5);
     let tables: Vec<(NodeId, Table)> = trial.iter().map(|(n, _, new)| (*n, *new)).collect();
@@ -79,6 +88,8 @@ async fn push_run(seed: u64, tally: &mut PushTally) {
         backoff_initial_ms: 50,
         backoff_max_ms: 400,
         timeout_ms: 200,
+        authenticate: true,
+        keys,
     };
     let mut ignore = |_: bool, _: &exocal_bus::Frame, _: Duration| {};
     let report = push_tables(
@@ -129,6 +140,53 @@ async fn atomic_push_over_vcan0_leaves_old_or_new_and_the_report_says_which() {
     assert_eq!(tally.nodes, PUSH_RUNS * 7);
     // The faults are survivable: most transfers must succeed.
     assert!(tally.new * 10 >= tally.nodes * 7, "{tally:?}");
+}
+
+/// The rogue sender of issue 20 on vcan0 (the in-process run is `tests/rogue.rs`, same code):
+/// beside exocal-hil with keyed nodes and the daemon's authenticated push, a third socket
+/// sends (a) a transfer with the right CRC and no or a wrong MAC, (b) a replay of an earlier
+/// push's frames, (c) a valid MAC with a stale counter, (d) forged answers for a silent node.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_rogue_sender_on_vcan0_changes_no_table_and_never_makes_the_daemon_report_new() {
+    exocal_tests::require_vcan("vcan0");
+    let started = Instant::now();
+    let dir = scratch("rogue");
+    let keys = KeySet::derived(20);
+    exocal_hil::flash::provision(&dir, &keys).expect("key slots");
+    let mut scenario = MIX.scenario(20);
+    scenario.faults = Default::default();
+    scenario.faults.transfer.push(TransferFault {
+        node: rogue::SILENT.raw(),
+        behaviour: TransferBehaviour::Silent,
+    });
+    let mut hil = Hil::new(scenario, &dir).expect("hil");
+    let clock = SimClock::new(1.0).expect("speed");
+    let mut hil_sock = SocketCan::open("vcan0").expect("hil socket on vcan0");
+    let mut daemon = SocketCan::open("vcan0").expect("daemon socket on vcan0");
+    let mut rogue_sock = SocketCan::open("vcan0").expect("rogue socket on vcan0");
+    let hil_task = tokio::spawn(async move { hil.run(&mut hil_sock, &clock).await });
+    tokio::time::sleep(Duration::from_secs_f64(PUSH_AT_S)).await;
+    let policy = PushPolicy {
+        retries: 1,
+        backoff_initial_ms: 50,
+        backoff_max_ms: 200,
+        timeout_ms: 200,
+        authenticate: true,
+        keys: keys.clone(),
+    };
+    let wait = Duration::from_millis(500);
+    let found = rogue::attacks(&mut daemon, &mut rogue_sock, &dir, &keys, &policy, wait).await;
+    hil_task.abort();
+    let _ = std::fs::remove_dir_all(&dir);
+    for line in &found.lines {
+        println!("{line}");
+    }
+    println!(
+        "rogue sender on vcan0: {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
+    assert!(found.problems.is_empty(), "{}", found.problems.join("\n"));
+    assert_eq!(found.lines.len(), 6, "every attack ran");
 }
 
 /// What one fault row expects the daemon to report.
@@ -281,6 +339,8 @@ async fn run_row(row: &Row) -> (Vec<String>, String) {
     config.push.backoff_initial_ms = 50;
     config.push.backoff_max_ms = 200;
     scenario.duration_s = 600.0;
+    config.push.keys = KeySet::derived(7);
+    exocal_hil::flash::provision(&flash_dir, &config.push.keys).expect("key slots");
     let hil = Hil::new(scenario, &flash_dir).expect("hil");
     let clock = SimClock::new(1.0).unwrap();
     let suit = RunningSuit::start(

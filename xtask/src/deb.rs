@@ -81,6 +81,41 @@ if [ \"$1\" = purge ]; then
 fi
 ";
 
+/// What an administrator must do after installing: provision the node keys.
+const README_DEBIAN: &str = "exocal for Debian
+=================
+
+exocald.service calibrates at every boot and pushes the table to the suit's nodes over
+authenticated transfers (AES-128-CMAC, one key per node). It needs the node keys, as the
+systemd credential `exocal-keys`; without them it exits 78 (bad configuration) and is not
+restarted.
+
+Provision the keys (as root):
+
+    umask 077
+    for name in Joint1 Joint2 Joint3 Joint4 Joint5 Joint6 Joint7 Trigger; do
+        echo \"$name $(od -An -N16 -tx1 /dev/urandom | tr -d ' \\n')\"
+    done > exocal-keys
+    install -d -m 0700 /etc/credstore
+    install -m 0600 exocal-keys /etc/credstore/exocal-keys
+
+then program the same keys into the nodes (the emulated suit: exocal-hil.service reads the
+same credential), keep a copy offline, delete the working copy, and reboot or
+`systemctl restart exocald`. To keep the file encrypted at rest instead:
+
+    systemd-creds encrypt --name=exocal-keys exocal-keys /etc/credstore.encrypted/exocal-keys
+
+with a drop-in /etc/systemd/system/exocald.service.d/keys.conf:
+
+    [Service]
+    LoadCredential=
+    LoadCredentialEncrypted=exocal-keys
+
+A bench whose nodes hold no keys may set `authenticate = false` in the [push] section of
+/etc/exocal/exocald.toml instead: then anyone on the CAN bus can change a node's table, and
+exocald says so in the journal at every start.
+";
+
 const COPYRIGHT: &str = "Format: https://www.debian.org/doc/packaging-manuals/copyright-format/1.0/
 Upstream-Name: exocal
 Source: https://example.invalid/exocal
@@ -185,6 +220,11 @@ pub fn package(t: &Target, bins: &[PathBuf]) -> Result<PathBuf> {
     put(
         "usr/share/doc/exocal/copyright",
         COPYRIGHT.as_bytes(),
+        0o644,
+    )?;
+    put(
+        "usr/share/doc/exocal/README.Debian",
+        README_DEBIAN.as_bytes(),
         0o644,
     )?;
     let changelog = format!(

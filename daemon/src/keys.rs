@@ -1,0 +1,188 @@
+//! The node and trigger keys: from the systemd credential `exocal-keys`, never from
+//! `exocald.toml`, the logs or the report.
+//!
+//! Contract:
+//! - [`load`] reads `$CREDENTIALS_DIRECTORY/exocal-keys` (systemd's `LoadCredential=` or
+//!   `LoadCredentialEncrypted=`, which work with `DynamicUser=`): a key file as
+//!   [`KeySet::parse`] reads it (`Joint1 <32 hex digits>` … `Joint7`, `Trigger`);
+//! - every joint node the configuration names must have a key, and so must the trigger when
+//!   `exocald run` needs it; anything missing is a [`KeyError`] naming what and where, which
+//!   `exocald` maps to exit 78 at start-up, before it touches the bus;
+//! - a key never appears in an error, a log line or the session report ([`KeySet`]'s `Debug`
+//!   names nodes, not keys).
+
+use std::fmt;
+use std::path::PathBuf;
+
+use exocal_dbc::auth::{KeyFileError, KeySet};
+use exocal_dbc::NodeId;
+
+/// The name of the systemd credential holding the keys.
+pub const CREDENTIAL: &str = "exocal-keys";
+
+/// How to provision the keys, for error messages.
+const HOW: &str = "provision it as a systemd credential (systemd/README.md, \"Keys\": a key file \
+                   in /etc/credstore/exocal-keys, mode 0600, read by the shipped unit's \
+                   LoadCredential=), or, on a bench without keys, set `[push] authenticate = \
+                   false` in the configuration";
+
+/// Why the keys could not be loaded.
+#[derive(Debug)]
+pub enum KeyError {
+    /// No credential: `$CREDENTIALS_DIRECTORY` is unset, or it has no `exocal-keys`.
+    Missing { looked: Option<PathBuf> },
+    /// The credential could not be read.
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// The credential is not a key file.
+    File { path: PathBuf, source: KeyFileError },
+    /// The key file has no key for this node (or `Trigger`).
+    NoKey { path: PathBuf, name: &'static str },
+}
+
+impl fmt::Display for KeyError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            KeyError::Missing { looked: None } => write!(
+                f,
+                "no keys: $CREDENTIALS_DIRECTORY is not set, so the credential `{CREDENTIAL}` \
+                 was not passed; {HOW}"
+            ),
+            KeyError::Missing { looked: Some(p) } => write!(
+                f,
+                "no keys: the credential `{CREDENTIAL}` is missing ({} does not exist); {HOW}",
+                p.display()
+            ),
+            KeyError::Io { path, source } => {
+                write!(f, "cannot read the keys in {}: {source}", path.display())
+            }
+            KeyError::File { path, source } => write!(
+                f,
+                "the key file {} is not valid: {source} (a line is `Joint1` … `Joint7` or \
+                 `Trigger`, a space, and 32 hexadecimal digits)",
+                path.display()
+            ),
+            KeyError::NoKey { path, name } => write!(
+                f,
+                "the key file {} has no key for {name}; {HOW}",
+                path.display()
+            ),
+        }
+    }
+}
+
+impl std::error::Error for KeyError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            KeyError::Io { source, .. } => Some(source),
+            KeyError::File { source, .. } => Some(source),
+            _ => None,
+        }
+    }
+}
+
+/// Loads the keys from the credentials directory `dir` (`$CREDENTIALS_DIRECTORY`, `None` when
+/// unset) and checks there is one for each of `nodes`, and for the trigger if `trigger`.
+pub fn load(dir: Option<PathBuf>, nodes: &[NodeId], trigger: bool) -> Result<KeySet, KeyError> {
+    let Some(path) = dir.map(|d| d.join(CREDENTIAL)) else {
+        return Err(KeyError::Missing { looked: None });
+    };
+    let text = match std::fs::read_to_string(&path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(KeyError::Missing { looked: Some(path) })
+        }
+        Err(source) => return Err(KeyError::Io { path, source }),
+    };
+    let keys = KeySet::parse(&text).map_err(|source| KeyError::File {
+        path: path.clone(),
+        source,
+    })?;
+    if let Some(node) = nodes.iter().find(|&&n| keys.node(n).is_none()) {
+        return Err(KeyError::NoKey {
+            path,
+            name: node.name(),
+        });
+    }
+    if trigger && keys.trigger().is_none() {
+        return Err(KeyError::NoKey {
+            path,
+            name: "Trigger",
+        });
+    }
+    Ok(keys)
+}
+
+/// [`load`] from `$CREDENTIALS_DIRECTORY`.
+pub fn load_credential(nodes: &[NodeId], trigger: bool) -> Result<KeySet, KeyError> {
+    load(
+        std::env::var_os("CREDENTIALS_DIRECTORY").map(PathBuf::from),
+        nodes,
+        trigger,
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const K: &str = "000102030405060708090a0b0c0d0e0f";
+
+    fn dir(name: &str, text: Option<&str>) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("exocald-keys-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        if let Some(t) = text {
+            std::fs::write(d.join(CREDENTIAL), t).unwrap();
+        }
+        d
+    }
+
+    fn all(trigger: bool) -> String {
+        let mut t: String = NodeId::JOINTS
+            .iter()
+            .map(|n| format!("{} {K}\n", n.name()))
+            .collect();
+        if trigger {
+            t.push_str(&format!("Trigger {K}\n"));
+        }
+        t
+    }
+
+    #[test]
+    fn a_complete_credential_loads() {
+        let d = dir("ok", Some(&all(true)));
+        let keys = load(Some(d.clone()), &NodeId::JOINTS, true).unwrap();
+        assert!(keys.trigger().is_some());
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn what_is_missing_is_named_and_no_key_is_shown() {
+        let e = load(None, &NodeId::JOINTS, false).unwrap_err();
+        assert!(
+            e.to_string().contains("CREDENTIALS_DIRECTORY is not set"),
+            "{e}"
+        );
+        let d = dir("none", None);
+        let e = load(Some(d.clone()), &NodeId::JOINTS, false).unwrap_err();
+        assert!(e.to_string().contains("exocal-keys` is missing"), "{e}");
+        assert!(e.to_string().contains("authenticate = false"), "{e}");
+        let d2 = dir("no-trigger", Some(&all(false)));
+        let e = load(Some(d2.clone()), &NodeId::JOINTS, true).unwrap_err();
+        assert!(e.to_string().contains("no key for Trigger"), "{e}");
+        assert!(load(Some(d2.clone()), &NodeId::JOINTS, false).is_ok());
+        let d3 = dir("no-joint5", Some(&all(true).replace("Joint5", "# Joint5")));
+        let e = load(Some(d3.clone()), &NodeId::JOINTS, true).unwrap_err();
+        assert!(e.to_string().contains("no key for Joint5"), "{e}");
+        let d4 = dir("bad", Some(&all(true).replace("Joint3 00", "Joint3 zz")));
+        let e = load(Some(d4.clone()), &NodeId::JOINTS, true).unwrap_err();
+        let shown = e.to_string();
+        assert!(shown.contains("line 3") && !shown.contains(K), "{shown}");
+        for d in [d, d2, d3, d4] {
+            let _ = std::fs::remove_dir_all(&d);
+        }
+    }
+}

@@ -1,0 +1,471 @@
+//! Authentication of table transfers and triggers: AES-128-CMAC truncated to 32 bits, with
+//! freshness counters (the AUTOSAR SecOC recipe for classic CAN).
+//!
+//! Contract:
+//! - every MAC is the first four bytes (read big-endian) of AES-128-CMAC ([`cmac`] over [`aes`],
+//!   both `no_std`) with the key of the node concerned (the trigger key for [`Trigger`]s), over
+//!   a one-byte domain tag followed by fixed-size fields, integers little-endian:
+//!
+//!   | MAC | tag | fields |
+//!   |---|---|---|
+//!   | [`commit_mac`] | `C` | node id, session, counter (u32), the 24 table bytes, CRC-32 (u32) |
+//!   | [`readback_mac`] | `R` | node id, nonce (u32), held CRC-32 (u32), the 24 table bytes |
+//!   | [`trigger_mac`] | `T` | command, counter (u32) |
+//!   | [`nonce`] | `N` | node id, session, time (u64, µs) |
+//!
+//!   so no MAC of one kind verifies as another;
+//! - a frame carries the low 16 bits of a counter; the receiver stored the last counter it
+//!   accepted and takes the smallest value above it with those low bits ([`next_counter`]): a
+//!   sender may skip at most 65,535 values, a replay or a stale sender never verifies;
+//! - [`verify_commit`], [`verify_readback`] and [`verify_trigger`] compare in constant time;
+//! - a [`Key`] never shows in `Debug` output, and has no `Display`.
+//!
+//! Time is an argument here as everywhere in this crate: [`nonce`] is a MAC of the time the
+//! caller passes, so it is unpredictable without the key and never repeats for one node and
+//! session while time moves on.
+
+use aes::Aes128;
+use cmac::{Cmac, Mac};
+
+use crate::message::{Trigger, TriggerCommand};
+use crate::table::Table;
+use crate::NodeId;
+
+/// Length of a key, bytes (AES-128).
+pub const KEY_LEN: usize = 16;
+
+/// An AES-128 key. `Debug` prints `Key(..)`: a key never reaches a log by accident.
+#[derive(Clone, PartialEq, Eq)]
+pub struct Key([u8; KEY_LEN]);
+
+impl core::fmt::Debug for Key {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str("Key(..)")
+    }
+}
+
+impl Key {
+    /// The key with these bytes.
+    pub const fn new(bytes: [u8; KEY_LEN]) -> Key {
+        Key(bytes)
+    }
+
+    /// The key bytes (to store them; never to print them).
+    pub fn bytes(&self) -> &[u8; KEY_LEN] {
+        &self.0
+    }
+
+    /// From 32 hexadecimal digits (either case); `None` for anything else.
+    pub fn from_hex(text: &str) -> Option<Key> {
+        let text = text.as_bytes();
+        if text.len() != 2 * KEY_LEN {
+            return None;
+        }
+        let mut out = [0u8; KEY_LEN];
+        for (byte, pair) in out.iter_mut().zip(text.chunks_exact(2)) {
+            *byte = (hex_digit(pair[0])? << 4) | hex_digit(pair[1])?;
+        }
+        Some(Key(out))
+    }
+
+    /// A key derived from this one for `label` (the full 16-byte CMAC of `K`, `label`): to make
+    /// per-node keys from one master key (the demo's, from its seed).
+    pub fn derive(&self, label: &[u8]) -> Key {
+        let mut mac = self.mac();
+        mac.update(b"K");
+        mac.update(label);
+        Key(mac.finalize().into_bytes().into())
+    }
+
+    fn mac(&self) -> Cmac<Aes128> {
+        <Cmac<Aes128> as Mac>::new_from_slice(&self.0).expect("a 16-byte key fits AES-128")
+    }
+}
+
+fn hex_digit(c: u8) -> Option<u8> {
+    match c {
+        b'0'..=b'9' => Some(c - b'0'),
+        b'a'..=b'f' => Some(c - b'a' + 10),
+        b'A'..=b'F' => Some(c - b'A' + 10),
+        _ => None,
+    }
+}
+
+/// The CMAC of `parts` under `key`, not yet finalised.
+fn cmac(key: &Key, parts: &[&[u8]]) -> Cmac<Aes128> {
+    let mut mac = key.mac();
+    for p in parts {
+        mac.update(p);
+    }
+    mac
+}
+
+fn truncated(mac: Cmac<Aes128>) -> u32 {
+    let tag = mac.finalize().into_bytes();
+    u32::from_be_bytes([tag[0], tag[1], tag[2], tag[3]])
+}
+
+fn verify(mac: Cmac<Aes128>, got: u32) -> bool {
+    mac.verify_truncated_left(&got.to_be_bytes()).is_ok()
+}
+
+fn commit_input(key: &Key, node: NodeId, session: u8, counter: u32, table: &Table) -> Cmac<Aes128> {
+    cmac(
+        key,
+        &[
+            b"C",
+            &[node.raw(), session],
+            &counter.to_le_bytes(),
+            &table.to_bytes(),
+            &table.crc().to_le_bytes(),
+        ],
+    )
+}
+
+/// The MAC of a `CommitAuth`: `table` (and its CRC) committed to `node` in `session` with
+/// freshness `counter`.
+pub fn commit_mac(key: &Key, node: NodeId, session: u8, counter: u32, table: &Table) -> u32 {
+    truncated(commit_input(key, node, session, counter, table))
+}
+
+/// Whether `mac` is [`commit_mac`] of these values (constant time).
+pub fn verify_commit(
+    key: &Key,
+    node: NodeId,
+    session: u8,
+    counter: u32,
+    table: &Table,
+    mac: u32,
+) -> bool {
+    verify(commit_input(key, node, session, counter, table), mac)
+}
+
+fn readback_input(
+    key: &Key,
+    node: NodeId,
+    nonce: u32,
+    held_crc: u32,
+    table: &[u8; 24],
+) -> Cmac<Aes128> {
+    cmac(
+        key,
+        &[
+            b"R",
+            &[node.raw()],
+            &nonce.to_le_bytes(),
+            &held_crc.to_le_bytes(),
+            table,
+        ],
+    )
+}
+
+/// The MAC of a node's readback answer: it holds `table` (24 bytes, [`Table::to_bytes`]) whose
+/// CRC it reports as `held_crc`, asked with `nonce`.
+pub fn readback_mac(key: &Key, node: NodeId, nonce: u32, held_crc: u32, table: &[u8; 24]) -> u32 {
+    truncated(readback_input(key, node, nonce, held_crc, table))
+}
+
+/// Whether `mac` is [`readback_mac`] of these values (constant time).
+pub fn verify_readback(
+    key: &Key,
+    node: NodeId,
+    nonce: u32,
+    held_crc: u32,
+    table: &[u8; 24],
+    mac: u32,
+) -> bool {
+    verify(readback_input(key, node, nonce, held_crc, table), mac)
+}
+
+fn trigger_input(key: &Key, command: TriggerCommand, counter: u32) -> Cmac<Aes128> {
+    cmac(key, &[b"T", &[command as u8], &counter.to_le_bytes()])
+}
+
+/// The MAC of a [`Trigger`] with `command` and freshness `counter`.
+pub fn trigger_mac(key: &Key, command: TriggerCommand, counter: u32) -> u32 {
+    truncated(trigger_input(key, command, counter))
+}
+
+/// Whether `mac` is [`trigger_mac`] of these values (constant time).
+pub fn verify_trigger(key: &Key, command: TriggerCommand, counter: u32, mac: u32) -> bool {
+    verify(trigger_input(key, command, counter), mac)
+}
+
+/// The `Trigger` frame content for `command` with freshness `counter`, signed with `key`.
+pub fn trigger(key: &Key, command: TriggerCommand, counter: u32) -> Trigger {
+    Trigger {
+        command,
+        counter_lo: counter as u16,
+        mac: trigger_mac(key, command, counter),
+    }
+}
+
+/// A readback nonce for `node` in `session` at time `now_us`: a MAC, so nobody without the key
+/// can predict it (and ask the node for the answer beforehand).
+pub fn nonce(key: &Key, node: NodeId, session: u8, now_us: u64) -> u32 {
+    truncated(cmac(
+        key,
+        &[b"N", &[node.raw(), session], &now_us.to_le_bytes()],
+    ))
+}
+
+/// The full counter meant by low bits `lo`, given the receiver's `stored` one: the smallest
+/// value above `stored` whose low 16 bits are `lo`; `None` past `u32::MAX`.
+pub fn next_counter(stored: u32, lo: u16) -> Option<u32> {
+    let candidate = (stored & !0xFFFF) | u32::from(lo);
+    if candidate > stored {
+        Some(candidate)
+    } else {
+        candidate.checked_add(0x1_0000)
+    }
+}
+
+/// The latest counter at or below `stored` with low bits `lo`: what a replayed or stale frame
+/// was made for (to tell a stale counter from a forged MAC).
+pub fn previous_counter(stored: u32, lo: u16) -> Option<u32> {
+    let candidate = (stored & !0xFFFF) | u32::from(lo);
+    if candidate <= stored {
+        Some(candidate)
+    } else {
+        candidate.checked_sub(0x1_0000)
+    }
+}
+
+/// Why a key file could not be read.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct KeyFileError {
+    /// 1-based line.
+    pub line: usize,
+    /// What is wrong with it (never its text: it may hold a key).
+    pub what: &'static str,
+}
+
+impl core::fmt::Display for KeyFileError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(f, "line {}: {}", self.line, self.what)
+    }
+}
+
+#[cfg(feature = "std")]
+impl std::error::Error for KeyFileError {}
+
+/// The keys of a suit: one per joint node, and the trigger key.
+///
+/// Key file (the `exocal-keys` credential): one `NAME HEX` pair per line, NAME a DBC node name
+/// (`Joint1` … `Joint7`) or `Trigger`, HEX 32 hexadecimal digits; blank lines and lines
+/// starting with `#` are ignored. Errors name the line, never its content.
+#[derive(Clone, Default, PartialEq, Eq)]
+pub struct KeySet {
+    nodes: [Option<Key>; 8],
+    trigger: Option<Key>,
+}
+
+impl core::fmt::Debug for KeySet {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        let mut list = f.debug_list();
+        for node in NodeId::ALL {
+            if self.node(node).is_some() {
+                list.entry(&node.name());
+            }
+        }
+        if self.trigger.is_some() {
+            list.entry(&"Trigger");
+        }
+        list.finish()
+    }
+}
+
+impl KeySet {
+    /// Parses a key file (see the type's docs).
+    pub fn parse(text: &str) -> Result<KeySet, KeyFileError> {
+        let mut keys = KeySet::default();
+        for (i, line) in text.lines().enumerate() {
+            let err = |what| KeyFileError { line: i + 1, what };
+            let line = line.trim();
+            if line.is_empty() || line.starts_with('#') {
+                continue;
+            }
+            let mut words = line.split_whitespace();
+            let (Some(name), Some(hex), None) = (words.next(), words.next(), words.next()) else {
+                return Err(err("expected `NAME HEX` (e.g. `Joint1` and 32 hex digits)"));
+            };
+            let key = Key::from_hex(hex).ok_or(err("the key is not 32 hexadecimal digits"))?;
+            let slot = if name == "Trigger" {
+                &mut keys.trigger
+            } else {
+                let node = NodeId::JOINTS
+                    .into_iter()
+                    .find(|n| n.name() == name)
+                    .ok_or(err("unknown name: expected Joint1 … Joint7 or Trigger"))?;
+                &mut keys.nodes[usize::from(node.raw() - 1)]
+            };
+            if slot.replace(key).is_some() {
+                return Err(err("this name has a key on an earlier line"));
+            }
+        }
+        Ok(keys)
+    }
+
+    /// Keys derived from `seed` (per node and for the trigger, [`Key::derive`]): for the demo
+    /// and tests only; anyone who knows the seed knows them.
+    pub fn derived(seed: u64) -> KeySet {
+        let mut master = [0u8; KEY_LEN];
+        master[..8].copy_from_slice(&seed.to_le_bytes());
+        master[8..].copy_from_slice(b"exocal-d");
+        let master = Key(master);
+        let mut keys = KeySet::default();
+        for node in NodeId::JOINTS {
+            keys.nodes[usize::from(node.raw() - 1)] = Some(master.derive(&[node.raw()]));
+        }
+        keys.trigger = Some(master.derive(b"Trigger"));
+        keys
+    }
+
+    /// The key of `node`, if the set has one.
+    pub fn node(&self, node: NodeId) -> Option<&Key> {
+        self.nodes[usize::from(node.raw() - 1)].as_ref()
+    }
+
+    /// Sets (or removes) the key of `node`.
+    pub fn set_node(&mut self, node: NodeId, key: Option<Key>) {
+        self.nodes[usize::from(node.raw() - 1)] = key;
+    }
+
+    /// The trigger key, if the set has one.
+    pub fn trigger(&self) -> Option<&Key> {
+        self.trigger.as_ref()
+    }
+
+    /// Sets (or removes) the trigger key.
+    pub fn set_trigger(&mut self, key: Option<Key>) {
+        self.trigger = key;
+    }
+
+    /// Whether the set holds no key at all.
+    pub fn is_empty(&self) -> bool {
+        self.trigger.is_none() && self.nodes.iter().all(Option::is_none)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// RFC 4493, section 4: AES-128 key 2b7e1516…, the CMAC of the empty message and of 16
+    /// bytes: the crates compute AES-CMAC, truncated as we say.
+    #[test]
+    fn cmac_matches_rfc_4493() {
+        let key = Key::from_hex("2b7e151628aed2a6abf7158809cf4f3c").unwrap();
+        assert_eq!(truncated(cmac(&key, &[])), 0xbb1d_6929);
+        let m = [
+            0x6b, 0xc1, 0xbe, 0xe2, 0x2e, 0x40, 0x9f, 0x96, 0xe9, 0x3d, 0x7e, 0x11, 0x73, 0x93,
+            0x17, 0x2a,
+        ];
+        assert_eq!(truncated(cmac(&key, &[&m])), 0x070a_16b4);
+        assert!(verify(cmac(&key, &[&m]), 0x070a_16b4));
+        assert!(!verify(cmac(&key, &[&m]), 0x070a_16b5));
+    }
+
+    fn table() -> Table {
+        Table::from_si(0.431, 1.2345678, 0.0, 0.01, 1.0, 1.0).unwrap()
+    }
+
+    #[test]
+    fn every_field_is_covered_and_kinds_do_not_mix() {
+        let k = KeySet::derived(1);
+        let key = k.node(NodeId::JOINTS[0]).unwrap();
+        let other = k.node(NodeId::JOINTS[1]).unwrap();
+        let (n, t) = (NodeId::JOINTS[0], table());
+        let mac = commit_mac(key, n, 5, 100, &t);
+        assert!(verify_commit(key, n, 5, 100, &t, mac));
+        let moved = Table::from_raw({
+            let mut r = t.raw_values();
+            r[3] += 1;
+            r
+        })
+        .unwrap();
+        for bad in [
+            verify_commit(other, n, 5, 100, &t, mac),
+            verify_commit(key, NodeId::JOINTS[1], 5, 100, &t, mac),
+            verify_commit(key, n, 6, 100, &t, mac),
+            verify_commit(key, n, 5, 101, &t, mac),
+            verify_commit(key, n, 5, 100, &moved, mac),
+            verify_commit(key, n, 5, 100, &t, mac ^ 1),
+        ] {
+            assert!(!bad);
+        }
+        let rb = readback_mac(key, n, 77, t.crc(), &t.to_bytes());
+        assert!(verify_readback(key, n, 77, t.crc(), &t.to_bytes(), rb));
+        assert!(!verify_readback(key, n, 78, t.crc(), &t.to_bytes(), rb));
+        assert!(!verify_readback(key, n, 77, t.crc() ^ 1, &t.to_bytes(), rb));
+        assert_ne!(rb, mac);
+        let tr = trigger(key, TriggerCommand::StartCalibration, 0x1_0203);
+        assert_eq!(tr.counter_lo, 0x0203);
+        assert!(verify_trigger(
+            key,
+            TriggerCommand::StartCalibration,
+            0x1_0203,
+            tr.mac
+        ));
+        assert!(!verify_trigger(
+            key,
+            TriggerCommand::Abort,
+            0x1_0203,
+            tr.mac
+        ));
+        assert_ne!(nonce(key, n, 1, 10), nonce(key, n, 1, 11));
+    }
+
+    #[test]
+    fn counters_come_back_from_their_low_bits() {
+        assert_eq!(next_counter(0, 1), Some(1));
+        assert_eq!(next_counter(0, 0), Some(0x1_0000));
+        assert_eq!(next_counter(0x1_fffe, 0xffff), Some(0x1_ffff));
+        assert_eq!(next_counter(0x1_ffff, 0), Some(0x2_0000));
+        assert_eq!(next_counter(0x1_0005, 3), Some(0x2_0003));
+        assert_eq!(next_counter(u32::MAX - 1, 0xffff), Some(u32::MAX));
+        assert_eq!(next_counter(u32::MAX, 0xffff), None);
+        assert_eq!(previous_counter(0x1_0005, 3), Some(0x1_0003));
+        assert_eq!(previous_counter(0x1_0005, 5), Some(0x1_0005));
+        assert_eq!(previous_counter(0x1_0005, 6), Some(0x6));
+        assert_eq!(previous_counter(5, 6), None);
+        for stored in [0u32, 1, 0xffff, 0x1_0000, 0x2_3456] {
+            for step in [1u32, 2, 0x7fff, 0xffff] {
+                let next = stored + step;
+                assert_eq!(next_counter(stored, next as u16), Some(next));
+                assert_eq!(previous_counter(next, stored as u16), Some(stored));
+            }
+        }
+    }
+
+    #[test]
+    fn key_files_parse_and_errors_name_the_line_not_the_key() {
+        let text = "# suit 42\n\nJoint1 000102030405060708090a0b0c0d0e0f\n  Trigger FFEEDDCCBBAA99887766554433221100  \n";
+        let k = KeySet::parse(text).unwrap();
+        assert_eq!(k.node(NodeId::JOINTS[0]).unwrap().bytes()[15], 0x0f);
+        assert_eq!(k.trigger().unwrap().bytes()[0], 0xff);
+        assert!(k.node(NodeId::JOINTS[1]).is_none());
+        assert_eq!(format!("{k:?}"), r#"["Joint1", "Trigger"]"#);
+        assert_eq!(format!("{:?}", k.trigger().unwrap()), "Key(..)");
+        for (bad, line) in [
+            ("Joint1 0001", 1),
+            ("\nJoint9 000102030405060708090a0b0c0d0e0f", 2),
+            ("Joint1 000102030405060708090a0b0c0d0e0g", 1),
+            ("Joint1", 1),
+            ("Joint1 00 11", 1),
+            (
+                "Joint1 000102030405060708090a0b0c0d0e0f\nJoint1 000102030405060708090a0b0c0d0e0f",
+                2,
+            ),
+        ] {
+            let e = KeySet::parse(bad).unwrap_err();
+            assert_eq!(e.line, line, "{bad}: {e}");
+            assert!(!e.to_string().contains("0001"), "{e}");
+        }
+        let d = KeySet::derived(2024);
+        assert_eq!(d, KeySet::derived(2024));
+        assert_ne!(d, KeySet::derived(2025));
+        assert_ne!(d.node(NodeId::JOINTS[0]), d.node(NodeId::JOINTS[1]));
+        assert!(!d.is_empty() && KeySet::default().is_empty());
+    }
+}
