@@ -20,6 +20,7 @@
 //! | [`keys`] | the node and trigger keys, from the systemd credential `exocal-keys` |
 //! | [`serve`] | `exocald run`: which `Trigger` frames start a session (authenticated, cooldown) |
 //! | [`runner`] | one session on any transport: collect, align, calibrate, validate, push, log |
+//! | [`summary`] | a session's summary as printed on stdout |
 //! | `demo` | exocal-hil and the daemon in one process on the in-process bus (feature `demo`, on by default) |
 //! | [`offline`] | recalibration from a recorded MCAP, candump or CSV file, through the same pipeline |
 //! | [`calreport`] | the HTML report of a session (live or offline), from what the pipeline computed |
@@ -55,4 +56,5 @@ pub mod runner;
 pub mod serve;
 pub mod session;
 pub mod shutdown;
+pub mod summary;
 pub mod validate;

@@ -267,7 +267,7 @@ pub async fn serve<T: Transport>(
                 }
             }
         };
-        match crate::app::finish(result) {
+        match crate::summary::finish(result) {
             Ok(()) => {}
             Err(DaemonError::Interrupted) => return Err(DaemonError::Interrupted),
             Err(e) => reporter.message(&format!("session failed: {e}")),
