@@ -25,6 +25,8 @@
 //! session on the in-process bus is reproducible bit for bit. On SocketCAN the kernel stamps
 //! frames and reproducibility is up to the kernel.
 
+#![warn(missing_docs)]
+
 use std::future::Future;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;

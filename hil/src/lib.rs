@@ -28,6 +28,8 @@
 //! future resolves — as a real suit at rest whose nodes stay powered. [`Hil::play`] is `run`
 //! with a stop future.
 
+#![warn(missing_docs)]
+
 pub mod capture;
 pub mod flash;
 pub mod motion;
