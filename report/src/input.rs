@@ -15,15 +15,20 @@ pub const PARAMS: usize = 4 * JOINTS;
 /// A calibration sample and its time (s since the start of the session).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TimedSample {
+    /// Seconds since the start of the session.
     pub t: f64,
+    /// The joint angles and the measured end-effector pose.
     pub sample: Sample<JOINTS>,
 }
 
 /// Least-squares step, as the report shows it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LsDetail {
+    /// The LS table.
     pub table: DhTable<JOINTS>,
+    /// Gauss–Newton/LM iterations taken.
     pub iterations: usize,
+    /// Numerical rank of the column-scaled Jacobian.
     pub rank: usize,
     /// Column-scaled condition number.
     pub condition: f64,
@@ -36,8 +41,11 @@ pub struct LsDetail {
 /// Drift EM step, as the report shows it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EmDetail {
+    /// The EM table.
     pub table: DhTable<JOINTS>,
+    /// EM iterations taken.
     pub iterations: usize,
+    /// Whether the EM met its tolerance (otherwise it hit its iteration limit).
     pub converged: bool,
     /// Log-likelihood at the start of every iteration, then at the final parameters.
     pub log_likelihood: Vec<f64>,
@@ -56,6 +64,7 @@ pub struct EmDetail {
 pub struct Correlation {
     /// Parameter indices (`kind·7 + joint`), `first < second`.
     pub first: usize,
+    /// The other parameter index.
     pub second: usize,
     /// Correlation coefficient in [−1, 1].
     pub r: f64,
@@ -64,6 +73,7 @@ pub struct Correlation {
 /// What the calibration produced.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Calibration {
+    /// The least-squares step.
     pub ls: LsDetail,
     /// The EM, or why it failed (the LS table is then the result).
     pub em: Result<EmDetail, String>,
@@ -78,6 +88,7 @@ pub struct Calibration {
 pub struct StreamQuality {
     /// `Joint1`…`Joint7`, `EndEffector`, or a CSV column group.
     pub name: String,
+    /// Samples in the stream.
     pub samples: usize,
     /// Mean sample rate (Hz) over the stream's span.
     pub rate_hz: f64,
@@ -104,6 +115,7 @@ pub struct Quality {
     pub gaps: usize,
     /// Frame counters, in display order (`("received", n)`, `("unknown", n)`, …); empty for CSV.
     pub counters: Vec<(String, u64)>,
+    /// Every data stream, in display order.
     pub streams: Vec<StreamQuality>,
     /// Anatomical range of each joint (rad), for the excitation figures.
     pub joint_ranges: [(f64, f64); JOINTS],
@@ -112,12 +124,14 @@ pub struct Quality {
     /// Times the receiver stalled (every node's frames late together; not counted as any
     /// stream's clock jumps), and the longest stall's lateness (ms).
     pub receiver_stalls: usize,
+    /// The longest receiver stall's lateness (ms), if there was one.
     pub longest_stall_ms: Option<f64>,
 }
 
 /// The validation verdict, if the caller validated the table.
 #[derive(Debug, Clone, PartialEq)]
 pub struct VerdictSummary {
+    /// Whether the table may be pushed.
     pub accepted: bool,
     /// Every reason to refuse (empty when accepted).
     pub reasons: Vec<String>,
@@ -130,6 +144,7 @@ pub struct ReportInput {
     pub title: String,
     /// Where the data came from (an interface, a file).
     pub source: String,
+    /// The nominal table (the configuration's), the "before" of every comparison.
     pub nominal: DhTable<JOINTS>,
     /// The calibration; fitted on `fit` (and, when `judged` is given, `held_out` too).
     pub calibration: Calibration,
@@ -140,7 +155,9 @@ pub struct ReportInput {
     pub fit: Vec<TimedSample>,
     /// The held-out slice (the end of the session), time-ordered; may be empty.
     pub held_out: Vec<TimedSample>,
+    /// Data quality of the session.
     pub quality: Quality,
+    /// The validation verdict, if the caller validated the table.
     pub verdict: Option<VerdictSummary>,
 }
 
@@ -156,6 +173,7 @@ pub struct SessionInput {
     pub reasons: Vec<String>,
     /// The aligned samples the session had, time-ordered (may be empty).
     pub samples: Vec<TimedSample>,
+    /// Data quality of the session.
     pub quality: Quality,
 }
 

@@ -13,6 +13,8 @@
 //! here to render; its `offline` command replays recorded frames through its own ingest and
 //! alignment.
 
+#![warn(missing_docs)]
+
 pub mod export;
 pub mod html;
 pub mod input;

@@ -19,8 +19,11 @@ const FONT: &str = "sans-serif";
 
 /// Colours: actual, nominal, calibrated, then the joints (Tableau 10).
 pub const ACTUAL: RGBColor = RGBColor(40, 40, 40);
+/// Colour of the nominal table's series.
 pub const NOMINAL: RGBColor = RGBColor(214, 39, 40);
+/// Colour of the calibrated table's series.
 pub const CALIBRATED: RGBColor = RGBColor(31, 119, 180);
+/// One colour per joint, joint 1 first.
 pub const JOINT_COLOURS: [RGBColor; 7] = [
     RGBColor(31, 119, 180),
     RGBColor(255, 127, 14),
@@ -36,6 +39,7 @@ pub const JOINT_COLOURS: [RGBColor; 7] = [
 pub struct PlotError {
     /// The chart's title.
     pub chart: String,
+    /// What went wrong.
     pub what: String,
 }
 
@@ -50,8 +54,11 @@ impl std::error::Error for PlotError {}
 /// One line of a chart.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Series {
+    /// Legend entry.
     pub name: String,
+    /// Line colour.
     pub colour: RGBColor,
+    /// `(x, y)` points, in drawing order.
     pub points: Vec<(f64, f64)>,
     /// Draw a marker at every point (short series such as the likelihood).
     pub markers: bool,
@@ -60,9 +67,13 @@ pub struct Series {
 /// One panel of a line chart.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Panel {
+    /// Chart title.
     pub title: String,
+    /// Label of the x axis.
     pub x_label: String,
+    /// Label of the y axis.
     pub y_label: String,
+    /// The overlaid series.
     pub series: Vec<Series>,
     /// Shade x ≥ this value (the held-out slice), if any.
     pub shade_from: Option<f64>,
@@ -296,8 +307,11 @@ pub fn line_panels(panels: &[Panel], width: u32, panel_height: u32) -> Result<St
 /// One overlaid histogram series.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Distribution {
+    /// Legend entry.
     pub name: String,
+    /// Bar colour.
     pub colour: RGBColor,
+    /// The values to bin.
     pub values: Vec<f64>,
 }
 
@@ -305,10 +319,15 @@ pub struct Distribution {
 /// `overflow`, one more bar right of `hi` holding every value above it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Binning {
+    /// Left edge of the first bin.
     pub lo: f64,
+    /// Right edge of the last regular bin.
     pub hi: f64,
+    /// Width of a bin.
     pub width: f64,
+    /// Number of regular bins.
     pub bins: usize,
+    /// Whether a last bar holds every value above `hi`.
     pub overflow: bool,
 }
 

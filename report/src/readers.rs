@@ -43,7 +43,9 @@ pub const MCAP_RX_TOPIC: &str = exocal_log::Topic::CanRx.name();
 pub struct RecordedFrame {
     /// Receive time since the UNIX epoch.
     pub t: Duration,
+    /// The identifier (11 or 29 bits).
     pub id: u32,
+    /// A 29-bit identifier.
     pub extended: bool,
     /// A remote-transmission request (no data).
     pub remote: bool,
@@ -54,8 +56,11 @@ pub struct RecordedFrame {
 /// Which reader failed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum InputKind {
+    /// A candump log (`candump -l` format).
     Candump,
+    /// CSV samples (joint angles and poses).
     Csv,
+    /// An exocald session log (MCAP).
     Mcap,
 }
 
@@ -72,8 +77,11 @@ impl fmt::Display for InputKind {
 /// Bad input: which kind, where (1-based line for text inputs), what.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ReadError {
+    /// Which reader failed.
     pub kind: InputKind,
+    /// 1-based line, for text inputs.
     pub line: Option<usize>,
+    /// What is wrong.
     pub what: String,
 }
 
