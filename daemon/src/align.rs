@@ -105,13 +105,17 @@ impl Unwrapper {
 /// A fitted clock: `host = host_ref + (1 + skew)·(node − node_ref)`, times in seconds.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ClockFit {
+    /// Node time of the reference point, the fit's first point (s).
     pub node_ref: f64,
+    /// Host time the fit maps `node_ref` to (s).
     pub host_ref: f64,
     /// Rate error of the node clock relative to the host (+1e-4 = node runs 100 ppm slow).
     pub skew: f64,
     /// RMS residual of the inliers (s).
     pub residual_rms: f64,
+    /// Points within the residual band: the ones the fit used.
     pub inliers: usize,
+    /// Points outside the band, left out of the fit.
     pub outliers: usize,
 }
 
@@ -216,6 +220,7 @@ pub fn fit_clock(points: &[(f64, f64)], params: &AlignParams) -> Option<ClockFit
 pub struct ClockSegment {
     /// Range of sample indices (arrival order) in this segment.
     pub start: usize,
+    /// One past the segment's last sample index.
     pub end: usize,
     /// `None` when the segment is too short to fit: its samples are excluded.
     pub fit: Option<ClockFit>,
@@ -224,6 +229,7 @@ pub struct ClockSegment {
 /// A node's clock over a whole session: segments separated by detected jumps/reboots.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ClockTrack {
+    /// The segments, in arrival order.
     pub segments: Vec<ClockSegment>,
     /// A sample whose receive time disagrees with its segment's fit by more than this (s) has a
     /// timestamp that cannot be trusted (a glitch too short to be a jump): it maps to nothing.
@@ -704,7 +710,9 @@ pub fn slerp(a: Quat, b: Quat, u: f64) -> Quat {
 /// A pose: position (m) and unit quaternion `[w, x, y, z]`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Pose {
+    /// Position (m).
     pub position: [f64; 3],
+    /// Orientation, unit quaternion `[w, x, y, z]`.
     pub orientation: Quat,
 }
 
@@ -756,14 +764,18 @@ pub fn grid(start: f64, end: f64, hz: f64) -> Vec<f64> {
 /// One aligned sample: every joint angle (rad) and the end-effector pose at time `t` (host s).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AlignedSample {
+    /// Time of the grid point (host s).
     pub t: f64,
+    /// Joint angles (rad), joint 1 first.
     pub joints: [f64; JOINTS],
+    /// Measured end-effector pose at `t`.
     pub pose: Pose,
 }
 
 /// The result of [`align`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct Aligned {
+    /// The aligned samples, time-ordered.
     pub samples: Vec<AlignedSample>,
     /// Grid points covered by all streams' time spans.
     pub grid_points: usize,

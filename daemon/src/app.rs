@@ -20,7 +20,9 @@ use exocal_dbc::NodeId;
 /// Where a configuration came from.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum ConfigSource {
+    /// Loaded from this file.
     File(PathBuf),
+    /// The built-in defaults ([`crate::config::DEFAULT_TOML`]).
     BuiltIn,
 }
 

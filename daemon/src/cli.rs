@@ -31,6 +31,7 @@ pub struct Cli {
     pub config: Option<PathBuf>,
 
     #[command(subcommand)]
+    /// What to do.
     pub command: Command,
 }
 

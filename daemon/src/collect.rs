@@ -24,7 +24,9 @@ use crate::session::Session;
 /// A session's frames so far: the decoded streams and the collection window.
 #[derive(Debug, Clone)]
 pub struct Collector {
+    /// The decoded streams and the frame counters.
     pub ingest: Ingest,
+    /// The collection window: coverage, sample counts, ready/failed.
     pub session: Session,
 }
 

@@ -95,18 +95,24 @@ impl Bounds {
 /// Collection window rules.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SessionRules {
+    /// Shortest collection window (s).
     pub min_duration_s: f64,
+    /// Longest collection window (s): a session without enough data by then fails.
     pub max_duration_s: f64,
     /// Fraction (0, 1] of each joint's range the motion must visit.
     pub excitation_required: f64,
+    /// Aligned samples (on the grid) needed before calibrating.
     pub min_samples: usize,
+    /// Rate of the common time grid the streams are resampled onto (Hz).
     pub grid_hz: f64,
+    /// A hole longer than this (s) in any stream is a gap: grid points inside it are excluded.
     pub max_gap_s: f64,
 }
 
 /// What a calibration must satisfy to be pushed.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ValidationRules {
+    /// Largest condition number of the (column-scaled) identification problem.
     pub max_condition_number: f64,
     /// Fraction (0, 1) of the session, at its end, kept out of the fit.
     pub holdout_fraction: f64,
@@ -120,6 +126,7 @@ pub struct ValidationRules {
 /// Where and how the MCAP log is written.
 #[derive(Debug, Clone, PartialEq)]
 pub struct OutputConfig {
+    /// Where the per-session MCAP logs go.
     pub directory: PathBuf,
     /// Longest time (s, ≤ 1) between two chunk flushes.
     pub flush_interval_s: f64,
@@ -148,8 +155,11 @@ impl Default for LiveConfig {
 pub struct PushPolicy {
     /// Attempts after the first one.
     pub retries: u32,
+    /// Delay before the first retry (ms), doubled for each retry after it.
     pub backoff_initial_ms: u64,
+    /// Longest delay between two attempts (ms).
     pub backoff_max_ms: u64,
+    /// Time to wait for a node's answer before an attempt counts as failed (ms).
     pub timeout_ms: u64,
     /// `CommitAuth` before every Commit and only a MAC-verified readback counts as `New`; the
     /// serve mode's `Trigger` frames must verify too. Off only when the file says
@@ -181,17 +191,25 @@ pub struct TriggerRules {
 /// The validated configuration.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Config {
+    /// The SocketCAN interface the nodes are on (`can0`; `vcan0` on a bench).
     pub interface: String,
     /// CAN node id of the node on joint `i + 1`.
     pub joint_nodes: [u8; JOINTS],
     /// The nominal D-H table the suit was built to.
     pub nominal: DhTable<JOINTS>,
+    /// Anatomical bounds a pushed table must respect (`[bounds]`).
     pub bounds: Bounds,
+    /// Collection window rules (`[session]`).
     pub session: SessionRules,
+    /// What a calibration must satisfy to be pushed (`[validation]`).
     pub validation: ValidationRules,
+    /// Where and how the session log is written (`[output]`).
     pub output: OutputConfig,
+    /// Table push policy (`[push]`).
     pub push: PushPolicy,
+    /// The live view (`[live]`).
     pub live: LiveConfig,
+    /// The serve mode's trigger rules (`[trigger]`).
     pub trigger: TriggerRules,
 }
 
@@ -200,7 +218,9 @@ pub struct Config {
 pub enum ConfigError {
     /// The file could not be read.
     Io {
+        /// The file.
         path: PathBuf,
+        /// The read error.
         source: std::io::Error,
     },
     /// The text is not a valid configuration.
@@ -211,6 +231,7 @@ pub enum ConfigError {
         key: String,
         /// 1-based line of the key, when it is in the file.
         line: Option<usize>,
+        /// What is wrong with the value.
         message: String,
     },
 }

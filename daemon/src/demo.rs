@@ -46,6 +46,7 @@ use crate::runner::{run_session_with, SessionError, SessionSummary};
 /// Options of a demo run.
 #[derive(Debug, Clone)]
 pub struct DemoOptions {
+    /// Seed of the emulated suit's scenario and of the keys the demo derives.
     pub seed: u64,
     /// At most this many simulated seconds per real second (pacing only: the results do not
     /// depend on it).
@@ -59,7 +60,9 @@ pub struct DemoOptions {
 /// The demo's result: the session, and per joint node the CRC of its flash after the run.
 #[derive(Debug)]
 pub struct DemoResult {
+    /// What the session did.
     pub summary: SessionSummary,
+    /// Per joint node, the CRC of the table in its flash (`None`: no table, or unreadable).
     pub flash_crc: Vec<(NodeId, Option<u32>)>,
 }
 
@@ -339,8 +342,9 @@ impl SuitSession {
     }
 }
 
-/// One ordinary daemon session ([`run_session`], no dry run) on `daemon_end` against `suit`,
-/// ended by `shutdown` or by itself; then the suit is stopped and the flash read back.
+/// One ordinary daemon session ([`crate::runner::run_session`], no dry run) on `daemon_end`
+/// against `suit`, ended by `shutdown` or by itself; then the suit is stopped and the flash
+/// read back.
 pub async fn session_against_suit<D: Transport>(
     suit: RunningSuit,
     daemon_end: &mut D,

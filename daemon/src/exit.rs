@@ -44,7 +44,12 @@ pub enum DaemonError {
     /// Authentication is on but the keys are missing or invalid (78).
     Keys(KeyError),
     /// The CAN interface does not exist or cannot be opened (69).
-    Interface { name: String, reason: String },
+    Interface {
+        /// The interface's name.
+        name: String,
+        /// Why it cannot be used, with a hint.
+        reason: String,
+    },
     /// A node did not accept the table (69); the report says which.
     Push(String),
     /// Not enough motion/samples before the session's maximum duration (66).
@@ -55,18 +60,32 @@ pub enum DaemonError {
     Validation(Vec<String>),
     /// I/O failure (74): what was being done, and the error.
     Io {
+        /// What was being done.
         what: String,
+        /// The I/O error.
         source: std::io::Error,
     },
     /// The CAN bus failed (74): what was being done, and the error.
-    Bus { what: String, source: BusError },
+    Bus {
+        /// What was being done.
+        what: String,
+        /// The bus error.
+        source: BusError,
+    },
     /// The session log could not be written (74).
-    Log { what: String, source: LogError },
+    Log {
+        /// What was being done.
+        what: String,
+        /// The log error.
+        source: LogError,
+    },
     /// Interrupted by a signal before anything was pushed (75).
     Interrupted,
     /// A bug (70): a task panicked or was cancelled; what it was doing, and the runtime's error.
     Internal {
+        /// What the task was doing.
         what: String,
+        /// The runtime's error.
         source: Box<dyn std::error::Error + Send + Sync>,
     },
     /// An offline input that does not parse (65): the file, the line, the problem.

@@ -45,7 +45,9 @@ pub fn whole_micros(t: Duration) -> Duration {
 /// Frame counters of a session.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize)]
 pub struct FrameStats {
+    /// Every frame taken.
     pub received: u64,
+    /// Frames the DBC decoded.
     pub decoded: u64,
     /// Identifiers the DBC does not define (and extended or remote frames).
     pub unknown: u64,
@@ -95,9 +97,13 @@ impl FrameStats {
 pub enum Event {
     /// A joint angle (rad) of joint index `joint` (0-based).
     Joint {
+        /// Joint index, 0-based.
         joint: usize,
+        /// Node clock at sampling (µs, wrapping at 2^32).
         node_timestamp_us: u32,
+        /// Joint angle (rad); NaN when the node marked it invalid.
         angle: f64,
+        /// Joint rate (rad/s).
         rate: f64,
     },
     /// A complete end-effector pose.
@@ -187,6 +193,7 @@ impl std::fmt::Display for StallReport {
 pub struct ClockReport {
     /// `Joint1`…`Joint7`, `EndEffector`.
     pub node: String,
+    /// Samples in the node's stream.
     pub samples: usize,
     /// Samples in segments too short to fit (excluded).
     pub unmapped: usize,

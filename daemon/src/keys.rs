@@ -30,16 +30,31 @@ const HOW: &str = "provision it as a systemd credential (systemd/README.md, \"Ke
 #[derive(Debug)]
 pub enum KeyError {
     /// No credential: `$CREDENTIALS_DIRECTORY` is unset, or it has no `exocal-keys`.
-    Missing { looked: Option<PathBuf> },
+    Missing {
+        /// Where the credential was looked for (`None`: `$CREDENTIALS_DIRECTORY` is unset).
+        looked: Option<PathBuf>,
+    },
     /// The credential could not be read.
     Io {
+        /// The credential file.
         path: PathBuf,
+        /// The read error.
         source: std::io::Error,
     },
     /// The credential is not a key file.
-    File { path: PathBuf, source: KeyFileError },
+    File {
+        /// The credential file.
+        path: PathBuf,
+        /// Why it does not parse.
+        source: KeyFileError,
+    },
     /// The key file has no key for this node (or `Trigger`).
-    NoKey { path: PathBuf, name: &'static str },
+    NoKey {
+        /// The credential file.
+        path: PathBuf,
+        /// The node (`Joint1` … `Joint7`) or `Trigger` it has no key for.
+        name: &'static str,
+    },
 }
 
 impl fmt::Display for KeyError {

@@ -30,6 +30,8 @@
 //! | [`shutdown`] | SIGTERM/SIGINT as a flag a session waits on |
 //! | [`app`] | what each subcommand does |
 
+#![warn(missing_docs)]
+
 pub mod align;
 pub mod app;
 pub mod calreport;

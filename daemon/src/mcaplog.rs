@@ -50,7 +50,9 @@ pub const ZSTD_LEVEL: u32 = 3;
 /// Why the log could not be written.
 #[derive(Debug)]
 pub enum LogError {
+    /// Writing the file failed.
     Io(std::io::Error),
+    /// The MCAP writer failed.
     Mcap(mcap::McapError),
 }
 

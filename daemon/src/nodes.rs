@@ -321,11 +321,17 @@ pub async fn list<T: Transport>(
 /// A table in SI units, for people and scripts.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct TableSi {
+    /// D-H link length a (m).
     pub a_m: f64,
+    /// D-H link twist α (rad).
     pub alpha_rad: f64,
+    /// D-H link offset d (m).
     pub d_m: f64,
+    /// D-H joint-angle offset (rad).
     pub theta_offset_rad: f64,
+    /// Drift correlation time τ (s).
     pub tau_s: f64,
+    /// Drift deviation σ (rad/s).
     pub sigma_rad_s: f64,
 }
 
@@ -345,11 +351,15 @@ impl From<&Table> for TableSi {
 /// One node in the listing.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct NodeStatus {
+    /// The node's name (`Joint1` … `Joint7`).
     pub node: String,
+    /// Its CAN node id.
     pub id: u8,
+    /// Whether it answered the table query.
     pub answered: bool,
     /// CRC-32 of the table held (0: none), when it answered.
     pub crc: Option<u32>,
+    /// The table held, when it answered and holds one.
     pub table: Option<TableSi>,
     /// CRC of the table the last push left on it, when the log has one for this node.
     pub last_pushed_crc: Option<u32>,
@@ -360,9 +370,11 @@ pub struct NodeStatus {
 /// The whole listing (what `--json` prints).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Listing {
+    /// The CAN interface the nodes were read on.
     pub interface: String,
     /// The session log compared with, if any.
     pub compared_with: Option<PathBuf>,
+    /// One entry per node queried.
     pub nodes: Vec<NodeStatus>,
     /// The nodes that did not answer.
     pub missing: Vec<String>,

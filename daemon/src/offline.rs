@@ -223,9 +223,11 @@ pub struct Replay {
 /// What a recalibration produced.
 #[derive(Debug, Clone)]
 pub struct Recalibration {
+    /// What the replay gathered: the aligned samples and their quality.
     pub collected: Collected,
     /// The configuration the calibration ran with (for CSV, `session.grid_hz` is the file's).
     pub config: Config,
+    /// What the pipeline computed from them.
     pub calibrated: Calibrated,
 }
 
@@ -345,13 +347,17 @@ fn calibrate_replay(r: Replay) -> Result<Recalibration, DaemonError> {
 /// Options of an offline run (the command line's).
 #[derive(Debug, Clone, Default)]
 pub struct OfflineOptions {
+    /// The recorded session: an exocald MCAP log, a `candump -L` log or CSV samples.
     pub input: PathBuf,
     /// `None`: detect ([`detect_format`]).
     pub format: Option<Format>,
     /// `None`: `<input>.offline.html` next to the input.
     pub report: Option<PathBuf>,
+    /// Where to write the calibrated table as the daemon's configuration (`None`: not written).
     pub export_toml: Option<PathBuf>,
+    /// Where to write the calibrated table as URDF joint origins (`None`: not written).
     pub export_urdf: Option<PathBuf>,
+    /// Where to write the replayed frames as a `candump -L` log (`None`: not written).
     pub export_candump: Option<PathBuf>,
 }
 

@@ -44,9 +44,13 @@ pub const TOP_CORRELATIONS: usize = 10;
 /// One node's row as pushed: D-H parameters and the drift model.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct NodeRow {
+    /// D-H link length a (m).
     pub a: f64,
+    /// D-H link twist α (rad).
     pub alpha: f64,
+    /// D-H link offset d (m).
     pub d: f64,
+    /// D-H joint-angle offset (rad).
     pub theta_offset: f64,
     /// Drift correlation time τ (s).
     pub tau: f64,
@@ -57,21 +61,32 @@ pub struct NodeRow {
 /// Summary of the LS step.
 #[derive(Debug, Clone, Serialize)]
 pub struct LsSummary {
+    /// Trial steps taken, accepted or not.
     pub iterations: usize,
+    /// Numerical rank ([`PARAMS`] when every parameter is identifiable).
     pub rank: usize,
+    /// Condition number of the column-scaled Jacobian.
     pub condition_number: f64,
+    /// RMS of the pose-error components after the fit (m, rad).
     pub rms: f64,
 }
 
 /// Summary of the EM step.
 #[derive(Debug, Clone, Serialize)]
 pub struct EmSummary {
+    /// ECME iterations (filter and smoother passes).
     pub iterations: usize,
+    /// Whether the tolerance was reached.
     pub converged: bool,
+    /// Drift correlation time τ of each joint (s).
     pub tau: [f64; JOINTS],
+    /// The paper's σ (eq. 8) of each joint (rad/s).
     pub sigma_paper: [f64; JOINTS],
+    /// Stationary deviation of each joint's angle error (rad).
     pub sigma_stationary: [f64; JOINTS],
+    /// Log-likelihood at the first iterate (NaN if none).
     pub log_likelihood_first: f64,
+    /// Log-likelihood at the last iterate (NaN if none); it never decreases.
     pub log_likelihood_last: f64,
 }
 
@@ -82,13 +97,17 @@ pub struct Outcome {
     pub fit_samples: usize,
     /// Samples held out to judge it (the end). The pushed table is fitted on both.
     pub heldout_samples: usize,
+    /// The least-squares step of the fit on every sample.
     pub ls: LsSummary,
     /// `None` when the EM failed (the reason is in `em_error`); the LS table is then used.
     pub em: Option<EmSummary>,
+    /// Why the EM failed; `None` when it succeeded.
     pub em_error: Option<String>,
     /// Rows before (nominal) and after.
     pub before: [NodeRow; JOINTS],
+    /// The calibrated table and drift model, as pushed.
     pub node_rows: [NodeRow; JOINTS],
+    /// Whether validation accepts the table, and why not.
     pub verdict: Verdict,
 }
 
@@ -136,7 +155,12 @@ impl Calibrated {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum CalibrateError {
     /// Fewer samples than the configuration requires.
-    TooFewSamples { have: usize, need: usize },
+    TooFewSamples {
+        /// Aligned samples collected.
+        have: usize,
+        /// Samples required (`session.min_samples`).
+        need: usize,
+    },
     /// The least-squares identification failed (calib-core's reason).
     Ls(calib_core::CalibError),
 }

@@ -60,11 +60,13 @@ pub enum Holds {
 /// The push outcome of one node.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct NodeReport {
+    /// The node's name (`Joint1` … `Joint7`).
     pub node: String,
     /// CRC-32 of the table sent.
     pub new_crc: u32,
     /// CRC the node last reported holding.
     pub held_crc: Option<u32>,
+    /// Which table it holds after the push.
     pub holds: Holds,
     /// Uploads started (1 + retries used).
     pub attempts: u32,
@@ -77,6 +79,7 @@ pub struct NodeReport {
 /// What the push did, per node.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct PushReport {
+    /// One report per joint node.
     pub nodes: Vec<NodeReport>,
 }
 

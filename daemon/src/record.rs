@@ -30,15 +30,20 @@ pub const TOOL_FRAME: &str = "tool0";
 /// A rigid transform: translation (m) and unit quaternion `[w, x, y, z]`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Transform {
+    /// Translation (m).
     pub translation: [f64; 3],
+    /// Rotation, unit quaternion `[w, x, y, z]`.
     pub rotation_wxyz: [f64; 4],
 }
 
 /// One frame of the arm relative to its parent.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Link {
+    /// The parent frame's name.
     pub parent: String,
+    /// This frame's name.
     pub child: String,
+    /// Pose of `child` in `parent`.
     pub transform: Transform,
 }
 
@@ -47,11 +52,20 @@ pub struct Link {
 pub enum Record<'a> {
     /// A raw frame received (`sent == false`) or sent.
     Frame {
+        /// Whether the daemon sent it (`false`: received).
         sent: bool,
+        /// The frame and its timestamps.
         frame: &'a CanFrameRecord,
     },
     /// A decoded joint reading: joint `joint` (1-based), angle (rad) and rate (rad/s).
-    Joint { joint: usize, angle: f64, rate: f64 },
+    Joint {
+        /// Joint number, 1-based.
+        joint: usize,
+        /// Joint angle (rad).
+        angle: f64,
+        /// Joint rate (rad/s).
+        rate: f64,
+    },
     /// A measured end-effector pose in [`BASE_FRAME`].
     EePose(&'a Transform),
     /// The arm's frames ([`arm_transforms`]).
@@ -65,7 +79,12 @@ pub enum Record<'a> {
     /// The calibration result (and, once pushed, the push report).
     Calibration(&'a proto::Calibration),
     /// What happened, human-readable.
-    Event { level: Level, message: &'a str },
+    Event {
+        /// Severity.
+        level: Level,
+        /// The text.
+        message: &'a str,
+    },
 }
 
 /// The raw frame `frame` seen at `t` (host time; on SocketCAN also the kernel's timestamp).

@@ -22,6 +22,7 @@ pub struct Recorder<'a, W: Write + std::io::Seek = BufWriter<std::fs::File>> {
 }
 
 impl<'a, W: Write + std::io::Seek> Recorder<'a, W> {
+    /// A recorder writing to `log` and, when given, to the live view `live`.
     pub fn new(log: SessionLog<W>, live: Option<&'a LiveView>) -> Self {
         Recorder { log, live }
     }
@@ -34,10 +35,12 @@ impl<'a, W: Write + std::io::Seek> Recorder<'a, W> {
         self.log.write_record(log_ns, &record)
     }
 
+    /// Records the raw frame `frame`, sent or received (`sent`), at its host time.
     pub fn can_frame(&mut self, sent: bool, frame: &CanFrameRecord) -> Result<(), LogError> {
         self.record(frame.host_ns, Record::Frame { sent, frame })
     }
 
+    /// Records joint `joint`'s (1-based) reading: angle (rad) and rate (rad/s).
     pub fn joint_state(
         &mut self,
         log_ns: u64,
@@ -48,26 +51,32 @@ impl<'a, W: Write + std::io::Seek> Recorder<'a, W> {
         self.record(log_ns, Record::Joint { joint, angle, rate })
     }
 
+    /// Records a measured end-effector pose.
     pub fn ee_pose(&mut self, log_ns: u64, pose: &Transform) -> Result<(), LogError> {
         self.record(log_ns, Record::EePose(pose))
     }
 
+    /// Records the arm's frames ([`crate::record::arm_transforms`]).
     pub fn arm_transforms(&mut self, log_ns: u64, links: &[Link]) -> Result<(), LogError> {
         self.record(log_ns, Record::Arm(links))
     }
 
+    /// Records a sample on the common grid.
     pub fn aligned(&mut self, log_ns: u64, sample: &AlignedSample) -> Result<(), LogError> {
         self.record(log_ns, Record::Aligned(sample))
     }
 
+    /// Records a snapshot of the collection's progress.
     pub fn progress(&mut self, log_ns: u64, progress: &Progress) -> Result<(), LogError> {
         self.record(log_ns, Record::Progress(progress))
     }
 
+    /// Records the end of the collection window, at the window's end.
     pub fn collection_end(&mut self, end: &CollectionEnd) -> Result<(), LogError> {
         self.record(end.window_end_ns, Record::CollectionEnd(end))
     }
 
+    /// Records the calibration result (and, once pushed, the push report).
     pub fn calibration(
         &mut self,
         log_ns: u64,
@@ -76,6 +85,7 @@ impl<'a, W: Write + std::io::Seek> Recorder<'a, W> {
         self.record(log_ns, Record::Calibration(calibration))
     }
 
+    /// Records a human-readable event.
     pub fn event(&mut self, log_ns: u64, level: Level, message: &str) -> Result<(), LogError> {
         self.record(log_ns, Record::Event { level, message })
     }

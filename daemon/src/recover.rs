@@ -35,13 +35,24 @@ pub enum End {
     /// 9-byte opcode and length are cut, or its length is the writer's placeholder for the chunk
     /// it had open. `have == 0`: the file stops between two records, before the data end.
     Cut {
+        /// Byte offset where the cut record starts.
         at: u64,
+        /// Its opcode, when its first byte is there.
         opcode: Option<u8>,
+        /// Bytes of it in the file.
         have: u64,
+        /// Its full length in bytes, when known.
         need: Option<u64>,
     },
     /// The record at byte `at` is whole but unreadable: the reason.
-    Damaged { at: u64, opcode: u8, why: String },
+    Damaged {
+        /// Byte offset where the record starts.
+        at: u64,
+        /// Its opcode.
+        opcode: u8,
+        /// Why it is unreadable.
+        why: String,
+    },
 }
 
 /// What a scan kept.
@@ -57,6 +68,7 @@ pub struct Recovery {
     pub kept_bytes: u64,
     /// Size of the input.
     pub file_bytes: u64,
+    /// How the input ends.
     pub end: End,
 }
 

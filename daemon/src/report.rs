@@ -109,9 +109,15 @@ pub enum Reporter {
     /// A progress bar on the terminal.
     Bar(ProgressBar),
     /// `STATUS=` to systemd, and plain lines.
-    Systemd { last_line: Option<f64> },
+    Systemd {
+        /// Elapsed time (s) of the last plain line; `None` before the first.
+        last_line: Option<f64>,
+    },
     /// Plain lines on stderr.
-    Plain { last_line: Option<f64> },
+    Plain {
+        /// Elapsed time (s) of the last plain line; `None` before the first.
+        last_line: Option<f64>,
+    },
 }
 
 impl Reporter {

@@ -78,18 +78,25 @@ pub const TF_HZ: f64 = 20.0;
 /// What a session did (also when it failed: see [`SessionError`]).
 #[derive(Debug, Clone, Serialize)]
 pub struct SessionSummary {
+    /// The session log (for an offline run, the input).
     pub log_path: PathBuf,
+    /// Messages written to the log, per topic: `(topic, count)`.
     pub log_counts: Vec<(String, u64)>,
     /// Frames received in the collection window: those the calibration used (frames that
     /// arrive while calibrating and pushing are not counted), as an offline replay of the log
     /// counts them.
     pub frames: FrameStats,
+    /// One report per node clock (joints, then the end effector).
     pub clocks: Vec<ClockReport>,
     /// Receiver stalls (not counted in any node's clock jumps).
     pub stalls: StallReport,
+    /// Samples on the common grid.
     pub aligned_samples: usize,
+    /// Grid points excluded as gaps.
     pub gaps: usize,
+    /// The calibration; `None` when none was computed.
     pub outcome: Option<Outcome>,
+    /// The push, per node; `None` when nothing was pushed.
     pub push: Option<PushReport>,
     /// The HTML calibration report, once written (next to the log for a live session).
     pub report_path: Option<PathBuf>,
@@ -125,7 +132,9 @@ impl SessionSummary {
 /// A failed session: why, and what it did up to then (the log is finished).
 #[derive(Debug)]
 pub struct SessionError {
+    /// Why the session failed.
     pub error: DaemonError,
+    /// What it did up to then; `None` when it failed before it started.
     pub summary: Option<SessionSummary>,
 }
 

@@ -83,6 +83,7 @@ pub enum Phase {
 /// A snapshot of the collection, for reporters and the log.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Progress {
+    /// Time since the collection window opened (s).
     pub elapsed_s: f64,
     /// Samples of the scarcest stream (joints and pose).
     pub samples: u64,

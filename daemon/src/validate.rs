@@ -85,9 +85,13 @@ pub struct Accuracy {
 pub struct Verdict {
     /// Every reason to refuse; empty when the table may be pushed.
     pub reasons: Vec<String>,
+    /// Condition number of the (column-scaled) identification problem.
     pub condition_number: f64,
+    /// Samples in the held-out slice.
     pub heldout_samples: usize,
+    /// Accuracy of the nominal table on the held-out slice.
     pub nominal: Accuracy,
+    /// Accuracy of the judged table (fitted without the slice) on it.
     pub candidate: Accuracy,
     /// `1 − candidate / nominal` mean error on the held-out slice (reported, not a criterion).
     pub improvement: f64,
@@ -205,7 +209,9 @@ fn wrap_angle(x: f64) -> f64 {
 /// itself, or the table the candidate was refitted from on every sample.
 #[derive(Debug, Clone, Copy)]
 pub struct HeldOut<'a> {
+    /// The table fitted without the slice.
     pub table: &'a DhTable<JOINTS>,
+    /// The held-out samples.
     pub samples: &'a [Sample<JOINTS>],
 }
 
