@@ -14,7 +14,7 @@ use crate::exit::DaemonError;
 use crate::report::{Notifier, Reporter};
 use crate::runner::run_session;
 use crate::shutdown::Shutdown;
-use crate::summary::{finish, print_summary};
+use crate::summary::finish;
 use exocal_dbc::NodeId;
 
 /// Where a configuration came from.
@@ -152,7 +152,7 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
             };
             match crate::demo::run(&config, &opts).map_err(|e| *e) {
                 Ok(result) => {
-                    print_summary(&result.summary);
+                    crate::summary::print_summary(&result.summary);
                     let check = crate::demo::check_flash(&result);
                     for (node, crc) in &result.flash_crc {
                         let crc = crc.map_or_else(|| "none".into(), |c| format!("{c:#010x}"));
