@@ -218,6 +218,7 @@ pub fn calibration_record(
                     .to_string(),
                     attempts: n.attempts,
                     error: n.error.clone().unwrap_or_default(),
+                    authenticated: n.authenticated,
                 })
                 .collect()
         }),

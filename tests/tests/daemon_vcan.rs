@@ -32,6 +32,9 @@ use calib_core::{objective_y, DhRow, DhTable, Sample, Scenario, ScenarioConfig};
 use exocal_dbc::table::Field;
 use exocal_dbc::NodeId;
 
+#[path = "common/log_json.rs"]
+mod log_json;
+
 /// Simulated time per wall-clock time for the emulated suit. At 1× the QEMU guest keeps up with
 /// ~3,000 frames/s with room to spare, so node clocks stay a clean line against host time.
 const SPEED: &str = "1";
@@ -344,11 +347,9 @@ fn mcap_topics(path: &Path) -> (BTreeMap<String, u64>, Vec<(String, serde_json::
     for m in mcap::MessageStream::new(&bytes).expect("message stream") {
         let m = m.expect("every message readable");
         *counts.entry(m.channel.topic.clone()).or_default() += 1;
-        if matches!(
-            m.channel.topic.as_str(),
-            "/can/rx" | "/can/tx" | "/calibration"
-        ) {
-            let v: serde_json::Value = serde_json::from_slice(&m.data).expect("JSON message");
+        if let Some(v) =
+            log_json::log_message_json(&m.channel.topic, &m.channel.message_encoding, &m.data)
+        {
             messages.push((m.channel.topic.clone(), v));
         }
     }
@@ -454,7 +455,7 @@ fn calibrate_on_vcan0_pushes_a_table_every_node_holds_and_logs_every_frame() {
         let name = node["node"].as_str().unwrap();
         let n: u8 = name.trim_start_matches("Joint").parse().expect("JointN");
         let sent = node["new_crc"].as_u64().unwrap() as u32;
-        assert_eq!(node["holds"], "New", "{node}");
+        assert_eq!(node["holds"], "new", "{node}");
         assert_eq!(
             held[&n],
             Some(sent),

@@ -26,6 +26,9 @@ use std::time::{Duration, Instant};
 
 use exocal_dbc::NodeId;
 
+#[path = "common/log_json.rs"]
+mod log_json;
+
 const UNIT: &str = "exocald.service";
 /// The watchdog interval the bench drop-in sets (tests/powerup/bench-setup.sh).
 const WATCHDOG: Duration = Duration::from_secs(3);
@@ -118,7 +121,9 @@ fn read_finished_mcap(path: &Path) -> Option<serde_json::Value> {
         let m = m.unwrap_or_else(|e| panic!("{}: bad message: {e}", path.display()));
         messages += 1;
         if m.channel.topic == "/calibration" {
-            let v: serde_json::Value = serde_json::from_slice(&m.data).expect("JSON /calibration");
+            let v =
+                log_json::log_message_json(&m.channel.topic, &m.channel.message_encoding, &m.data)
+                    .expect("a /calibration message");
             if v.get("nodes").is_some() {
                 push = Some(v);
             }
@@ -414,7 +419,7 @@ fn every_node_holds_the_pushed_table() {
         let name = node["node"].as_str().unwrap();
         let n: u8 = name.trim_start_matches("Joint").parse().expect("JointN");
         let sent = node["new_crc"].as_u64().unwrap() as u32;
-        assert_eq!(node["holds"], "New", "{node}");
+        assert_eq!(node["holds"], "new", "{node}");
         assert_eq!(
             run.held[&n],
             Some(sent),
