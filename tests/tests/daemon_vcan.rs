@@ -273,7 +273,14 @@ impl Hil {
         }
     }
 
-    fn stop(mut self) {
+    fn stop(self) {
+        drop(self);
+    }
+}
+
+/// A test that fails must not leave the hil playing on vcan0 for the suites after it.
+impl Drop for Hil {
+    fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
