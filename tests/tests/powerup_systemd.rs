@@ -201,6 +201,14 @@ fn boot_run() -> &'static BootRun {
             if pid != "0" && !pid.is_empty() {
                 break pid;
             }
+            // A start that failed will not become a run: say why now, not after HANG.
+            let result = prop("Result");
+            assert!(
+                result == "success" || result.is_empty(),
+                "exocald failed to start: ActiveState={} Result={result}\n--- journal ---\n{}",
+                prop("ActiveState"),
+                journal(&["-u", UNIT, "-n", "60"])
+            );
             assert!(
                 Instant::now() < deadline,
                 "exocald never ran: ActiveState={} Result={}",
