@@ -510,7 +510,7 @@ fn serve_feeds_the_watchdog_while_idle() {
     const SERVE: &str = "exocald-serve.service";
     boot_run();
     let unit = format!(
-        "[Service]\nType=notify\nNotifyAccess=main\nWatchdogSec={}s\nLoadCredential=exocal-keys\n\
+        "[Service]\nType=notify\nNotifyAccess=main\nWatchdogSec={}s\nLoadCredential=exocal-keys:/etc/credstore/exocal-keys\n\
          ExecStart=/usr/bin/exocald --config /etc/exocal/exocald.toml run --dry-run --output /run/exocald-serve\n",
         WATCHDOG.as_secs()
     );
@@ -605,8 +605,10 @@ fn the_push_was_authenticated_with_the_credential_and_no_key_leaked() {
     }
 }
 
-/// `LoadCredential=` of a credential no store holds: systemd 252 starts the unit anyway (so
-/// exocald, not systemd, reports a missing key, with exit 78 and what to do).
+/// `LoadCredential=` of a bare name no store holds: systemd 252 starts the unit anyway, with no
+/// file. (Debian 12's systemd 252 does not search /etc/credstore for a bare name at all: that is
+/// why the shipped units name the key file's path, and a missing file is then systemd's
+/// `243/CREDENTIALS` failure, which its journal explains.)
 #[test]
 fn a_missing_credential_is_not_a_systemd_failure() {
     require_booted_systemd();

@@ -109,7 +109,7 @@ with a drop-in /etc/systemd/system/exocald.service.d/keys.conf:
 
     [Service]
     LoadCredential=
-    LoadCredentialEncrypted=exocal-keys
+    LoadCredentialEncrypted=exocal-keys:/etc/credstore.encrypted/exocal-keys
 
 A bench whose nodes hold no keys may set `authenticate = false` in the [push] section of
 /etc/exocal/exocald.toml instead: then anyone on the CAN bus can change a node's table, and
