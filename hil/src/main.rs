@@ -151,7 +151,8 @@ fn provision_keys(file: Option<&Path>, flash_dir: &Path) -> anyhow::Result<Strin
             .filter(|&n| matches!(exocal_hil::flash::read_key(flash_dir, n), Ok(Some(_))))
             .count();
         return Ok(format!(
-            "no key file given: {keyed} of 7 joint nodes hold a key from earlier provisioning;              the others accept unauthenticated tables"
+            "no key file given: {keyed} of 7 joint nodes hold a key from earlier provisioning; \
+             the others accept unauthenticated tables"
         ));
     };
     let text = std::fs::read_to_string(&path)
