@@ -100,6 +100,37 @@ pub struct SessionSummary {
     pub push: Option<PushReport>,
     /// The HTML calibration report, once written (next to the log for a live session).
     pub report_path: Option<PathBuf>,
+    /// What the user waited after the collection window, when every node's table was verified.
+    pub latency: Option<Latency>,
+}
+
+/// The power-up latency: from the end of the collection window until every node's table was
+/// verified (CRC read back) — alignment, calibration, validation, report and push.
+///
+/// `real` is this machine's monotonic clock over that span; `session` the session clock's. On
+/// the wall clock (SocketCAN) the two agree and the latency is `real`. On simulated time (the
+/// demo) the session clock stands still while the daemon computes and the real clock hardly
+/// moves while the emulated bus and nodes answer, so the latency a suit on a real bus would see
+/// is their sum: this machine's computing plus the bus's and the nodes' time as emulated.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Latency {
+    /// This machine's monotonic clock from the end of the window to the last verified table.
+    pub real: Duration,
+    /// The session clock over the same span.
+    pub session: Duration,
+    /// Whether the session clock was simulated.
+    pub simulated: bool,
+}
+
+impl Latency {
+    /// The latency a user waits: see [`Latency`].
+    pub fn total(&self) -> Duration {
+        if self.simulated {
+            self.real + self.session
+        } else {
+            self.real
+        }
+    }
 }
 
 impl SessionSummary {
@@ -116,6 +147,7 @@ impl SessionSummary {
             outcome: None,
             push: None,
             report_path: None,
+            latency: None,
         }
     }
 
@@ -416,6 +448,7 @@ impl<T: Transport> Live<'_, '_, T> {
             self.summary.frames = self.collector.ingest.stats().clone();
             return Err(e);
         }
+        let window_closed = (Instant::now(), self.clock.monotonic());
         let collected = self.align();
         self.summary.collected(&collected);
         let calibrated = self.calibrate(&collected, shutdown.as_mut()).await?;
@@ -436,7 +469,13 @@ impl<T: Transport> Live<'_, '_, T> {
         if futures_ready(&mut shutdown) {
             return Err(DaemonError::Interrupted);
         }
-        self.push(start).await
+        self.push(start).await?;
+        self.summary.latency = Some(Latency {
+            real: window_closed.0.elapsed(),
+            session: self.clock.monotonic().saturating_sub(window_closed.1),
+            simulated: matches!(self.clock, Clock::Simulated(_)),
+        });
+        Ok(())
     }
 
     /// Step 1: collects until the session rules are met (or cannot be). The tick goes before
@@ -949,6 +988,7 @@ mod tests {
         assert_eq!(err.error.exit_code(), crate::exit::code::DATAERR);
         let summary = err.summary.unwrap();
         assert!(summary.outcome.is_some() && summary.push.is_none());
+        assert!(summary.latency.is_none(), "nothing was verified");
         assert_eq!(topic_count(&summary, "/can/tx"), 0);
         assert_eq!(topic_count(&summary, "/calibration"), 1);
         assert_finished(&summary.log_path);

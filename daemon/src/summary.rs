@@ -51,6 +51,22 @@ pub fn print_summary(summary: &SessionSummary) {
             println!("push {line}");
         }
     }
+    if let Some(l) = &summary.latency {
+        if l.simulated {
+            println!(
+                "end of collection to every table verified: {:.3} s ({:.3} s computing on this \
+                 machine + {:.3} s of emulated bus and nodes)",
+                l.total().as_secs_f64(),
+                l.real.as_secs_f64(),
+                l.session.as_secs_f64()
+            );
+        } else {
+            println!(
+                "end of collection to every table verified: {:.3} s",
+                l.total().as_secs_f64()
+            );
+        }
+    }
     if let Some(r) = &summary.report_path {
         println!("report: {}", r.display());
     }

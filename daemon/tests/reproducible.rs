@@ -16,6 +16,9 @@ struct Fingerprint {
     aligned_samples: usize,
     /// Messages in the session's MCAP log (its statistics record).
     mcap_messages: u64,
+    /// Simulated time from the end of the collection window to the last verified table: the
+    /// emulated bus's and nodes' share of the power-up latency.
+    latency_session: std::time::Duration,
 }
 
 fn temp_dir(name: &str) -> PathBuf {
@@ -27,6 +30,13 @@ fn temp_dir(name: &str) -> PathBuf {
 fn fingerprint(dir: &Path, seed: u64) -> Fingerprint {
     let (_, summary) = live_session(dir, seed);
     let push = summary.push.as_ref().expect("the session pushed");
+    let latency = summary.latency.expect("a pushed session has its latency");
+    assert!(latency.simulated, "{latency:?}");
+    assert!(
+        latency.real > std::time::Duration::ZERO && latency.session > std::time::Duration::ZERO,
+        "{latency:?}"
+    );
+    assert_eq!(latency.total(), latency.real + latency.session);
     let bytes = std::fs::read(&summary.log_path).unwrap();
     let stats = mcap::Summary::read(&bytes)
         .unwrap()
@@ -41,6 +51,7 @@ fn fingerprint(dir: &Path, seed: u64) -> Fingerprint {
             .collect(),
         aligned_samples: summary.aligned_samples,
         mcap_messages: stats.message_count,
+        latency_session: latency.session,
     }
 }
 

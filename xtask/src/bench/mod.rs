@@ -1,6 +1,6 @@
 //! `cargo xtask bench`: issue 6's comparisons, measured in one run and written to `BENCHMARKS.md`.
 //!
-//! Parts (all by default, or pick with `--only calib,firmware,ingest`):
+//! Parts (all by default, or pick with `--only calib,firmware,daemon,ingest`):
 //!
 //! * `calib` ([`calib`]): calib-core's LS against `scipy.optimize.least_squares` on the same exported
 //!   datasets (`calib-core/examples/export_dataset.rs`, `benches/scipy_ls.py`, run from a venv
@@ -12,6 +12,8 @@
 //!   painting while the LS runs under `qemu-system-arm -machine mps2-an386` (a Cortex-M4F), and
 //!   a static bound from the per-function frames of a nightly `-Z emit-stack-sizes` build
 //!   walked over the call graph read from the disassembly.
+//! * `daemon` ([`daemon`]): the daemon natively: the power-up latency of demo sessions on the
+//!   in-process bus, and the CPU of `exocald offline` on a 6,000-sample CSV with its report.
 //! * `ingest` ([`ingest`]): the daemon against `candump -l` on vcan inside the harness.
 //!
 //! Every figure is a median of repeated runs and every comparison a ratio; the report gives
@@ -25,6 +27,7 @@
 
 mod calib;
 mod common;
+mod daemon;
 mod firmware;
 mod ingest;
 mod report;
@@ -45,6 +48,8 @@ pub enum Part {
     Calib,
     /// calib-core's LS path on thumbv7em-none-eabihf: sizes, measured and bounded stack.
     Firmware,
+    /// The daemon natively: power-up latency on the in-process bus, offline CPU.
+    Daemon,
     /// The daemon's ingest against candump on vcan, its RSS, power-up latency.
     Ingest,
 }
@@ -89,6 +94,7 @@ impl Part {
         match self {
             Part::Calib => "calib",
             Part::Firmware => "firmware",
+            Part::Daemon => "daemon",
             Part::Ingest => "ingest",
         }
     }
@@ -97,6 +103,7 @@ impl Part {
         match self {
             Part::Calib => calib::TITLE,
             Part::Firmware => firmware::TITLE,
+            Part::Daemon => daemon::TITLE,
             Part::Ingest => ingest::TITLE,
         }
     }
@@ -105,7 +112,7 @@ impl Part {
 pub fn run(args: Args) -> Result<u8> {
     let root = paths::workspace_root();
     let parts = if args.only.is_empty() {
-        vec![Part::Calib, Part::Firmware, Part::Ingest]
+        vec![Part::Calib, Part::Firmware, Part::Daemon, Part::Ingest]
     } else {
         args.only.clone()
     };
@@ -140,6 +147,7 @@ pub fn run(args: Args) -> Result<u8> {
         let result = match part {
             Part::Calib => calib::measure(&ctx),
             Part::Firmware => firmware::measure(&ctx),
+            Part::Daemon => daemon::measure(&ctx),
             Part::Ingest => ingest::measure(&ctx),
         };
         match result {
