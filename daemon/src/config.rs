@@ -107,6 +107,11 @@ pub struct SessionRules {
     pub grid_hz: f64,
     /// A hole longer than this (s) in any stream is a gap: grid points inside it are excluded.
     pub max_gap_s: f64,
+    /// Stop when good enough: `(mm, mrad)`. When set, the window closes as soon as (after
+    /// `min_duration_s`, every joint covered, enough samples) the expected table error of the
+    /// motion so far is within both, and at `max_duration_s` at the latest, calibrating what
+    /// it has if the motion suffices. `None`: the window closes at `min_duration_s`.
+    pub stop_at_expected_error: Option<(f64, f64)>,
 }
 
 /// What a calibration must satisfy to be pushed.
@@ -365,6 +370,8 @@ struct RawSession {
     min_samples: usize,
     grid_hz: f64,
     max_gap_s: f64,
+    #[serde(default)]
+    stop_at_expected_error: Option<[f64; 2]>,
 }
 
 #[derive(Deserialize)]
@@ -731,6 +738,21 @@ impl Checker<'_> {
             min_samples: s.min_samples,
             grid_hz: self.positive_at_most("session.grid_hz", s.grid_hz, MAX_GRID_HZ)?,
             max_gap_s: self.positive_at_most("session.max_gap_s", s.max_gap_s, MAX_GAP_S)?,
+            stop_at_expected_error: match s.stop_at_expected_error {
+                None => None,
+                Some([mm, mrad]) => Some((
+                    self.positive_at_most(
+                        "session.stop_at_expected_error[0]",
+                        mm,
+                        MAX_EXPECTED_POSITION_ERROR_MM,
+                    )?,
+                    self.positive_at_most(
+                        "session.stop_at_expected_error[1]",
+                        mrad,
+                        MAX_EXPECTED_ROTATION_ERROR_MRAD,
+                    )?,
+                )),
+            },
         };
         if session.max_duration_s < session.min_duration_s {
             return Err(self.err(
@@ -947,6 +969,9 @@ impl Config {
             num(s.grid_hz),
             num(s.max_gap_s),
         );
+        if let Some((mm, mrad)) = s.stop_at_expected_error {
+            let _ = writeln!(w, "stop_at_expected_error = [{}, {}]\n", num(mm), num(mrad));
+        }
         let _ = writeln!(
             w,
             "[validation]\nmax_condition_number = {}\nholdout_fraction = {}\n\
@@ -1045,6 +1070,10 @@ mod tests {
                 "directory = \"/var/lib/exocald\"",
                 "directory = 'C:\\odd \"dir\"'",
             ),
+            (
+                "# stop_at_expected_error = [2.0, 6.0]",
+                "stop_at_expected_error = [2.5, 7.0]",
+            ),
         ];
         let mut text = DEFAULT_TOML.to_string();
         for (from, to) in edits {
@@ -1066,6 +1095,32 @@ mod tests {
             "{shown}"
         );
         assert!(shown.contains("offset_deviation_deg = 15.0"), "{shown}");
+    }
+
+    #[test]
+    fn stop_when_good_enough_is_off_unless_set_and_its_limits_are_checked() {
+        assert_eq!(
+            Config::default_config().session.stop_at_expected_error,
+            None
+        );
+        let on = edited(
+            "# stop_at_expected_error = [2.0, 6.0]",
+            "stop_at_expected_error = [2.0, 6.0]",
+        );
+        assert_eq!(
+            Config::parse(&on).unwrap().session.stop_at_expected_error,
+            Some((2.0, 6.0))
+        );
+        let bad = edited(
+            "# stop_at_expected_error = [2.0, 6.0]",
+            "stop_at_expected_error = [2.0, -6.0]",
+        );
+        let (key, line, _) = invalid(&bad);
+        assert_eq!(key, "session.stop_at_expected_error[1]");
+        assert_eq!(
+            line,
+            Some(line_containing(&bad, "stop_at_expected_error ="))
+        );
     }
 
     #[test]

@@ -160,6 +160,8 @@ pub fn progress(p: &crate::session::Progress) -> proto::Progress {
         coverage: p.coverage.to_vec(),
         condition_number: p.condition_number,
         readiness: p.readiness,
+        expected_position_mm: p.expected.map(|e| e.position_mm),
+        expected_rotation_mrad: p.expected.map(|e| e.rotation_mrad),
     }
 }
 
@@ -416,6 +418,7 @@ mod tests {
             samples: 3,
             coverage: [0.5; 7],
             condition_number: None,
+            expected: None,
             readiness: 0.1,
         }
     }

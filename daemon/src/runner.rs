@@ -39,6 +39,7 @@ use crate::record::{self, Transform};
 use crate::recorder::Recorder;
 use crate::report::{Notifier, Reporter};
 use crate::session::Phase;
+use crate::validate::Expected;
 
 /// Real time between two turns of the housekeeping tick.
 pub const TICK: Duration = Duration::from_millis(100);
@@ -48,16 +49,40 @@ pub const TICK: Duration = Duration::from_millis(100);
 pub const CLOCK_RESIDUAL_WARN_US: f64 = 20_000.0;
 /// Bus-clock seconds between two estimates of the condition number during collection.
 pub const CONDITION_EVERY_S: f64 = 10.0;
+/// Bus-clock seconds between two estimates of the expected table error, when the session
+/// stops when good enough (`session.stop_at_expected_error`).
+pub const EXPECTED_EVERY_S: f64 = 5.0;
 /// Samples (at most) the in-collection condition estimate runs LS on.
 pub const CONDITION_SAMPLES: usize = 600;
 
-/// Condition number of the identification problem on the data so far: the streams aligned,
-/// subsampled to at most [`CONDITION_SAMPLES`], one LS from nominal. `None` if too little data.
-pub fn condition_estimate(collector: &Collector, config: &Config) -> Option<f64> {
+/// What the collection knows of the calibration to come, estimated on the data so far.
+#[derive(Debug, Clone, Copy)]
+pub struct Estimate {
+    /// Condition number of the identification problem.
+    pub condition: f64,
+    /// Expected table error, when estimated (stop when good enough).
+    pub expected: Option<Expected>,
+}
+
+/// Estimates on the data so far, the streams aligned. Without `session.stop_at_expected_error`:
+/// the condition number of one LS from nominal on at most [`CONDITION_SAMPLES`] samples. With
+/// it, once `session.min_samples` are in: LS and our EM on every sample, as the calibration
+/// will (the EM's expected table error, the LS's condition number). `None` if too little data.
+pub fn collection_estimate(collector: &Collector, config: &Config) -> Option<Estimate> {
     let collected = collector.collected(config);
     let n = collected.samples.len();
     if n < 50 {
         return None;
+    }
+    if config.session.stop_at_expected_error.is_some() && n >= config.session.min_samples {
+        let samples: Vec<calib_core::Sample<JOINTS>> =
+            collected.samples.iter().map(pipeline::to_sample).collect();
+        let (ls_opts, em_opts) = pipeline::options(config);
+        let c = pipeline::ls_then_em(&config.nominal, &samples, &ls_opts, &em_opts).ok()?;
+        return Some(Estimate {
+            condition: c.ls.condition,
+            expected: c.em.ok().map(|em| Expected::from(em.expected_error)),
+        });
     }
     let step = n.div_ceil(CONDITION_SAMPLES);
     let samples: Vec<calib_core::Sample<JOINTS>> = collected
@@ -69,7 +94,10 @@ pub fn condition_estimate(collector: &Collector, config: &Config) -> Option<f64>
     let opts = calib_core::LsOptions::new();
     calib_core::identify_ls::<JOINTS, { pipeline::PARAMS }>(&config.nominal, &samples, &opts)
         .ok()
-        .map(|r| r.condition)
+        .map(|r| Estimate {
+            condition: r.condition,
+            expected: None,
+        })
 }
 
 /// Rate (Hz) at which the arm's frames are written to `/tf` for Foxglove.
@@ -488,8 +516,13 @@ impl<T: Transport> Live<'_, '_, T> {
         // (NTP at boot) neither stretches nor cuts it.
         let started = self.clock.monotonic();
         let required = self.config.session.excitation_required;
-        let mut condition_job: Option<tokio::task::JoinHandle<Option<f64>>> = None;
-        let mut last_condition_s = 0.0;
+        let mut estimate_job: Option<tokio::task::JoinHandle<Option<Estimate>>> = None;
+        let mut last_estimate_s = 0.0;
+        let every = if self.config.session.stop_at_expected_error.is_some() {
+            EXPECTED_EVERY_S
+        } else {
+            CONDITION_EVERY_S
+        };
         loop {
             tokio::select! {
                 biased;
@@ -497,11 +530,11 @@ impl<T: Transport> Live<'_, '_, T> {
                 _ = self.tick.tick() => {
                     self.io.housekeeping();
                     let elapsed = self.clock.monotonic().saturating_sub(started).as_secs_f64();
-                    if condition_job.is_none() && elapsed - last_condition_s >= CONDITION_EVERY_S {
-                        last_condition_s = elapsed;
+                    if estimate_job.is_none() && elapsed - last_estimate_s >= every {
+                        last_estimate_s = elapsed;
                         let (snapshot, cfg) = (self.collector.clone(), self.config.clone());
-                        condition_job = Some(tokio::task::spawn_blocking(move || {
-                            condition_estimate(&snapshot, &cfg)
+                        estimate_job = Some(tokio::task::spawn_blocking(move || {
+                            collection_estimate(&snapshot, &cfg)
                         }));
                     }
                     let session = &self.collector.session;
@@ -519,10 +552,13 @@ impl<T: Transport> Live<'_, '_, T> {
                         }
                     }
                 }
-                done = async { condition_job.as_mut().expect("guarded").await }, if condition_job.is_some() => {
-                    condition_job = None;
-                    if let Ok(Some(k)) = done {
-                        self.collector.session.set_condition_number(k);
+                done = async { estimate_job.as_mut().expect("guarded").await }, if estimate_job.is_some() => {
+                    estimate_job = None;
+                    if let Ok(Some(e)) = done {
+                        self.collector.session.set_condition_number(e.condition);
+                        if let Some(x) = e.expected {
+                            self.collector.session.set_expected(x);
+                        }
                     }
                 }
                 rx = self.bus.recv() => {
@@ -532,7 +568,7 @@ impl<T: Transport> Live<'_, '_, T> {
             }
             self.io.log_failed()?;
         }
-        if let Some(job) = condition_job {
+        if let Some(job) = estimate_job {
             job.abort();
         }
         let s = self.collector.ingest.stats().clone();
@@ -993,6 +1029,26 @@ mod tests {
         assert_eq!(topic_count(&summary, "/calibration"), 1);
         assert_finished(&summary.log_path);
         assert_eq!(before, after);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_session_that_stops_when_good_enough_ends_early_and_reaches_its_limits() {
+        let dir = temp_dir("good-enough");
+        let mut c = config(&dir);
+        c.session.stop_at_expected_error = Some((2.0, 6.0));
+        let (result, before, after) = session(c, &dir, None).await;
+        let summary = result.expect("the session pushes");
+        // The paper's scenario reaches ±2.0 mm well before its minute (±1.3 mm at 60 s).
+        assert!(
+            summary.aligned_samples < 5_000,
+            "stopped after {} samples",
+            summary.aligned_samples
+        );
+        let e = summary.outcome.as_ref().unwrap().verdict.expected.unwrap();
+        assert!(e.position_mm <= 2.0 && e.rotation_mrad <= 6.0, "{e}");
+        assert!(summary.push.as_ref().unwrap().complete());
+        assert_ne!(before, after, "the nodes hold the new tables");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

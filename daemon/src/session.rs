@@ -10,6 +10,10 @@
 //!   elapsed time, says [`Phase::Collecting`], [`Phase::Ready`] (minimum duration reached,
 //!   every joint covered, enough samples) or [`Phase::Failed`] (maximum duration reached
 //!   without that, with the reasons).
+//! - With `stop_at_expected_error` set (stop when good enough), [`Phase::Ready`] further needs
+//!   the latest expected table error ([`Session::set_expected`], estimated by the runner from
+//!   the motion so far) within both limits — until `max_duration_s`, when the motion alone
+//!   decides (Ready if it suffices, else Failed).
 //! - [`Progress`] is the snapshot the reporters show and the MCAP log records.
 
 use serde::Serialize;
@@ -17,6 +21,7 @@ use serde::Serialize;
 use calib_core::JointRanges;
 
 use crate::config::{SessionRules, JOINTS};
+use crate::validate::Expected;
 
 /// Bins of a joint's range.
 pub const COVERAGE_BINS: usize = 36;
@@ -91,6 +96,8 @@ pub struct Progress {
     pub coverage: [f64; JOINTS],
     /// Condition number of the identification problem, when computed.
     pub condition_number: Option<f64>,
+    /// Expected table error of the motion so far, when estimated (stop when good enough).
+    pub expected: Option<Expected>,
     /// Overall readiness 0..1: the least advanced of time, coverage and samples.
     pub readiness: f64,
 }
@@ -113,6 +120,9 @@ impl Progress {
         if let Some(k) = self.condition_number {
             s.push_str(&format!(", cond {k:.3e}"));
         }
+        if let Some(e) = self.expected {
+            s.push_str(&format!(", expected {e}"));
+        }
         s
     }
 }
@@ -125,6 +135,7 @@ pub struct Session {
     joint_samples: [u64; JOINTS],
     pose_samples: u64,
     condition_number: Option<f64>,
+    expected: Option<Expected>,
 }
 
 impl Session {
@@ -136,6 +147,7 @@ impl Session {
             joint_samples: [0; JOINTS],
             pose_samples: 0,
             condition_number: None,
+            expected: None,
         }
     }
 
@@ -160,6 +172,20 @@ impl Session {
     /// Records the latest condition number of the identification problem.
     pub fn set_condition_number(&mut self, k: f64) {
         self.condition_number = Some(k);
+    }
+
+    /// Records the latest expected table error of the motion so far.
+    pub fn set_expected(&mut self, e: Expected) {
+        self.expected = Some(e);
+    }
+
+    /// Whether the latest expected table error is within `stop_at_expected_error` (false when
+    /// unset or not estimated yet).
+    pub fn good_enough(&self) -> bool {
+        match (self.rules.stop_at_expected_error, self.expected) {
+            (Some((mm, mrad)), Some(e)) => e.position_mm <= mm && e.rotation_mrad <= mrad,
+            _ => false,
+        }
     }
 
     /// Per-joint coverage.
@@ -192,6 +218,7 @@ impl Session {
             samples: self.samples(),
             coverage,
             condition_number: self.condition_number,
+            expected: self.expected,
             readiness: time.min(cov).min(samples),
         }
     }
@@ -223,7 +250,11 @@ impl Session {
     /// The phase at `elapsed_s`.
     pub fn phase(&self, elapsed_s: f64) -> Phase {
         let missing = self.shortfalls();
-        if elapsed_s >= self.rules.min_duration_s && missing.is_empty() {
+        let enough = match self.rules.stop_at_expected_error {
+            None => true,
+            Some(_) => self.good_enough() || elapsed_s >= self.rules.max_duration_s,
+        };
+        if elapsed_s >= self.rules.min_duration_s && missing.is_empty() && enough {
             Phase::Ready
         } else if elapsed_s >= self.rules.max_duration_s {
             Phase::Failed(missing)
@@ -317,6 +348,50 @@ mod tests {
         assert_eq!(p.samples, 3000);
         assert_eq!(p.readiness, 1.0);
         assert!(p.coverage.iter().all(|&c| c == 1.0));
+    }
+
+    #[test]
+    fn stop_when_good_enough_waits_for_the_expected_error_until_the_maximum() {
+        let c = Config::default_config();
+        let rules = SessionRules {
+            min_duration_s: 20.0,
+            max_duration_s: 120.0,
+            stop_at_expected_error: Some((2.0, 6.0)),
+            ..c.session
+        };
+        let mut s = Session::new(rules.clone(), c.bounds.joint_range);
+        sweep(&mut s, 1.0, 3000);
+        // Motion suffices, nothing estimated yet: keep collecting.
+        assert_eq!(s.phase(30.0), Phase::Collecting);
+        // Estimated, position above its limit: keep collecting.
+        s.set_expected(Expected {
+            position_mm: 2.5,
+            rotation_mrad: 5.0,
+        });
+        assert!(!s.good_enough());
+        assert_eq!(s.phase(30.0), Phase::Collecting);
+        assert!(s
+            .progress(30.0)
+            .line(0.5)
+            .ends_with(", expected ±2.50 mm, ±5.00 mrad (1σ)"));
+        // At the maximum the motion alone decides: calibrate what there is.
+        assert_eq!(s.phase(120.0), Phase::Ready);
+        // Within both limits: ready, but never before the minimum duration.
+        s.set_expected(Expected {
+            position_mm: 1.9,
+            rotation_mrad: 5.9,
+        });
+        assert!(s.good_enough());
+        assert_eq!(s.phase(15.0), Phase::Collecting);
+        assert_eq!(s.phase(20.0), Phase::Ready);
+        // Good enough but a joint never moved: fails at the maximum as without the rule.
+        let mut frozen = Session::new(rules, c.bounds.joint_range);
+        frozen.set_expected(Expected {
+            position_mm: 1.0,
+            rotation_mrad: 1.0,
+        });
+        assert_eq!(frozen.phase(60.0), Phase::Collecting);
+        assert!(matches!(frozen.phase(120.0), Phase::Failed(_)));
     }
 
     #[test]
