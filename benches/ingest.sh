@@ -33,6 +33,22 @@ bin=$2
 shift 2
 hz=$(getconf CLK_TCK)
 
+# Fresh node keys, passed as the shipped units pass them (the credential `exocal-keys` in
+# $CREDENTIALS_DIRECTORY) to the daemon and to the emulated nodes: the bench authenticates its
+# transfers as a controller does.
+credentials() {
+    CREDENTIALS_DIRECTORY=/tmp/ingest-credentials
+    export CREDENTIALS_DIRECTORY
+    rm -rf "$CREDENTIALS_DIRECTORY"
+    (
+        umask 077
+        mkdir -p "$CREDENTIALS_DIRECTORY"
+        for name in Joint1 Joint2 Joint3 Joint4 Joint5 Joint6 Joint7 Trigger; do
+            echo "$name $(od -An -N16 -tx1 /dev/urandom | tr -d ' \n')"
+        done >"$CREDENTIALS_DIRECTORY/exocal-keys"
+    )
+}
+
 # CPU seconds (user + system) of a live process, from /proc/PID/stat fields 14 and 15.
 cpu_s() {
     awk -v hz="$hz" '{ sub(/^.*\) /, ""); printf "%.3f", ($12 + $13) / hz }' "/proc/$1/stat"
@@ -64,6 +80,7 @@ ref)
 load)
     wall=$1
     shift
+    credentials
     config=/tmp/ingest-exocald.toml
     "$bin/exocald" check-config --print-default |
         sed 's/^min_duration_s = .*/min_duration_s = 86000.0/; s/^max_duration_s = .*/max_duration_s = 86400.0/' >"$config"
@@ -116,6 +133,7 @@ load)
     done
     ;;
 session)
+    credentials
     w=/tmp/session
     rm -rf "$w"
     mkdir -p "$w/log" "$w/flash"

@@ -567,23 +567,34 @@ fn provisioned_keys() -> Vec<String> {
         .collect()
 }
 
-/// The bench provisions the key file as systemd/README.md says, but this guest's systemd 252
-/// delivers no `LoadCredential=` file to any unit (diagnosed in the guest: the credential
-/// directory is empty even for a root unit naming the existing file's path), so the bench runs
-/// with `[push] authenticate = false` (tests/powerup/bench-setup.sh). What is checked here: the
-/// daemon said so (never silently unauthenticated), the push went through, and no key from the
-/// key file reached the journal or the log. The authenticated push itself is tested on vcan0
-/// and in-process (keys through `$CREDENTIALS_DIRECTORY`).
+/// The shipped units' `LoadCredential=exocal-keys:/etc/credstore/exocal-keys` reaches both
+/// services (exocald as a `DynamicUser` with `PrivateUsers=yes`, exocal-hil as root): the daemon
+/// loaded the keys, the nodes were provisioned from the same file, and every node's table went
+/// in by an authenticated commit whose counter the node stored. (It once failed here for a reason
+/// of the harness's making: the guest's systemd took itself for the host's Docker container and
+/// kept every mount private, so the credential mount never reached a unit; the harness's init
+/// now removes the container marker from the guest's root.)
 #[test]
-fn the_daemon_says_the_push_is_unauthenticated_and_no_key_leaked() {
+fn the_push_was_authenticated_with_the_credential_and_no_key_leaked() {
     let run = boot_run();
     assert!(
-        run.journal.contains("authenticate = false"),
-        "the journal does not say the transfers are unauthenticated"
+        run.journal.contains("table transfers are authenticated")
+            && run
+                .journal
+                .contains("provisioned the key slots of 7 joint node(s)"),
+        "the journal does not say the transfers were authenticated"
     );
     let push = boot_push();
     for node in push["nodes"].as_array().expect("nodes") {
-        assert_eq!(node["authenticated"], false, "{node}");
+        assert_eq!(node["authenticated"], true, "{node}");
+    }
+    // The emulated nodes stored the freshness counter of the commit with the table.
+    for n in 1..=7u8 {
+        let node = NodeId::new(n).unwrap();
+        let image = exocal_hil::flash::read(Path::new(HIL_FLASH), node)
+            .unwrap()
+            .unwrap();
+        assert!(image.counter >= 1, "node {n}: counter {}", image.counter);
     }
     let keys = provisioned_keys();
     assert_eq!(keys.len(), 8);

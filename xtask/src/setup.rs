@@ -55,6 +55,10 @@ pub const PACKAGES: &[(&str, &str)] = &[
     ),
     ("dbus", "the power-up guest's system bus"),
     ("iproute2", "`ip link` makes vcan0/vcan1 in the harness"),
+    (
+        "can-utils",
+        "candump -l, what the ingest bench (`cargo xtask bench --only ingest`) compares with",
+    ),
     ("kmod", "modprobe vcan on a kernel that has CAN"),
     (
         "util-linux",

@@ -37,7 +37,7 @@ const MODULES: &[&str] = &[
 ];
 
 /// Bumped when the initramfs layout or `/init` changes, so cached images are rebuilt.
-const INITRAMFS_VERSION: u32 = 5;
+const INITRAMFS_VERSION: u32 = 6;
 
 const INIT: &str = r#"#!/bin/sh
 # exocal vcan harness: guest init (busybox). Never exits: it powers the guest off.
@@ -58,6 +58,10 @@ if [ "$mode" = systemd ]; then
   mount -t tmpfs -o mode=755 tmpfs /rw || fail "mount overlay tmpfs"
   mkdir -p /rw/upper /rw/work
   mount -t overlay overlay -o lowerdir=/lower,upperdir=/rw/upper,workdir=/rw/work /newroot || fail "mount overlay"
+  # The host root may be a container's (Docker leaves /.dockerenv): systemd would take the guest
+  # for that container and leave every mount private, so no LoadCredential= file would reach
+  # a unit. This guest is a virtual machine, as a controller is a machine.
+  rm -f /newroot/.dockerenv /newroot/run/.containerenv
   mount -t 9p -o trans=virtio,version=9p2000.L,msize=524288 scratch "/newroot$scratch" || fail "mount scratch"
   mount -t proc proc /newroot/proc
   mount -t sysfs sysfs /newroot/sys
