@@ -232,6 +232,7 @@ impl<const P: usize> GramAccumulator<P> {
     /// `HᵀH += hᵀh` and `Hᵀy += hᵀy` in the rows `rows_from..rows_to` of `HᵀH` (upper triangle).
     #[inline]
     fn update<const R: usize>(&mut self, h: [&[f64; P]; R], y: &[f64; R], rows_from: usize, rows_to: usize) {
+        const { assert!(R > 0, "at least one row") };
         for i in rows_from..rows_to {
             let hi: [f64; R] = core::array::from_fn(|r| h[r][i]);
             // From an even column, so that the row splits into pairs (vectorised, no scalar
@@ -240,8 +241,10 @@ impl<const P: usize> GramAccumulator<P> {
             let mut pairs = self.g[i][start..].chunks_exact_mut(2);
             for (c, g2) in (&mut pairs).enumerate() {
                 let k = start + 2 * c;
-                let (mut s0, mut s1) = (0.0, 0.0);
-                for r in 0..R {
+                // From the first product, not from 0.0 + it: the same sum (up to the sign of a
+                // zero) for one addition fewer.
+                let (mut s0, mut s1) = (hi[0] * h[0][k], hi[0] * h[0][k + 1]);
+                for r in 1..R {
                     s0 += hi[r] * h[r][k];
                     s1 += hi[r] * h[r][k + 1];
                 }
@@ -249,14 +252,14 @@ impl<const P: usize> GramAccumulator<P> {
                 g2[1] += s1;
             }
             if let Some(g1) = pairs.into_remainder().first_mut() {
-                let mut sum = 0.0;
-                for r in 0..R {
+                let mut sum = hi[0] * h[0][P - 1];
+                for r in 1..R {
                     sum += hi[r] * h[r][P - 1];
                 }
                 *g1 += sum;
             }
-            let mut sum = 0.0;
-            for r in 0..R {
+            let mut sum = hi[0] * y[0];
+            for r in 1..R {
                 sum += hi[r] * y[r];
             }
             self.b[i] += sum;
