@@ -88,7 +88,9 @@ pub use ls::{
     identify_ls, identify_ls_with, normal_equations, validate_samples, BoundsOutcome, BoundsPolicy, InputChecks, Linearise,
     LsOptions, LsResult, NullDirection, Sequential,
 };
-pub use metrics::{expected_table_error, objective_y, objective_y_corrected, table_error, ParamErrors, TableError};
+pub use metrics::{
+    expected_table_error, ls_expected_table_error, objective_y, objective_y_corrected, table_error, ParamErrors, TableError,
+};
 pub use model::{
     bound_violations, check_bounds, clamp_to_bounds, pose_error, BoundViolation, Bounds, DhRow, DhTable, Frame, JointRanges,
     ParamKind, Sample, SUIT_JOINTS, SUIT_PARAMS,

@@ -210,6 +210,16 @@ impl<const P: usize> GramAccumulator<P> {
         self.rows += other.rows;
     }
 
+    /// `vᵀ (HᵀH) v`, from the upper triangle the accumulator keeps.
+    pub fn quadratic_form(&self, v: &[f64; P]) -> f64 {
+        let mut sum = 0.0;
+        for (i, (g, vi)) in self.g.iter().zip(v).enumerate() {
+            let row: f64 = g[i + 1..].iter().zip(&v[i + 1..]).map(|(a, b)| a * b).sum();
+            sum += vi * (g[i] * vi + 2.0 * row);
+        }
+        sum
+    }
+
     /// Adds the `R` rows `h[r] · x ≈ y[r]`, which must be zero in the columns `0..first`.
     pub fn add_rows<const R: usize>(&mut self, h: &[[f64; P]; R], y: &[f64; R], first: usize) {
         self.update(core::array::from_fn(|r| &h[r]), y, first, P);
@@ -664,6 +674,23 @@ pub struct Observability {
 mod tests {
     use super::*;
     use crate::rng::Rng;
+
+    #[test]
+    fn quadratic_form_is_v_hth_v() {
+        let h = [[1.0, 2.0, -1.0], [0.5, -3.0, 2.0]];
+        let mut g = GramAccumulator::<3>::new();
+        g.add_rows(&h, &[0.0, 0.0], 0);
+        let v = [0.3, -1.2, 2.5];
+        let direct: f64 = h
+            .iter()
+            .map(|r| r.iter().zip(&v).map(|(a, b)| a * b).sum::<f64>().powi(2))
+            .sum();
+        assert!(
+            (g.quadratic_form(&v) - direct).abs() < 1e-12 * direct.abs(),
+            "{} vs {direct}",
+            g.quadratic_form(&v)
+        );
+    }
 
     #[test]
     fn streaming_qr_solves_an_overdetermined_system() {

@@ -11,6 +11,7 @@
 //! and rotation vector in radians, summed as the paper does). Its value does not depend on the
 //! frame the error is expressed in.
 
+use crate::linalg::GramAccumulator;
 use crate::model::{pose_error, DhTable, ParamKind, Sample};
 
 /// RMS position and rotation difference between two tables' FK over a set of poses (see the
@@ -65,6 +66,62 @@ pub fn expected_table_error<'a, const N: usize, const P: usize>(
         n += 1;
     }
     rms(pos, rot, n)
+}
+
+/// Expected table error (1σ, RMS over `poses`) of the plain least-squares table `table` (its
+/// optimum on `samples`, consecutive at the drift's step) when the joint angles drift as
+/// independent stationary AR(1) processes — coefficient `phi[j]` per sample, stationary variance
+/// `drift_var[j]` (rad²) — and every pose component carries white noise of variance
+/// `noise_var` (m², rad²): what LS alone is worth on such a session, beside the Cramér-Rao bound
+/// that our EM reaches ([`crate::DriftEmResult::expected_error`]).
+///
+/// LS weighs every residual as white, so its error covariance is the sandwich `A⁻¹ B A⁻¹`, with
+/// `A = Σₜ JₜᵀJₜ` and `B = Σₜₛ Jₜᵀ Cov(eₜ, eₛ) Jₛ`. A joint's drift enters the pose as its θ
+/// offset does (the column `gₜⱼ = JₜᵀJₜ e_θⱼ`), so its share of `B` is
+/// `σⱼ² Σₜₛ φⱼ^|t−s| gₜⱼ gₛⱼᵀ`, summed in one pass with `hₜ = φ (hₜ₋₁ + gₜ₋₁)` as
+/// `(g + h)(g + h)ᵀ − h hᵀ` per sample. `None` if `A` is too ill-conditioned for its normal
+/// equations (see [`GramAccumulator::analyse`]).
+pub fn ls_expected_table_error<'a, const N: usize, const P: usize>(
+    table: &DhTable<N>,
+    samples: &[Sample<N>],
+    phi: &[f64; N],
+    drift_var: &[f64; N],
+    noise_var: &[f64; 6],
+    poses: impl IntoIterator<Item = &'a [f64; N]>,
+) -> Option<TableError> {
+    const { assert!(P == 4 * N, "P must be 4N") };
+    let prepared = table.prepare();
+    let theta = ParamKind::Theta as usize * N;
+    let (mut a, mut plus, mut minus) = (
+        GramAccumulator::<P>::new(),
+        GramAccumulator::<P>::new(),
+        GramAccumulator::<P>::new(),
+    );
+    let mut h = [[0.0; P]; N];
+    let mut g_prev = [[0.0; P]; N];
+    for s in samples {
+        let (_, cols) = prepared.fk_jacobian(&s.joints);
+        let rows: [[f64; P]; 6] = core::array::from_fn(|r| core::array::from_fn(|p| cols[p / N][p % N][r]));
+        a.add_rows(&rows, &[0.0; 6], 0);
+        let noisy: [[f64; P]; 6] = core::array::from_fn(|r| rows[r].map(|x| x * libm::sqrt(noise_var[r])));
+        plus.add_rows(&noisy, &[0.0; 6], 0);
+        for j in 0..N {
+            // hₜ = φ (hₜ₋₁ + gₜ₋₁), then gₜ = JₜᵀJₜ e_θⱼ.
+            for p in 0..P {
+                h[j][p] = phi[j] * (h[j][p] + g_prev[j][p]);
+            }
+            let g: [f64; P] = core::array::from_fn(|p| (0..6).map(|r| rows[r][p] * rows[r][theta + j]).sum());
+            let sd = libm::sqrt(drift_var[j]);
+            plus.add_rows(&[core::array::from_fn(|p| sd * (g[p] + h[j][p]))], &[0.0], 0);
+            minus.add_rows(&[h[j].map(|x| sd * x)], &[0.0], 0);
+            g_prev[j] = g;
+        }
+    }
+    let analysis = a.analyse(1e-9)?;
+    Some(expected_table_error::<N, P>(table, poses, |u| {
+        let v = analysis.solve(u);
+        plus.quadratic_form(&v) - minus.quadratic_form(&v)
+    }))
 }
 
 fn rms(pos: f64, rot: f64, n: usize) -> TableError {

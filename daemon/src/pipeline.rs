@@ -25,7 +25,8 @@
 
 use crate::parallel::Parallel;
 use calib_core::{
-    em_drift_vec, identify_ls_with, DhTable, DriftEmOptions, Frame, InputChecks, LsOptions, Sample,
+    em_drift_vec, identify_ls_with, ls_expected_table_error, table_error, DhTable, DriftEmOptions,
+    Frame, InputChecks, LsOptions, Sample, EXPECTED_ERROR_POSES,
 };
 use exocal_report::{Calibration, Correlation, EmDetail, LsDetail, TimedSample};
 use nalgebra::{DMatrix, Quaternion, SMatrix, UnitQuaternion, Vector3};
@@ -326,15 +327,31 @@ pub fn ls_then_em(
         std_errors: ls.std_errors,
     };
     let em = em_drift_vec::<JOINTS, PARAMS>(&ls.table, fit, em_opts)
-        .map(|(r, drift_series)| EmDetail {
-            table: r.table,
-            iterations: r.iterations,
-            converged: r.converged,
-            log_likelihood: r.log_likelihood.to_vec(),
-            drift: r.drift,
-            std_errors: std::array::from_fn(|p| r.std_errors[p / JOINTS][p % JOINTS]),
-            expected_error: r.expected_error,
-            drift_series,
+        .map(|(r, drift_series)| {
+            // The session's poses the EM's expected error is averaged over, for the LS figures.
+            let stride = fit.len().div_ceil(EXPECTED_ERROR_POSES).max(1);
+            let poses = || fit.iter().step_by(stride).map(|s| &s.joints);
+            let drift_var: [f64; JOINTS] =
+                std::array::from_fn(|j| r.process_variance[j] / (1.0 - r.phi[j] * r.phi[j]));
+            EmDetail {
+                table: r.table,
+                iterations: r.iterations,
+                converged: r.converged,
+                log_likelihood: r.log_likelihood.to_vec(),
+                drift: r.drift,
+                std_errors: std::array::from_fn(|p| r.std_errors[p / JOINTS][p % JOINTS]),
+                expected_error: r.expected_error,
+                ls_expected_error: ls_expected_table_error::<JOINTS, PARAMS>(
+                    &ls.table,
+                    fit,
+                    &r.phi,
+                    &drift_var,
+                    &r.measurement_variance,
+                    poses(),
+                ),
+                ls_em_difference: table_error(&ls.table, &r.table, poses()),
+                drift_series,
+            }
         })
         .map_err(|e| e.to_string());
     let calibrated = em.as_ref().map_or(ls.table, |em| em.table);
@@ -473,6 +490,23 @@ mod tests {
         // The round trip through quaternions keeps the poses.
         let s = to_sample(&samples[3]);
         assert!((s.pose.p.x - samples[3].pose.position[0]).abs() < 1e-15);
+    }
+
+    /// The report's LS-against-EM figures for one session: under the drift the EM fitted, LS
+    /// alone is expected to do worse than the pushed EM table, and the two tables differ by
+    /// about that much.
+    #[test]
+    fn the_report_compares_ls_alone_with_the_em_for_the_session() {
+        let samples = scenario(30.0, 7);
+        let em = super::run(&samples, &config()).unwrap().detail.em.unwrap();
+        let ls = em.ls_expected_error.expect("well conditioned");
+        let (e, d) = (em.expected_error, em.ls_em_difference);
+        assert!(ls.position_m > 1.1 * e.position_m, "LS {ls:?}, EM {e:?}");
+        assert!(ls.rotation_rad > e.rotation_rad, "LS {ls:?}, EM {e:?}");
+        assert!(
+            d.position_m > 0.2 * ls.position_m && d.position_m < 5.0 * ls.position_m,
+            "{d:?} vs {ls:?}"
+        );
     }
 
     #[test]
