@@ -99,23 +99,27 @@ pub fn ls_expected_table_error<'a, const N: usize, const P: usize>(
     );
     let mut h = [[0.0; P]; N];
     let mut g_prev = [[0.0; P]; N];
+    let noise_sd = noise_var.map(libm::sqrt);
+    let drift_sd = drift_var.map(libm::sqrt);
     for s in samples {
         let (_, cols) = prepared.fk_jacobian(&s.joints);
         let rows: [[f64; P]; 6] = core::array::from_fn(|r| core::array::from_fn(|p| cols[p / N][p % N][r]));
         a.add_rows(&rows, &[0.0; 6], 0);
-        let noisy: [[f64; P]; 6] = core::array::from_fn(|r| rows[r].map(|x| x * libm::sqrt(noise_var[r])));
-        plus.add_rows(&noisy, &[0.0; 6], 0);
+        plus.add_rows(&core::array::from_fn(|r| rows[r].map(|x| x * noise_sd[r])), &[0.0; 6], 0);
+        // Per joint: hₜ = φ (hₜ₋₁ + gₜ₋₁), then gₜ = JₜᵀJₜ e_θⱼ; the rows σ(g + h) and σh.
+        let mut up = [[0.0; P]; N];
+        let mut down = [[0.0; P]; N];
         for j in 0..N {
-            // hₜ = φ (hₜ₋₁ + gₜ₋₁), then gₜ = JₜᵀJₜ e_θⱼ.
+            let g: [f64; P] = core::array::from_fn(|p| (0..6).map(|r| rows[r][p] * rows[r][theta + j]).sum());
             for p in 0..P {
                 h[j][p] = phi[j] * (h[j][p] + g_prev[j][p]);
+                up[j][p] = drift_sd[j] * (g[p] + h[j][p]);
+                down[j][p] = drift_sd[j] * h[j][p];
             }
-            let g: [f64; P] = core::array::from_fn(|p| (0..6).map(|r| rows[r][p] * rows[r][theta + j]).sum());
-            let sd = libm::sqrt(drift_var[j]);
-            plus.add_rows(&[core::array::from_fn(|p| sd * (g[p] + h[j][p]))], &[0.0], 0);
-            minus.add_rows(&[h[j].map(|x| sd * x)], &[0.0], 0);
             g_prev[j] = g;
         }
+        plus.add_rows(&up, &[0.0; N], 0);
+        minus.add_rows(&down, &[0.0; N], 0);
     }
     let analysis = a.analyse(1e-9)?;
     Some(expected_table_error::<N, P>(table, poses, |u| {

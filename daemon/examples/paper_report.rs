@@ -30,6 +30,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         &fit_samples,
         &LsOptions::new(),
         &DriftEmOptions::new(cfg.drift.dt),
+        true,
     )?;
     eprintln!("calibrated in {:.1?}", started.elapsed());
     let input = ReportInput {

@@ -78,7 +78,7 @@ pub fn collection_estimate(collector: &Collector, config: &Config) -> Option<Est
         let samples: Vec<calib_core::Sample<JOINTS>> =
             collected.samples.iter().map(pipeline::to_sample).collect();
         let (ls_opts, em_opts) = pipeline::options(config);
-        let c = pipeline::ls_then_em(&config.nominal, &samples, &ls_opts, &em_opts).ok()?;
+        let c = pipeline::ls_then_em(&config.nominal, &samples, &ls_opts, &em_opts, false).ok()?;
         return Some(Estimate {
             condition: c.ls.condition,
             expected: c.em.ok().map(|em| Expected::from(em.expected_error)),

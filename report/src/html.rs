@@ -763,14 +763,17 @@ fn ls_against_em(out: &mut String, em: &EmDetail) {
         "<tr><td>our EM, pushed (its Cramér-Rao bound)</td><td>{}</td></tr>",
         fmt(em.expected_error)
     );
-    let d = em.ls_em_difference;
+    let apart = em.ls_em_difference.map_or(String::new(), |d| {
+        format!(
+            "; the LS table's FK differs from the EM table's by {:.2} mm, {:.2} mrad RMS there",
+            d.position_m * 1e3,
+            d.rotation_rad * 1e3
+        )
+    });
     let _ = write!(
         out,
-        "</tbody></table><p class=\"note\">Both under the drift (τ, σ per joint) and pose noise the EM fitted, over the session's poses; \
-         the LS table's FK differs from the EM table's by {:.2} mm, {:.2} mrad RMS there. The calibrate-many-sessions view of the same \
-         comparison (LS, our EM and the bound against known true tables) is calib-core's sweep.</p>",
-        d.position_m * 1e3,
-        d.rotation_rad * 1e3
+        "</tbody></table><p class=\"note\">Both under the drift (τ, σ per joint) and pose noise the EM fitted, over the session's poses{apart}. \
+         The calibrate-many-sessions view of the same comparison (LS, our EM and the bound against known true tables) is calib-core's sweep.</p>"
     );
 }
 

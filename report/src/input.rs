@@ -57,10 +57,11 @@ pub struct EmDetail {
     pub expected_error: TableError,
     /// What the LS table alone is expected to reach (1σ) under the drift and noise the EM
     /// fitted, over the same poses (calib-core's `ls_expected_table_error`); `None` when its
-    /// normal equations were too ill-conditioned to say.
+    /// normal equations were too ill-conditioned to say, or it was not asked for.
     pub ls_expected_error: Option<TableError>,
-    /// RMS FK difference between the LS and the EM table over the same poses.
-    pub ls_em_difference: TableError,
+    /// RMS FK difference between the LS and the EM table over the same poses (`None` when not
+    /// asked for).
+    pub ls_em_difference: Option<TableError>,
     /// Smoothed drift (rad) per fitted sample.
     pub drift_series: Vec<[f64; JOINTS]>,
 }
