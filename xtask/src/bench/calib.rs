@@ -77,6 +77,48 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
         .args(["--repeats", py_repeats]);
     let py_cmd = show(&py);
     let py_out = json_lines(&capture(&mut py)?);
+    // Paired rounds: this machine's speed drifts by tens of percent within minutes (shared
+    // cores), more than the 20× goal's margin, and the run above times all of calib-core before
+    // all of scipy. Each round times calib-core's LS and then scipy's analytic variants (the
+    // fastest ones) on the same data, back to back; the goal is judged on the median over
+    // rounds of each round's ratio.
+    let rounds = if ctx.quick { 1 } else { 5 };
+    let round_data = ctx.target.join("bench/calib-rounds");
+    let mut rust_round = pinned(ctx, ctx.target.join("release/examples/export_dataset"));
+    rust_round
+        .current_dir(&ctx.root)
+        .arg("--out")
+        .arg(&round_data)
+        .args(["--k", ks, "--repeats", repeats, "--em-k", ""]);
+    let round_dirs: Vec<PathBuf> = ks
+        .split(',')
+        .map(|k| round_data.join(format!("k{k}")))
+        .collect();
+    let mut py_round = pinned(ctx, &python);
+    py_round
+        .current_dir(&ctx.root)
+        .env("OPENBLAS_NUM_THREADS", "1")
+        .env("OMP_NUM_THREADS", "1")
+        .env("MKL_NUM_THREADS", "1")
+        .arg("benches/scipy_ls.py")
+        .args(&round_dirs)
+        .args([
+            "--repeats",
+            py_repeats,
+            "--variants",
+            "trf-analytic,lm-analytic",
+        ]);
+    let round_cmds = format!(
+        "for round in 1 2 3 4 5; do\n    {}\n    {}\ndone",
+        show(&rust_round),
+        show(&py_round)
+    );
+    let mut paired: Vec<Vec<f64>> = Vec::new();
+    for _ in 0..rounds {
+        let ours = json_lines(&capture(&mut rust_round)?);
+        let theirs = json_lines(&capture(&mut py_round)?);
+        paired.push(paired_ratios(ks, &ours, &theirs));
+    }
 
     let by = |lines: &[Value], bench: &str| -> Vec<Value> {
         lines
@@ -371,11 +413,43 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
         "Reproduce:\n\n```sh\n{build_cmd}\n{rust_cmd}\n{}\n{py_cmd}\n{build_par_cmd}\n{par_cmd}\n```\n",
         venv_cmds.join("\n")
     );
+    // The paired rounds: per K, the median and range of the rounds' ratios.
+    let k_list: Vec<&str> = ks.split(',').collect();
+    let _ = writeln!(
+        body,
+        "**Paired rounds** (what the goal is judged on): this machine's speed drifts by tens of percent within minutes (its cores are shared), and the run above times all of calib-core's solves before all of scipy's. {rounds} more rounds each time calib-core's LS ({repeats} solves per K) and then scipy's two analytic variants ({py_repeats} solves each per K) back to back on the same data; a round's ratio is scipy's faster analytic median ÷ calib-core's median (the `2-point` variants are 4× slower still and left out here):\n"
+    );
+    let _ = writeln!(
+        body,
+        "| K | ratio per round | median | range |\n|---|---|---|---|"
+    );
+    let mut worst_paired = f64::INFINITY;
+    for (i, k) in k_list.iter().enumerate() {
+        let mut rs: Vec<f64> = paired.iter().filter_map(|r| r.get(i).copied()).collect();
+        let per_round = rs
+            .iter()
+            .map(|r| format!("{r:.2}×"))
+            .collect::<Vec<_>>()
+            .join(", ");
+        rs.sort_by(f64::total_cmp);
+        let median = rs.get(rs.len() / 2).copied().unwrap_or(f64::NAN);
+        worst_paired = worst_paired.min(median);
+        let _ = writeln!(
+            body,
+            "| {k} | {per_round} | {median:.2}× | {:.2}× – {:.2}× |",
+            rs.first().copied().unwrap_or(f64::NAN),
+            rs.last().copied().unwrap_or(f64::NAN)
+        );
+    }
+    let _ = writeln!(
+        body,
+        "\nReproduce the rounds:\n\n```sh\n{round_cmds}\n```\n"
+    );
     goals.push(Goal {
         what: "calib-core LS ≥ 20× faster than scipy's fastest least_squares variant at equal accuracy (K = 1,000 / 6,000 / 20,000)".into(),
-        met: worst_ratio >= 20.0 && accuracy_ok,
+        met: worst_paired >= 20.0 && accuracy_ok,
         detail: format!(
-            "slowest ratio {worst_ratio:.2}× (scipy ÷ calib-core); accuracy {}. Bounded by the per-sample work of each linearisation: FK + Jacobians and the normal-equation update{}",
+            "slowest K's median over {rounds} paired rounds {worst_paired:.2}× (scipy ÷ calib-core; the single run of the tables: slowest {worst_ratio:.2}×); accuracy {}. Bounded by the per-sample work of each linearisation: FK + Jacobians and the normal-equation update{}",
             if accuracy_ok { "equal (same optimum)" } else { "worse" },
             if floor_blocks {
                 "; scipy's Jacobian count × calib-core's FK + Jacobians alone already exceeds a twentieth of scipy's time"
@@ -408,4 +482,24 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
         body,
         goals,
     })
+}
+
+/// Per K of `ks` (in order), scipy's fastest analytic median ÷ calib-core's LS median of one
+/// paired round (NaN where either side is missing).
+fn paired_ratios(ks: &str, ours: &[Value], theirs: &[Value]) -> Vec<f64> {
+    ks.split(',')
+        .map(|k| {
+            let k: f64 = k.parse().unwrap_or(f64::NAN);
+            let ls = ours
+                .iter()
+                .find(|v| s(v, "bench") == "calib-core" && s(v, "solver") == "ls" && f(v, "k") == k)
+                .map_or(f64::NAN, |v| f(v, "median_s"));
+            let scipy = theirs
+                .iter()
+                .filter(|v| s(v, "bench") == "scipy" && f(v, "k") == k)
+                .map(|v| f(v, "median_s"))
+                .fold(f64::INFINITY, f64::min);
+            scipy / ls
+        })
+        .collect()
 }
