@@ -271,6 +271,55 @@ impl ClockTrack {
     }
 }
 
+/// The last `capacity` values in arrival order, kept sorted too, so that their median costs no
+/// copy and no sort per point (it is the same value as [`median`] of them).
+struct Window {
+    capacity: usize,
+    arrival: std::collections::VecDeque<f64>,
+    sorted: Vec<f64>,
+}
+
+impl Window {
+    fn new(capacity: usize) -> Self {
+        Window {
+            capacity,
+            arrival: std::collections::VecDeque::with_capacity(capacity),
+            sorted: Vec::with_capacity(capacity),
+        }
+    }
+
+    fn is_empty(&self) -> bool {
+        self.arrival.is_empty()
+    }
+
+    fn clear(&mut self) {
+        self.arrival.clear();
+        self.sorted.clear();
+    }
+
+    /// Adds `x`, dropping the oldest value when full.
+    fn push(&mut self, x: f64) {
+        if self.arrival.len() == self.capacity {
+            if let Some(old) = self.arrival.pop_front() {
+                let at = self.sorted.partition_point(|v| v.total_cmp(&old).is_lt());
+                self.sorted.remove(at);
+            }
+        }
+        self.arrival.push_back(x);
+        let at = self.sorted.partition_point(|v| v.total_cmp(&x).is_lt());
+        self.sorted.insert(at, x);
+    }
+
+    fn median(&self) -> f64 {
+        let (v, n) = (&self.sorted, self.sorted.len());
+        if n % 2 == 1 {
+            v[n / 2]
+        } else {
+            0.5 * (v[n / 2 - 1] + v[n / 2])
+        }
+    }
+}
+
 /// How late (s) a frame may arrive after its fitted send time and still be used.
 pub const LATE_LIMIT_S: f64 = 1.0;
 
@@ -278,7 +327,7 @@ pub const LATE_LIMIT_S: f64 = 1.0;
 pub fn track_clock(points: &[(f64, f64)], params: &AlignParams) -> ClockTrack {
     let d = |i: usize| points[i].1 - points[i].0;
     let mut boundaries = vec![0usize];
-    let mut recent: Vec<f64> = Vec::with_capacity(params.reference_window);
+    let mut recent = Window::new(params.reference_window.max(1));
     let mut pending: Vec<usize> = Vec::new();
     for i in 0..points.len() {
         let di = d(i);
@@ -289,12 +338,9 @@ pub fn track_clock(points: &[(f64, f64)], params: &AlignParams) -> ClockTrack {
             recent.push(di);
             continue;
         }
-        let reference = median(&mut recent.clone());
+        let reference = recent.median();
         if (di - reference).abs() <= params.jump_threshold_s {
             pending.clear();
-            if recent.len() == params.reference_window.max(1) {
-                recent.remove(0);
-            }
             recent.push(di);
             continue;
         }
@@ -314,7 +360,9 @@ pub fn track_clock(points: &[(f64, f64)], params: &AlignParams) -> ClockTrack {
             let keep = agreeing
                 .len()
                 .saturating_sub(params.reference_window.max(1));
-            recent.extend(agreeing[keep..].iter().map(|&j| d(j)));
+            for &j in &agreeing[keep..] {
+                recent.push(d(j));
+            }
             pending.clear();
         }
     }
@@ -891,6 +939,32 @@ mod tests {
             truth.push(host_send);
         }
         (pts, truth)
+    }
+
+    /// The running window's median is the median of its last values, duplicates included.
+    #[test]
+    fn the_running_median_is_the_median_of_the_window() {
+        let mut w = Window::new(7);
+        let mut all = Vec::new();
+        let mut x = 0.3_f64;
+        for i in 0..500 {
+            x = (x * 3.7 + 0.1).fract();
+            let v = if i % 5 == 0 {
+                0.25
+            } else {
+                (x * 20.0).round() / 20.0 - 0.5
+            };
+            w.push(v);
+            all.push(v);
+            let mut last: Vec<f64> = all[all.len().saturating_sub(7)..].to_vec();
+            assert_eq!(
+                w.median().to_bits(),
+                median(&mut last).to_bits(),
+                "after {i}"
+            );
+        }
+        w.clear();
+        assert!(w.is_empty());
     }
 
     #[test]
