@@ -271,6 +271,9 @@ impl<W: Write + Seek> SessionLog<W> {
         let options = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .compression_level(ZSTD_LEVEL)
+            // One thread: zstd's worker pool (the crate's default, one per physical CPU) locks a
+            // mutex on every record written and wakes threads for a few hundred kB a second.
+            .compression_threads(0)
             // No message indexes: 16 uncompressed bytes per message (more than a compressed
             // frame), and readers find every message through the chunk indexes.
             .emit_message_indexes(false)
