@@ -213,17 +213,46 @@ pub(crate) fn filter<const N: usize, const P: usize>(
         if k > 0 {
             f.predict(par);
         }
-        let mut det = 1.0;
         for i in 0..6 {
-            let y = slot.e[i] - row_dot(&slot.h[i], x);
-            slot.y[i] = y;
-            let (nu, s, _) = f.observe(&slot.h[i][3], y, par.r[i])?;
-            ll -= 0.5 * nu * nu / s;
-            det *= s;
+            slot.y[i] = slot.e[i] - row_dot(&slot.h[i], x);
         }
-        ll -= 0.5 * (libm::log(det) + 6.0 * LN_2PI);
+        observe_sample(&mut f, slot, par, &mut ll)?;
         slot.mean = f.m;
         slot.cov = f.p;
+    }
+    Ok(ll)
+}
+
+/// The six scalar updates of one sample from its stored residual `slot.y`, its likelihood
+/// term subtracted from `ll` (in the order [`filter`] always used: the same bits).
+#[inline(always)]
+fn observe_sample<const N: usize>(
+    f: &mut Filter<N>,
+    slot: &DriftSlot<N>,
+    par: &Params<N>,
+    ll: &mut f64,
+) -> Result<(), CalibError> {
+    let mut det = 1.0;
+    for i in 0..6 {
+        let (nu, s, _) = f.observe(&slot.h[i][3], slot.y[i], par.r[i])?;
+        *ll -= 0.5 * nu * nu / s;
+        det *= s;
+    }
+    *ll -= 0.5 * (libm::log(det) + 6.0 * LN_2PI);
+    Ok(())
+}
+
+/// [`filter`] from the residuals the slots hold (`slot.y`, those of the last filter pass),
+/// read-only: the log-likelihood `ln p(y_1..K)` at other drift and noise parameters, leaving the
+/// slots (e.g. the smoothed drift after [`crate::em_drift`]) untouched.
+pub(crate) fn log_likelihood<const N: usize>(slots: &[DriftSlot<N>], par: &Params<N>) -> Result<f64, CalibError> {
+    let mut f = Filter::start(par);
+    let mut ll = 0.0;
+    for (k, slot) in slots.iter().enumerate() {
+        if k > 0 {
+            f.predict(par);
+        }
+        observe_sample(&mut f, slot, par, &mut ll)?;
     }
     Ok(ll)
 }

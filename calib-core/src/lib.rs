@@ -18,6 +18,7 @@
 //! | least squares with base and tool frames (`P = 4N + 12`) | [`identify_ls_frames`] |
 //! | the paper's EM (eqs. 33–36) | [`paper_em()`] |
 //! | our EM (Kalman + RTS smoother over the drift) | [`em_drift()`] |
+//! | confidence intervals of its τ, σ per joint | [`drift_confidence()`], [`DriftConfidence`] |
 //! | objective y (eq. 10) and parameter errors | [`objective_y`], [`ParamErrors`] |
 //! | table error, expected table error, the Cramér-Rao bound | [`table_error`], [`DriftEmResult::expected_error`], [`cramer_rao()`] |
 //! | the accuracy sweep (std) | `sweep` |
@@ -61,6 +62,7 @@
 #![warn(missing_docs)]
 
 pub mod drift;
+pub mod drift_conf;
 pub mod drift_em;
 pub mod error;
 pub mod frames;
@@ -78,6 +80,7 @@ pub mod sim;
 pub mod sweep;
 
 pub use drift::{Discretisation, DriftParams, GaussMarkov};
+pub use drift_conf::{drift_confidence, DriftConfidence};
 #[cfg(any(test, feature = "std"))]
 pub use drift_em::em_drift_vec;
 pub use drift_em::{cramer_rao, em_drift, DriftEmOptions, DriftEmResult, DriftSlot, EXPECTED_ERROR_POSES};
