@@ -203,6 +203,22 @@ pub fn calibration_record(
             .collect(),
         aligned_samples: aligned_samples as u64,
         gaps: gaps as u64,
+        drift: outcome
+            .em
+            .as_ref()
+            .and_then(|em| em.drift_95)
+            .map_or_else(Vec::new, |d| {
+                d.iter()
+                    .map(|d| proto::DriftFit {
+                        tau_s: d.tau_s,
+                        tau_low_s: d.tau_95_s[0],
+                        tau_high_s: d.tau_95_s[1],
+                        sigma_mrad: d.sigma_mrad,
+                        sigma_low_mrad: d.sigma_95_mrad[0],
+                        sigma_high_mrad: d.sigma_95_mrad[1],
+                    })
+                    .collect()
+            }),
         push: push.map_or_else(Vec::new, |p| {
             p.nodes
                 .iter()

@@ -35,6 +35,11 @@ pub fn print_summary(summary: &SessionSummary) {
         if let Some(e) = v.expected {
             println!("expected table error: {e}");
         }
+        if let Some(drift) = o.em.as_ref().and_then(|em| em.drift_95) {
+            for (j, d) in drift.iter().enumerate() {
+                println!("drift joint {}: {d} (95%)", j + 1);
+            }
+        }
         println!(
             "held-out mean pose error: nominal {:.4e}, calibrated {:.4e} ({:.1}% better); condition number {:.3e}",
             v.nominal.mean_error,

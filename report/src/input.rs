@@ -5,7 +5,7 @@
 //! ([`Quality`]) is filled by whoever read the data (the daemon's ingest and alignment for
 //! frame-level inputs, the CSV reader for sample files).
 
-use calib_core::{DhTable, DriftParams, Sample, TableError};
+use calib_core::{DhTable, DriftConfidence, DriftParams, Sample, TableError};
 
 /// Joints of the suit.
 pub const JOINTS: usize = 7;
@@ -51,6 +51,8 @@ pub struct EmDetail {
     pub log_likelihood: Vec<f64>,
     /// τ and σ per joint.
     pub drift: [DriftParams; JOINTS],
+    /// Their standard errors (calib-core's `drift_confidence`), when asked for.
+    pub drift_confidence: Option<[DriftConfidence; JOINTS]>,
     /// Cramér-Rao 1σ of every parameter under the drift model, `kind·7 + joint`.
     pub std_errors: [f64; PARAMS],
     /// Expected table error (1σ) under that bound, over the session's poses.
