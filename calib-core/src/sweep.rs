@@ -16,8 +16,8 @@
 use std::vec::Vec;
 
 use crate::drift::{Discretisation, GaussMarkov};
-use crate::drift_em::{cramer_rao, em_drift_vec, DriftEmOptions};
-use crate::ls::{identify_ls, LsOptions};
+use crate::drift_em::{cramer_rao, em_drift_vec, DriftEmOptions, DriftEmResult};
+use crate::ls::{identify_ls, LsOptions, LsResult};
 use crate::metrics::{expected_table_error, ls_expected_table_error, table_error, TableError};
 use crate::model::{DhTable, ParamKind, Sample, SUIT_PARAMS};
 use crate::rng::Rng;
@@ -75,46 +75,93 @@ pub fn true_table(seed: u64) -> DhTable<7> {
     t
 }
 
+/// One simulated session: the true table, drift and pose noise of a cell for a seed, the
+/// session's samples and the fresh poses its tables are judged on.
+#[derive(Clone, Debug)]
+pub struct Simulation {
+    /// The seed's true table ([`true_table`]).
+    pub truth: DhTable<7>,
+    /// The cell's drift at the paper's 100 Hz.
+    pub drift: GaussMarkov,
+    /// The cell's pose noise (m, rad).
+    pub noise: (f64, f64),
+    /// `cell.seconds` of the suit's motion.
+    pub samples: Vec<Sample<7>>,
+    /// [`FRESH_POSES`] poses of another motion.
+    pub fresh: Vec<[f64; 7]>,
+}
+
+impl Simulation {
+    /// Simulates `cell` for `seed`. A longer session of the same cell and seed starts with the
+    /// same samples: a prefix of it is the shorter session.
+    pub fn new(cell: &Cell, seed: u64) -> Simulation {
+        let drift = GaussMarkov {
+            dt: 0.01,
+            tau: cell.tau,
+            sigma: cell.sigma,
+            discretisation: Discretisation::Paper,
+        };
+        let truth = true_table(seed);
+        let cfg = ScenarioConfig {
+            actual: truth,
+            drift,
+            position_noise: cell.noise.0,
+            rotation_noise: cell.noise.1,
+            ..ScenarioConfig::paper()
+        };
+        let k = (cell.seconds / drift.dt).round() as usize;
+        Simulation {
+            truth,
+            drift,
+            noise: cell.noise,
+            samples: Scenario::new(cfg, seed).take(k).map(|s| s.sample).collect(),
+            fresh: Scenario::new(cfg, seed ^ 0xF2E5_4000)
+                .step_by(17)
+                .take(FRESH_POSES)
+                .map(|s| s.sample.joints)
+                .collect(),
+        }
+    }
+
+    /// The first `seconds` of the session (all of it if shorter).
+    pub fn prefix(&self, seconds: f64) -> &[Sample<7>] {
+        let k = (seconds / self.drift.dt).round() as usize;
+        &self.samples[..k.min(self.samples.len())]
+    }
+
+    /// LS from nominal on `samples`, then our EM from LS: the calibration the daemon runs.
+    pub fn fit(&self, samples: &[Sample<7>]) -> Result<(LsResult<7, SUIT_PARAMS>, DriftEmResult<7>), crate::CalibError> {
+        let ls = identify_ls::<7, SUIT_PARAMS>(&DhTable::paper_nominal(), samples, &LsOptions::new())?;
+        let (em, _) = em_drift_vec::<7, SUIT_PARAMS>(&ls.table, samples, &DriftEmOptions::new(self.drift.dt))?;
+        Ok((ls, em))
+    }
+
+    /// Table error of `table` against the truth on the fresh poses.
+    pub fn table_error(&self, table: &DhTable<7>) -> TableError {
+        table_error(table, &self.truth, &self.fresh)
+    }
+}
+
 /// Runs one session of `cell` for `seed`.
 pub fn session(cell: &Cell, seed: u64) -> Result<Session, crate::CalibError> {
-    let drift = GaussMarkov {
-        dt: 0.01,
-        tau: cell.tau,
-        sigma: cell.sigma,
-        discretisation: Discretisation::Paper,
-    };
-    let truth = true_table(seed);
-    let cfg = ScenarioConfig {
-        actual: truth,
-        drift,
-        position_noise: cell.noise.0,
-        rotation_noise: cell.noise.1,
-        ..ScenarioConfig::paper()
-    };
-    let k = (cell.seconds / drift.dt).round() as usize;
-    let samples: Vec<Sample<7>> = Scenario::new(cfg, seed).take(k).map(|s| s.sample).collect();
-    let fresh: Vec<[f64; 7]> = Scenario::new(cfg, seed ^ 0xF2E5_4000)
-        .step_by(17)
-        .take(FRESH_POSES)
-        .map(|s| s.sample.joints)
-        .collect();
-    let ls = identify_ls::<7, SUIT_PARAMS>(&DhTable::paper_nominal(), &samples, &LsOptions::new())?;
-    let (em, _) = em_drift_vec::<7, SUIT_PARAMS>(&ls.table, &samples, &DriftEmOptions::new(drift.dt))?;
+    let sim = Simulation::new(cell, seed);
+    let (truth, drift, samples, fresh) = (&sim.truth, sim.drift, &sim.samples, &sim.fresh);
+    let (ls, em) = sim.fit(samples)?;
     let q = drift.process_variance();
     let (pn, rn) = (cell.noise.0 * cell.noise.0, cell.noise.1 * cell.noise.1);
-    let crb = cramer_rao::<7, SUIT_PARAMS>(&truth, &samples, [drift.phi(); 7], [q; 7], [pn, pn, pn, rn, rn, rn], 1e-14)?;
+    let crb = cramer_rao::<7, SUIT_PARAMS>(truth, samples, [drift.phi(); 7], [q; 7], [pn, pn, pn, rn, rn, rn], 1e-14)?;
     Ok(Session {
-        ls: table_error(&ls.table, &truth, &fresh),
-        em: table_error(&em.table, &truth, &fresh),
-        bound: expected_table_error::<7, SUIT_PARAMS>(&truth, &fresh, |u| crb.variance_along(u)),
+        ls: sim.table_error(&ls.table),
+        em: sim.table_error(&em.table),
+        bound: expected_table_error::<7, SUIT_PARAMS>(truth, fresh, |u| crb.variance_along(u)),
         reported: em.expected_error,
         ls_expected: ls_expected_table_error::<7, SUIT_PARAMS>(
             &ls.table,
-            &samples,
+            samples,
             &[drift.phi(); 7],
             &[q / (1.0 - drift.phi() * drift.phi()); 7],
             &[pn, pn, pn, rn, rn, rn],
-            &fresh,
+            fresh,
         )
         .unwrap_or(TableError {
             position_m: f64::NAN,
