@@ -67,7 +67,7 @@ fn main() {
     };
     let (only_sigma, only_tau, only_noise) = (num("--sigma"), num("--tau"), num("--noise"));
     println!(
-        "| pose noise | σ | τ (s) | stop (s), mean (range) | met | expected at stop | real at stop | real, fixed {FIXED_S} s | real / expected at stop | real / expected, fixed {FIXED_S} s |"
+        "| pose noise | σ | τ (s) | stop (s), mean (range) | met | expected at stop (mm / mrad) | real at stop (mm / mrad) | real (mm / mrad), fixed {FIXED_S} s | real / expected at stop | real / expected, fixed {FIXED_S} s |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|");
     let start = Instant::now();
