@@ -390,6 +390,41 @@ impl Ingest {
         self.joints.get(joint).map_or(0, |s| s.values.len())
     }
 
+    /// Up to `n` arm configurations spread evenly over the session so far: at each of `n`
+    /// receive instants from the first one at which every joint has reported to the last
+    /// reading, every joint's latest angle by then. No clock model and no interpolation: for
+    /// figures that depend on where the arm went and not on when, such as the condition number
+    /// of the identification problem. Empty until every joint has reported.
+    pub fn joint_snapshot(&self, n: usize) -> Vec<[f64; JOINTS]> {
+        let span = self
+            .joints
+            .iter()
+            .try_fold((f64::MIN, f64::MIN), |(lo, hi), s| {
+                let first = s.clock.first()?.1;
+                let last = s.clock.last()?.1;
+                Some((lo.max(first), hi.max(last)))
+            });
+        let Some((start, end)) = span.filter(|(lo, hi)| lo <= hi) else {
+            return Vec::new();
+        };
+        let n = n.max(1);
+        (0..n)
+            .map(|i| {
+                let t = if n == 1 {
+                    end
+                } else {
+                    start + (end - start) * i as f64 / (n - 1) as f64
+                };
+                std::array::from_fn(|j| {
+                    let s = &self.joints[j];
+                    // Arrival order: host times ascend (a stepped clock only blurs the pick).
+                    let k = s.clock.partition_point(|c| c.1 <= t).max(1);
+                    s.values[k - 1]
+                })
+            })
+            .collect()
+    }
+
     /// Poses received.
     pub fn pose_samples(&self) -> usize {
         self.pose.values.len()
@@ -487,6 +522,39 @@ mod tests {
         })
         .to_frame()
         .unwrap()
+    }
+
+    #[test]
+    fn the_joint_snapshot_takes_every_joints_latest_angle_once_all_have_reported() {
+        let mut ing = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
+        // Joints 1-6 report from t = 0 s; joint 7 only from t = 1 s: nothing until then.
+        for k in 0..=20u32 {
+            let t = 0.1 * f64::from(k);
+            for node in 1..=7u8 {
+                if node == 7 && k < 10 {
+                    continue;
+                }
+                // The angle encodes joint and time: node/10 + t/100 (within the DBC's range).
+                let angle = f64::from(node) / 10.0 + t / 100.0;
+                ing.on_frame(&rx(joint_frame(node, 100_000 * k + 1, angle), t));
+            }
+            if k == 9 {
+                assert!(ing.joint_snapshot(5).is_empty());
+            }
+        }
+        let snap = ing.joint_snapshot(3);
+        // At 1.0 s, 1.5 s and 2.0 s (receive time), each joint's reading of that instant.
+        assert_eq!(snap.len(), 3);
+        for (row, t) in snap.iter().zip([1.0, 1.5, 2.0]) {
+            for (j, a) in row.iter().enumerate() {
+                let want = (j + 1) as f64 / 10.0 + t / 100.0;
+                assert!(
+                    (a - want).abs() < 1e-4,
+                    "joint {} at {t}: {a} != {want}",
+                    j + 1
+                );
+            }
+        }
     }
 
     #[test]

@@ -64,40 +64,73 @@ pub struct Estimate {
     pub expected: Option<Expected>,
 }
 
-/// Estimates on the data so far, the streams aligned. Without `session.stop_at_expected_error`:
-/// the condition number of one LS from nominal on at most [`CONDITION_SAMPLES`] samples. With
-/// it, once `session.min_samples` are in: LS and our EM on every sample, as the calibration
-/// will (the EM's expected table error, the LS's condition number). `None` if too little data.
-pub fn collection_estimate(collector: &Collector, config: &Config) -> Option<Estimate> {
-    let collected = collector.collected(config);
-    let n = collected.samples.len();
-    if n < 50 {
+/// The in-collection estimate on the data so far, as a job for the blocking pool: what it needs
+/// is taken from `collector` now, on the loop's thread.
+///
+/// Without `session.stop_at_expected_error`: the condition number of the identification
+/// problem at the nominal table over at most [`CONDITION_SAMPLES`] configurations the arm
+/// visited ([`Ingest::joint_snapshot`](crate::ingest::Ingest::joint_snapshot): no clock fit, no
+/// alignment, a few thousand values copied, so its cost does not grow with the session). With
+/// it, once `session.min_samples` are in: the streams aligned, then LS and our EM on every
+/// sample, as the calibration will (the EM's expected table error, the LS's condition number);
+/// that job owns a copy of the collection. The job returns `None` if there is too little data.
+pub fn collection_estimate(
+    collector: &Collector,
+    config: &Config,
+) -> impl FnOnce() -> Option<Estimate> + Send + 'static {
+    let config = config.clone();
+    let job: Box<dyn FnOnce() -> Option<Estimate> + Send> =
+        if config.session.stop_at_expected_error.is_some() {
+            let snapshot = collector.clone();
+            Box::new(move || expected_estimate(&snapshot, &config))
+        } else {
+            let joints = collector.ingest.joint_snapshot(CONDITION_SAMPLES);
+            Box::new(move || condition_estimate(&joints, &config.nominal))
+        };
+    job
+}
+
+/// The condition number of LS from `nominal` on `joints`, each with the pose nominal's FK puts
+/// it at: LS stops at once (no residual), its condition number is the problem's at nominal.
+fn condition_estimate(
+    joints: &[[f64; JOINTS]],
+    nominal: &calib_core::DhTable<JOINTS>,
+) -> Option<Estimate> {
+    if joints.len() < 50 {
         return None;
     }
-    if config.session.stop_at_expected_error.is_some() && n >= config.session.min_samples {
-        let samples: Vec<calib_core::Sample<JOINTS>> =
-            collected.samples.iter().map(pipeline::to_sample).collect();
-        let (ls_opts, em_opts) = pipeline::options(config);
-        let c = pipeline::ls_then_em(&config.nominal, &samples, &ls_opts, &em_opts, false).ok()?;
-        return Some(Estimate {
-            condition: c.ls.condition,
-            expected: c.em.ok().map(|em| Expected::from(em.expected_error)),
-        });
-    }
-    let step = n.div_ceil(CONDITION_SAMPLES);
-    let samples: Vec<calib_core::Sample<JOINTS>> = collected
-        .samples
+    let samples: Vec<calib_core::Sample<JOINTS>> = joints
         .iter()
-        .step_by(step)
-        .map(pipeline::to_sample)
+        .map(|q| calib_core::Sample {
+            joints: *q,
+            pose: nominal.fk(q),
+        })
         .collect();
     let opts = calib_core::LsOptions::new();
-    calib_core::identify_ls::<JOINTS, { pipeline::PARAMS }>(&config.nominal, &samples, &opts)
+    calib_core::identify_ls::<JOINTS, { pipeline::PARAMS }>(nominal, &samples, &opts)
         .ok()
         .map(|r| Estimate {
             condition: r.condition,
             expected: None,
         })
+}
+
+/// LS and our EM on every aligned sample so far, once `session.min_samples` are in; before
+/// that, the condition number alone.
+fn expected_estimate(collector: &Collector, config: &Config) -> Option<Estimate> {
+    let collected = collector.collected(config);
+    if collected.samples.len() < config.session.min_samples.max(50) {
+        let joints = collector.ingest.joint_snapshot(CONDITION_SAMPLES);
+        return condition_estimate(&joints, &config.nominal);
+    }
+    let samples: Vec<calib_core::Sample<JOINTS>> =
+        collected.samples.iter().map(pipeline::to_sample).collect();
+    let (ls_opts, em_opts) = pipeline::options(config);
+    let c = pipeline::ls_then_em(&config.nominal, &samples, &ls_opts, &em_opts, false).ok()?;
+    Some(Estimate {
+        condition: c.ls.condition,
+        expected: c.em.ok().map(|em| Expected::from(em.expected_error)),
+    })
 }
 
 /// Rate (Hz) at which the arm's frames are written to `/tf` for Foxglove.
@@ -532,10 +565,8 @@ impl<T: Transport> Live<'_, '_, T> {
                     let elapsed = self.clock.monotonic().saturating_sub(started).as_secs_f64();
                     if estimate_job.is_none() && elapsed - last_estimate_s >= every {
                         last_estimate_s = elapsed;
-                        let (snapshot, cfg) = (self.collector.clone(), self.config.clone());
-                        estimate_job = Some(tokio::task::spawn_blocking(move || {
-                            collection_estimate(&snapshot, &cfg)
-                        }));
+                        let job = collection_estimate(&self.collector, self.config);
+                        estimate_job = Some(tokio::task::spawn_blocking(job));
                     }
                     let session = &self.collector.session;
                     let progress = session.progress(elapsed);
@@ -867,6 +898,43 @@ pub fn write_summary(summary: &SessionSummary, out: &mut impl Write) -> std::io:
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_condition_estimate_is_the_problems_at_nominal_and_flags_a_frozen_joint() {
+        use calib_core::{DhTable, LsOptions, Scenario, ScenarioConfig};
+        let nominal = DhTable::paper_nominal();
+        let session: Vec<_> = Scenario::new(ScenarioConfig::<JOINTS>::paper(), 3)
+            .take(3000)
+            .step_by(5)
+            .map(|s| s.sample)
+            .collect();
+        let joints: Vec<[f64; JOINTS]> = session.iter().map(|s| s.joints).collect();
+        let k = condition_estimate(&joints, &nominal).unwrap().condition;
+        // What LS on the measured poses reports (from nominal, on the same configurations).
+        let ls = calib_core::identify_ls::<JOINTS, { pipeline::PARAMS }>(
+            &nominal,
+            &session,
+            &LsOptions::new(),
+        )
+        .unwrap();
+        assert!(
+            (k / ls.condition - 1.0).abs() < 0.25,
+            "{k} vs LS {}",
+            ls.condition
+        );
+        let frozen: Vec<[f64; JOINTS]> = joints
+            .iter()
+            .map(|q| {
+                let mut q = *q;
+                q[6] = 0.0;
+                q
+            })
+            .collect();
+        // LS refuses a frozen joint's problem or reports it as ill-conditioned, as before.
+        let still = condition_estimate(&frozen, &nominal).map(|e| e.condition);
+        assert!(still.is_none_or(|c| c > 1e3 * k), "{still:?} vs {k}");
+        assert!(condition_estimate(&joints[..49], &nominal).is_none());
+    }
     use crate::shutdown::Shutdown;
     use exocal_bus::InProcessBus;
     use exocal_bus::SimClock;
