@@ -206,9 +206,14 @@ pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError
     Ok(())
 }
 
+/// The daemon's runtime: one thread drives the bus, the timers and the log, polling the socket
+/// itself. With worker threads, a worker woke from epoll for every batch of frames and woke the
+/// loop's thread in turn: in the emulated guest that handoff (context switches, futexes) was a
+/// quarter of the daemon's CPU while ingesting (perf, benches/ingest.sh's load). Calibration
+/// and the in-collection estimates run on tokio's blocking pool (`spawn_blocking`), the live
+/// view on a runtime of its own.
 fn runtime() -> Result<tokio::runtime::Runtime, DaemonError> {
-    tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
+    tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .map_err(|source| DaemonError::Io {
