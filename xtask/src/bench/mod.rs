@@ -90,6 +90,9 @@ impl Args {
 }
 
 impl Part {
+    /// Every part, in the order BENCHMARKS.md shows them.
+    const ALL: [Part; 4] = [Part::Calib, Part::Firmware, Part::Daemon, Part::Ingest];
+
     fn name(self) -> &'static str {
         match self {
             Part::Calib => "calib",
@@ -112,7 +115,7 @@ impl Part {
 pub fn run(args: Args) -> Result<u8> {
     let root = paths::workspace_root();
     let parts = if args.only.is_empty() {
-        vec![Part::Calib, Part::Firmware, Part::Daemon, Part::Ingest]
+        Part::ALL.to_vec()
     } else {
         args.only.clone()
     };
@@ -173,7 +176,25 @@ pub fn run(args: Args) -> Result<u8> {
             .replace(ctx.target.to_string_lossy().as_ref(), "target")
             .replace(&format!("{}/", ctx.root.to_string_lossy()), "");
     }
-    let md = report::render(&ctx, &machine_before, &load_after, &sections, &args.shown());
+    let ran: Vec<report::Rendered<'_>> = parts
+        .iter()
+        .zip(&sections)
+        .map(|(p, s)| report::Rendered {
+            part: p.name(),
+            section: s,
+        })
+        .collect();
+    let order: Vec<(&str, &str)> = Part::ALL.iter().map(|p| (p.name(), p.title())).collect();
+    let previous = std::fs::read_to_string(&out).ok();
+    let md = report::render(
+        &ctx,
+        &machine_before,
+        &load_after,
+        &ran,
+        &order,
+        &args.shown(),
+        previous.as_deref(),
+    );
     std::fs::write(&out, md).with_context(|| format!("writing {}", out.display()))?;
     eprintln!("==> wrote {}", out.display());
     Ok(u8::from(failed))
