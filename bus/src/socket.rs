@@ -26,6 +26,8 @@ pub struct SocketCan {
     fd: AsyncFd<socketcan::CanSocket>,
     /// Frames read by the last `recvmmsg` and not yet returned (keeps `recv` cancel-safe).
     pending: VecDeque<RawRx>,
+    /// The buffers `recvmmsg` reads into, allocated once.
+    rx: Box<RecvBuffers>,
     dropped: u64,
     iface: String,
 }
@@ -65,6 +67,7 @@ impl SocketCan {
         Ok(SocketCan {
             fd,
             pending: VecDeque::new(),
+            rx: Box::new(RecvBuffers::new()),
             dropped: 0,
             iface: iface.to_string(),
         })
@@ -113,29 +116,66 @@ struct RawRx {
     overflow: Option<u32>,
 }
 
-/// `recvmmsg` of up to [`BATCH`] `struct can_frame`s with their control messages, appended to
-/// `out`; `WouldBlock` when none is waiting.
-fn recv_batch(fd: i32, out: &mut VecDeque<RawRx>) -> std::io::Result<usize> {
-    let mut frames = [[0u8; 16]; BATCH];
-    let mut control = [[0u64; CONTROL_WORDS]; BATCH];
-    // SAFETY (whole block): `iovec` and `mmsghdr` are plain data and all-zero is a valid value;
-    // every pointer stored in them refers to `frames` or `control`, which outlive the
-    // `recvmmsg` call and are not otherwise accessed during it; the CMSG_* macros walk only the
-    // `msg_controllen` bytes the kernel wrote into each control buffer, and each payload is read
-    // unaligned with the size the kernel documents for its type.
+/// What `recvmmsg` reads into: [`BATCH`] frames and control buffers and their headers. Kept
+/// with the socket (boxed, so it never moves) instead of zeroed on the stack for every call: a
+/// call that finds a frame or two, and the one that then finds none, would clear 13 kB each.
+struct RecvBuffers {
+    frames: [[u8; 16]; BATCH],
+    control: [[u64; CONTROL_WORDS]; BATCH],
+    iovs: [libc::iovec; BATCH],
+    hdrs: [libc::mmsghdr; BATCH],
+}
+
+// SAFETY: the raw pointers inside `iovs` and `hdrs` point into the same boxed value and are
+// rewritten before every use (`recv_batch`), which takes it by `&mut`.
+#[allow(unsafe_code)]
+unsafe impl Send for RecvBuffers {}
+
+impl RecvBuffers {
+    fn new() -> RecvBuffers {
+        // SAFETY: `iovec` and `mmsghdr` are plain data; all-zero is a valid value.
+        #[allow(unsafe_code)]
+        let (iovs, hdrs) = unsafe { (std::mem::zeroed(), std::mem::zeroed()) };
+        RecvBuffers {
+            frames: [[0; 16]; BATCH],
+            control: [[0; CONTROL_WORDS]; BATCH],
+            iovs,
+            hdrs,
+        }
+    }
+}
+
+/// `recvmmsg` of up to [`BATCH`] `struct can_frame`s with their control messages into `b`,
+/// appended to `out`; `WouldBlock` when none is waiting.
+fn recv_batch(fd: i32, b: &mut RecvBuffers, out: &mut VecDeque<RawRx>) -> std::io::Result<usize> {
+    // SAFETY (whole block): every pointer stored in the headers refers to `b.frames`,
+    // `b.control` or `b.iovs`, which outlive the `recvmmsg` call and are not otherwise accessed
+    // during it; each header's lengths are reset before the call (the kernel rewrites
+    // `msg_controllen` and `msg_len`); the CMSG_* macros walk only the `msg_controllen` bytes
+    // the kernel wrote into each control buffer, and each payload is read unaligned with the
+    // size the kernel documents for its type.
     #[allow(unsafe_code)]
     unsafe {
-        let mut iovs: [libc::iovec; BATCH] = std::mem::zeroed();
-        let mut hdrs: [libc::mmsghdr; BATCH] = std::mem::zeroed();
+        let RecvBuffers {
+            frames,
+            control,
+            iovs,
+            hdrs,
+        } = b;
         for i in 0..BATCH {
             iovs[i] = libc::iovec {
                 iov_base: frames[i].as_mut_ptr().cast(),
                 iov_len: 16,
             };
-            hdrs[i].msg_hdr.msg_iov = &mut iovs[i];
-            hdrs[i].msg_hdr.msg_iovlen = 1;
-            hdrs[i].msg_hdr.msg_control = control[i].as_mut_ptr().cast();
-            hdrs[i].msg_hdr.msg_controllen = std::mem::size_of_val(&control[i]) as _;
+            hdrs[i].msg_len = 0;
+            let h = &mut hdrs[i].msg_hdr;
+            h.msg_name = std::ptr::null_mut();
+            h.msg_namelen = 0;
+            h.msg_iov = &mut iovs[i];
+            h.msg_iovlen = 1;
+            h.msg_control = control[i].as_mut_ptr().cast();
+            h.msg_controllen = std::mem::size_of_val(&control[i]) as _;
+            h.msg_flags = 0;
         }
         let n = libc::recvmmsg(
             fd,
@@ -285,9 +325,9 @@ impl Transport for SocketCan {
                 continue;
             }
             let fd = self.fd.get_ref().as_raw_fd();
-            let pending = &mut self.pending;
+            let (pending, buffers) = (&mut self.pending, &mut *self.rx);
             self.fd
-                .async_io(Interest::READABLE, |_| recv_batch(fd, pending))
+                .async_io(Interest::READABLE, |_| recv_batch(fd, buffers, pending))
                 .await?;
         }
     }
