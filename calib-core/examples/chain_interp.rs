@@ -1,4 +1,4 @@
-//! Measurement (branch `chain-exp`, not a product change): does the daemon's per-node sampling
+//! Measurement (not a product change; issue 18): does the daemon's per-node sampling
 //! phase + linear interpolation onto the 100 Hz grid explain why, through the whole chain, the
 //! drift EM's real table error is ~1.5× its stated expected error?
 //!
