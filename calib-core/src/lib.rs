@@ -17,6 +17,7 @@
 //! | least squares with the per-sample work split by the caller (e.g. over cores) | [`identify_ls_with`], [`Linearise`], [`normal_equations`], [`GramAccumulator::merge`] |
 //! | least squares with base and tool frames (`P = 4N + 12`) | [`identify_ls_frames`] |
 //! | the paper's EM (eqs. 33–36) | [`paper_em()`] |
+//! | the drift's rough part out of the readings, before LS and the EM | [`separate()`], [`SeparationSlot`] |
 //! | our EM (Kalman + RTS smoother over the drift) | [`em_drift()`] |
 //! | confidence intervals of its τ, σ per joint | [`drift_confidence()`], [`DriftConfidence`] |
 //! | objective y (eq. 10) and parameter errors | [`objective_y`], [`ParamErrors`] |
@@ -72,6 +73,7 @@ pub mod ls;
 pub mod metrics;
 pub mod model;
 pub mod paper_em;
+pub mod reading;
 pub mod rng;
 #[cfg(test)]
 mod scenario_tests;
@@ -99,5 +101,6 @@ pub use model::{
     ParamKind, Sample, SUIT_JOINTS, SUIT_PARAMS,
 };
 pub use paper_em::{paper_em, PaperEmForm, PaperEmOptions, PaperEmResult, MAX_EM_ITERATIONS};
+pub use reading::{separate, JointSeparation, SeparationSlot};
 pub use rng::Rng;
 pub use sim::{Motion, Scenario, ScenarioConfig, SimSample};

@@ -110,6 +110,15 @@ impl Frame {
         }
     }
 
+    /// The inverse transform.
+    pub fn inverse(&self) -> Frame {
+        let rt = self.r.transpose();
+        Frame {
+            r: rt,
+            p: -(rt * self.p),
+        }
+    }
+
     /// Converts to a nalgebra isometry (the rotation is re-orthonormalised).
     pub fn to_isometry(&self) -> Isometry3<f64> {
         let rot = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&self.r));
