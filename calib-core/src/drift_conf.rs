@@ -69,6 +69,10 @@ pub const LOG_STEP: f64 = 0.05;
 /// Largest φ the EM uses (its M-step's range).
 const PHI_MAX: f64 = 1.0 - 1e-9;
 
+/// z of a two-sided 95% interval (the standard normal's 97.5% quantile), for
+/// [`DriftConfidence::tau_interval`] and [`DriftConfidence::sigma_interval`].
+pub const Z_95: f64 = 1.959_964;
+
 /// Confidence of one joint's drift parameters.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DriftConfidence {

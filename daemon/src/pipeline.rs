@@ -24,9 +24,11 @@
 //! session with many is refused earlier for lack of samples).
 
 use crate::parallel::Parallel;
+use calib_core::drift_conf::Z_95;
 use calib_core::{
-    drift_confidence, em_drift, identify_ls_with, ls_expected_table_error, table_error, DhTable,
-    DriftEmOptions, DriftSlot, Frame, InputChecks, LsOptions, Sample, EXPECTED_ERROR_POSES,
+    drift_confidence, em_drift, identify_ls_with, ls_expected_table_error, separate, table_error,
+    DhTable, DriftEmOptions, DriftSlot, Frame, InputChecks, LsOptions, Sample, SeparationSlot,
+    EXPECTED_ERROR_POSES,
 };
 use exocal_report::{Calibration, Correlation, EmDetail, LsDetail, TimedSample};
 use nalgebra::{DMatrix, Quaternion, SMatrix, UnitQuaternion, Vector3};
@@ -108,9 +110,6 @@ pub struct DriftInterval {
     pub sigma_95_mrad: [f64; 2],
 }
 
-/// z of a two-sided 95% interval.
-pub const Z_95: f64 = 1.959_964;
-
 impl DriftInterval {
     /// The 95% intervals of `c` (calib-core's `DriftConfidence`).
     pub fn of(c: &calib_core::DriftConfidence) -> DriftInterval {
@@ -167,6 +166,9 @@ pub struct Outcome {
     pub node_rows: [NodeRow; JOINTS],
     /// Whether validation accepts the table, and why not.
     pub verdict: Verdict,
+    /// Per joint, the RMS of the rough drift taken out of its reading (rad; 0 where the
+    /// reading is smooth).
+    pub reading_drift_rms: [f64; JOINTS],
 }
 
 impl Outcome {
@@ -291,7 +293,12 @@ pub fn run(samples: &[AlignedSample], config: &Config) -> Result<Calibrated, Cal
             need,
         });
     }
-    let all = timed(samples);
+    let mut all = timed(samples);
+    let mut plain: Vec<Sample<JOINTS>> = all.iter().map(|s| s.sample).collect();
+    let reading_drift_rms = separate_readings(&mut plain, config);
+    for (s, moved) in all.iter_mut().zip(plain) {
+        s.sample = moved;
+    }
     let (fit, held) = split_holdout(&all, config.validation.holdout_fraction);
     let fit: Vec<Sample<JOINTS>> = fit.iter().map(|s| s.sample).collect();
     let held: Vec<Sample<JOINTS>> = held.iter().map(|s| s.sample).collect();
@@ -340,6 +347,7 @@ pub fn run(samples: &[AlignedSample], config: &Config) -> Result<Calibrated, Cal
         before: rows_of(&config.nominal, [0.0; JOINTS], [0.0; JOINTS]),
         node_rows: rows_of(&table, tau, sigma),
         verdict,
+        reading_drift_rms,
     };
     Ok(Calibrated {
         outcome,
@@ -347,6 +355,22 @@ pub fn run(samples: &[AlignedSample], config: &Config) -> Result<Calibrated, Cal
         judged,
         samples: all,
     })
+}
+
+/// Moves each joint's readings in `samples` (a session on the grid, in time order) off the
+/// rough part of its drift, and each pose with them (calib-core's `separate`, through the
+/// nominal table's FK, with the EM's starting τ); returns the RMS move per joint (rad).
+pub fn separate_readings(samples: &mut [Sample<JOINTS>], config: &Config) -> [f64; JOINTS] {
+    let (_, em_opts) = options(config);
+    let mut slots = vec![SeparationSlot::default(); samples.len()];
+    separate(
+        samples,
+        &config.nominal,
+        em_opts.dt,
+        em_opts.initial_tau,
+        &mut slots,
+    )
+    .map(|j| j.correction_rms)
 }
 
 /// The LS and EM options the daemon calibrates with: input checks against the configured
@@ -521,6 +545,64 @@ mod tests {
                 }
             })
             .collect()
+    }
+
+    /// Aligned samples of a simulated session of `cfg` with the drift in the reading, as a
+    /// real sensor (and the emulated suit) reports it: the arm at the smooth motion q, the
+    /// pose FK(q), the reading `q − δ`. (The Scenario's own convention is the other one: the
+    /// smooth q read, the arm at q + δ.)
+    fn drift_in_the_reading(
+        cfg: ScenarioConfig<JOINTS>,
+        seconds: f64,
+        seed: u64,
+    ) -> Vec<AlignedSample> {
+        let k = (seconds / cfg.drift.dt).round() as usize;
+        Scenario::new(cfg, seed)
+            .take(k)
+            .enumerate()
+            .map(|(i, s)| {
+                let q = s.sample.joints;
+                let pose = cfg.actual.fk(&q);
+                let o = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&pose.r));
+                AlignedSample {
+                    t: i as f64 * cfg.drift.dt,
+                    joints: std::array::from_fn(|j| q[j] - s.drift[j]),
+                    pose: Pose {
+                        position: pose.p.into(),
+                        orientation: [o.w, o.i, o.j, o.k],
+                    },
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_drift_in_the_reading_is_taken_out_before_the_fit_and_reported() {
+        // The Scenario's smooth readings: nothing to take out, the samples fitted as given.
+        let given = scenario(30.0, 3);
+        let arm = super::run(&given, &config()).unwrap();
+        assert_eq!(arm.outcome.reading_drift_rms, [0.0; JOINTS]);
+        assert!(arm
+            .samples
+            .iter()
+            .zip(&given)
+            .all(|(s, g)| s.sample.joints == g.joints));
+        // The same motion and drift with the drift in the reading: every joint's rough drift
+        // (steps of ~1 mrad) is found, and the samples fitted are the moved ones.
+        let read = drift_in_the_reading(ScenarioConfig::paper(), 30.0, 3);
+        let c = super::run(&read, &config()).unwrap();
+        let rms = c.outcome.reading_drift_rms;
+        assert!(rms.iter().all(|&r| r > 2e-4 && r < 5e-3), "{rms:?}");
+        let moved = c
+            .samples
+            .iter()
+            .zip(&read)
+            .filter(|(s, r)| s.sample.joints != r.joints)
+            .count();
+        assert_eq!(moved, read.len());
+        // The log's /calibration record carries it, in mrad.
+        let record = crate::record::calibration_record(&c.outcome, &[], 0, 0, None);
+        assert_eq!(record.reading_drift_rms_mrad, rms.map(|r| r * 1e3).to_vec());
     }
 
     /// The pipeline's summary of `samples`.

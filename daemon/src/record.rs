@@ -219,6 +219,7 @@ pub fn calibration_record(
                     })
                     .collect()
             }),
+        reading_drift_rms_mrad: outcome.reading_drift_rms.iter().map(|r| r * 1e3).collect(),
         push: push.map_or_else(Vec::new, |p| {
             p.nodes
                 .iter()

@@ -123,8 +123,9 @@ fn expected_estimate(collector: &Collector, config: &Config) -> Option<Estimate>
         let joints = collector.ingest.joint_snapshot(CONDITION_SAMPLES);
         return condition_estimate(&joints, &config.nominal);
     }
-    let samples: Vec<calib_core::Sample<JOINTS>> =
+    let mut samples: Vec<calib_core::Sample<JOINTS>> =
         collected.samples.iter().map(pipeline::to_sample).collect();
+    pipeline::separate_readings(&mut samples, config);
     let (ls_opts, em_opts) = pipeline::options(config);
     let c = pipeline::ls_then_em(&config.nominal, &samples, &ls_opts, &em_opts, false).ok()?;
     Some(Estimate {

@@ -35,6 +35,17 @@ pub fn print_summary(summary: &SessionSummary) {
         if let Some(e) = v.expected {
             println!("expected table error: {e}");
         }
+        if o.reading_drift_rms.iter().any(|&r| r > 0.0) {
+            let mrad: Vec<String> = o
+                .reading_drift_rms
+                .iter()
+                .map(|r| format!("{:.2}", r * 1e3))
+                .collect();
+            println!(
+                "rough drift taken out of the readings, RMS per joint: {} mrad",
+                mrad.join(" ")
+            );
+        }
         if let Some(drift) = o.em.as_ref().and_then(|em| em.drift_95) {
             for (j, d) in drift.iter().enumerate() {
                 println!("drift joint {}: {d} (95%)", j + 1);

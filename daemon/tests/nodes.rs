@@ -21,10 +21,11 @@ use exocald::nodes::{self, Listing};
 use exocald::runner::SessionSummary;
 
 /// One live session of the paper scenario, as `exocald demo` runs it, with 20 s of collection
-/// and validation limits wide enough that it pushes (what is pushed does not matter here).
+/// and validation limits wide enough that it pushes (what is pushed does not matter here; seed
+/// 3 at 20 s fits joint 4's a 6.7 mm above its true value, 3 mm from the bound, and is refused).
 fn pushed_session(dir: &Path) -> (Config, SessionSummary) {
     let opts = exocald::demo::DemoOptions {
-        seed: 3,
+        seed: 2,
         speed: 1e6,
         output: dir.to_path_buf(),
         hold: false,

@@ -12,6 +12,7 @@
 
 use std::fmt::Write as _;
 
+use calib_core::drift_conf::Z_95;
 use calib_core::{pose_error, DhTable, TableError};
 
 use crate::input::{
@@ -728,11 +729,6 @@ pub fn render(input: &ReportInput) -> String {
     out
 }
 
-/// This session's LS against our EM: the accuracy each table is expected to have (1σ) under the
-/// drift and noise the EM fitted, and how far apart the two tables are.
-/// z of a two-sided 95% interval.
-const Z_95: f64 = 1.959_964;
-
 /// Each joint's fitted τ and σ, with their 95% intervals when the EM gave their confidence.
 fn drift_table(out: &mut String, em: &EmDetail) {
     let ci = em.drift_confidence.is_some();
@@ -775,6 +771,8 @@ fn drift_table(out: &mut String, em: &EmDetail) {
     }
 }
 
+/// This session's LS against our EM: the accuracy each table is expected to have (1σ) under the
+/// drift and noise the EM fitted, and how far apart the two tables are.
 fn ls_against_em(out: &mut String, em: &EmDetail) {
     let fmt = |e: TableError| {
         format!(
