@@ -67,6 +67,7 @@ pub mod drift_conf;
 pub mod drift_em;
 pub mod error;
 pub mod frames;
+mod info;
 mod kalman;
 pub mod linalg;
 pub mod ls;
@@ -81,11 +82,14 @@ pub mod sim;
 #[cfg(any(test, feature = "std"))]
 pub mod sweep;
 
-pub use drift::{Discretisation, DriftParams, GaussMarkov};
+pub use drift::{Discretisation, DriftParams, GaussMarkov, RateBias};
 pub use drift_conf::{drift_confidence, DriftConfidence};
 #[cfg(any(test, feature = "std"))]
 pub use drift_em::em_drift_vec;
-pub use drift_em::{cramer_rao, em_drift, DriftEmOptions, DriftEmResult, DriftSlot, EXPECTED_ERROR_POSES};
+pub use drift_em::{
+    cramer_rao, discounted_samples, em_drift, Consistency, Discounted, DriftEmOptions, DriftEmResult, DriftModel, DriftSlot,
+    JointConsistency, JointDrift, Refusal, Trend, EXPECTED_ERROR_POSES, RATE_BIAS_TERMS,
+};
 pub use error::CalibError;
 pub use frames::{identify_ls_frames, LsFramesResult, Mounting, Param, FRAME_PARAMS};
 pub use linalg::{GramAccumulator, Observability, QrAccumulator, QrPanel, GRAM_MAX_CONDITION};
@@ -103,4 +107,4 @@ pub use model::{
 pub use paper_em::{paper_em, PaperEmForm, PaperEmOptions, PaperEmResult, MAX_EM_ITERATIONS};
 pub use reading::{separate, JointSeparation, SeparationSlot};
 pub use rng::Rng;
-pub use sim::{Motion, Scenario, ScenarioConfig, SimSample};
+pub use sim::{DriftSite, Motion, Outliers, Scenario, ScenarioConfig, SimSample};

@@ -34,8 +34,9 @@ use crate::drift_em::{cramer_rao, em_drift_vec, DriftEmOptions, DriftEmResult};
 use crate::ls::{identify_ls, LsOptions, LsResult};
 use crate::metrics::{expected_table_error, ls_expected_table_error, table_error, TableError};
 use crate::model::{DhTable, ParamKind, Sample, SUIT_PARAMS};
+use crate::reading::{separate, SeparationSlot};
 use crate::rng::Rng;
-use crate::sim::{Scenario, ScenarioConfig};
+use crate::sim::{DriftSite, Motion, Outliers, RateBias, Scenario, ScenarioConfig, SimSample};
 
 /// Fresh poses every table error is averaged over.
 pub const FRESH_POSES: usize = 200;
@@ -48,12 +49,57 @@ pub const TABLE_SCALES: [f64; 2] = [0.2, 1.0];
 pub struct Cell {
     /// Drift correlation time τ (s).
     pub tau: f64,
-    /// Drift σ in the paper's convention (eq. 8).
+    /// Drift σ: in the paper's convention (eq. 8) for [`Field::PAPER`], else as
+    /// `field.discretisation` says (the stationary deviation in rad for `Exact`).
     pub sigma: f64,
     /// White pose noise: position (m) and rotation (rad) per axis.
     pub noise: (f64, f64),
-    /// Session length (s) at the paper's 100 Hz.
+    /// Session length (s).
     pub seconds: f64,
+    /// What a real suit adds to the paper's scenario ([`Field::PAPER`]: nothing).
+    pub field: Field,
+}
+
+/// The field conditions of a [`Cell`] beside its Gauss-Markov drift and pose noise (see
+/// [`crate::sim`]): sample rate, where the drift sits, rate bias, reading noise, glitches.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Field {
+    /// Sample period (s).
+    pub dt: f64,
+    /// How [`Cell::sigma`] is read.
+    pub discretisation: Discretisation,
+    /// Where the angle error acts.
+    pub site: DriftSite,
+    /// Rate bias integrated into the angle error.
+    pub bias: RateBias,
+    /// White noise on every reported angle (rad).
+    pub reading_noise: f64,
+    /// Glitches of the reference pose.
+    pub outliers: Outliers,
+}
+
+impl Field {
+    /// The paper's scenario: 100 Hz, σ in the paper's convention, the drift in the arm, nothing
+    /// else.
+    pub const PAPER: Field = Field {
+        dt: 0.01,
+        discretisation: Discretisation::Paper,
+        site: DriftSite::Arm,
+        bias: RateBias::NONE,
+        reading_noise: 0.0,
+        outliers: Outliers::NONE,
+    };
+
+    /// A real suit's sensors: 50 Hz, σ the stationary deviation (rad), the drift in the reading,
+    /// no rate bias, 0.2 mrad of reading noise, no glitches.
+    pub const SENSOR: Field = Field {
+        dt: 0.02,
+        discretisation: Discretisation::Exact,
+        site: DriftSite::Reading,
+        bias: RateBias::NONE,
+        reading_noise: 2e-4,
+        outliers: Outliers::NONE,
+    };
 }
 
 /// Table errors of one session.
@@ -67,6 +113,11 @@ pub struct Session {
     pub bound: TableError,
     /// What the EM itself reported (its bound at its own estimates).
     pub reported: TableError,
+    /// What the EM states ([`DriftEmResult::stated_error`]: the bound at its own estimates with
+    /// the model choice's and the consistency's share).
+    pub stated: TableError,
+    /// Whether the EM refused the session ([`DriftEmResult::refusals`]).
+    pub refused: bool,
     /// What LS is expected to reach under the true drift and noise
     /// ([`crate::metrics::ls_expected_table_error`]).
     pub ls_expected: TableError,
@@ -95,12 +146,14 @@ pub fn true_table(seed: u64) -> DhTable<7> {
 pub struct Simulation {
     /// The seed's true table ([`true_table`]).
     pub truth: DhTable<7>,
-    /// The cell's drift at the paper's 100 Hz.
+    /// The Gauss-Markov part of the cell's drift.
     pub drift: GaussMarkov,
     /// The cell's pose noise (m, rad).
     pub noise: (f64, f64),
     /// `cell.seconds` of the suit's motion.
     pub samples: Vec<Sample<7>>,
+    /// Per sample, whether its pose is a glitch.
+    pub glitched: Vec<bool>,
     /// [`FRESH_POSES`] poses of another motion.
     pub fresh: Vec<[f64; 7]>,
 }
@@ -109,31 +162,36 @@ impl Simulation {
     /// Simulates `cell` for `seed`. A longer session of the same cell and seed starts with the
     /// same samples: a prefix of it is the shorter session.
     pub fn new(cell: &Cell, seed: u64) -> Simulation {
+        let f = cell.field;
         let drift = GaussMarkov {
-            dt: 0.01,
+            dt: f.dt,
             tau: cell.tau,
             sigma: cell.sigma,
-            discretisation: Discretisation::Paper,
+            discretisation: f.discretisation,
         };
         let truth = true_table(seed);
         let cfg = ScenarioConfig {
             actual: truth,
             drift,
+            bias: f.bias,
+            site: f.site,
+            reading_noise: f.reading_noise,
             position_noise: cell.noise.0,
             rotation_noise: cell.noise.1,
+            outliers: f.outliers,
             ..ScenarioConfig::paper()
         };
         let k = (cell.seconds / drift.dt).round() as usize;
+        let run: Vec<SimSample<7>> = Scenario::new(cfg, seed).take(k).collect();
+        // Fresh drift-free poses: the smooth motion of another seed, every 17th step.
+        let motion = Motion::random(&cfg.ranges, &mut Rng::new(seed ^ 0xF2E5_4000));
         Simulation {
             truth,
             drift,
             noise: cell.noise,
-            samples: Scenario::new(cfg, seed).take(k).map(|s| s.sample).collect(),
-            fresh: Scenario::new(cfg, seed ^ 0xF2E5_4000)
-                .step_by(17)
-                .take(FRESH_POSES)
-                .map(|s| s.sample.joints)
-                .collect(),
+            samples: run.iter().map(|s| s.sample).collect(),
+            glitched: run.iter().map(|s| s.outlier).collect(),
+            fresh: (0..FRESH_POSES).map(|i| motion.at((17 * i) as f64 * drift.dt)).collect(),
         }
     }
 
@@ -145,8 +203,30 @@ impl Simulation {
 
     /// LS from nominal on `samples`, then our EM from LS: the calibration the daemon runs.
     pub fn fit(&self, samples: &[Sample<7>]) -> Result<(LsResult<7, SUIT_PARAMS>, DriftEmResult<7>), crate::CalibError> {
+        self.fit_with(samples, &DriftEmOptions::new(self.drift.dt))
+    }
+
+    /// [`Simulation::fit`] with other EM options (e.g. [`DriftEmOptions::plain`], to measure
+    /// what a part of the model is worth).
+    pub fn fit_with(
+        &self,
+        samples: &[Sample<7>],
+        opts: &DriftEmOptions<7>,
+    ) -> Result<(LsResult<7, SUIT_PARAMS>, DriftEmResult<7>), crate::CalibError> {
+        // The daemon's step 0: each reading off the rough part of its drift (a no-op on smooth
+        // readings, e.g. the paper's cells).
+        let mut samples = samples.to_vec();
+        let mut slots = std::vec![SeparationSlot::default(); samples.len()];
+        separate(
+            &mut samples,
+            &DhTable::paper_nominal(),
+            self.drift.dt,
+            DriftEmOptions::<7>::new(self.drift.dt).initial_tau,
+            &mut slots,
+        );
+        let samples = &samples[..];
         let ls = identify_ls::<7, SUIT_PARAMS>(&DhTable::paper_nominal(), samples, &LsOptions::new())?;
-        let (em, _) = em_drift_vec::<7, SUIT_PARAMS>(&ls.table, samples, &DriftEmOptions::new(self.drift.dt))?;
+        let (em, _) = em_drift_vec::<7, SUIT_PARAMS>(&ls.table, samples, opts)?;
         Ok((ls, em))
     }
 
@@ -158,10 +238,20 @@ impl Simulation {
 
 /// Runs one session of `cell` for `seed`.
 pub fn session(cell: &Cell, seed: u64) -> Result<Session, crate::CalibError> {
+    session_with(cell, seed, |o| o)
+}
+
+/// [`session`] with the EM's options changed by `options` (from the defaults at the cell's Δt).
+pub fn session_with(
+    cell: &Cell,
+    seed: u64,
+    options: impl Fn(DriftEmOptions<7>) -> DriftEmOptions<7>,
+) -> Result<Session, crate::CalibError> {
     let sim = Simulation::new(cell, seed);
     let (truth, drift, samples, fresh) = (&sim.truth, sim.drift, &sim.samples, &sim.fresh);
-    let (ls, em) = sim.fit(samples)?;
-    let q = drift.process_variance();
+    let (ls, em) = sim.fit_with(samples, &options(DriftEmOptions::new(drift.dt)))?;
+    // No drift: the bound of white pose noise alone (a drift too small to matter).
+    let q = drift.process_variance().max(1e-30);
     let (pn, rn) = (cell.noise.0 * cell.noise.0, cell.noise.1 * cell.noise.1);
     let crb = cramer_rao::<7, SUIT_PARAMS>(truth, samples, [drift.phi(); 7], [q; 7], [pn, pn, pn, rn, rn, rn], 1e-14)?;
     Ok(Session {
@@ -169,6 +259,8 @@ pub fn session(cell: &Cell, seed: u64) -> Result<Session, crate::CalibError> {
         em: sim.table_error(&em.table),
         bound: expected_table_error::<7, SUIT_PARAMS>(truth, fresh, |u| crb.variance_along(u)),
         reported: em.expected_error,
+        stated: em.stated_error,
+        refused: !em.refusals.is_empty(),
         ls_expected: ls_expected_table_error::<7, SUIT_PARAMS>(
             &ls.table,
             samples,
@@ -369,12 +461,76 @@ pub fn grid() -> Vec<Cell> {
                         sigma,
                         noise,
                         seconds,
+                        field: Field::PAPER,
                     });
                 }
             }
         }
     }
     cells
+}
+
+/// The field cells (issue 30): a real suit's sensors ([`Field::SENSOR`]: 50 Hz, the drift in
+/// the reading, reading noise), 0.5 mm / 1 mrad pose noise, 30 s, τ = 1 s and σ = 7 mrad unless
+/// the cell's name says otherwise. Each with its name.
+pub fn field_grid() -> Vec<(&'static str, Cell)> {
+    let base = Cell {
+        tau: 1.0,
+        sigma: 7e-3,
+        noise: (5e-4, 1e-3),
+        seconds: 30.0,
+        field: Field::SENSOR,
+    };
+    let with = |f: Field| Cell { field: f, ..base };
+    let bias = |ramp: f64, walk: f64| {
+        with(Field {
+            bias: RateBias { ramp, walk },
+            ..Field::SENSOR
+        })
+    };
+    let glitch = |probability: f64| {
+        with(Field {
+            outliers: Outliers {
+                probability,
+                burst: 1,
+                position: 0.02,
+                rotation: 0.02,
+            },
+            ..Field::SENSOR
+        })
+    };
+    std::vec![
+        (
+            "the paper's Section 4 (100 Hz, drift in the arm, no noise, 20 s)",
+            Cell {
+                tau: 1.0,
+                sigma: 1.0,
+                noise: (0.0, 0.0),
+                seconds: 20.0,
+                field: Field::PAPER,
+            },
+        ),
+        ("paper-like (τ 1 s, σ 7 mrad)", base),
+        (
+            "no pose noise",
+            Cell {
+                noise: (0.0, 0.0),
+                ..base
+            }
+        ),
+        ("15 s session", Cell { seconds: 15.0, ..base }),
+        ("fast drift τ 0.3 s", Cell { tau: 0.3, ..base }),
+        ("slow drift τ 3 s", Cell { tau: 3.0, ..base }),
+        ("slow drift τ 10 s", Cell { tau: 10.0, ..base }),
+        ("bias ramp 0.005 °/s", bias(0.005f64.to_radians(), 0.0)),
+        ("bias ramp 0.02 °/s", bias(0.02f64.to_radians(), 0.0)),
+        ("bias walk 2e-5 rad/s/√s", bias(0.0, 2e-5)),
+        ("bias walk 1e-4 rad/s/√s", bias(0.0, 1e-4)),
+        ("ramp 0.01 °/s + walk 5e-5", bias(0.01f64.to_radians(), 5e-5)),
+        ("glitches 1% (2 cm, 20 mrad)", glitch(0.01)),
+        ("glitches 5% (2 cm, 20 mrad)", glitch(0.05)),
+        ("no drift", Cell { sigma: 0.0, ..base }),
+    ]
 }
 
 #[cfg(test)]
@@ -389,6 +545,7 @@ mod tests {
             sigma: 1.0,
             noise: (1e-3, 2e-3),
             seconds: 10.0,
+            field: Field::PAPER,
         };
         let s = session(&cell, 1).unwrap();
         assert!(s.bound.position_m > 0.0 && s.bound.rotation_rad > 0.0, "{s:?}");
@@ -407,6 +564,7 @@ mod tests {
                 sigma,
                 noise: (1e-3, 2e-3),
                 seconds: 20.0,
+                field: Field::PAPER,
             };
             let sessions: Vec<Session> = (1..=4).map(|seed| session(&cell, seed).unwrap()).collect();
             let s = Summary::of(&sessions);
@@ -438,6 +596,7 @@ mod tests {
             sigma: 1.0,
             noise: (1e-3, 2e-3),
             seconds: 10.0,
+            field: Field::PAPER,
         };
         let sessions: Vec<Session> = (1..=50).map(|seed| session(&cell, seed).unwrap()).collect();
         let s = Summary::of(&sessions);
@@ -479,6 +638,7 @@ mod tests {
             sigma: 1.0,
             noise: (1e-3, 2e-3),
             seconds: 0.0,
+            field: Field::PAPER,
         };
         let rule = |mm, mrad| StopRule {
             min_s: 4.0,
