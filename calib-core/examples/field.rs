@@ -7,26 +7,13 @@
 
 use std::time::Instant;
 
-use calib_core::sweep::{field_grid, session_with, Session};
+use calib_core::sweep::{field_grid, pooled, session_with, Session};
 use calib_core::DriftEmOptions;
 use calib_core::TableError;
 
 fn arg(name: &str) -> Option<String> {
     let a: Vec<String> = std::env::args().collect();
     a.iter().position(|x| x == name).and_then(|i| a.get(i + 1)).cloned()
-}
-
-/// `√(Σ a² / Σ b²)` per component: the pooled ratio of RMS errors.
-fn pooled(s: &[Session], a: impl Fn(&Session) -> TableError, b: impl Fn(&Session) -> TableError) -> (f64, f64) {
-    let sum = |f: &dyn Fn(&Session) -> TableError| {
-        s.iter().fold((0.0, 0.0), |(p, r), x| {
-            let e = f(x);
-            (p + e.position_m.powi(2), r + e.rotation_rad.powi(2))
-        })
-    };
-    let (ap, ar) = sum(&a);
-    let (bp, br) = sum(&b);
-    ((ap / bp).sqrt(), (ar / br).sqrt())
 }
 
 /// The EM's options without the parts named in `without` (comma-separated: `rate-bias`,
@@ -80,8 +67,10 @@ fn main() {
                 }
             }
         }
-        let rs = pooled(&sessions, |s| s.em, |s| s.stated);
+        // A refused session states nothing: real ÷ stated is over the accepted ones.
         let refused = sessions.iter().filter(|s| s.refused).count();
+        let accepted: Vec<Session> = sessions.iter().filter(|s| !s.refused).copied().collect();
+        let rs = pooled(&accepted, |s| s.em, |s| s.stated);
         let vl = pooled(&sessions, |s| s.em, |s| s.ls);
         let vb = pooled(&sessions, |s| s.em, |s| s.bound);
         let real = pooled(

@@ -65,7 +65,7 @@ pub use crate::kalman::{DriftSlot, Trend, RATE_BIAS_TERMS};
 use crate::linalg::{Analysis, QrAccumulator};
 use crate::ls::{positive, validate_samples, InputChecks};
 use crate::metrics::{expected_table_error, TableError};
-use crate::model::{DhTable, ParamKind, Sample};
+use crate::model::{DhTable, Sample};
 use crate::paper_em::MAX_EM_ITERATIONS;
 
 const M: usize = RATE_BIAS_TERMS;
@@ -179,6 +179,10 @@ pub struct DriftEmOptions<const N: usize> {
     /// Refuse ([`Refusal::Inconsistent`]) when a joint's normalised drift innovations have
     /// more than this many times their long-run variance under the model.
     pub max_inconsistency: f64,
+    /// Refuse ([`Refusal::Jump`]) when a joint's normalised drift innovation exceeds this many
+    /// standard deviations (a standard normal under the model: above 6 about once in 10⁹
+    /// samples).
+    pub max_jump: f64,
 }
 
 impl<const N: usize> DriftEmOptions<N> {
@@ -206,6 +210,7 @@ impl<const N: usize> DriftEmOptions<N> {
             rate_bias_spec: RateBias::NONE,
             max_discounted_share: 0.1,
             max_inconsistency: 9.0,
+            max_jump: 6.0,
         }
     }
 
@@ -327,9 +332,11 @@ pub struct JointConsistency {
     pub long_run: f64,
     /// Lag-one autocorrelation of those innovations (0 under the model).
     pub lag1: f64,
-    /// The factor the variance of the joint's θ offset was inflated by in the stated error
-    /// (1: consistent).
-    pub inflation: f64,
+    /// The largest |normalised innovation| (a standard normal under the model: about 4 at most
+    /// in a few thousand samples) and the sample it was at: a jump of the joint's angle error.
+    pub largest: f64,
+    /// The sample of `largest`.
+    pub at: usize,
 }
 
 /// Consistency of the fitted model with the data (final filter pass, every sample).
@@ -341,11 +348,9 @@ pub struct Consistency<const N: usize> {
     pub pose_nis: [f64; 6],
     /// Per pose component: long-run variance of the standardised innovations (batch means).
     pub pose_long_run: [f64; 6],
-    /// Batch-means blocks.
+    /// Batch-means blocks (a long-run variance estimate has a relative standard deviation of
+    /// `√(2 / blocks)` under the model).
     pub blocks: usize,
-    /// A long-run variance above `1 + 2·√(2 / blocks)` is taken as inconsistent (2σ of the
-    /// batch-means estimate under the model).
-    pub threshold: f64,
 }
 
 /// Why the data contradict the model (the session should be refused; [`DriftEmResult::refusals`]).
@@ -359,6 +364,16 @@ pub enum Refusal {
         samples: usize,
         /// The share allowed.
         limit: f64,
+    },
+    /// A joint's angle error jumped (see [`JointConsistency::largest`]): a sensor that slipped or
+    /// was re-zeroed during the session.
+    Jump {
+        /// The joint (0-based).
+        joint: usize,
+        /// The sample it jumped at.
+        sample: usize,
+        /// The jump's normalised innovation (standard deviations).
+        sigma: f64,
     },
     /// A joint's drift does not follow its model (see [`JointConsistency::long_run`]).
     Inconsistent {
@@ -379,6 +394,11 @@ impl core::fmt::Display for Refusal {
                 "{count} of {samples} reference poses ({:.1}%) look like glitches, more than the {:.0}% allowed: check the tracker's line of sight and mounting",
                 100.0 * count as f64 / samples.max(1) as f64,
                 100.0 * limit
+            ),
+            Refusal::Jump { joint, sample, sigma } => write!(
+                f,
+                "joint {}'s angle sensor jumped at sample {sample} (a {sigma:.1}σ step of its drift): a sensor that slipped or was re-zeroed; re-seat it and calibrate again",
+                joint + 1
             ),
             Refusal::Inconsistent { joint, long_run, limit } => write!(
                 f,
@@ -442,8 +462,8 @@ pub struct DriftEmResult<const N: usize> {
     /// rotation error its FK would have against the true table ([`crate::metrics`]).
     pub expected_error: TableError,
     /// The expected table error to state (1σ): [`DriftEmResult::expected_error`] with the
-    /// uncertainty of the drift-model choice (each joint's other model at its BIC weight) and
-    /// inflated where the data contradict the model ([`JointConsistency::inflation`]).
+    /// uncertainty of the drift-model choice (the model not chosen at its BIC weight: its
+    /// covariance and the difference of its table).
     pub stated_error: TableError,
     /// Per joint, the drift model and why.
     pub models: [JointDrift; N],
@@ -751,11 +771,6 @@ fn restride<const N: usize>(par: &Params<N>, from: usize, to: usize) -> Params<N
 /// SQUAREM's extrapolation steps are bounded by this, then by four times more after each
 /// extrapolation that used the whole bound (the scheme of Varadhan & Roland's `squarem`).
 const STEP_MAX0: f64 = 1.0;
-
-/// Column of joint `j`'s θ offset in the geometry.
-fn theta_column<const N: usize>(j: usize) -> usize {
-    ParamKind::Theta as usize * N + j
-}
 
 /// Weight of the richer model given its `2 Δ ln L` statistic and threshold.
 fn rich_weight(statistic: f64, threshold: f64) -> f64 {
@@ -1235,6 +1250,7 @@ pub fn em_drift<const N: usize, const P: usize>(
         && positive(opts.rank_tolerance)
         && positive(opts.max_discounted_share)
         && positive(opts.max_inconsistency)
+        && positive(opts.max_jump)
         && opts.max_stride > 0
         && opts.max_iterations > 0
         && opts.max_iterations < MAX_EM_ITERATIONS;
@@ -1508,42 +1524,28 @@ fn finish<const N: usize, const P: usize>(
         m
     });
 
-    // Consistency: per joint, the long-run variance of its normalised drift innovations; an
-    // inconsistent joint's θ-offset variance is inflated by it in the stated error.
-    let blocks = inn.blocks;
-    let limit = 1.0 + 2.0 * libm::sqrt(2.0 / blocks.max(1) as f64);
+    // Consistency: per joint, its normalised drift innovations' long-run variance and largest
+    // value; per pose component, its standardised innovations'.
     let joints: [JointConsistency; N] = core::array::from_fn(|j| {
-        let JointInnovations { long_run, lag1 } = inn.joints[j];
+        let JointInnovations {
+            long_run,
+            lag1,
+            largest,
+            at,
+        } = inn.joints[j];
         JointConsistency {
             long_run,
             lag1,
-            inflation: if long_run > limit { long_run } else { 1.0 },
+            largest,
+            at,
         }
     });
     let consistency = Consistency {
         joints,
         pose_nis: inn.pose_nis,
         pose_long_run: inn.pose_long_run,
-        blocks,
-        threshold: limit,
+        blocks: inn.blocks,
     };
-    let inflated: heapless::Vec<(f64, [f64; P]), N> = joints
-        .iter()
-        .enumerate()
-        .filter(|(_, c)| c.inflation > 1.0)
-        .map(|(j, c)| {
-            let mut e = [0.0; P];
-            e[theta_column::<N>(j)] = 1.0;
-            let col = info.an.solve(&e);
-            let var = col[theta_column::<N>(j)];
-            let scale = if var > 0.0 {
-                libm::sqrt((c.inflation - 1.0) / var)
-            } else {
-                0.0
-            };
-            (scale, col)
-        })
-        .collect();
 
     let pose_stride = kn.div_ceil(EXPECTED_ERROR_POSES);
     let poses = || samples.iter().step_by(pose_stride).map(|s| &s.joints);
@@ -1554,10 +1556,6 @@ fn finish<const N: usize, const P: usize>(
         if let Some((w, alt, dx)) = &alternative {
             let d: f64 = u.iter().zip(dx).map(|(a, b)| a * b).sum();
             v += w * (alt.an.variance_along(u) - v0) + w * (1.0 - w) * d * d;
-        }
-        for (scale, col) in &inflated {
-            let d: f64 = u.iter().zip(col).map(|(a, b)| a * b).sum::<f64>() * scale;
-            v += d * d;
         }
         v
     });
@@ -1590,6 +1588,13 @@ fn finish<const N: usize, const P: usize>(
         });
     }
     for (j, c) in joints.iter().enumerate() {
+        if c.largest > opts.max_jump {
+            let _ = refusals.push(Refusal::Jump {
+                joint: j,
+                sample: c.at,
+                sigma: c.largest,
+            });
+        }
         if c.long_run > opts.max_inconsistency {
             let _ = refusals.push(Refusal::Inconsistent {
                 joint: j,

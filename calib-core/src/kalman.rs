@@ -387,6 +387,9 @@ pub(crate) fn filter_robust<const N: usize, const P: usize>(
 pub(crate) struct JointInnovations {
     pub long_run: f64,
     pub lag1: f64,
+    /// The largest |normalised innovation| and its sample.
+    pub largest: f64,
+    pub at: usize,
 }
 
 /// What [`consistency`] measures.
@@ -438,6 +441,7 @@ pub(crate) fn consistency<const N: usize>(
     let mut f = Filter::start(par);
     let mut ll = 0.0;
     let mut joint = [Batch::default(); N];
+    let mut largest = [(0.0f64, 0usize); N];
     let mut pose = [Batch::default(); 6];
     let mut z = [0.0; 6];
     for (k, slot) in slots.iter().enumerate() {
@@ -446,14 +450,19 @@ pub(crate) fn consistency<const N: usize>(
         }
         let (m0, p0) = (f.m, core::array::from_fn::<f64, N, _>(|j| f.p[j][j]));
         observe_sample(&mut f, slot, par, &mut ll, Some(&mut z))?;
-        if k >= used {
-            continue;
-        }
-        let close = (k + 1) % len == 0;
+        let close = (k + 1) % len == 0 && k < used;
         for j in 0..N {
             let v = p0[j] - f.p[j][j];
             let u = if v > 0.0 { (f.m[j] - m0[j]) / libm::sqrt(v) } else { 0.0 };
-            joint[j].add(u, close, len as f64);
+            if u.abs() > largest[j].0 {
+                largest[j] = (u.abs(), k);
+            }
+            if k < used {
+                joint[j].add(u, close, len as f64);
+            }
+        }
+        if k >= used {
+            continue;
         }
         for i in 0..6 {
             pose[i].add(z[i], close, len as f64);
@@ -467,6 +476,8 @@ pub(crate) fn consistency<const N: usize>(
             joints: core::array::from_fn(|j| JointInnovations {
                 long_run: joint[j].blocks / b,
                 lag1: lag(&joint[j]),
+                largest: largest[j].0,
+                at: largest[j].1,
             }),
             pose_nis: core::array::from_fn(|i| pose[i].sum2 / used.max(1) as f64),
             pose_long_run: core::array::from_fn(|i| pose[i].blocks / b),

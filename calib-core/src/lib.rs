@@ -98,7 +98,8 @@ pub use ls::{
     LsOptions, LsResult, NullDirection, Sequential,
 };
 pub use metrics::{
-    expected_table_error, ls_expected_table_error, objective_y, objective_y_corrected, table_error, ParamErrors, TableError,
+    expected_table_error, ls_expected_table_error, ls_white_expected_error, objective_y, objective_y_corrected, table_error,
+    ParamErrors, TableError,
 };
 pub use model::{
     bound_violations, check_bounds, clamp_to_bounds, pose_error, BoundViolation, Bounds, DhRow, DhTable, Frame, JointRanges,
@@ -107,4 +108,4 @@ pub use model::{
 pub use paper_em::{paper_em, PaperEmForm, PaperEmOptions, PaperEmResult, MAX_EM_ITERATIONS};
 pub use reading::{separate, JointSeparation, SeparationSlot};
 pub use rng::Rng;
-pub use sim::{DriftSite, Motion, Outliers, Scenario, ScenarioConfig, SimSample};
+pub use sim::{DriftSite, Motion, Outliers, Scenario, ScenarioConfig, SimSample, Slip};

@@ -16,6 +16,7 @@
 //!   reports the smooth motion θ, the arm is at θ + Δθ) or in the reading (a real sensor and the
 //!   emulated suit: the arm is at the smooth motion q, the sensor reports q − Δθ).
 //! * **Reading noise**: white noise on every reported angle ([`ScenarioConfig::reading_noise`]).
+//! * **A slip** ([`Slip`]): one joint's angle error steps mid-session and stays.
 //! * **The reference pose** is `FK(actual, arm angles)`, plus optional white noise (rotation
 //!   applied in the tool frame) and **glitches** ([`Outliers`]: with a given probability a run
 //!   of samples jumps by a random cm-sized offset, as an occluded or knocked tracker gives).
@@ -112,6 +113,18 @@ impl Outliers {
     };
 }
 
+/// A joint sensor that slips: from `time` (s) on, its angle error is `angle` (rad) larger (a
+/// strap that moves on the limb, a sensor re-zeroed mid-session).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Slip {
+    /// The joint (0-based).
+    pub joint: usize,
+    /// When (s from the session's start).
+    pub time: f64,
+    /// By how much (rad).
+    pub angle: f64,
+}
+
 /// Settings of the simulated session (module docs).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ScenarioConfig<const N: usize> {
@@ -133,6 +146,8 @@ pub struct ScenarioConfig<const N: usize> {
     pub rotation_noise: f64,
     /// Glitches of the measured pose.
     pub outliers: Outliers,
+    /// A sensor that slips during the session.
+    pub slip: Option<Slip>,
 }
 
 impl ScenarioConfig<7> {
@@ -149,6 +164,7 @@ impl ScenarioConfig<7> {
             position_noise: 0.0,
             rotation_noise: 0.0,
             outliers: Outliers::NONE,
+            slip: None,
         }
     }
 }
@@ -240,7 +256,11 @@ impl<const N: usize> Iterator for Scenario<N> {
         let cfg = self.config;
         let t = self.k as f64 * cfg.drift.dt;
         let smooth = self.motion.at(t);
-        let error: [f64; N] = core::array::from_fn(|j| self.drift[j] + self.integrated[j]);
+        let slip = |j: usize| match cfg.slip {
+            Some(s) if s.joint == j && t >= s.time => s.angle,
+            _ => 0.0,
+        };
+        let error: [f64; N] = core::array::from_fn(|j| self.drift[j] + self.integrated[j] + slip(j));
         let (arm, mut joints) = match cfg.site {
             DriftSite::Arm => (core::array::from_fn(|j| smooth[j] + error[j]), smooth),
             DriftSite::Reading => (smooth, core::array::from_fn(|j| smooth[j] - error[j])),

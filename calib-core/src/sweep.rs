@@ -36,7 +36,7 @@ use crate::metrics::{expected_table_error, ls_expected_table_error, table_error,
 use crate::model::{DhTable, ParamKind, Sample, SUIT_PARAMS};
 use crate::reading::{separate, SeparationSlot};
 use crate::rng::Rng;
-use crate::sim::{DriftSite, Motion, Outliers, RateBias, Scenario, ScenarioConfig, SimSample};
+use crate::sim::{DriftSite, Motion, Outliers, RateBias, Scenario, ScenarioConfig, SimSample, Slip};
 
 /// Fresh poses every table error is averaged over.
 pub const FRESH_POSES: usize = 200;
@@ -76,6 +76,8 @@ pub struct Field {
     pub reading_noise: f64,
     /// Glitches of the reference pose.
     pub outliers: Outliers,
+    /// A sensor that slips during the session.
+    pub slip: Option<Slip>,
 }
 
 impl Field {
@@ -88,6 +90,7 @@ impl Field {
         bias: RateBias::NONE,
         reading_noise: 0.0,
         outliers: Outliers::NONE,
+        slip: None,
     };
 
     /// A real suit's sensors: 50 Hz, σ the stationary deviation (rad), the drift in the reading,
@@ -99,6 +102,7 @@ impl Field {
         bias: RateBias::NONE,
         reading_noise: 2e-4,
         outliers: Outliers::NONE,
+        slip: None,
     };
 }
 
@@ -179,6 +183,7 @@ impl Simulation {
             position_noise: cell.noise.0,
             rotation_noise: cell.noise.1,
             outliers: f.outliers,
+            slip: f.slip,
             ..ScenarioConfig::paper()
         };
         let k = (cell.seconds / drift.dt).round() as usize;
@@ -388,6 +393,25 @@ pub fn good_enough(cell: &Cell, seed: u64, rule: &StopRule, fixed_s: f64) -> Goo
     GoodEnough { evaluations, fixed }
 }
 
+/// `√(Σ a² / Σ b²)` over sessions, per component (position, rotation): the ratio of two RMS
+/// errors, e.g. real ÷ stated (`|s| s.em`, `|s| s.stated`) or our table against LS's.
+pub fn pooled(sessions: &[Session], a: impl Fn(&Session) -> TableError, b: impl Fn(&Session) -> TableError) -> (f64, f64) {
+    let sum = |f: &dyn Fn(&Session) -> TableError| {
+        sessions.iter().fold((0.0, 0.0), |(p, r), x| {
+            let e = f(x);
+            (p + e.position_m * e.position_m, r + e.rotation_rad * e.rotation_rad)
+        })
+    };
+    let (ap, ar) = sum(&a);
+    let (bp, br) = sum(&b);
+    ((ap / bp).sqrt(), (ar / br).sqrt())
+}
+
+/// The field cell whose name contains `name` ([`field_grid`]).
+pub fn field_cell(name: &str) -> Option<Cell> {
+    field_grid().into_iter().find(|(n, _)| n.contains(name)).map(|(_, c)| c)
+}
+
 /// RMS over sessions of each figure (position, rotation), and the spread of EM / bound.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Summary {
@@ -510,6 +534,19 @@ pub fn field_grid() -> Vec<(&'static str, Cell)> {
                 field: Field::PAPER,
             },
         ),
+        (
+            "the paper's Section 4 with the drift in the reading (60 s)",
+            Cell {
+                tau: 1.0,
+                sigma: 1.0,
+                noise: (0.0, 0.0),
+                seconds: 60.0,
+                field: Field {
+                    site: DriftSite::Reading,
+                    ..Field::PAPER
+                },
+            },
+        ),
         ("paper-like (τ 1 s, σ 7 mrad)", base),
         (
             "no pose noise",
@@ -530,6 +567,17 @@ pub fn field_grid() -> Vec<(&'static str, Cell)> {
         ("glitches 1% (2 cm, 20 mrad)", glitch(0.01)),
         ("glitches 5% (2 cm, 20 mrad)", glitch(0.05)),
         ("no drift", Cell { sigma: 0.0, ..base }),
+        (
+            "a sensor slips 20 mrad mid-session (joint 2)",
+            with(Field {
+                slip: Some(Slip {
+                    joint: 1,
+                    time: 15.0,
+                    angle: 0.02,
+                }),
+                ..Field::SENSOR
+            }),
+        ),
     ]
 }
 
@@ -691,5 +739,203 @@ mod tests {
             ..StopRule::new(2.0, 6.0)
         };
         assert_eq!(odd.times(), [15.0, 20.0, 22.0]);
+    }
+}
+
+/// Issue 30: the stated accuracy holds on the field cells (a real suit's sensors: 50 Hz, the
+/// drift in the reading, 30 s). 8 seeds per cell (`cargo run -p calib-core --release --example
+/// field` has the whole table); each test fails without the part of the model it names.
+#[cfg(test)]
+mod field_tests {
+    use super::*;
+    use crate::drift_em::{DriftEmOptions, DriftModel, Refusal};
+
+    const SEEDS: u64 = 8;
+
+    fn sessions(name: &str, options: impl Fn(DriftEmOptions<7>) -> DriftEmOptions<7>) -> Vec<Session> {
+        let cell = field_cell(name).expect("a field cell");
+        (1..=SEEDS).map(|seed| session_with(&cell, seed, &options).unwrap()).collect()
+    }
+
+    fn accepted(s: &[Session]) -> Vec<Session> {
+        s.iter().filter(|s| !s.refused).copied().collect()
+    }
+
+    /// The reduced field sweep (issue 30's "done when"): on the paper-like, slow-drift, glitching
+    /// and rate-bias (with the sensors' spec) cells, real ÷ stated ≤ 1.25 and our table no worse
+    /// than LS's. Measured (8 seeds; position / rotation): real ÷ stated 0.89 / 1.03, 0.72 / 0.96,
+    /// 1.02 / 1.01, 0.77 / 0.89; ours ÷ LS 0.66 / 0.75, 0.86 / 0.96, 0.67 / 0.82, 0.49 / 0.55.
+    #[test]
+    fn reduced_field_sweep_the_stated_error_holds_and_beats_ls() {
+        for (name, spec) in [
+            ("paper-like", false),
+            ("slow drift τ 10 s", false),
+            ("glitches 5%", false),
+            ("bias ramp 0.02", true),
+        ] {
+            let cell = field_cell(name).unwrap();
+            let all = sessions(name, |o| {
+                if spec {
+                    DriftEmOptions {
+                        rate_bias_spec: cell.field.bias,
+                        ..o
+                    }
+                } else {
+                    o
+                }
+            });
+            let ok = accepted(&all);
+            assert_eq!(ok.len(), all.len(), "{name}: refused");
+            let (rp, rr) = pooled(&ok, |s| s.em, |s| s.stated);
+            let (lp, lr) = pooled(&ok, |s| s.em, |s| s.ls);
+            std::eprintln!("{name}: real / stated {rp:.2} / {rr:.2}, ours / LS {lp:.2} / {lr:.2}");
+            assert!(rp <= 1.25 && rr <= 1.25, "{name}: real / stated {rp:.2} / {rr:.2}");
+            assert!(lp <= 1.0 && lr <= 1.0, "{name}: ours / LS {lp:.2} / {lr:.2}");
+        }
+    }
+
+    /// Item 1, the drift model as IMUs have it: with a rate bias of 0.02 °/s per joint and the
+    /// sensors' spec, the rate-bias model states what it reaches; the Gauss-Markov model alone,
+    /// told the same spec, states too little by 1.67 / 1.82 (measured) and its table is no
+    /// better than LS's.
+    #[test]
+    fn a_rate_bias_is_modelled_and_its_stated_error_holds() {
+        let cell = field_cell("bias ramp 0.02").unwrap();
+        let with_spec = |o: DriftEmOptions<7>| DriftEmOptions {
+            rate_bias_spec: cell.field.bias,
+            ..o
+        };
+        let rich = sessions("bias ramp 0.02", with_spec);
+        let plain = sessions("bias ramp 0.02", |o| DriftEmOptions {
+            rate_bias: false,
+            ..with_spec(o)
+        });
+        let (rp, rr) = pooled(&rich, |s| s.em, |s| s.stated);
+        let (pp, pr) = pooled(&plain, |s| s.em, |s| s.stated);
+        std::eprintln!("real / stated: rate bias {rp:.2} / {rr:.2}, Gauss-Markov {pp:.2} / {pr:.2}");
+        assert!(rp <= 1.15 && rr <= 1.15, "rate bias: {rp:.2} / {rr:.2}");
+        assert!(pp > 1.4 && pr > 1.4, "Gauss-Markov alone: {pp:.2} / {pr:.2}");
+        // A rate bias large enough to see is found without a spec, on every joint.
+        let big = Cell {
+            field: Field {
+                bias: RateBias {
+                    ramp: 0.1f64.to_radians(),
+                    walk: 0.0,
+                },
+                ..Field::SENSOR
+            },
+            ..cell
+        };
+        let sim = Simulation::new(&big, 1);
+        let (_, em) = sim.fit(&sim.samples).unwrap();
+        assert!(
+            em.models.iter().all(|m| m.model == DriftModel::RateBias),
+            "{:?}",
+            em.models[0]
+        );
+    }
+
+    /// Item 2, a reference that glitches: 5% of the poses 2 cm / 20 mrad off. The heavy-tailed
+    /// model discounts exactly the glitched samples and the stated error holds; a Gaussian
+    /// reference takes the glitches for jumps of the joints and every session is refused; with
+    /// more glitches than `max_discounted_share` (10%) the session is refused for that.
+    #[test]
+    fn glitches_are_discounted_counted_and_too_many_refused() {
+        let cell = field_cell("glitches 5%").unwrap();
+        for seed in 1..=3 {
+            let sim = Simulation::new(&cell, seed);
+            let mut ws = std::vec![crate::DriftSlot::default(); sim.samples.len()];
+            let ls = identify_ls::<7, SUIT_PARAMS>(&DhTable::paper_nominal(), &sim.samples, &LsOptions::new()).unwrap();
+            let em =
+                crate::em_drift::<7, SUIT_PARAMS>(&ls.table, &sim.samples, &DriftEmOptions::new(sim.drift.dt), &mut ws).unwrap();
+            let discounted: Vec<usize> = crate::discounted_samples(&ws).collect();
+            let glitched: Vec<usize> = sim.glitched.iter().enumerate().filter(|(_, g)| **g).map(|(k, _)| k).collect();
+            assert_eq!(discounted, glitched, "seed {seed}");
+            assert_eq!(em.discounted.count, glitched.len());
+            assert!(em.refusals.is_empty(), "{:?}", em.refusals);
+        }
+        let gaussian = sessions("glitches 5%", |o| DriftEmOptions { robust: false, ..o });
+        assert!(
+            gaussian.iter().all(|s| s.refused),
+            "a Gaussian reference accepted a glitching session"
+        );
+        let many = Cell {
+            field: Field {
+                outliers: Outliers {
+                    probability: 0.15,
+                    ..cell.field.outliers
+                },
+                ..cell.field
+            },
+            ..cell
+        };
+        let sim = Simulation::new(&many, 1);
+        let (_, em) = sim.fit(&sim.samples).unwrap();
+        assert!(
+            matches!(em.refusals[0], Refusal::TooManyDiscounted { count, .. } if count > 150),
+            "{:?}",
+            em.refusals
+        );
+        std::eprintln!("{}", em.refusals[0]);
+    }
+
+    /// Item 4, a stated error that holds where the drift is slow (τ = 10 s over 30 s): the
+    /// restricted (REML) drift parameters count the θ offsets' uncertainty; maximum likelihood
+    /// fits τ and σ low and states too little (measured 1.58 / 1.85 against 0.72 / 0.96).
+    #[test]
+    fn with_slow_drift_the_restricted_drift_parameters_state_what_is_reached() {
+        let reml = sessions("slow drift τ 10 s", |o| o);
+        let ml = sessions("slow drift τ 10 s", |o| DriftEmOptions { restricted: false, ..o });
+        let (rp, rr) = pooled(&reml, |s| s.em, |s| s.stated);
+        let (mp, mr) = pooled(&ml, |s| s.em, |s| s.stated);
+        std::eprintln!("real / stated: REML {rp:.2} / {rr:.2}, ML {mp:.2} / {mr:.2}");
+        assert!(rp <= 1.15 && rr <= 1.15, "REML {rp:.2} / {rr:.2}");
+        assert!(mp > 1.3 && mr > 1.3, "ML {mp:.2} / {mr:.2}");
+    }
+
+    /// Item 4, the data contradicting the model: a joint sensor that slips 20 mrad mid-session
+    /// is refused, naming the joint and the sample.
+    #[test]
+    fn a_sensor_that_slips_is_refused_naming_the_joint() {
+        let cell = field_cell("slips").unwrap();
+        for seed in 1..=2 {
+            let sim = Simulation::new(&cell, seed);
+            let (_, em) = sim.fit(&sim.samples).unwrap();
+            let jump = em.refusals.iter().find_map(|r| match *r {
+                Refusal::Jump { joint, sample, .. } => Some((joint, sample)),
+                _ => None,
+            });
+            let (joint, sample) = jump.unwrap_or_else(|| panic!("not refused: {:?}", em.consistency));
+            assert_eq!(joint, 1);
+            assert!((sample as f64 * sim.drift.dt - 15.0).abs() < 0.1, "sample {sample}");
+            std::eprintln!("{}", em.refusals[0]);
+        }
+    }
+
+    /// Degenerate drift never leaves a session without an expected accuracy: no drift, no pose
+    /// noise, no reading noise at all (the EM's drift and noise go to their floors).
+    #[test]
+    fn a_session_without_drift_or_noise_has_an_expected_accuracy() {
+        let cell = Cell {
+            sigma: 0.0,
+            noise: (0.0, 0.0),
+            field: Field {
+                reading_noise: 0.0,
+                ..Field::SENSOR
+            },
+            ..field_cell("no drift").unwrap()
+        };
+        for seed in 1..=3 {
+            let sim = Simulation::new(&cell, seed);
+            let (ls, em) = sim.fit(&sim.samples).unwrap();
+            let e = em.stated_error;
+            assert!(
+                e.position_m.is_finite() && e.rotation_rad.is_finite() && e.position_m > 0.0,
+                "{e:?}"
+            );
+            assert!(sim.table_error(&em.table).position_m < 1e-6);
+            let white = crate::ls_white_expected_error::<7, SUIT_PARAMS>(&ls.table, &sim.samples).unwrap();
+            assert!(white.position_m.is_finite() && white.position_m < 1e-6, "{white:?}");
+        }
     }
 }
