@@ -2,7 +2,8 @@
 //! against the bound, on a real suit's sensors (see `calib_core::sweep::field_grid`).
 //!
 //! `cargo run -p calib-core --release --example field [-- --seeds N] [--only SUBSTRING]
-//! [--without rate-bias,robust,relinearise,restricted|all] [--spec]` (`--spec`: the EM is told
+//! [--without rate-bias,robust,restricted|all[,+relinearise]] [--spec]` (`+relinearise` turns the
+//! re-linearisation at the smoothed drift on) (`--spec`: the EM is told
 //! the sensors' rate bias, `DriftEmOptions::rate_bias_spec`, as the cell simulates it)
 
 use std::time::Instant;
@@ -27,6 +28,8 @@ fn variant(o: DriftEmOptions<7>, without: &str) -> DriftEmOptions<7> {
             "relinearise" => o.relinearisations = 0,
             "restricted" => o.restricted = false,
             "all" => o = DriftEmOptions::plain(o.dt),
+            // Not a removal: the re-linearisation is off by default; this turns it on.
+            "+relinearise" => o.relinearisations = 2,
             "" => {}
             other => panic!("--without {other}?"),
         }

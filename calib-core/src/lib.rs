@@ -12,17 +12,18 @@
 //! | pose error (tool frame: position, rotation vector) | [`pose_error`] |
 //! | anatomical bounds (Table 2) and ranges (Table 3) | [`Bounds::paper`], [`check_bounds`], [`JointRanges::paper`] |
 //! | a calibration sample | [`Sample`] `{ joints: [f64; N], pose: Frame }` |
-//! | Gauss-Markov drift and the Section 4 simulator | [`GaussMarkov`], [`Scenario`] |
+//! | Gauss-Markov drift, rate bias, and the seeded session simulator (drift in the arm or the reading, reading noise, glitches, slips) | [`GaussMarkov`], [`RateBias`], [`Scenario`], [`ScenarioConfig`], [`DriftSite`], [`Outliers`], [`Slip`] |
 //! | least squares | [`identify_ls`]`::<N, P>(&start, &samples, &LsOptions) -> Result<LsResult, CalibError>` |
 //! | least squares with the per-sample work split by the caller (e.g. over cores) | [`identify_ls_with`], [`Linearise`], [`normal_equations`], [`GramAccumulator::merge`] |
 //! | least squares with base and tool frames (`P = 4N + 12`) | [`identify_ls_frames`] |
 //! | the paper's EM (eqs. 33–36) | [`paper_em()`] |
 //! | the drift's rough part out of the readings, before LS and the EM | [`separate()`], [`SeparationSlot`] |
-//! | our EM (Kalman + RTS smoother over the drift) | [`em_drift()`] |
+//! | our EM (Kalman + RTS smoother over the drift; drift model per joint, Student-t reference, REML drift, stated error, refusals: the contract is in [`drift_em`]) | [`em_drift()`], [`DriftEmResult::stated_error`], [`JointDrift`], [`Discounted`], [`Consistency`], [`Refusal`] |
+//! | what LS alone is worth when the EM gives no figure | [`ls_white_expected_error`] |
 //! | confidence intervals of its τ, σ per joint | [`drift_confidence()`], [`DriftConfidence`] |
 //! | objective y (eq. 10) and parameter errors | [`objective_y`], [`ParamErrors`] |
 //! | table error, expected table error, the Cramér-Rao bound | [`table_error`], [`DriftEmResult::expected_error`], [`cramer_rao()`] |
-//! | the accuracy sweep (std) | `sweep` |
+//! | the accuracy sweep and its field cells (std) | `sweep` |
 //!
 //! # Quick start
 //! ```
