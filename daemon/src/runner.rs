@@ -52,6 +52,8 @@ pub const CONDITION_EVERY_S: f64 = 10.0;
 /// Bus-clock seconds between two estimates of the expected table error, when the session
 /// stops when good enough (`session.stop_at_expected_error`).
 pub const EXPECTED_EVERY_S: f64 = 5.0;
+/// Records written in one go between two housekeeping turns ([`Io::between_records`]).
+pub const RECORDS_PER_TURN: usize = 256;
 /// Samples (at most) the in-collection condition estimate runs LS on.
 pub const CONDITION_SAMPLES: usize = 600;
 
@@ -291,6 +293,15 @@ impl Io<'_> {
         self.notifier.watchdog(now);
     }
 
+    /// Between two of many records written in one go (a session's aligned samples, its arm
+    /// on the calibrated table): every [`RECORDS_PER_TURN`] records, the housekeeping turn
+    /// (flush, watchdog), so a long session's log writing cannot starve the watchdog.
+    fn between_records(&mut self, written: usize) {
+        if written % RECORDS_PER_TURN == RECORDS_PER_TURN - 1 {
+            self.housekeeping();
+        }
+    }
+
     fn event(&mut self, t: Duration, level: Level, message: &str) {
         if level >= Level::Warning {
             self.reporter.message(message);
@@ -451,6 +462,7 @@ pub async fn run_session_with<T: Transport>(
         config,
         io: &mut io,
         collector: Collector::new(config),
+        origin: Duration::ZERO,
         tick,
         summary: SessionSummary::new(log_path),
     };
@@ -494,6 +506,8 @@ struct Live<'a, 'io, T> {
     config: &'a Config,
     io: &'a mut Io<'io>,
     collector: Collector,
+    /// Bus time of the collection's first frame: aligned sample times are relative to it.
+    origin: Duration,
     tick: tokio::time::Interval,
     summary: SessionSummary,
 }
@@ -511,7 +525,7 @@ impl<T: Transport> Live<'_, '_, T> {
             return Err(e);
         }
         let window_closed = (Instant::now(), self.clock.monotonic());
-        let collected = self.align();
+        let collected = self.align(shutdown.as_mut()).await?;
         self.summary.collected(&collected);
         let calibrated = self.calibrate(&collected, shutdown.as_mut()).await?;
         self.log_result(&collected, &calibrated);
@@ -578,8 +592,11 @@ impl<T: Transport> Live<'_, '_, T> {
                         Phase::Collecting => {}
                         Phase::Ready => break,
                         Phase::Failed(why) => {
+                            if let Some(job) = estimate_job.take() {
+                                job.abort();
+                            }
                             self.summary.frames = self.collector.ingest.stats().clone();
-                            self.session_report(&why);
+                            self.session_report(&why, shutdown.as_mut()).await?;
                             return Err(DaemonError::Session(why.join("; ")));
                         }
                     }
@@ -635,9 +652,14 @@ impl<T: Transport> Live<'_, '_, T> {
         Ok(())
     }
 
-    /// Step 2: aligns what was collected; logs the aligned samples and what the clocks showed.
-    fn align(&mut self) -> Collected {
-        let collected = self.collector.collected(self.config);
+    /// Step 2: aligns what was collected (on a blocking thread: the clock fits and the
+    /// resampling are seconds of CPU on a slow controller); logs the aligned samples and what
+    /// the clocks showed.
+    async fn align<S: Future<Output = ()>>(
+        &mut self,
+        shutdown: Pin<&mut S>,
+    ) -> Result<Collected, DaemonError> {
+        let collected = self.aligned_off_loop(shutdown).await?;
         let now = self.clock.now();
         let stalls = collected.stalls;
         if stalls.count > 0 {
@@ -664,9 +686,10 @@ impl<T: Transport> Live<'_, '_, T> {
                 self.io.event(now, Level::Warning, &line);
             }
         }
-        for s in &collected.samples {
+        for (i, s) in collected.samples.iter().enumerate() {
             let r = self.io.log.aligned(self.log_time(s.t), s);
             self.io.check(r);
+            self.io.between_records(i);
         }
         self.io.event(
             now,
@@ -678,39 +701,33 @@ impl<T: Transport> Live<'_, '_, T> {
                 collected.gaps
             ),
         );
-        collected
+        Ok(collected)
     }
 
-    /// Step 3: runs the pipeline and renders the report on a blocking thread, the bus drained
-    /// and the watchdog fed meanwhile; writes the report next to the log.
-    async fn calibrate<S: Future<Output = ()>>(
+    /// The collection, aligned on a blocking thread while the loop keeps the bus drained, the
+    /// log flushed and the watchdog fed. The collection moves to the job (no copy of a long
+    /// session); a fresh collector decodes, for the log, what arrives afterwards.
+    async fn aligned_off_loop<S: Future<Output = ()>>(
         &mut self,
-        collected: &Collected,
+        shutdown: Pin<&mut S>,
+    ) -> Result<Collected, DaemonError> {
+        self.origin = self.collector.ingest.origin().unwrap_or_default();
+        let collector = std::mem::replace(&mut self.collector, Collector::new(self.config));
+        let config = self.config.clone();
+        self.off_loop("aligning", shutdown, move || collector.collected(&config))
+            .await
+    }
+
+    /// Runs `job` on tokio's blocking pool while this thread keeps the bus drained (and
+    /// logged), the log flushed and the watchdog fed: no CPU-bound step runs on the loop's
+    /// thread, so none can starve the watchdog however slow or busy the controller.
+    async fn off_loop<R: Send + 'static, S: Future<Output = ()>>(
+        &mut self,
+        what: &str,
         mut shutdown: Pin<&mut S>,
-    ) -> Result<Calibrated, DaemonError> {
-        self.io.notifier.status("calibrating");
-        self.io
-            .reporter
-            .message("calibrating (least squares, then EM)");
-        let (calibration, source) = self.report_titles("calibration");
-        let (session, _) = self.report_titles("session");
-        let (input, cfg) = (collected.clone(), self.config.clone());
-        // The report is rendered on the blocking thread too: it is a few hundred ms of SVG.
-        let job = tokio::task::spawn_blocking(move || {
-            let calibrated = pipeline::run(&input.samples, &cfg);
-            let (title, reasons) = match &calibrated {
-                Err(e) => (session, vec![e.to_string()]),
-                Ok(_) => (calibration, Vec::new()),
-            };
-            let html = crate::calreport::render(
-                title,
-                source,
-                &cfg,
-                &input,
-                calibrated.as_ref().map_err(|_| reasons.as_slice()),
-            );
-            (calibrated, html)
-        });
+        job: impl FnOnce() -> R + Send + 'static,
+    ) -> Result<R, DaemonError> {
+        let job = tokio::task::spawn_blocking(job);
         tokio::pin!(job);
         let done = loop {
             tokio::select! {
@@ -725,10 +742,44 @@ impl<T: Transport> Live<'_, '_, T> {
                 }
             }
         };
-        let (calibrated, html) = done.map_err(|e| DaemonError::Internal {
-            what: "in the calibration task".into(),
+        done.map_err(|e| DaemonError::Internal {
+            what: format!("in the {what} task"),
             source: Box::new(e),
-        })?;
+        })
+    }
+
+    /// Step 3: runs the pipeline and renders the report on a blocking thread, the bus drained
+    /// and the watchdog fed meanwhile; writes the report next to the log.
+    async fn calibrate<S: Future<Output = ()>>(
+        &mut self,
+        collected: &Collected,
+        shutdown: Pin<&mut S>,
+    ) -> Result<Calibrated, DaemonError> {
+        self.io.notifier.status("calibrating");
+        self.io
+            .reporter
+            .message("calibrating (least squares, then EM)");
+        let (calibration, source) = self.report_titles("calibration");
+        let (session, _) = self.report_titles("session");
+        let (input, cfg) = (collected.clone(), self.config.clone());
+        // The report is rendered on the blocking thread too: it is a few hundred ms of SVG.
+        let (calibrated, html) = self
+            .off_loop("calibration", shutdown, move || {
+                let calibrated = pipeline::run(&input.samples, &cfg);
+                let (title, reasons) = match &calibrated {
+                    Err(e) => (session, vec![e.to_string()]),
+                    Ok(_) => (calibration, Vec::new()),
+                };
+                let html = crate::calreport::render(
+                    title,
+                    source,
+                    &cfg,
+                    &input,
+                    calibrated.as_ref().map_err(|_| reasons.as_slice()),
+                );
+                (calibrated, html)
+            })
+            .await?;
         // The samples would not calibrate: the report says why, as for a session that ran out
         // of time.
         self.write_report(&html, "calibration report");
@@ -739,10 +790,11 @@ impl<T: Transport> Live<'_, '_, T> {
     fn log_result(&mut self, collected: &Collected, calibrated: &Calibrated) {
         let table = calibrated.outcome.table();
         let step = ((self.config.session.grid_hz / TF_HZ).round() as usize).max(1);
-        for s in collected.samples.iter().step_by(step) {
+        for (i, s) in collected.samples.iter().step_by(step).enumerate() {
             let links = record::arm_transforms(&table, &s.joints);
             let r = self.io.log.arm_transforms(self.log_time(s.t), &links);
             self.io.check(r);
+            self.io.between_records(i);
         }
         let s = &self.summary;
         let record = record::calibration_record(
@@ -833,12 +885,25 @@ impl<T: Transport> Live<'_, '_, T> {
 
     /// The report of a session that ends without a calibration (`why`: the session rules it
     /// did not meet), next to its log as a calibrated session's would be: what the motion lacked.
-    fn session_report(&mut self, why: &[String]) {
-        let collected = self.collector.collected(self.config);
+    async fn session_report<S: Future<Output = ()>>(
+        &mut self,
+        why: &[String],
+        shutdown: Pin<&mut S>,
+    ) -> Result<(), DaemonError> {
         let (title, source) = self.report_titles("session");
-        let html = crate::calreport::render(title, source, self.config, &collected, Err(why));
+        self.origin = self.collector.ingest.origin().unwrap_or_default();
+        let collector = std::mem::replace(&mut self.collector, Collector::new(self.config));
+        let (config, why) = (self.config.clone(), why.to_vec());
+        let (collected, html) = self
+            .off_loop("session report", shutdown, move || {
+                let collected = collector.collected(&config);
+                let html = crate::calreport::render(title, source, &config, &collected, Err(&why));
+                (collected, html)
+            })
+            .await?;
         self.write_report(&html, "session report");
         self.summary.collected(&collected);
+        Ok(())
     }
 
     /// The report's title and source line for a live session.
@@ -878,8 +943,7 @@ impl<T: Transport> Live<'_, '_, T> {
 
     /// Log time of the aligned sample at `t` s of the session.
     fn log_time(&self, t: f64) -> u64 {
-        let origin = self.collector.ingest.origin().unwrap_or_default();
-        ns(origin + Duration::from_secs_f64(t.max(0.0)))
+        ns(self.origin + Duration::from_secs_f64(t.max(0.0)))
     }
 }
 
