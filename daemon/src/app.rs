@@ -190,6 +190,7 @@ pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError
         return Ok(());
     }
     let nodes: Vec<NodeId> = config
+        .calibration
         .joint_nodes
         .iter()
         .filter_map(|&n| NodeId::new(n))

@@ -14,10 +14,10 @@ use std::path::{Path, PathBuf};
 
 use exocal_report::{Quality, ReportInput, SessionInput, VerdictSummary};
 
-use crate::align::AlignedSample;
-use crate::collect::Collected;
-use crate::config::Config;
-use crate::pipeline::{timed, Calibrated};
+use exocal_session::align::AlignedSample;
+use exocal_session::collect::Collected;
+use exocal_session::pipeline::{timed, Calibrated};
+use exocal_session::Settings;
 
 /// The report next to a session log: same folder and stem, extension `html`.
 pub fn report_path_for_log(log: &Path) -> PathBuf {
@@ -28,7 +28,7 @@ pub fn report_path_for_log(log: &Path) -> PathBuf {
 pub fn report_input(
     title: String,
     source: String,
-    config: &Config,
+    settings: &Settings,
     calibrated: &Calibrated,
     quality: Quality,
 ) -> ReportInput {
@@ -36,7 +36,7 @@ pub fn report_input(
     ReportInput {
         title,
         source,
-        nominal: config.nominal,
+        nominal: settings.nominal,
         calibration: calibrated.detail.clone(),
         judged: Some(calibrated.judged),
         fit: calibrated.fit().to_vec(),
@@ -44,7 +44,7 @@ pub fn report_input(
         quality,
         verdict: Some(VerdictSummary {
             accepted: verdict.accepted(),
-            reasons: verdict.reasons.clone(),
+            reasons: verdict.reasons.iter().map(ToString::to_string).collect(),
         }),
     }
 }
@@ -54,13 +54,13 @@ pub fn report_input(
 pub fn render(
     title: String,
     source: String,
-    config: &Config,
+    settings: &Settings,
     collected: &Collected,
     calibrated: Result<&Calibrated, &[String]>,
 ) -> String {
     let quality = collected.quality.clone();
     match calibrated {
-        Ok(c) => exocal_report::html::render(&report_input(title, source, config, c, quality)),
+        Ok(c) => exocal_report::html::render(&report_input(title, source, settings, c, quality)),
         Err(why) => {
             let input = session_input(title, source, &collected.samples, why.to_vec(), quality);
             exocal_report::html::render_session(&input)

@@ -160,7 +160,7 @@ async fn session(
     // Long enough for collection, calibration and push; the hil is stopped when we are done.
     scenario.duration_s = scenario
         .duration_s
-        .max(config.session.max_duration_s + 120.0);
+        .max(config.calibration.window.max_duration_s + 120.0);
     let mut config = config.clone();
     let provisioned = if config.push.authenticate {
         config.push.keys = exocal_dbc::auth::KeySet::derived(opts.seed);

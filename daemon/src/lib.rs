@@ -2,20 +2,13 @@
 //!
 //! | module | contract |
 //! |---|---|
-//! | [`align`] | per-node clock models, resampling onto one grid |
-//! | [`ingest`] | frames → decoded messages → per-node streams; counts unknown/malformed |
 //! | [`config`] | strict TOML configuration; errors name key and line |
 //! | [`cli`] | the command line (clap) |
 //! | [`record`] | what a session records, once: the records and their content (frames, arm, calibration) |
 //! | [`recorder`] | every record to every observer: the log, the live view |
 //! | [`mcaplog`] | the per-session MCAP log (zstd chunks, flushed on an interval, protobuf with Foxglove's schemas) |
 //! | [`live`] | the live view: the session over the Foxglove WebSocket protocol (`[live]`) |
-//! | [`session`] | the collection window: coverage, sample counts, ready/failed |
 //! | [`report`] | progress bar / systemd `STATUS=` / plain lines; READY and WATCHDOG |
-//! | [`collect`] | what a session gathers, live or replayed: frames → aligned samples and their quality |
-//! | [`pipeline`] | aligned samples → split, LS, drift EM, validation, node rows, report detail (pure) |
-//! | [`parallel`] | the LS linearisation in sample blocks on several cores (std scoped threads) |
-//! | [`validate`] | bounds, condition number and held-out accuracy before any push |
 //! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
 //! | [`keys`] | the node and trigger keys, from the systemd credential `exocal-keys` |
 //! | [`serve`] | `exocald run`: which `Trigger` frames start a session (authenticated, cooldown) |
@@ -32,23 +25,18 @@
 
 #![warn(missing_docs)]
 
-pub mod align;
 pub mod app;
 pub mod calreport;
 pub mod cli;
-pub mod collect;
 pub mod config;
 #[cfg(feature = "demo")]
 pub mod demo;
 pub mod exit;
-pub mod ingest;
 pub mod keys;
 pub mod live;
 pub mod mcaplog;
 pub mod nodes;
 pub mod offline;
-pub mod parallel;
-pub mod pipeline;
 pub mod push;
 pub mod record;
 pub mod recorder;
@@ -56,7 +44,5 @@ pub mod recover;
 pub mod report;
 pub mod runner;
 pub mod serve;
-pub mod session;
 pub mod shutdown;
 pub mod summary;
-pub mod validate;

@@ -167,8 +167,8 @@ impl LiveView {
             })
         };
         let channels = build().map_err(err)?;
-        let table = config.nominal;
-        let limits = config.bounds.joint_range.limits;
+        let table = config.calibration.nominal;
+        let limits = config.calibration.bounds.joint_range.limits;
         let mut state = State {
             table,
             limits,

@@ -153,7 +153,7 @@ pub fn frame_transforms(log_ns: u64, links: &[crate::record::Link]) -> fox::Fram
 }
 
 /// `exocal.Progress`.
-pub fn progress(p: &crate::session::Progress) -> proto::Progress {
+pub fn progress(p: &exocal_session::window::Progress) -> proto::Progress {
     proto::Progress {
         elapsed_s: p.elapsed_s,
         samples: p.samples,
@@ -178,7 +178,7 @@ pub fn log_message(log_ns: u64, level: Level, message: &str) -> fox::Log {
 }
 
 /// `exocal.AlignedSample`.
-pub fn aligned_sample(s: &crate::align::AlignedSample) -> proto::AlignedSample {
+pub fn aligned_sample(s: &exocal_session::align::AlignedSample) -> proto::AlignedSample {
     proto::AlignedSample {
         t: s.t,
         joints: s.joints.to_vec(),
@@ -396,8 +396,8 @@ impl<W: Write + Seek> SessionLog<W> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::align::{AlignedSample, Pose};
     use crate::record::Link;
+    use exocal_session::align::{AlignedSample, Pose};
     use prost::Message as _;
     use std::io::Cursor;
 
@@ -415,8 +415,8 @@ mod tests {
             .collect()
     }
 
-    fn progress_of(elapsed_s: f64) -> crate::session::Progress {
-        crate::session::Progress {
+    fn progress_of(elapsed_s: f64) -> exocal_session::window::Progress {
+        exocal_session::window::Progress {
             elapsed_s,
             samples: 3,
             coverage: [0.5; 7],

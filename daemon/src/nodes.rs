@@ -214,13 +214,10 @@ pub async fn read_tables<T: Transport>(
 
 /// The tables the nodes confirmed in a session log: per node, the answer to its last complete
 /// readback in `/can/rx`.
-pub fn pushed_tables(frames: &[exocal_report::readers::RecordedFrame]) -> BTreeMap<NodeId, Table> {
+pub fn pushed_tables(frames: &[exocal_bus::Received]) -> BTreeMap<NodeId, Table> {
     let mut reads: BTreeMap<NodeId, TableRead> = BTreeMap::new();
     let mut held = BTreeMap::new();
-    for f in frames {
-        let Some(rx) = crate::offline::received(f) else {
-            continue;
-        };
+    for rx in frames {
         let Ok(Message::TableReply(reply)) = exocal_dbc::decode_frame(&rx.frame) else {
             continue;
         };
@@ -292,6 +289,7 @@ pub async fn list<T: Transport>(
     log: Option<&Path>,
 ) -> Result<Listing, DaemonError> {
     let nodes: Vec<NodeId> = config
+        .calibration
         .joint_nodes
         .iter()
         .filter_map(|&n| NodeId::new(n))

@@ -33,20 +33,17 @@
 
 use std::path::{Path, PathBuf};
 
-use exocal_bus::embedded_can::{ExtendedId, Frame as _, Id, StandardId};
-use exocal_bus::{Frame, Received};
-use exocal_report::readers::{self, RecordedFrame};
-use exocal_report::TimedSample;
-use nalgebra::UnitQuaternion;
+use exocal_log::read::{read_mcap_session, McapSession};
+use exocal_session::collect::Collected;
+use exocal_session::formats::{self, ReadError};
+use exocal_session::pipeline::{self, Calibrated};
+use exocal_session::replay::{replay, Recording};
+use exocal_session::Settings;
 
-use crate::align::{AlignedSample, Pose};
-use crate::collect::{Collected, Collector};
 use crate::config::Config;
 use crate::exit::DaemonError;
-use crate::pipeline::{self, Calibrated};
 use crate::recover::{self, Recovery};
 use crate::runner::{SessionError, SessionSummary};
-use crate::session::{Phase, Session};
 
 /// What the input file is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -68,10 +65,6 @@ impl std::fmt::Display for Format {
         })
     }
 }
-
-/// Relative difference between a CSV file's sample rate and `session.grid_hz` below which the
-/// configured rate is kept (the `t` column's decimal rounding, not a different rate).
-pub const CSV_RATE_TOLERANCE: f64 = 1e-6;
 
 const MCAP_MAGIC: &[u8] = b"\x89MCAP";
 
@@ -106,29 +99,21 @@ pub fn detect_format(path: &Path, bytes: &[u8]) -> Result<Format, DaemonError> {
     }
 }
 
-/// The input, read.
-#[derive(Debug, Clone)]
-pub enum Input {
-    /// Frames to replay (already cut at the collection end for an MCAP log).
-    Frames(Vec<RecordedFrame>),
-    /// Samples that bypass alignment.
-    Samples(Vec<TimedSample>),
-}
-
 /// A daemon session log, finished or cut short: a finished file is read as it is; one without
 /// its end magic (a killed daemon's) is first recovered in memory ([`crate::recover`]: every
 /// message of every complete chunk), and the [`Recovery`] says what was kept.
 pub fn read_session_log(
     path: &Path,
     bytes: &[u8],
-) -> Result<(readers::McapSession, Option<Recovery>), DaemonError> {
-    let bad = |e: readers::ReadError| DaemonError::Input(format!("{}: {e}", path.display()));
+) -> Result<(McapSession, Option<Recovery>), DaemonError> {
+    let bad =
+        |e: exocal_log::read::ReadError| DaemonError::Input(format!("{}: {e}", path.display()));
     if recover::is_finished(bytes) {
-        return Ok((readers::read_mcap_session(bytes).map_err(bad)?, None));
+        return Ok((read_mcap_session(bytes).map_err(bad)?, None));
     }
     let (recovery, complete) = recover::recover_in_memory(bytes)
         .map_err(|e| DaemonError::Input(format!("{}: {e}", path.display())))?;
-    let session = readers::read_mcap_session(&complete).map_err(|e| {
+    let session = read_mcap_session(&complete).map_err(|e| {
         DaemonError::Input(format!(
             "{}: {e} (the log was cut short: {recovery})",
             path.display()
@@ -143,8 +128,8 @@ pub fn read_input(
     path: &Path,
     bytes: &[u8],
     format: Format,
-) -> Result<(Input, Option<Recovery>), DaemonError> {
-    let bad = |e: readers::ReadError| DaemonError::Input(format!("{}: {e}", path.display()));
+) -> Result<(Recording, Option<Recovery>), DaemonError> {
+    let bad = |e: ReadError| DaemonError::Input(format!("{}: {e}", path.display()));
     let text = || {
         std::str::from_utf8(bytes).map_err(|e| {
             DaemonError::Input(format!(
@@ -170,54 +155,17 @@ pub fn read_input(
                 }
                 frames.truncate(n);
             }
-            Ok((Input::Frames(frames), recovery))
+            Ok((Recording::Frames(frames), recovery))
         }
         Format::Candump => Ok((
-            Input::Frames(readers::parse_candump(text()?).map_err(bad)?),
+            Recording::Frames(formats::parse_candump(text()?).map_err(bad)?),
             None,
         )),
         Format::Csv => Ok((
-            Input::Samples(readers::parse_csv(text()?).map_err(bad)?),
+            Recording::Samples(formats::parse_csv(text()?).map_err(bad)?),
             None,
         )),
     }
-}
-
-/// A recorded frame as the bus would have delivered it.
-pub fn received(f: &RecordedFrame) -> Option<Received> {
-    let id: Id = if f.extended {
-        ExtendedId::new(f.id)?.into()
-    } else {
-        StandardId::new(u16::try_from(f.id).ok()?)?.into()
-    };
-    let frame = if f.remote {
-        Frame::new_remote(id, 0)?
-    } else {
-        Frame::new(id, &f.data)?
-    };
-    Some(Received {
-        frame,
-        timestamp: f.t,
-    })
-}
-
-/// How much shorter than `session.min_duration_s` a recording may be and still count as that
-/// long: a live window runs from the daemon's start to the tick that ends it, a recording from
-/// its first to its last frame (or CSV sample), which starts a little later.
-pub const DURATION_SLACK_S: f64 = 1.0;
-
-/// The input as the live session would have collected it, before calibrating.
-#[derive(Debug, Clone)]
-pub struct Replay {
-    /// What the live session would have gathered (for CSV: the file's samples, unaligned).
-    pub collected: Collected,
-    /// The configuration the calibration runs with (for CSV, `session.grid_hz` is the file's).
-    pub config: Config,
-    /// First to last frame (or CSV sample), seconds.
-    pub duration_s: f64,
-    /// The session rules (`[session]`) the recording does not meet, one line each: empty when
-    /// the live daemon would have calibrated it.
-    pub shortfalls: Vec<String>,
 }
 
 /// What a recalibration produced.
@@ -225,121 +173,24 @@ pub struct Replay {
 pub struct Recalibration {
     /// What the replay gathered: the aligned samples and their quality.
     pub collected: Collected,
-    /// The configuration the calibration ran with (for CSV, `session.grid_hz` is the file's).
-    pub config: Config,
+    /// The settings the calibration ran with (for CSV, `session.grid_hz` is the file's).
+    pub settings: Settings,
     /// What the pipeline computed from them.
     pub calibrated: Calibrated,
-}
-
-/// An aligned sample from a CSV one.
-fn aligned_of(s: &TimedSample) -> AlignedSample {
-    let q = UnitQuaternion::from_matrix(&s.sample.pose.r);
-    AlignedSample {
-        t: s.t,
-        joints: s.sample.joints,
-        pose: Pose {
-            position: s.sample.pose.p.into(),
-            orientation: [q.w, q.i, q.j, q.k],
-        },
-    }
-}
-
-/// The session rules `session` (fed with the whole recording, `duration_s` long) does not
-/// meet, as the live session would judge them when the recording ends.
-fn shortfalls(session: &Session, config: &Config, duration_s: f64) -> Vec<String> {
-    let rules = &config.session;
-    match session.phase(duration_s + DURATION_SLACK_S) {
-        Phase::Ready => Vec::new(),
-        Phase::Failed(why) => why,
-        Phase::Collecting => {
-            let mut why = session.shortfalls();
-            if duration_s + DURATION_SLACK_S < rules.min_duration_s {
-                why.insert(
-                    0,
-                    format!(
-                        "the recording is {duration_s:.1} s long; session.min_duration_s is {} s \
-                         (a live session would still be collecting)",
-                        rules.min_duration_s
-                    ),
-                );
-            }
-            why
-        }
-    }
-}
-
-/// Replays `input` through the live session's [`Collector`] (frames) or takes its samples
-/// (CSV), and judges it by the session rules (see the module docs).
-pub fn replay(input: &Input, config: &Config) -> Result<Replay, DaemonError> {
-    let mut config = config.clone();
-    match input {
-        Input::Frames(recorded) => {
-            let mut collector = Collector::new(&config);
-            for (i, f) in recorded.iter().enumerate() {
-                let rx = received(f).ok_or_else(|| {
-                    DaemonError::Input(format!("frame {}: identifier {:#x} invalid", i + 1, f.id))
-                })?;
-                collector.on_frame(&rx);
-            }
-            let duration_s = match (recorded.first(), recorded.last()) {
-                (Some(a), Some(b)) => b.t.saturating_sub(a.t).as_secs_f64(),
-                _ => 0.0,
-            };
-            Ok(Replay {
-                collected: collector.collected(&config),
-                shortfalls: shortfalls(&collector.session, &config, duration_s),
-                config,
-                duration_s,
-            })
-        }
-        Input::Samples(csv) => {
-            let mut steps: Vec<f64> = csv.windows(2).map(|w| w[1].t - w[0].t).collect();
-            steps.sort_by(f64::total_cmp);
-            // The EM's step is the file's median interval, unless that is the configured grid
-            // rate up to the rounding of the `t` column (then the rate is kept exactly).
-            if let Some(&median) = steps.get(steps.len() / 2) {
-                let hz = 1.0 / median;
-                if (hz / config.session.grid_hz - 1.0).abs() > CSV_RATE_TOLERANCE {
-                    config.session.grid_hz = hz;
-                }
-            }
-            let mut session = Session::new(config.session.clone(), config.bounds.joint_range);
-            for s in csv {
-                for (j, &q) in s.sample.joints.iter().enumerate() {
-                    session.joint_sample(j, q);
-                }
-                session.pose_sample();
-            }
-            let duration_s = match (csv.first(), csv.last()) {
-                (Some(a), Some(b)) => (b.t - a.t).max(0.0),
-                _ => 0.0,
-            };
-            let samples: Vec<AlignedSample> = csv.iter().map(aligned_of).collect();
-            Ok(Replay {
-                collected: Collected::from_samples(samples, &config),
-                shortfalls: shortfalls(&session, &config, duration_s),
-                config,
-                duration_s,
-            })
-        }
-    }
 }
 
 /// Runs the pipeline on `input` (see the module docs): [`replay`], then, if the recording meets
 /// the session rules, the calibration; [`DaemonError::Session`] naming every rule it misses
 /// otherwise.
-pub fn recalibrate(input: &Input, config: &Config) -> Result<Recalibration, DaemonError> {
-    calibrate_replay(replay(input, config)?)
-}
-
-fn calibrate_replay(r: Replay) -> Result<Recalibration, DaemonError> {
+pub fn recalibrate(input: &Recording, config: &Config) -> Result<Recalibration, DaemonError> {
+    let r = replay(input, &config.calibration);
     if !r.shortfalls.is_empty() {
-        return Err(DaemonError::Session(r.shortfalls.join("; ")));
+        return Err(DaemonError::Session(r.shortfalls));
     }
-    let calibrated = pipeline::run(&r.collected.samples, &r.config)?;
+    let calibrated = pipeline::run(&r.collected.samples, &r.settings)?;
     Ok(Recalibration {
         collected: r.collected,
-        config: r.config,
+        settings: r.settings,
         calibrated,
     })
 }
@@ -409,20 +260,20 @@ pub fn run(
         ),
         None => format!("offline: {} ({format})", path.display()),
     };
-    if let (Input::Samples(_), Some(_)) = (&input, &opts.export_candump) {
+    if let (Recording::Samples(_), Some(_)) = (&input, &opts.export_candump) {
         return Err(DaemonError::Usage(
             "--export-candump needs a frame input (MCAP or candump), not CSV samples".into(),
         )
         .into());
     }
-    if let Input::Frames(frames) = &input {
+    if let Recording::Frames(frames) = &input {
         eprintln!(
             "exocald: replaying {} frames from {} ({format})",
             frames.len(),
             path.display()
         );
     }
-    let replayed = replay(&input, config)?;
+    let replayed = replay(&input, &config.calibration);
     let report_path = opts
         .report
         .clone()
@@ -435,21 +286,21 @@ pub fn run(
     summary.collected(&replayed.collected);
     summary.report_path = Some(report_path.clone());
     let calibrated = if replayed.shortfalls.is_empty() {
-        pipeline::run(&replayed.collected.samples, &replayed.config).map_err(DaemonError::from)
+        pipeline::run(&replayed.collected.samples, &replayed.settings).map_err(DaemonError::from)
     } else {
-        Err(DaemonError::Session(replayed.shortfalls.join("; ")))
+        Err(DaemonError::Session(replayed.shortfalls.clone()))
     };
     // The report is written whatever happened once the input was read: the calibration's, or
     // (the session rules, or samples that would not calibrate) why not, with the data.
     let reasons = match &calibrated {
-        Err(DaemonError::Session(_)) => replayed.shortfalls.clone(),
+        Err(DaemonError::Session(why)) => why.iter().map(ToString::to_string).collect(),
         Err(e) => vec![e.to_string()],
         Ok(_) => Vec::new(),
     };
     let html = crate::calreport::render(
         title,
         source,
-        &replayed.config,
+        &replayed.settings,
         &replayed.collected,
         calibrated.as_ref().map_err(|_| reasons.as_slice()),
     );
@@ -466,15 +317,9 @@ pub fn run(
             }))
         }
     };
-    if let (Input::Frames(frames), Some(out)) = (&input, &opts.export_candump) {
-        let mut text = Vec::new();
-        exocal_report::export::write_candump(frames, &config.interface, &mut text).map_err(
-            |source| DaemonError::Io {
-                what: "formatting the candump log".into(),
-                source,
-            },
-        )?;
-        write_file(out, "candump log", &text)?;
+    if let (Recording::Frames(frames), Some(out)) = (&input, &opts.export_candump) {
+        let text = formats::candump_text(frames, &config.interface);
+        write_file(out, "candump log", text.as_bytes())?;
     }
     let accepted = calibrated.outcome.verdict.accepted();
     let table = calibrated.outcome.table();
@@ -492,10 +337,10 @@ pub fn run(
             continue;
         }
         let text = if what == "URDF" {
-            let limits = &replayed.config.bounds.joint_range.limits;
-            exocal_report::export::urdf("exocal_suit", &table, limits)
+            let limits = &replayed.settings.bounds.joint_range.limits;
+            exocal_report::export::urdf("exocal_suit", &table, limits).map_err(|e| e.to_string())
         } else {
-            exocal_report::export::config_toml(config_text, &table)
+            crate::config::with_nominal(config_text, &table).map_err(|e| e.to_string())
         }
         .map_err(|e| DaemonError::Input(format!("exporting the {what}: {e}")))?;
         write_file(out, what, text.as_bytes())?;

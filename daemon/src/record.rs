@@ -15,12 +15,12 @@
 use exocal_bus::Frame;
 use exocal_log::{proto, CanFrameRecord, CollectionEnd, Level};
 
-use crate::align::AlignedSample;
 use crate::config::JOINTS;
-use crate::ingest::ClockReport;
-use crate::pipeline::{NodeRow, Outcome};
 use crate::push::{Holds, PushReport};
-use crate::session::Progress;
+use exocal_session::align::AlignedSample;
+use exocal_session::ingest::ClockReport;
+use exocal_session::pipeline::{NodeRow, Outcome};
+use exocal_session::window::Progress;
 
 /// The root of the arm's frames (frame 0 of the D-H table), as in the exported URDF.
 pub const BASE_FRAME: &str = "base_link";
@@ -176,7 +176,7 @@ pub fn calibration_record(
     proto::Calibration {
         before: outcome.before.iter().map(dh_row).collect(),
         after: outcome.node_rows.iter().map(dh_row).collect(),
-        refused: v.reasons.clone(),
+        refused: v.reasons.iter().map(ToString::to_string).collect(),
         fit_samples: outcome.fit_samples as u64,
         heldout_samples: outcome.heldout_samples as u64,
         condition_number: v.condition_number,
@@ -188,7 +188,7 @@ pub fn calibration_record(
         ls_iterations: outcome.ls.iterations as u64,
         em_iterations: outcome.em.as_ref().map_or(0, |e| e.iterations as u64),
         em_converged: outcome.em.as_ref().is_some_and(|e| e.converged),
-        em_error: outcome.em_error.clone().unwrap_or_default(),
+        em_error: outcome.em_error.map_or_else(String::new, |e| e.to_string()),
         clocks: clocks
             .iter()
             .map(|c| proto::ClockFit {

@@ -8,11 +8,11 @@ use std::io::{BufWriter, Write};
 
 use exocal_log::{proto, CanFrameRecord, CollectionEnd, Level};
 
-use crate::align::AlignedSample;
 use crate::live::LiveView;
 use crate::mcaplog::{Counts, LogError, SessionLog};
 use crate::record::{Link, Record, Transform};
-use crate::session::Progress;
+use exocal_session::align::AlignedSample;
+use exocal_session::window::Progress;
 
 /// The session's observers: its log, and the live view when enabled. The methods are the
 /// records a session writes (see [`Record`]).

@@ -15,7 +15,7 @@ use std::time::Duration;
 
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::session::Progress;
+use exocal_session::window::Progress;
 
 /// Seconds between two plain progress lines.
 pub const PLAIN_EVERY_S: f64 = 5.0;

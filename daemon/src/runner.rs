@@ -27,19 +27,19 @@ use exocal_dbc::table::Table;
 use exocal_dbc::NodeId;
 use serde::Serialize;
 
-use crate::collect::{Collected, Collector};
-use crate::config::{Config, JOINTS};
+use crate::config::Config;
 use crate::exit::DaemonError;
-use crate::ingest::{ClockReport, Event, FrameStats, StallReport};
 use crate::live::LiveView;
 use crate::mcaplog::{CollectionEnd, Counts, Level, LogError, SessionLog};
-use crate::pipeline::{self, Calibrated, Outcome};
 use crate::push::{push_tables, PushObserver, PushReport};
 use crate::record::{self, Transform};
 use crate::recorder::Recorder;
 use crate::report::{Notifier, Reporter};
-use crate::session::Phase;
-use crate::validate::Expected;
+use exocal_session::collect::{Collected, Collector};
+use exocal_session::estimate::{Estimate, EstimateJob};
+use exocal_session::ingest::{ClockReport, Event, FrameStats, StallReport};
+use exocal_session::pipeline::{self, Calibrated, Outcome};
+use exocal_session::window::{Phase, Shortfall};
 
 /// Real time between two turns of the housekeeping tick.
 pub const TICK: Duration = Duration::from_millis(100);
@@ -47,94 +47,8 @@ pub const TICK: Duration = Duration::from_millis(100);
 /// averages out in the fit (an in-process bus whose hil sends frames in ~10 ms batches sees ~5 ms
 /// RMS and still aligns well); tens of ms mean the timestamps cannot be trusted.
 pub const CLOCK_RESIDUAL_WARN_US: f64 = 20_000.0;
-/// Bus-clock seconds between two estimates of the condition number during collection.
-pub const CONDITION_EVERY_S: f64 = 10.0;
-/// Bus-clock seconds between two estimates of the expected table error, when the session
-/// stops when good enough (`session.stop_at_expected_error`).
-pub const EXPECTED_EVERY_S: f64 = 5.0;
 /// Records written in one go between two housekeeping turns ([`Io::between_records`]).
 pub const RECORDS_PER_TURN: usize = 256;
-/// Samples (at most) the in-collection condition estimate runs LS on.
-pub const CONDITION_SAMPLES: usize = 600;
-
-/// What the collection knows of the calibration to come, estimated on the data so far.
-#[derive(Debug, Clone, Copy)]
-pub struct Estimate {
-    /// Condition number of the identification problem.
-    pub condition: f64,
-    /// Expected table error, when estimated (stop when good enough).
-    pub expected: Option<Expected>,
-}
-
-/// The in-collection estimate on the data so far, as a job for the blocking pool: what it needs
-/// is taken from `collector` now, on the loop's thread.
-///
-/// Without `session.stop_at_expected_error`: the condition number of the identification
-/// problem at the nominal table over at most [`CONDITION_SAMPLES`] configurations the arm
-/// visited ([`Ingest::joint_snapshot`](crate::ingest::Ingest::joint_snapshot): no clock fit, no
-/// alignment, a few thousand values copied, so its cost does not grow with the session). With
-/// it, once `session.min_samples` are in: the streams aligned, then LS and our EM on every
-/// sample, as the calibration will (the EM's expected table error, the LS's condition number);
-/// that job owns a copy of the collection. The job returns `None` if there is too little data.
-pub fn collection_estimate(
-    collector: &Collector,
-    config: &Config,
-) -> impl FnOnce() -> Option<Estimate> + Send + 'static {
-    let config = config.clone();
-    let job: Box<dyn FnOnce() -> Option<Estimate> + Send> =
-        if config.session.stop_at_expected_error.is_some() {
-            let snapshot = collector.clone();
-            Box::new(move || expected_estimate(&snapshot, &config))
-        } else {
-            let joints = collector.ingest.joint_snapshot(CONDITION_SAMPLES);
-            Box::new(move || condition_estimate(&joints, &config.nominal))
-        };
-    job
-}
-
-/// The condition number of LS from `nominal` on `joints`, each with the pose nominal's FK puts
-/// it at: LS stops at once (no residual), its condition number is the problem's at nominal.
-fn condition_estimate(
-    joints: &[[f64; JOINTS]],
-    nominal: &calib_core::DhTable<JOINTS>,
-) -> Option<Estimate> {
-    if joints.len() < 50 {
-        return None;
-    }
-    let samples: Vec<calib_core::Sample<JOINTS>> = joints
-        .iter()
-        .map(|q| calib_core::Sample {
-            joints: *q,
-            pose: nominal.fk(q),
-        })
-        .collect();
-    let opts = calib_core::LsOptions::new();
-    calib_core::identify_ls::<JOINTS, { pipeline::PARAMS }>(nominal, &samples, &opts)
-        .ok()
-        .map(|r| Estimate {
-            condition: r.condition,
-            expected: None,
-        })
-}
-
-/// LS and our EM on every aligned sample so far, once `session.min_samples` are in; before
-/// that, the condition number alone.
-fn expected_estimate(collector: &Collector, config: &Config) -> Option<Estimate> {
-    let collected = collector.collected(config);
-    if collected.samples.len() < config.session.min_samples.max(50) {
-        let joints = collector.ingest.joint_snapshot(CONDITION_SAMPLES);
-        return condition_estimate(&joints, &config.nominal);
-    }
-    let mut samples: Vec<calib_core::Sample<JOINTS>> =
-        collected.samples.iter().map(pipeline::to_sample).collect();
-    pipeline::separate_readings(&mut samples, config);
-    let (ls_opts, em_opts) = pipeline::options(config);
-    let c = pipeline::ls_then_em(&config.nominal, &samples, &ls_opts, &em_opts, false).ok()?;
-    Some(Estimate {
-        condition: c.ls.condition,
-        expected: c.em.ok().map(|em| Expected::from(em.expected_error)),
-    })
-}
 
 /// Rate (Hz) at which the arm's frames are written to `/tf` for Foxglove.
 pub const TF_HZ: f64 = 20.0;
@@ -372,7 +286,7 @@ pub fn node_tables(outcome: &Outcome, config: &Config) -> Result<Vec<(NodeId, Ta
         .iter()
         .enumerate()
         .map(|(i, r)| {
-            let node = NodeId::new(config.joint_nodes[i])
+            let node = NodeId::new(config.calibration.joint_nodes[i])
                 .ok_or_else(|| format!("joint {}: no node id", i + 1))?;
             let table = Table::from_si(r.a, r.alpha, r.d, r.theta_offset, r.tau, r.sigma)
                 .map_err(|e| format!("{node}: the table does not fit the DBC: {e}"))?;
@@ -461,7 +375,7 @@ pub async fn run_session_with<T: Transport>(
         clock,
         config,
         io: &mut io,
-        collector: Collector::new(config),
+        collector: Collector::new(&config.calibration),
         origin: Duration::ZERO,
         tick,
         summary: SessionSummary::new(log_path),
@@ -563,14 +477,10 @@ impl<T: Transport> Live<'_, '_, T> {
         // The window is timed on the clock's monotonic reading: a step of the host's wall clock
         // (NTP at boot) neither stretches nor cuts it.
         let started = self.clock.monotonic();
-        let required = self.config.session.excitation_required;
+        let required = self.config.calibration.window.excitation_required;
         let mut estimate_job: Option<tokio::task::JoinHandle<Option<Estimate>>> = None;
         let mut last_estimate_s = 0.0;
-        let every = if self.config.session.stop_at_expected_error.is_some() {
-            EXPECTED_EVERY_S
-        } else {
-            CONDITION_EVERY_S
-        };
+        let every = EstimateJob::every_s(&self.config.calibration);
         loop {
             tokio::select! {
                 biased;
@@ -580,10 +490,10 @@ impl<T: Transport> Live<'_, '_, T> {
                     let elapsed = self.clock.monotonic().saturating_sub(started).as_secs_f64();
                     if estimate_job.is_none() && elapsed - last_estimate_s >= every {
                         last_estimate_s = elapsed;
-                        let job = collection_estimate(&self.collector, self.config);
-                        estimate_job = Some(tokio::task::spawn_blocking(job));
+                        let job = EstimateJob::of(&self.collector, &self.config.calibration);
+                        estimate_job = Some(tokio::task::spawn_blocking(|| job.run()));
                     }
-                    let session = &self.collector.session;
+                    let session = &self.collector.window;
                     let progress = session.progress(elapsed);
                     self.io.reporter.update(&progress, required, self.io.notifier);
                     let r = self.io.log.progress(ns(self.clock.now()), &progress);
@@ -597,16 +507,16 @@ impl<T: Transport> Live<'_, '_, T> {
                             }
                             self.summary.frames = self.collector.ingest.stats().clone();
                             self.session_report(&why, shutdown.as_mut()).await?;
-                            return Err(DaemonError::Session(why.join("; ")));
+                            return Err(DaemonError::Session(why));
                         }
                     }
                 }
                 done = async { estimate_job.as_mut().expect("guarded").await }, if estimate_job.is_some() => {
                     estimate_job = None;
                     if let Ok(Some(e)) = done {
-                        self.collector.session.set_condition_number(e.condition);
+                        self.collector.window.set_condition_number(e.condition);
                         if let Some(x) = e.expected {
-                            self.collector.session.set_expected(x);
+                            self.collector.window.set_expected(x);
                         }
                     }
                 }
@@ -697,7 +607,7 @@ impl<T: Transport> Live<'_, '_, T> {
             &format!(
                 "aligned {} samples on a {} Hz grid, {} grid points excluded as gaps",
                 collected.samples.len(),
-                self.config.session.grid_hz,
+                self.config.calibration.window.grid_hz,
                 collected.gaps
             ),
         );
@@ -712,10 +622,15 @@ impl<T: Transport> Live<'_, '_, T> {
         shutdown: Pin<&mut S>,
     ) -> Result<Collected, DaemonError> {
         self.origin = self.collector.ingest.origin().unwrap_or_default();
-        let collector = std::mem::replace(&mut self.collector, Collector::new(self.config));
+        let collector = std::mem::replace(
+            &mut self.collector,
+            Collector::new(&self.config.calibration),
+        );
         let config = self.config.clone();
-        self.off_loop("aligning", shutdown, move || collector.collected(&config))
-            .await
+        self.off_loop("aligning", shutdown, move || {
+            collector.collected(&config.calibration)
+        })
+        .await
     }
 
     /// Runs `job` on tokio's blocking pool while this thread keeps the bus drained (and
@@ -765,7 +680,7 @@ impl<T: Transport> Live<'_, '_, T> {
         // The report is rendered on the blocking thread too: it is a few hundred ms of SVG.
         let (calibrated, html) = self
             .off_loop("calibration", shutdown, move || {
-                let calibrated = pipeline::run(&input.samples, &cfg);
+                let calibrated = pipeline::run(&input.samples, &cfg.calibration);
                 let (title, reasons) = match &calibrated {
                     Err(e) => (session, vec![e.to_string()]),
                     Ok(_) => (calibration, Vec::new()),
@@ -773,7 +688,7 @@ impl<T: Transport> Live<'_, '_, T> {
                 let html = crate::calreport::render(
                     title,
                     source,
-                    &cfg,
+                    &cfg.calibration,
                     &input,
                     calibrated.as_ref().map_err(|_| reasons.as_slice()),
                 );
@@ -789,7 +704,7 @@ impl<T: Transport> Live<'_, '_, T> {
     /// The calibration's record, its line and the arm on the calibrated table, into the log.
     fn log_result(&mut self, collected: &Collected, calibrated: &Calibrated) {
         let table = calibrated.outcome.table();
-        let step = ((self.config.session.grid_hz / TF_HZ).round() as usize).max(1);
+        let step = ((self.config.calibration.window.grid_hz / TF_HZ).round() as usize).max(1);
         for (i, s) in collected.samples.iter().step_by(step).enumerate() {
             let links = record::arm_transforms(&table, &s.joints);
             let r = self.io.log.arm_transforms(self.log_time(s.t), &links);
@@ -831,8 +746,7 @@ impl<T: Transport> Live<'_, '_, T> {
             .outcome
             .as_ref()
             .ok_or(DaemonError::Interrupted)?;
-        let tables =
-            node_tables(outcome, self.config).map_err(|e| DaemonError::Validation(vec![e]))?;
+        let tables = node_tables(outcome, self.config).map_err(DaemonError::Unpushable)?;
         self.io.notifier.status("pushing tables");
         self.io.reporter.message("pushing the tables to the nodes");
         let first_session = (ns(start) / 1_000_000 % 251) as u8;
@@ -887,17 +801,27 @@ impl<T: Transport> Live<'_, '_, T> {
     /// did not meet), next to its log as a calibrated session's would be: what the motion lacked.
     async fn session_report<S: Future<Output = ()>>(
         &mut self,
-        why: &[String],
+        why: &[Shortfall],
         shutdown: Pin<&mut S>,
     ) -> Result<(), DaemonError> {
         let (title, source) = self.report_titles("session");
         self.origin = self.collector.ingest.origin().unwrap_or_default();
-        let collector = std::mem::replace(&mut self.collector, Collector::new(self.config));
-        let (config, why) = (self.config.clone(), why.to_vec());
+        let collector = std::mem::replace(
+            &mut self.collector,
+            Collector::new(&self.config.calibration),
+        );
+        let config = self.config.clone();
+        let why: Vec<String> = why.iter().map(Shortfall::to_string).collect();
         let (collected, html) = self
             .off_loop("session report", shutdown, move || {
-                let collected = collector.collected(&config);
-                let html = crate::calreport::render(title, source, &config, &collected, Err(&why));
+                let collected = collector.collected(&config.calibration);
+                let html = crate::calreport::render(
+                    title,
+                    source,
+                    &config.calibration,
+                    &collected,
+                    Err(&why),
+                );
                 (collected, html)
             })
             .await?;
@@ -964,46 +888,11 @@ pub fn write_summary(summary: &SessionSummary, out: &mut impl Write) -> std::io:
 mod tests {
     use super::*;
 
-    #[test]
-    fn the_condition_estimate_is_the_problems_at_nominal_and_flags_a_frozen_joint() {
-        use calib_core::{DhTable, LsOptions, Scenario, ScenarioConfig};
-        let nominal = DhTable::paper_nominal();
-        let session: Vec<_> = Scenario::new(ScenarioConfig::<JOINTS>::paper(), 3)
-            .take(3000)
-            .step_by(5)
-            .map(|s| s.sample)
-            .collect();
-        let joints: Vec<[f64; JOINTS]> = session.iter().map(|s| s.joints).collect();
-        let k = condition_estimate(&joints, &nominal).unwrap().condition;
-        // What LS on the measured poses reports (from nominal, on the same configurations).
-        let ls = calib_core::identify_ls::<JOINTS, { pipeline::PARAMS }>(
-            &nominal,
-            &session,
-            &LsOptions::new(),
-        )
-        .unwrap();
-        assert!(
-            (k / ls.condition - 1.0).abs() < 0.25,
-            "{k} vs LS {}",
-            ls.condition
-        );
-        let frozen: Vec<[f64; JOINTS]> = joints
-            .iter()
-            .map(|q| {
-                let mut q = *q;
-                q[6] = 0.0;
-                q
-            })
-            .collect();
-        // LS refuses a frozen joint's problem or reports it as ill-conditioned, as before.
-        let still = condition_estimate(&frozen, &nominal).map(|e| e.condition);
-        assert!(still.is_none_or(|c| c > 1e3 * k), "{still:?} vs {k}");
-        assert!(condition_estimate(&joints[..49], &nominal).is_none());
-    }
     use crate::shutdown::Shutdown;
     use exocal_bus::InProcessBus;
     use exocal_bus::SimClock;
     use exocal_hil::{Hil, Scenario};
+    use exocal_session::validate::Refusal;
 
     fn temp_dir(name: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("exocald-runner-{}-{name}", std::process::id()));
@@ -1085,7 +974,7 @@ mod tests {
     fn config(dir: &std::path::Path) -> Config {
         let mut c = Config::default_config();
         c.output.directory = dir.to_path_buf();
-        c.session.min_duration_s = 15.0;
+        c.calibration.window.min_duration_s = 15.0;
         c.push.timeout_ms = 400;
         // The hil's nodes here hold no keys (authenticated pushes: push.rs, demo, atomic_push).
         c.push.authenticate = false;
@@ -1140,15 +1029,16 @@ mod tests {
         let dir = temp_dir("refused");
         let mut c = config(&dir);
         // No minute of motion gives a table to a micrometre: validation must refuse.
-        c.validation.max_expected_position_error_mm = 1e-3;
+        c.calibration.validation.max_expected_position_error_mm = 1e-3;
         let (result, before, after) = session(c, &dir, None).await;
         let err = result.unwrap_err();
         match &err.error {
             DaemonError::Validation(reasons) => {
                 assert!(
-                    reasons
-                        .iter()
-                        .any(|r| r.contains("mm (1σ) above the 0.001 mm allowed")),
+                    reasons.iter().any(|r| matches!(
+                        r,
+                        Refusal::ExpectedPosition { max, .. } if *max == 1e-3
+                    )),
                     "{reasons:?}"
                 );
             }
@@ -1169,7 +1059,7 @@ mod tests {
     async fn a_session_that_stops_when_good_enough_ends_early_and_reaches_its_limits() {
         let dir = temp_dir("good-enough");
         let mut c = config(&dir);
-        c.session.stop_at_expected_error = Some((2.0, 6.0));
+        c.calibration.window.stop_at_expected_error = Some((2.0, 6.0));
         let (result, before, after) = session(c, &dir, None).await;
         let summary = result.expect("the session pushes");
         // The paper's scenario reaches ±2.0 mm well before its minute (±1.3 mm at 60 s).
@@ -1189,8 +1079,8 @@ mod tests {
     async fn a_session_without_enough_motion_fails_at_the_maximum_duration() {
         let dir = temp_dir("short");
         let mut c = config(&dir);
-        c.session.min_samples = 1_000_000;
-        c.session.max_duration_s = 16.0;
+        c.calibration.window.min_samples = 1_000_000;
+        c.calibration.window.max_duration_s = 16.0;
         let (result, _, _) = session(c, &dir, None).await;
         let err = result.unwrap_err();
         assert!(
@@ -1228,7 +1118,7 @@ mod tests {
         let dir = temp_dir("stall");
         let mut c = config(&dir);
         // Refused (no table is good to a micrometre): the alignment is what this test is about.
-        c.validation.max_expected_position_error_mm = 1e-3;
+        c.calibration.validation.max_expected_position_error_mm = 1e-3;
         let mut scenario = Scenario::paper();
         // Every node's frames 400 ms late for 3 s, then Joint4 reboots.
         scenario.faults.bus_stalls.push(BusStall {

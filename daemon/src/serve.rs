@@ -380,9 +380,9 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
         let mut config = Config::default_config();
         config.output.directory = dir.clone();
-        config.session.min_duration_s = 1.0;
-        config.session.max_duration_s = 2.0;
-        config.session.min_samples = 10;
+        config.calibration.window.min_duration_s = 1.0;
+        config.calibration.window.max_duration_s = 2.0;
+        config.calibration.window.min_samples = 10;
         config.trigger.cooldown_s = 60.0;
         config.push.keys = KeySet::derived(4);
         let key = config.push.keys.trigger().unwrap().clone();

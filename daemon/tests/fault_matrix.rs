@@ -266,12 +266,12 @@ async fn run_case(case: &Case) -> SuitSession {
     (case.apply)(&mut scenario);
     scenario.validate().expect("case scenario is valid");
     let mut config = exocald::demo::demo_config(Config::default_config(), &dir, SPEED);
-    config.session.min_duration_s = SESSION_S;
-    config.session.max_duration_s = SESSION_S + 20.0;
+    config.calibration.window.min_duration_s = SESSION_S;
+    config.calibration.window.max_duration_s = SESSION_S + 20.0;
     if case.name == OUT_OF_BOUNDS {
-        config.bounds.a[2] = (0.42, 0.485);
+        config.calibration.bounds.a[2] = (0.42, 0.485);
     }
-    scenario.duration_s = config.session.max_duration_s + 120.0;
+    scenario.duration_s = config.calibration.window.max_duration_s + 120.0;
     // Authenticated, as on a suit (the demo's derived keys).
     config.push.keys = exocal_dbc::auth::KeySet::derived(7);
     exocal_hil::flash::provision(&flash_dir, &config.push.keys).expect("key slots");
@@ -342,7 +342,7 @@ fn check(case: &Case, o: &SuitSession, clean_err: Option<f64>) -> (Vec<String>, 
         }
         (Expect::Refused, Some(s)) => match s.outcome.as_ref() {
             Some(c) if !c.verdict.accepted() => {
-                format!("refused: {}", c.verdict.reasons.join("; "))
+                format!("refused: {}", lines(&c.verdict.reasons))
             }
             _ => {
                 bad.push("an out-of-bounds calibration was not refused".into());
@@ -427,7 +427,7 @@ fn row(
             if c.verdict.accepted() {
                 "accepted".into()
             } else {
-                format!("refused ({})", c.verdict.reasons.join("; "))
+                format!("refused ({})", lines(&c.verdict.reasons))
             }
         });
     let err = heldout_error(o).map_or("-".into(), |e| {
@@ -509,4 +509,10 @@ fn write_doc(path: &Path, rows: &[String]) -> std::io::Result<()> {
         std::fs::create_dir_all(dir)?;
     }
     std::fs::write(path, text)
+}
+
+/// Every refusal's line, `; `-separated.
+fn lines(reasons: &[exocal_session::validate::Refusal]) -> String {
+    let all: Vec<String> = reasons.iter().map(ToString::to_string).collect();
+    all.join("; ")
 }

@@ -53,7 +53,7 @@ fn row_values(text: &str, key: &str) -> Vec<f64> {
 
 /// Today's live session of the fixture's seed and configuration (`exocald demo --seed 7`): its
 /// outcome.
-fn todays_live_rows(config: &Config, dir: &Path) -> exocald::pipeline::Outcome {
+fn todays_live_rows(config: &Config, dir: &Path) -> exocal_session::pipeline::Outcome {
     let opts = exocald::demo::DemoOptions {
         seed: 7,
         speed: 1e6,
@@ -107,7 +107,7 @@ fn a_json_log_of_the_old_writer_replays_offline_to_the_live_table() {
     assert_eq!(summary.aligned_samples as u64, live["aligned_samples"]);
     // The recorded table has the right shape (the old writer wrote f64 in shortest round-trip
     // form); the replay gives today's live table, bit for bit.
-    type Field = fn(&exocald::pipeline::NodeRow) -> f64;
+    type Field = fn(&exocal_session::pipeline::NodeRow) -> f64;
     let fields: [(&str, Field); 6] = [
         ("a", |r| r.a),
         ("alpha", |r| r.alpha),

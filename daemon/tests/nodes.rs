@@ -31,9 +31,12 @@ fn pushed_session(dir: &Path) -> (Config, SessionSummary) {
         hold: false,
     };
     let mut config = exocald::demo::demo_config(Config::default_config(), dir, 1.0);
-    config.session.min_duration_s = 20.0;
-    config.validation.max_expected_position_error_mm = 1e3;
-    config.validation.max_expected_rotation_error_mrad = 1e3;
+    config.calibration.window.min_duration_s = 20.0;
+    config.calibration.validation.max_expected_position_error_mm = 1e3;
+    config
+        .calibration
+        .validation
+        .max_expected_rotation_error_mrad = 1e3;
     match exocald::demo::run(&config, &opts) {
         Ok(r) => (config, r.summary),
         Err(e) => panic!("{}\n{:#?}", e.error, e.summary),

@@ -23,12 +23,14 @@
 #![warn(missing_docs)]
 
 pub mod auth;
+pub mod frame;
 pub mod message;
 pub mod pose;
 pub mod spec;
 pub mod table;
 pub mod transfer;
 
+pub use frame::{Frame, Received};
 pub use message::{
     decode, decode_frame, CmdCode, Command, Heartbeat, ImuVector, JointState, Message, NackReason,
     NodeState, PoseFrame, PosePage, Reply, TableCmd, TableReply, Trigger, TriggerCommand,

@@ -18,7 +18,7 @@ pub fn live_session(dir: &Path, seed: u64) -> (Config, SessionSummary) {
         hold: false,
     };
     let mut config = exocald::demo::demo_config(Config::default_config(), dir, 1.0);
-    config.session.min_duration_s = 20.0;
+    config.calibration.window.min_duration_s = 20.0;
     let summary = match exocald::demo::run(&config, &opts).map_err(|e| *e) {
         Ok(r) => r.summary,
         Err(SessionError {

@@ -55,7 +55,7 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
         "build",
         "--release",
         "-p",
-        "exocald",
+        "exocal-session",
         "--example",
         "parallel_ls",
     ]);

@@ -21,14 +21,14 @@
 
 use std::time::Duration;
 
-use exocal_bus::embedded_can::Frame as _;
-use exocal_bus::Received;
+use embedded_can::Frame as _;
 use exocal_dbc::pose::PoseAssembler;
+use exocal_dbc::Received;
 use exocal_dbc::{DecodeError, Message, NodeId};
 use serde::Serialize;
 
 use crate::align::{self, AlignParams, Aligned, Pose, Stall, Unwrapper};
-use crate::config::JOINTS;
+use crate::JOINTS;
 
 /// Node clocks are 32-bit microsecond counters.
 pub const NODE_CLOCK_MODULUS: u64 = 1 << 32;
@@ -358,7 +358,7 @@ impl Ingest {
 
     /// Counts `frame` in [`FrameStats::repeats`] if it repeats its identifier's previous frame;
     /// returns whether it did.
-    fn count_repeat(&mut self, frame: &exocal_bus::Frame, message: &Message) -> bool {
+    fn count_repeat(&mut self, frame: &exocal_dbc::Frame, message: &Message) -> bool {
         let timestamped = matches!(
             message,
             Message::JointState(_)
@@ -370,10 +370,7 @@ impl Ingest {
         let (Some(node), true) = (message.node(), timestamped) else {
             return false;
         };
-        let id = match frame.id() {
-            exocal_bus::embedded_can::Id::Standard(s) => u32::from(s.as_raw()),
-            exocal_bus::embedded_can::Id::Extended(e) => e.as_raw(),
-        };
+        let id = frame.raw_id();
         let data = frame.data();
         let mut payload = [0u8; 8];
         let len = data.len().min(8);
@@ -502,8 +499,8 @@ impl Ingest {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use exocal_bus::Frame;
     use exocal_dbc::pose::Pose as DbcPose;
+    use exocal_dbc::Frame;
     use exocal_dbc::JointState;
 
     fn rx(frame: Frame, t_s: f64) -> Received {
@@ -567,11 +564,7 @@ mod tests {
         assert!(matches!(ing.on_frame(&rx(unknown, 0.1)), Event::Unknown(_)));
         let short = Frame::new(embedded_can_id(0x103), &[0; 3]).unwrap();
         assert!(matches!(ing.on_frame(&rx(short, 0.2)), Event::Malformed(_)));
-        let ext = Frame::new(
-            exocal_bus::embedded_can::ExtendedId::new(0x103).unwrap(),
-            &[0; 8],
-        )
-        .unwrap();
+        let ext = Frame::new(embedded_can::ExtendedId::new(0x103).unwrap(), &[0; 8]).unwrap();
         assert!(matches!(ing.on_frame(&rx(ext, 0.3)), Event::Unknown(_)));
         ing.on_frame(&rx(joint_frame(3, 2000, f64::NAN), 0.4));
         let s = ing.stats();
@@ -617,8 +610,8 @@ mod tests {
         assert_eq!(ing.stats().babbling(), vec![(NodeId::JOINTS[5], 520)]);
     }
 
-    fn embedded_can_id(id: u16) -> exocal_bus::embedded_can::StandardId {
-        exocal_bus::embedded_can::StandardId::new(id).unwrap()
+    fn embedded_can_id(id: u16) -> embedded_can::StandardId {
+        embedded_can::StandardId::new(id).unwrap()
     }
 
     #[test]

@@ -32,7 +32,7 @@
 //! - [`align`] puts the seven joint streams and the pose stream on one grid and keeps only the
 //!   grid points where every stream has a value; the others are counted as gaps.
 
-use crate::config::JOINTS;
+use crate::JOINTS;
 
 /// Tuning of the clock tracker.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -818,6 +818,34 @@ pub struct AlignedSample {
     pub joints: [f64; JOINTS],
     /// Measured end-effector pose at `t`.
     pub pose: Pose,
+}
+
+impl AlignedSample {
+    /// The sample at `t` of calib-core's `sample` (its rotation as a unit quaternion).
+    pub fn of(t: f64, sample: &calib_core::Sample<JOINTS>) -> AlignedSample {
+        let q = nalgebra::UnitQuaternion::from_matrix(&sample.pose.r);
+        AlignedSample {
+            t,
+            joints: sample.joints,
+            pose: Pose {
+                position: sample.pose.p.into(),
+                orientation: [q.w, q.i, q.j, q.k],
+            },
+        }
+    }
+
+    /// As calib-core takes it (quaternion normalised): the inverse of [`AlignedSample::of`].
+    pub fn sample(&self) -> calib_core::Sample<JOINTS> {
+        let [w, x, y, z] = self.pose.orientation;
+        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z));
+        calib_core::Sample {
+            joints: self.joints,
+            pose: calib_core::Frame {
+                r: q.to_rotation_matrix().into_inner(),
+                p: nalgebra::Vector3::from(self.pose.position),
+            },
+        }
+    }
 }
 
 /// The result of [`align`].

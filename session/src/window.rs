@@ -6,25 +6,30 @@
 //!   fraction: a single spike cannot fake excitation the way a min/max span could. Samples
 //!   outside the range are counted apart (they hint at a wrong offset or a bad sensor), never
 //!   binned. NaN samples are ignored.
-//! - [`Session`] accumulates per-joint coverage and per-stream sample counts and, given the
+//! - [`Window`] accumulates per-joint coverage and per-stream sample counts and, given the
 //!   elapsed time, says [`Phase::Collecting`], [`Phase::Ready`] (minimum duration reached,
 //!   every joint covered, enough samples) or [`Phase::Failed`] (maximum duration reached
 //!   without that, with the reasons).
 //! - With `stop_at_expected_error` set (stop when good enough), [`Phase::Ready`] further needs
-//!   the latest expected table error ([`Session::set_expected`], estimated by the runner from
+//!   the latest expected table error ([`Window::set_expected`], estimated by the runner from
 //!   the motion so far) within both limits — until `max_duration_s`, when the motion alone
 //!   decides (Ready if it suffices, else Failed).
 //! - [`Progress`] is the snapshot the reporters show and the MCAP log records.
+
+use std::fmt;
 
 use serde::Serialize;
 
 use calib_core::JointRanges;
 
-use crate::config::{SessionRules, JOINTS};
 use crate::validate::Expected;
+use crate::{WindowRules, JOINTS};
 
 /// Bins of a joint's range.
 pub const COVERAGE_BINS: usize = 36;
+/// How much shorter than `min_duration_s` a recording may be and still count as that long
+/// ([`Window::at_end`]).
+pub const DURATION_SLACK_S: f64 = 1.0;
 /// Samples needed in a bin to count it as visited.
 pub const BIN_MIN_SAMPLES: u32 = 3;
 
@@ -82,7 +87,74 @@ pub enum Phase {
     /// Enough: calibrate now.
     Ready,
     /// The maximum duration passed without enough data: the reasons.
-    Failed(Vec<String>),
+    Failed(Vec<Shortfall>),
+}
+
+/// What a collection still lacks: why a window that closed at its maximum duration yields
+/// no calibration. [`fmt::Display`] gives the line summaries and reports show.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Shortfall {
+    /// A joint visited too little of its range.
+    Coverage {
+        /// 1-based joint.
+        joint: usize,
+        /// Fraction of its range visited.
+        covered: f64,
+        /// Fraction required.
+        required: f64,
+    },
+    /// A recording shorter than the window's minimum duration: a live session would still be
+    /// collecting.
+    RecordingTooShort {
+        /// The recording's length, s.
+        duration_s: f64,
+        /// The minimum window, s.
+        min_duration_s: f64,
+    },
+    /// The scarcest stream has too few samples.
+    Samples {
+        /// Its samples.
+        have: u64,
+        /// Samples required.
+        need: usize,
+    },
+}
+
+impl fmt::Display for Shortfall {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            Shortfall::Coverage {
+                joint,
+                covered,
+                required,
+            } => write!(
+                f,
+                "joint {joint} covered {:.0}% of its range, {:.0}% required",
+                covered * 100.0,
+                required * 100.0
+            ),
+            Shortfall::RecordingTooShort {
+                duration_s,
+                min_duration_s,
+            } => write!(
+                f,
+                "the recording is {duration_s:.1} s long; session.min_duration_s is \
+                 {min_duration_s} s (a live session would still be collecting)"
+            ),
+            Shortfall::Samples { have, need } => {
+                write!(
+                    f,
+                    "{have} samples from the scarcest stream, {need} required"
+                )
+            }
+        }
+    }
+}
+
+impl Serialize for Shortfall {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
 }
 
 /// A snapshot of the collection, for reporters and the log.
@@ -129,8 +201,8 @@ impl Progress {
 
 /// The collection window of one calibration session.
 #[derive(Debug, Clone)]
-pub struct Session {
-    rules: SessionRules,
+pub struct Window {
+    rules: WindowRules,
     coverage: [Coverage; JOINTS],
     joint_samples: [u64; JOINTS],
     pose_samples: u64,
@@ -138,10 +210,10 @@ pub struct Session {
     expected: Option<Expected>,
 }
 
-impl Session {
+impl Window {
     /// A new window with these rules over these joint ranges (rad).
-    pub fn new(rules: SessionRules, ranges: JointRanges<JOINTS>) -> Session {
-        Session {
+    pub fn new(rules: WindowRules, ranges: JointRanges<JOINTS>) -> Window {
+        Window {
             rules,
             coverage: ranges.limits.map(Coverage::new),
             joint_samples: [0; JOINTS],
@@ -224,27 +296,46 @@ impl Session {
     }
 
     /// What is still missing (empty when the data suffices, duration aside).
-    pub fn shortfalls(&self) -> Vec<String> {
-        let mut out = Vec::new();
-        for (i, c) in self.coverage.iter().enumerate() {
-            let f = c.fraction();
-            if f < self.rules.excitation_required {
-                out.push(format!(
-                    "joint {} covered {:.0}% of its range, {:.0}% required",
-                    i + 1,
-                    f * 100.0,
-                    self.rules.excitation_required * 100.0
-                ));
-            }
-        }
-        let n = self.samples();
-        if n < self.rules.min_samples as u64 {
-            out.push(format!(
-                "{n} samples from the scarcest stream, {} required",
-                self.rules.min_samples
-            ));
+    pub fn shortfalls(&self) -> Vec<Shortfall> {
+        let required = self.rules.excitation_required;
+        let mut out: Vec<Shortfall> = (self.coverage.iter().enumerate())
+            .map(|(i, c)| Shortfall::Coverage {
+                joint: i + 1,
+                covered: c.fraction(),
+                required,
+            })
+            .filter(|s| matches!(s, Shortfall::Coverage { covered, .. } if *covered < required))
+            .collect();
+        let (have, need) = (self.samples(), self.rules.min_samples);
+        if have < need as u64 {
+            out.push(Shortfall::Samples { have, need });
         }
         out
+    }
+
+    /// What a recording `duration_s` long (first to last frame) lacks, judged as the live
+    /// window would have been when it ended: empty when it would have calibrated. A live window
+    /// runs from the daemon's start to the tick that ends it, a recording from its first to its
+    /// last frame, which starts a little later: [`DURATION_SLACK_S`] makes up for that.
+    pub fn at_end(&self, duration_s: f64) -> Vec<Shortfall> {
+        let elapsed = duration_s + DURATION_SLACK_S;
+        match self.phase(elapsed) {
+            Phase::Ready => Vec::new(),
+            Phase::Failed(why) => why,
+            Phase::Collecting => {
+                let mut why = self.shortfalls();
+                if elapsed < self.rules.min_duration_s {
+                    why.insert(
+                        0,
+                        Shortfall::RecordingTooShort {
+                            duration_s,
+                            min_duration_s: self.rules.min_duration_s,
+                        },
+                    );
+                }
+                why
+            }
+        }
     }
 
     /// The phase at `elapsed_s`.
@@ -267,7 +358,7 @@ impl Session {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::Config;
+    use crate::Settings;
 
     fn range() -> (f64, f64) {
         (-1.0, 2.6)
@@ -305,19 +396,19 @@ mod tests {
     }
 
     /// The default rules with a 20 s minimum and a 120 s maximum duration.
-    fn session() -> Session {
-        let c = Config::default_config();
-        let rules = SessionRules {
+    fn window() -> Window {
+        let c = Settings::suit_default();
+        let rules = WindowRules {
             min_duration_s: 20.0,
             max_duration_s: 120.0,
-            ..c.session
+            ..c.window
         };
-        Session::new(rules, c.bounds.joint_range)
+        Window::new(rules, c.bounds.joint_range)
     }
 
     /// Sweeps every joint over `fraction` of its range, `n` samples per joint, and as many poses.
-    fn sweep(s: &mut Session, fraction: f64, n: usize) {
-        let ranges = Config::default_config().bounds.joint_range;
+    fn sweep(s: &mut Window, fraction: f64, n: usize) {
+        let ranges = Settings::suit_default().bounds.joint_range;
         for k in 0..n {
             let u = (k as f64 / n as f64 * 7.0).fract() * fraction;
             for (j, &(min, max)) in ranges.limits.iter().enumerate() {
@@ -329,7 +420,7 @@ mod tests {
 
     #[test]
     fn ready_only_after_min_duration_with_coverage_and_samples() {
-        let mut s = session();
+        let mut s = window();
         assert_eq!(s.phase(0.0), Phase::Collecting);
         sweep(&mut s, 0.3, 1500);
         // Coverage 30% < 50%: collecting, then failed at the maximum duration.
@@ -337,7 +428,12 @@ mod tests {
         match s.phase(120.0) {
             Phase::Failed(why) => {
                 assert_eq!(why.len(), 7, "{why:?}");
-                assert!(why[0].starts_with("joint 1 covered 31%"), "{why:?}");
+                assert!(
+                    matches!(why[0], Shortfall::Coverage { joint: 1, covered, required: 0.5 }
+                        if covered < 0.5),
+                    "{why:?}"
+                );
+                assert!(why[0].to_string().starts_with("joint 1 covered 31%"));
             }
             p => panic!("{p:?}"),
         }
@@ -352,14 +448,14 @@ mod tests {
 
     #[test]
     fn stop_when_good_enough_waits_for_the_expected_error_until_the_maximum() {
-        let c = Config::default_config();
-        let rules = SessionRules {
+        let c = Settings::suit_default();
+        let rules = WindowRules {
             min_duration_s: 20.0,
             max_duration_s: 120.0,
             stop_at_expected_error: Some((2.0, 6.0)),
-            ..c.session
+            ..c.window
         };
-        let mut s = Session::new(rules.clone(), c.bounds.joint_range);
+        let mut s = Window::new(rules.clone(), c.bounds.joint_range);
         sweep(&mut s, 1.0, 3000);
         // Motion suffices, nothing estimated yet: keep collecting.
         assert_eq!(s.phase(30.0), Phase::Collecting);
@@ -385,7 +481,7 @@ mod tests {
         assert_eq!(s.phase(15.0), Phase::Collecting);
         assert_eq!(s.phase(20.0), Phase::Ready);
         // Good enough but a joint never moved: fails at the maximum as without the rule.
-        let mut frozen = Session::new(rules, c.bounds.joint_range);
+        let mut frozen = Window::new(rules, c.bounds.joint_range);
         frozen.set_expected(Expected {
             position_mm: 1.0,
             rotation_mrad: 1.0,
@@ -396,7 +492,7 @@ mod tests {
 
     #[test]
     fn the_scarcest_stream_sets_the_sample_count() {
-        let mut s = session();
+        let mut s = window();
         sweep(&mut s, 1.0, 2000);
         // Poses stop: 2000 of each joint, 2000 poses; then 5000 more joint-1 samples.
         for _ in 0..5000 {
@@ -404,12 +500,19 @@ mod tests {
         }
         assert_eq!(s.samples(), 2000);
         s.joint_sample(99, 0.0); // ignored, no panic
-        let mut lean = session();
+        let mut lean = window();
         sweep(&mut lean, 1.0, 500);
         let why = lean.shortfalls();
         assert_eq!(
             why,
-            vec!["500 samples from the scarcest stream, 1000 required"]
+            [Shortfall::Samples {
+                have: 500,
+                need: 1000
+            }]
+        );
+        assert_eq!(
+            why[0].to_string(),
+            "500 samples from the scarcest stream, 1000 required"
         );
         let p = lean.progress(40.0);
         assert!((p.readiness - 0.5).abs() < 1e-12);
@@ -417,7 +520,7 @@ mod tests {
 
     #[test]
     fn progress_line_is_readable() {
-        let mut s = session();
+        let mut s = window();
         s.set_condition_number(123.0);
         let line = s.progress(3.25).line(0.5);
         assert!(

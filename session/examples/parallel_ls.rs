@@ -1,9 +1,9 @@
 //! The multi-core figure of `cargo xtask bench`: LS (and LS + our EM) on the paper's Section 4
 //! scenario, seed 1, K = 6,000, with the linearisation on 1 and 2 threads
-//! ([`exocald::parallel::Parallel`]). One JSON line per thread count: wall-clock medians (the
+//! ([`exocal_session::parallel::Parallel`]). One JSON line per thread count: wall-clock medians (the
 //! point of more cores), the CPU time of the whole process beside them.
 //!
-//! `cargo run --release -p exocald --example parallel_ls -- [--repeats N] [--k K]`
+//! `cargo run --release -p exocal-session --example parallel_ls -- [--repeats N] [--k K]`
 
 use std::num::NonZeroUsize;
 use std::time::Instant;
@@ -12,7 +12,7 @@ use calib_core::{
     em_drift_vec, identify_ls_with, DhTable, DriftEmOptions, LsOptions, Sample, Scenario,
     ScenarioConfig, SUIT_PARAMS,
 };
-use exocald::parallel::Parallel;
+use exocal_session::parallel::Parallel;
 
 fn arg(name: &str, default: usize) -> usize {
     let args: Vec<String> = std::env::args().collect();

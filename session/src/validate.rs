@@ -27,9 +27,11 @@
 use calib_core::{
     bound_violations, objective_y, pose_error, DhTable, ParamKind, Sample, TableError,
 };
+use std::fmt;
+
 use serde::Serialize;
 
-use crate::config::{Config, JOINTS};
+use crate::{Settings, JOINTS};
 
 /// Fewest held-out samples a verdict may rest on.
 pub const MIN_HELDOUT: usize = 50;
@@ -80,11 +82,108 @@ pub struct Accuracy {
     pub mean_rotation_rad: f64,
 }
 
+/// One reason to refuse a table: what a summary, the log and the report state, and what a
+/// test matches. [`fmt::Display`] gives the line (the serialised form is that line too).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Refusal {
+    /// A parameter of joint `joint` (1-based) is not finite.
+    NonFinite {
+        /// 1-based joint.
+        joint: usize,
+        /// Its a, d, α, θ offset.
+        values: [f64; 4],
+    },
+    /// A parameter outside the anatomical bounds.
+    Bound(calib_core::BoundViolation),
+    /// The identification problem is too ill-conditioned.
+    Conditioning {
+        /// Its condition number.
+        condition: f64,
+        /// The largest allowed.
+        max: f64,
+    },
+    /// The calibration produced no expected accuracy.
+    NoExpectedAccuracy,
+    /// The expected table error in position is above the limit.
+    ExpectedPosition {
+        /// 1σ, mm.
+        mm: f64,
+        /// The limit, mm.
+        max: f64,
+    },
+    /// The expected table error in rotation is above the limit.
+    ExpectedRotation {
+        /// 1σ, mrad.
+        mrad: f64,
+        /// The limit, mrad.
+        max: f64,
+    },
+    /// Too few held-out samples to judge the table.
+    TooFewHeldOut {
+        /// Held-out samples.
+        have: usize,
+    },
+    /// On the held-out slice the judged table is significantly worse than nominal.
+    WorseThanNominal {
+        /// Mean pose error of the judged table.
+        candidate: f64,
+        /// Mean pose error of nominal.
+        nominal: f64,
+        /// The paired t statistic.
+        t: f64,
+    },
+}
+
+impl fmt::Display for Refusal {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            Refusal::NonFinite { joint, values } => {
+                write!(f, "joint {joint}: non-finite parameter {values:?}")
+            }
+            Refusal::Bound(v) => f.write_str(&bound_reason(&v)),
+            Refusal::Conditioning { condition, max } => write!(
+                f,
+                "condition number {condition:.3e} above {max:.3e}: the motion did not excite every parameter"
+            ),
+            Refusal::NoExpectedAccuracy => {
+                f.write_str("no expected accuracy: the drift EM did not produce one")
+            }
+            Refusal::ExpectedPosition { mm, max } => write!(
+                f,
+                "expected table error ±{mm:.2} mm (1σ) above the {max} mm allowed: more varied motion or a longer session would lower it"
+            ),
+            Refusal::ExpectedRotation { mrad, max } => write!(
+                f,
+                "expected table error ±{mrad:.2} mrad (1σ) above the {max} mrad allowed: more varied motion or a longer session would lower it"
+            ),
+            Refusal::TooFewHeldOut { have } => write!(
+                f,
+                "only {have} held-out samples, at least {MIN_HELDOUT} needed"
+            ),
+            Refusal::WorseThanNominal {
+                candidate,
+                nominal,
+                t,
+            } => write!(
+                f,
+                "held-out pose error {candidate:.3e} vs nominal {nominal:.3e}: significantly worse than nominal \
+                 (paired t = {t:.2} over {HELDOUT_BATCHES} batches, refused above {HELDOUT_T_REFUSE})"
+            ),
+        }
+    }
+}
+
+impl Serialize for Refusal {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
 /// The outcome of [`validate`].
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Verdict {
     /// Every reason to refuse; empty when the table may be pushed.
-    pub reasons: Vec<String>,
+    pub reasons: Vec<Refusal>,
     /// Condition number of the (column-scaled) identification problem.
     pub condition_number: f64,
     /// Samples in the held-out slice.
@@ -222,42 +321,46 @@ pub fn validate(
     condition_number: f64,
     expected: Option<TableError>,
     heldout: HeldOut<'_>,
-    config: &Config,
+    settings: &Settings,
 ) -> Verdict {
     let mut reasons = Vec::new();
     for (i, row) in candidate.rows.iter().enumerate() {
         let values = [row.a, row.d, row.alpha, row.theta_offset];
         if values.iter().any(|v| !v.is_finite()) {
-            reasons.push(format!("joint {}: non-finite parameter {values:?}", i + 1));
+            reasons.push(Refusal::NonFinite {
+                joint: i + 1,
+                values,
+            });
         }
     }
-    let bounds = config.bounds.table(&config.nominal);
+    let bounds = settings.bounds.table(&settings.nominal);
     for v in bound_violations(candidate, &bounds).filter(|v| v.value.is_finite()) {
-        reasons.push(bound_reason(&v));
+        reasons.push(Refusal::Bound(v));
     }
-    let max_k = config.validation.max_condition_number;
+    let max_k = settings.validation.max_condition_number;
     if !(condition_number.is_finite() && condition_number <= max_k) {
-        reasons.push(format!(
-            "condition number {condition_number:.3e} above {max_k:.3e}: the motion did not excite every parameter"
-        ));
+        reasons.push(Refusal::Conditioning {
+            condition: condition_number,
+            max: max_k,
+        });
     }
-    let rules = &config.validation;
+    let rules = &settings.validation;
     let expected = expected.map(Expected::from);
     match expected {
-        None => reasons.push("no expected accuracy: the drift EM did not produce one".to_string()),
+        None => reasons.push(Refusal::NoExpectedAccuracy),
         Some(e) => {
             if e.position_mm.is_nan() || e.position_mm > rules.max_expected_position_error_mm {
-                reasons.push(format!(
-                    "expected table error ±{:.2} mm (1σ) above the {} mm allowed: more varied motion or a longer session would lower it",
-                    e.position_mm, rules.max_expected_position_error_mm
-                ));
+                reasons.push(Refusal::ExpectedPosition {
+                    mm: e.position_mm,
+                    max: rules.max_expected_position_error_mm,
+                });
             }
             if e.rotation_mrad.is_nan() || e.rotation_mrad > rules.max_expected_rotation_error_mrad
             {
-                reasons.push(format!(
-                    "expected table error ±{:.2} mrad (1σ) above the {} mrad allowed: more varied motion or a longer session would lower it",
-                    e.rotation_mrad, rules.max_expected_rotation_error_mrad
-                ));
+                reasons.push(Refusal::ExpectedRotation {
+                    mrad: e.rotation_mrad,
+                    max: rules.max_expected_rotation_error_mrad,
+                });
             }
         }
     }
@@ -265,7 +368,7 @@ pub fn validate(
         table: judged,
         samples: heldout,
     } = heldout;
-    let nominal_table = config.nominal;
+    let nominal_table = settings.nominal;
     let nominal = accuracy(&nominal_table, heldout);
     let cand = accuracy(judged, heldout);
     let improvement = if nominal.mean_error > 0.0 {
@@ -275,18 +378,17 @@ pub fn validate(
     };
     let mut heldout_t = f64::NAN;
     if heldout.len() < MIN_HELDOUT {
-        reasons.push(format!(
-            "only {} held-out samples, at least {MIN_HELDOUT} needed",
-            heldout.len()
-        ));
+        reasons.push(Refusal::TooFewHeldOut {
+            have: heldout.len(),
+        });
     } else {
         heldout_t = paired_t(judged, &nominal_table, heldout);
         if heldout_t.is_nan() || heldout_t > HELDOUT_T_REFUSE {
-            reasons.push(format!(
-                "held-out pose error {:.3e} vs nominal {:.3e}: significantly worse than nominal \
-                 (paired t = {heldout_t:.2} over {HELDOUT_BATCHES} batches, refused above {HELDOUT_T_REFUSE})",
-                cand.mean_error, nominal.mean_error,
-            ));
+            reasons.push(Refusal::WorseThanNominal {
+                candidate: cand.mean_error,
+                nominal: nominal.mean_error,
+                t: heldout_t,
+            });
         }
     }
     Verdict {
@@ -308,7 +410,7 @@ mod tests {
     /// Samples of the paper's "actual" arm (Table 4) along a deterministic sweep, exact poses.
     fn samples(n: usize) -> Vec<Sample<JOINTS>> {
         let actual = DhTable::paper_actual();
-        let ranges = Config::default_config().bounds.joint_range.limits;
+        let ranges = Settings::suit_default().bounds.joint_range.limits;
         (0..n)
             .map(|k| {
                 let joints: [f64; JOINTS] = std::array::from_fn(|j| {
@@ -339,7 +441,7 @@ mod tests {
 
     #[test]
     fn the_true_table_passes_and_a_table_worse_than_nominal_is_refused() {
-        let config = Config::default_config();
+        let config = Settings::suit_default();
         let held = samples(200);
         let truth = DhTable::paper_actual();
         let v = validate(&truth, 50.0, good(), judging(&truth, &held), &config);
@@ -360,9 +462,8 @@ mod tests {
         let mut worse = nominal;
         worse.rows[1].theta_offset += 3f64.to_radians();
         let v = validate(&worse, 50.0, good(), judging(&worse, &held), &config);
-        assert_eq!(v.reasons.len(), 1, "{:?}", v.reasons);
         assert!(
-            v.reasons[0].contains("significantly worse than nominal"),
+            matches!(v.reasons[..], [Refusal::WorseThanNominal { .. }]),
             "{:?}",
             v.reasons
         );
@@ -374,35 +475,35 @@ mod tests {
 
     #[test]
     fn the_expected_accuracy_must_be_known_and_within_the_limits() {
-        let config = Config::default_config();
+        let config = Settings::suit_default();
         let held = samples(200);
         let truth = DhTable::paper_actual();
         let v = validate(&truth, 50.0, None, judging(&truth, &held), &config);
+        assert_eq!(v.reasons, [Refusal::NoExpectedAccuracy]);
         assert_eq!(
-            v.reasons,
-            ["no expected accuracy: the drift EM did not produce one"]
+            v.reasons[0].to_string(),
+            "no expected accuracy: the drift EM did not produce one"
         );
         let coarse = TableError {
             position_m: 4e-3,
             rotation_rad: 2e-3,
         };
         let v = validate(&truth, 50.0, Some(coarse), judging(&truth, &held), &config);
-        assert_eq!(v.reasons.len(), 1, "{:?}", v.reasons);
-        assert!(
-            v.reasons[0].starts_with("expected table error ±4.00 mm (1σ) above the 3 mm allowed"),
-            "{:?}",
-            v.reasons
-        );
+        assert_eq!(v.reasons, [Refusal::ExpectedPosition { mm: 4.0, max: 3.0 }]);
+        assert!(v.reasons[0]
+            .to_string()
+            .starts_with("expected table error ±4.00 mm (1σ) above the 3 mm allowed"));
         let twisted = TableError {
             position_m: 1e-3,
             rotation_rad: 0.02,
         };
         let v = validate(&truth, 50.0, Some(twisted), judging(&truth, &held), &config);
-        assert!(
-            v.reasons[0]
-                .starts_with("expected table error ±20.00 mrad (1σ) above the 10 mrad allowed"),
-            "{:?}",
-            v.reasons
+        assert_eq!(
+            v.reasons,
+            [Refusal::ExpectedRotation {
+                mrad: 20.0,
+                max: 10.0
+            }]
         );
     }
 
@@ -410,14 +511,14 @@ mod tests {
     fn the_held_out_slice_judges_the_table_fitted_without_it() {
         // A refitted candidate is judged for bounds and accuracy itself, on the held-out slice
         // through the table it was refitted from.
-        let config = Config::default_config();
+        let config = Settings::suit_default();
         let held = samples(200);
         let truth = DhTable::paper_actual();
         let mut worse = config.nominal;
         worse.rows[1].theta_offset += 3f64.to_radians();
         let v = validate(&truth, 50.0, good(), judging(&worse, &held), &config);
         assert!(
-            v.reasons.len() == 1 && v.reasons[0].contains("significantly worse than nominal"),
+            matches!(v.reasons[..], [Refusal::WorseThanNominal { .. }]),
             "{:?}",
             v.reasons
         );
@@ -427,7 +528,7 @@ mod tests {
 
     #[test]
     fn every_reason_is_listed() {
-        let config = Config::default_config();
+        let config = Settings::suit_default();
         let mut t = DhTable::paper_actual();
         t.rows[2].a = 0.6; // outside Table 2
         t.rows[4].d = 0.2;
@@ -443,7 +544,32 @@ mod tests {
             judging(&t, &samples(10)),
             &config,
         );
-        let all = v.reasons.join("\n");
+        let all: Vec<String> = v.reasons.iter().map(Refusal::to_string).collect();
+        let all = all.join("\n");
+        let bound = |joint, kind| {
+            v.reasons
+                .iter()
+                .any(|r| matches!(r, Refusal::Bound(b) if b.joint == joint && b.kind == kind))
+        };
+        assert!(bound(2, ParamKind::A) && bound(4, ParamKind::D), "{all}");
+        assert!(
+            bound(1, ParamKind::Alpha) && bound(6, ParamKind::Theta),
+            "{all}"
+        );
+        assert!(v
+            .reasons
+            .iter()
+            .any(|r| matches!(r, Refusal::Conditioning { .. })));
+        assert!(v.reasons.contains(&Refusal::ExpectedPosition {
+            mm: 100.0,
+            max: 3.0
+        }));
+        assert!(v.reasons.contains(&Refusal::ExpectedRotation {
+            mrad: 100.0,
+            max: 10.0
+        }));
+        assert!(v.reasons.contains(&Refusal::TooFewHeldOut { have: 10 }));
+        // And each says it in words.
         for needle in [
             "joint 3: a = 0.6000",
             "joint 5: d = 0.2000",
@@ -461,36 +587,41 @@ mod tests {
 
     #[test]
     fn non_finite_tables_and_conditions_are_refused() {
-        let config = Config::default_config();
+        let config = Settings::suit_default();
         let mut t = DhTable::paper_actual();
         t.rows[0].a = f64::NAN;
         let v = validate(&t, f64::NAN, good(), judging(&t, &samples(100)), &config);
         assert!(!v.accepted());
-        assert!(v.reasons.iter().any(|r| r.contains("non-finite")));
-        assert!(v.reasons.iter().any(|r| r.contains("condition number")));
+        assert!(v
+            .reasons
+            .iter()
+            .any(|r| matches!(r, Refusal::NonFinite { joint: 1, .. })));
+        assert!(v
+            .reasons
+            .iter()
+            .any(|r| matches!(r, Refusal::Conditioning { .. })));
         // The NaN table has NaN accuracy: that is a refusal too, not a pass.
-        assert!(v.reasons.iter().any(|r| r.contains("held-out")));
+        assert!(v
+            .reasons
+            .iter()
+            .any(|r| matches!(r, Refusal::WorseThanNominal { .. })));
     }
 
     #[test]
     fn angle_deviations_wrap() {
-        let mut config = Config::default_config();
+        let mut config = Settings::suit_default();
         // Nominal α1 = -90°; 270° is the same twist, 3° off is 3° off whichever way it is written.
         let mut t = config.nominal;
         t.rows[0].alpha = 270f64.to_radians();
         let v = validate(&t, 50.0, good(), judging(&t, &samples(100)), &config);
-        assert!(
-            !v.reasons.iter().any(|r| r.contains("alpha")),
-            "{:?}",
-            v.reasons
-        );
+        assert!(v.accepted(), "{:?}", v.reasons);
         t.rows[0].alpha = 273f64.to_radians();
         config.bounds.alpha_deviation = 1f64.to_radians();
         let v = validate(&t, 50.0, good(), judging(&t, &samples(100)), &config);
         assert!(
-            v.reasons
-                .iter()
-                .any(|r| r == "joint 1: alpha is 3.00° from nominal, at most 1.00° allowed"),
+            v.reasons.iter().any(|r| matches!(r, Refusal::Bound(b)
+                if b.joint == 0 && b.kind == ParamKind::Alpha)
+                && r.to_string() == "joint 1: alpha is 3.00° from nominal, at most 1.00° allowed"),
             "{:?}",
             v.reasons
         );

@@ -3,23 +3,23 @@
 //!
 //! Contract:
 //! - [`Collector::on_frame`] is the one place a received frame is taken: decoded by
-//!   [`Ingest`], and each joint angle and pose counted by the [`Session`] window. The live
+//!   [`Ingest`], and each joint angle and pose counted by the [`Window`]. The live
 //!   session feeds it from the bus (and logs the [`Event`] it returns); `exocald offline`
 //!   feeds it the frames of a recording. The same frames give the same [`Collected`], bit for
 //!   bit;
 //! - [`Collector::collected`] aligns what was gathered: every node's clock fitted, all streams
-//!   resampled onto the `session.grid_hz` grid, gaps longer than `session.max_gap_s` excluded,
+//!   resampled onto the `window.grid_hz` grid, gaps longer than `window.max_gap_s` excluded,
 //!   and the data-quality summary the report shows;
 //! - [`Collected::from_samples`] is the same for samples that need no alignment (a CSV file):
 //!   no frames, no clocks.
 
-use exocal_bus::Received;
-use exocal_report::{Quality, StreamQuality};
+use crate::outcome::{Quality, StreamQuality};
+use exocal_dbc::Received;
 
 use crate::align::{AlignParams, AlignedSample};
-use crate::config::Config;
 use crate::ingest::{ClockReport, Event, FrameStats, Ingest, StallReport};
-use crate::session::Session;
+use crate::window::Window;
+use crate::Settings;
 
 /// A session's frames so far: the decoded streams and the collection window.
 #[derive(Debug, Clone)]
@@ -27,15 +27,15 @@ pub struct Collector {
     /// The decoded streams and the frame counters.
     pub ingest: Ingest,
     /// The collection window: coverage, sample counts, ready/failed.
-    pub session: Session,
+    pub window: Window,
 }
 
 impl Collector {
     /// An empty collection under `config`'s node ids, session rules and joint ranges.
-    pub fn new(config: &Config) -> Collector {
+    pub fn new(settings: &Settings) -> Collector {
         Collector {
-            ingest: Ingest::new(config.joint_nodes),
-            session: Session::new(config.session.clone(), config.bounds.joint_range),
+            ingest: Ingest::new(settings.joint_nodes),
+            window: Window::new(settings.window.clone(), settings.bounds.joint_range),
         }
     }
 
@@ -43,23 +43,23 @@ impl Collector {
     pub fn on_frame(&mut self, rx: &Received) -> Event {
         let event = self.ingest.on_frame(rx);
         match &event {
-            Event::Joint { joint, angle, .. } => self.session.joint_sample(*joint, *angle),
-            Event::Pose(_) => self.session.pose_sample(),
+            Event::Joint { joint, angle, .. } => self.window.joint_sample(*joint, *angle),
+            Event::Pose(_) => self.window.pose_sample(),
             _ => {}
         }
         event
     }
 
     /// Aligns what was gathered (see the module docs).
-    pub fn collected(&self, config: &Config) -> Collected {
+    pub fn collected(&self, settings: &Settings) -> Collected {
         let (aligned, clocks) = self.ingest.align(
             &AlignParams::default(),
-            config.session.grid_hz,
-            config.session.max_gap_s,
+            settings.window.grid_hz,
+            settings.window.max_gap_s,
         );
         let stalls = StallReport::of(&aligned.stalls);
         let quality = frame_quality(
-            config,
+            settings,
             self.ingest.stats(),
             &clocks,
             stalls,
@@ -97,17 +97,17 @@ pub struct Collected {
 
 impl Collected {
     /// Samples that need no alignment (CSV), with their data quality.
-    pub fn from_samples(samples: Vec<AlignedSample>, config: &Config) -> Collected {
+    pub fn from_samples(samples: Vec<AlignedSample>, settings: &Settings) -> Collected {
         Collected {
-            quality: sample_quality(config, &samples),
+            quality: sample_quality(settings, &samples),
             samples,
             ..Collected::default()
         }
     }
 }
 
-fn ranges(config: &Config) -> [(f64, f64); crate::config::JOINTS] {
-    config.bounds.joint_range.limits
+fn ranges(settings: &Settings) -> [(f64, f64); crate::JOINTS] {
+    settings.bounds.joint_range.limits
 }
 
 fn duration(samples: &[AlignedSample]) -> f64 {
@@ -121,7 +121,7 @@ fn duration(samples: &[AlignedSample]) -> f64 {
 /// `rates` is [`crate::ingest::Ingest::stream_rates`], in the order of `clocks` (joints, then
 /// the end effector).
 fn frame_quality(
-    config: &Config,
+    settings: &Settings,
     stats: &FrameStats,
     clocks: &[ClockReport],
     stalls: StallReport,
@@ -157,12 +157,12 @@ fn frame_quality(
         .collect();
     Quality {
         duration_s: duration(samples),
-        grid_hz: config.session.grid_hz,
+        grid_hz: settings.window.grid_hz,
         gaps,
         counters,
         streams,
-        joint_ranges: ranges(config),
-        excitation_required: Some(config.session.excitation_required),
+        joint_ranges: ranges(settings),
+        excitation_required: Some(settings.window.excitation_required),
         receiver_stalls: stalls.count,
         longest_stall_ms: stalls.longest_ms,
     }
@@ -170,7 +170,7 @@ fn frame_quality(
 
 /// Data quality of plain samples (CSV): span, the grid rate they were calibrated at, no
 /// frame counters or clocks.
-fn sample_quality(config: &Config, samples: &[AlignedSample]) -> Quality {
+fn sample_quality(settings: &Settings, samples: &[AlignedSample]) -> Quality {
     let span = duration(samples);
     let rate = if span > 0.0 {
         (samples.len() - 1) as f64 / span
@@ -179,7 +179,7 @@ fn sample_quality(config: &Config, samples: &[AlignedSample]) -> Quality {
     };
     Quality {
         duration_s: span,
-        grid_hz: config.session.grid_hz,
+        grid_hz: settings.window.grid_hz,
         gaps: 0,
         counters: Vec::new(),
         streams: vec![StreamQuality {
@@ -192,8 +192,8 @@ fn sample_quality(config: &Config, samples: &[AlignedSample]) -> Quality {
             skew_ppm: None,
             jitter_us: None,
         }],
-        joint_ranges: ranges(config),
-        excitation_required: Some(config.session.excitation_required),
+        joint_ranges: ranges(settings),
+        excitation_required: Some(settings.window.excitation_required),
         receiver_stalls: 0,
         longest_stall_ms: None,
     }
@@ -202,14 +202,14 @@ fn sample_quality(config: &Config, samples: &[AlignedSample]) -> Quality {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use exocal_bus::Frame;
     use exocal_dbc::message::{JointState, Message};
+    use exocal_dbc::Frame;
     use exocal_dbc::NodeId;
     use std::time::Duration;
 
     #[test]
     fn a_frame_reaches_ingest_and_the_window_and_its_event_comes_back() {
-        let config = Config::default_config();
+        let config = Settings::suit_default();
         let mut c = Collector::new(&config);
         for k in 0..3u32 {
             let msg = Message::JointState(JointState {
@@ -227,7 +227,7 @@ mod tests {
         assert_eq!(c.ingest.stats().received, 3);
         assert_eq!(c.ingest.joint_samples(2), 3);
         // Three samples in one bin of joint 3's range: that bin counts as visited.
-        let coverage = c.session.progress(0.0).coverage;
+        let coverage = c.window.progress(0.0).coverage;
         assert!((coverage[2] - 1.0 / 36.0).abs() < 1e-12, "{coverage:?}");
         assert_eq!(coverage[0], 0.0);
     }

@@ -1,29 +1,30 @@
 //! The exports and readers agree with the daemon's own code: the TOML export loads with the
-//! daemon's configuration parser, and the MCAP reader reads the daemon's session-log writer.
+//! daemon's configuration parser, and the log crate's MCAP reader reads the daemon's
+//! session-log writer.
 
 use calib_core::DhTable;
-use exocal_report::export::config_toml;
-use exocal_report::readers::{read_mcap_frames, read_mcap_session};
-use exocald::config::{Config, DEFAULT_TOML};
+use exocal_bus::embedded_can::Frame as _;
+use exocal_log::read::read_mcap_session;
+use exocald::config::{with_nominal, Config, DEFAULT_TOML};
 use exocald::mcaplog::{CanFrameRecord, CollectionEnd, Level, SessionLog};
 use exocald::record::Record;
 
 #[test]
 fn the_exported_configuration_loads_in_the_daemon_with_the_calibrated_table() {
     let calibrated = DhTable::<7>::paper_actual();
-    let text = config_toml(DEFAULT_TOML, &calibrated).unwrap();
+    let text = with_nominal(DEFAULT_TOML, &calibrated).unwrap();
     let loaded = Config::parse(&text).unwrap_or_else(|e| panic!("{e}\n{text}"));
     let default = Config::parse(DEFAULT_TOML).unwrap();
-    for (row, want) in loaded.nominal.rows.iter().zip(&calibrated.rows) {
+    for (row, want) in loaded.calibration.nominal.rows.iter().zip(&calibrated.rows) {
         assert!((row.a - want.a).abs() < 1e-15, "{row:?} vs {want:?}");
         assert!((row.d - want.d).abs() < 1e-15);
         assert!((row.alpha - want.alpha).abs() < 1e-12);
         assert!((row.theta_offset - want.theta_offset).abs() < 1e-12);
     }
     // Only the nominal table changed.
-    assert_ne!(loaded.nominal, default.nominal);
+    assert_ne!(loaded.calibration.nominal, default.calibration.nominal);
     let mut same = loaded.clone();
-    same.nominal = default.nominal;
+    same.calibration.nominal = default.calibration.nominal;
     assert_eq!(same, default);
     // The comments of the shipped file survive.
     assert!(text.contains("# The paper's Table 1"));
@@ -79,12 +80,14 @@ fn the_mcap_reader_reads_the_frames_the_daemon_logged() {
         1_700_000_000_000_000_000 + 200 * 1_234_567
     );
     assert_eq!(session.collection_frames, Some(200));
-    let frames = read_mcap_frames(buf.get_ref()).unwrap();
-    assert_eq!(frames, session.frames);
+    let frames = session.frames;
     assert_eq!(frames.len(), sent.len());
     for (f, r) in frames.iter().zip(&sent) {
-        assert_eq!(f.id, r.id);
-        assert_eq!(f.data, r.data);
-        assert_eq!(f.t.as_nanos() as u64, r.kernel_ns.unwrap_or(r.host_ns));
+        assert_eq!(f.frame.raw_id(), r.id);
+        assert_eq!(f.frame.data(), &r.data[..]);
+        assert_eq!(
+            f.timestamp.as_nanos() as u64,
+            r.kernel_ns.unwrap_or(r.host_ns)
+        );
     }
 }
