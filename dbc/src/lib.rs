@@ -23,11 +23,24 @@
 #![warn(missing_docs)]
 
 pub mod auth;
+mod layout;
 pub mod message;
 pub mod pose;
-pub mod spec;
 pub mod table;
 pub mod transfer;
+
+/// The protocol's tables, generated at build time from `exocal.dbc` by `build.rs`: a [`Kind`]
+/// and a [`MessageSpec`] static per message family (`JOINT_STATE`), a module of [`SignalSpec`]
+/// constants per family (`joint_state::ANGLE`), named `VAL_` values (`heartbeat::state::FAULT`),
+/// [`NODE_NAMES`] and [`ALL`]. The DBC's comments are their docs. Edit the DBC, never these.
+///
+/// The types they are made of, [`lookup`] and the signal-level codec are hand-written (see
+/// [`SignalSpec`] and [`MessageSpec::check`]).
+#[allow(clippy::approx_constant)] // the DBC's 2π bounds, 6.283185, are not `TAU`
+pub mod spec {
+    pub use crate::layout::{lookup, MessageSpec, MuxRole, SignalSpec};
+    include!(concat!(env!("OUT_DIR"), "/spec.rs"));
+}
 
 pub use message::{
     decode, decode_frame, CmdCode, Command, Heartbeat, ImuVector, JointState, Message, NackReason,
