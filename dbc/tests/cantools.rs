@@ -333,12 +333,13 @@ fn generated_tables_hold_what_cantools_reads_from_the_dbc() {
     // Signals seen per message name.
     let mut seen: BTreeMap<String, usize> = BTreeMap::new();
     for line in dump.lines() {
-        let f: Vec<&str> = line.split('\t').collect();
+        let fields: [&str; 16] = line
+            .split('\t')
+            .collect::<Vec<_>>()
+            .try_into()
+            .unwrap_or_else(|_| panic!("unexpected line {line:?}"));
         let [id, extended, message, dlc, name, start, len, order, signed, scale, offset, min, max, unit, mux, choices] =
-            f[..]
-        else {
-            panic!("unexpected line {line:?}")
-        };
+            fields;
         let what = format!("{message}.{name}");
         assert_eq!(
             (extended, dlc, order),
