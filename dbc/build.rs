@@ -6,21 +6,19 @@
 //! (Controller 0, Joint1 1, …). Every instance of a family is the same message but for the node:
 //! same DLC, signals, `VAL_` tables and comments (the node's name aside). Any other name is a
 //! family of one message without a node. The build fails, naming the message and signal, when
-//! the DBC breaks these rules or needs what the codec does not do: extended identifiers, a DLC
-//! other than 8, big-endian signals, nested multiplexing, a switch wider than 8 bits, a `[min|max]`
-//! its bits cannot hold.
+//! the DBC breaks these rules (identifiers unique too) or needs what the codec does not do:
+//! extended identifiers, a DLC other than 8, big-endian signals, nested multiplexing, a switch
+//! wider than 8 bits, a `[min|max]` its bits cannot hold, names that are not `CamelCase`.
 //!
 //! Per family it writes a `Kind` variant, a `MessageSpec` static (`JOINT_STATE`), a module of
 //! `SignalSpec` constants (`joint_state::ANGLE`) and, per signal with a `VAL_` table, a module
 //! of its named raw values (`heartbeat::state::OPERATIONAL`). A `VAL_` entry named `Invalid` is
 //! the signal's invalid marker (NaN) instead. The DBC's comments become the doc comments.
 
-use can_dbc::{
-    ByteOrder, Dbc, Message, MessageId, MultiplexIndicator, NumericValue, Signal, ValueType,
-};
-use std::fmt::Write as _;
+use can_dbc::{ByteOrder, Dbc, Message, MessageId, MultiplexIndicator, NumericValue, ValueType};
+use std::fmt::{self, Write as _};
 
-/// The DBC value name that marks a raw value as "invalid" (decoded as NaN).
+/// The `VAL_` name that marks a raw value as invalid (decoded as NaN).
 const INVALID: &str = "Invalid";
 
 fn main() {
@@ -28,33 +26,32 @@ fn main() {
     let text = std::fs::read_to_string("exocal.dbc").expect("read exocal.dbc");
     let dbc =
         Dbc::try_from(text.as_str()).unwrap_or_else(|e| panic!("exocal.dbc does not parse: {e}"));
-    let code = generate(&dbc).unwrap_or_else(|e| panic!("exocal.dbc: {e}"));
+    let families = families(&dbc).unwrap_or_else(|e| panic!("exocal.dbc: {e}"));
+    let nodes: Vec<&str> = dbc.nodes.iter().map(|n| n.0.as_str()).collect();
+    let code = render(&nodes, &families).expect("writing to a String");
     let out = std::path::PathBuf::from(std::env::var_os("OUT_DIR").expect("OUT_DIR"));
     std::fs::write(out.join("spec.rs"), code).expect("write spec.rs");
 }
 
-/// One message family: its instances in DBC order, with their node ids.
-struct Family<'a> {
-    name: &'a str,
+/// One message family, as the generated `MessageSpec` and its signal module hold it.
+struct Family {
+    name: String,
     base: u16,
-    per_node: bool,
-    members: Vec<(u8, &'a Message)>,
+    /// Node ids of its instances; empty for a family without nodes.
+    nodes: Vec<u8>,
+    comment: String,
+    signals: Vec<Signal>,
 }
 
-impl Family<'_> {
-    /// `JointState_<node>` or `Trigger`.
-    fn title(&self) -> String {
-        if self.per_node {
-            format!("`{}_<node>`", self.name)
-        } else {
-            format!("`{}`", self.name)
-        }
-    }
+#[derive(PartialEq)]
+struct Signal {
+    spec: SignalSpec,
+    comment: String,
 }
 
-/// One signal, as the generated `SignalSpec` holds it.
+/// The generated `SignalSpec`, field for field: its `Debug` output is the Rust literal.
 #[derive(Debug, PartialEq)]
-struct Sig {
+struct SignalSpec {
     name: String,
     start: u64,
     len: u64,
@@ -64,213 +61,122 @@ struct Sig {
     min: f64,
     max: f64,
     unit: String,
-    /// `MuxRole` as Rust source.
-    mux: String,
-    invalid: Option<i64>,
-    values: Vec<(i64, String)>,
-    comment: String,
+    mux: MuxRole,
+    invalid_raw: Option<i64>,
+    values: Values,
 }
 
-fn generate(dbc: &Dbc) -> Result<String, String> {
+#[derive(Clone, Copy, PartialEq)]
+enum MuxRole {
+    Plain,
+    Switch,
+    Case(u64),
+}
+
+impl fmt::Debug for MuxRole {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            MuxRole::Plain => f.write_str("MuxRole::Plain"),
+            MuxRole::Switch => f.write_str("MuxRole::Switch"),
+            MuxRole::Case(v) => write!(f, "MuxRole::Case({v})"),
+        }
+    }
+}
+
+/// The named raw values of a signal's `VAL_` table (the invalid marker aside).
+#[derive(PartialEq)]
+struct Values(Vec<(i64, String)>);
+
+impl fmt::Debug for Values {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "&{:?}", self.0)
+    }
+}
+
+/// Groups the DBC's messages into families, checking the rules of the module docs.
+fn families(dbc: &Dbc) -> Result<Vec<Family>, String> {
     let nodes: Vec<&str> = dbc.nodes.iter().map(|n| n.0.as_str()).collect();
     let mut families: Vec<Family> = Vec::new();
     for m in &dbc.messages {
         let MessageId::Standard(id) = m.id else {
-            return Err(format!(
-                "{}: extended identifiers are not supported",
-                m.name
-            ));
+            return Err(format!("{}: extended identifier", m.name));
         };
-        if id >= 0x800 {
-            return Err(format!("{}: identifier {id:#x} is not 11 bits", m.name));
+        if id >= 0x800 || m.size != 8 {
+            return Err(format!("{}: not 11 bits and 8 bytes", m.name));
         }
-        if m.size != 8 {
-            return Err(format!(
-                "{}: DLC {} (the codec carries 8 bytes)",
-                m.name, m.size
-            ));
+        if dbc.messages.iter().filter(|other| other.id == m.id).count() > 1 {
+            return Err(format!("{}: identifier {id:#x} not unique", m.name));
         }
-        let split = m.name.rsplit_once('_').and_then(|(family, node)| {
-            let index = nodes.iter().position(|n| *n == node)?;
-            Some((family, index as u8))
+        let by_node = m.name.rsplit_once('_').and_then(|(family, node)| {
+            Some((family, nodes.iter().position(|n| *n == node)? as u8, node))
         });
-        let (name, node, base) = match split {
-            Some((family, node)) if u16::from(node) == id & 0xF => (family, node, id & !0xF),
-            Some((_, node)) => {
-                return Err(format!(
-                    "{}: identifier {id:#x} does not carry node id {node} in its low 4 bits",
-                    m.name
-                ))
+        let (name, base, node) = match by_node {
+            Some((family, node, node_name)) if u16::from(node) == id & 0xF => {
+                (family, id & !0xF, Some((node, node_name)))
             }
-            None => (m.name.as_str(), 0, id),
+            Some((_, node, _)) => return Err(format!("{}: node id {node} not in its id", m.name)),
+            None => (m.name.as_str(), id, None),
         };
-        let per_node = split.is_some();
-        match families.iter_mut().find(|f| f.name == name) {
-            Some(f) if f.base != base || f.per_node != per_node => {
-                return Err(format!(
-                    "{}: identifier base differs from {}",
-                    m.name,
-                    f.title()
-                ));
-            }
-            Some(f) => f.members.push((node, m)),
-            None => families.push(Family {
-                name,
-                base,
-                per_node,
-                members: vec![(node, m)],
-            }),
-        }
-    }
-
-    let mut out = String::from(
-        "// Generated by dbc/build.rs from exocal.dbc: edit the DBC, not this file.\n\n",
-    );
-    let o = &mut out;
-    line(
-        o,
-        "/// The message families of `exocal.dbc`, one per [`MessageSpec`].",
-    );
-    line(o, "#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]");
-    line(o, "pub enum Kind {");
-    for f in &families {
-        ident(f.name)?;
-        doc(o, 1, &format!("{}.", f.title()));
-        line(o, &format!("    {},", f.name));
-    }
-    line(o, "}\n");
-    line(o, "impl Kind {");
-    doc(o, 1, "The family's layout.");
-    line(o, "    pub const fn spec(self) -> &'static MessageSpec {");
-    line(o, "        match self {");
-    for f in &families {
-        let konst = snake(f.name).to_uppercase();
-        line(o, &format!("            Kind::{} => &{konst},", f.name));
-    }
-    line(o, "        }");
-    line(o, "    }");
-    line(o, "}\n");
-    doc(o, 0, "DBC node names (`BU_`) by node id.");
-    line(
-        o,
-        &format!(
-            "pub const NODE_NAMES: [&str; {}] = {nodes:?};\n",
-            nodes.len()
-        ),
-    );
-    doc(o, 0, "Every frame is 8 bytes.");
-    line(o, "pub const DLC: u8 = 8;\n");
-
-    for f in &families {
-        let (comment, sigs) = family_signals(dbc, f, &nodes)?;
-        let module = snake(f.name);
-        let ids = if f.per_node {
-            let list: Vec<String> = f.members.iter().map(|(n, _)| n.to_string()).collect();
-            format!(
-                "identifier `{:#05x} | node`, nodes {}",
-                f.base,
-                list.join(", ")
-            )
-        } else {
-            format!("identifier `{:#05x}`", f.base)
+        ident(name)?;
+        // The comments with the node's name in place of `<node>`.
+        let generic = |text: &str| match node {
+            Some((_, node_name)) => text.replace(node_name, "`<node>`"),
+            None => text.to_string(),
         };
-        doc(o, 0, &format!("{} ({ids}): {comment}", f.title()));
-        let names = sigs
-            .iter()
-            .map(|s| Ok(format!("{module}::{}", ident(&s.name)?.to_uppercase())))
-            .collect::<Result<Vec<String>, String>>()?;
-        let node_ids: Vec<u8> = if f.per_node {
-            f.members.iter().map(|(n, _)| *n).collect()
-        } else {
-            Vec::new()
-        };
-        line(
-            o,
-            &format!(
-                "pub static {}: MessageSpec = MessageSpec {{ kind: Kind::{}, name: {:?}, \
-                 base_id: {:#05x}, nodes: &{node_ids:?}, signals: &[{}] }};\n",
-                module.to_uppercase(),
-                f.name,
-                f.name,
-                f.base,
-                names.join(", ")
-            ),
-        );
-        doc(o, 0, &format!("The signals of {}.", f.title()));
-        line(o, &format!("pub mod {module} {{"));
-        line(o, "    use super::{MuxRole, SignalSpec};");
-        for s in &sigs {
-            write_signal(o, s)?;
-        }
-        line(o, "}\n");
-    }
-
-    doc(o, 0, "Every message family, in DBC order.");
-    let all: Vec<String> = families
-        .iter()
-        .map(|f| format!("&{}", snake(f.name).to_uppercase()))
-        .collect();
-    line(
-        o,
-        &format!(
-            "pub static ALL: [&MessageSpec; {}] = [{}];",
-            all.len(),
-            all.join(", ")
-        ),
-    );
-    Ok(out)
-}
-
-/// The comment and signals of a family, checked to be the same in every instance.
-fn family_signals(dbc: &Dbc, f: &Family, nodes: &[&str]) -> Result<(String, Vec<Sig>), String> {
-    let mut first: Option<(String, Vec<Sig>)> = None;
-    for (node, m) in &f.members {
-        let mut sigs = Vec::new();
+        let mut signals = Vec::new();
         for s in &m.signals {
-            let sig = signal(dbc, m, s)
-                .map_err(|e| format!("{}.{}: {e}", m.name, s.name))
-                .map(|mut sig| {
-                    sig.comment = generic(&sig.comment, nodes, f, *node);
-                    sig
-                })?;
-            sigs.push(sig);
+            let spec = signal(dbc, m, s).map_err(|e| format!("{}.{}: {e}", m.name, s.name))?;
+            let comment = generic(dbc.signal_comment(m.id, &s.name).unwrap_or(""));
+            signals.push(Signal { spec, comment });
         }
-        let switches = sigs.iter().filter(|s| s.mux == "MuxRole::Switch").count();
-        let cases = sigs.iter().any(|s| s.mux.starts_with("MuxRole::Case"));
+        let switches = signals
+            .iter()
+            .filter(|s| s.spec.mux == MuxRole::Switch)
+            .count();
+        let cases = signals
+            .iter()
+            .any(|s| matches!(s.spec.mux, MuxRole::Case(_)));
         if switches > 1 || (cases && switches == 0) {
             return Err(format!("{}: one multiplexer switch expected", m.name));
         }
-        let comment = generic(dbc.message_comment(m.id).unwrap_or(""), nodes, f, *node);
-        match &first {
-            None => first = Some((comment, sigs)),
-            Some((c, s)) if *c != comment || *s != sigs => {
+        let comment = generic(dbc.message_comment(m.id).unwrap_or(""));
+        match families.iter_mut().find(|f| f.name == name) {
+            None => families.push(Family {
+                name: name.to_string(),
+                base,
+                nodes: node.map(|(n, _)| n).into_iter().collect(),
+                comment,
+                signals,
+            }),
+            Some(f) if f.base != base || f.nodes.is_empty() != node.is_none() => {
+                return Err(format!("{}: identifier differs from {}'s", m.name, f.name))
+            }
+            Some(f) if f.comment != comment || f.signals != signals => {
                 return Err(format!(
-                    "{}: differs from {} beyond the node name (layout, VAL_ or comments)",
-                    m.name, f.members[0].1.name
+                    "{}: differs from {}'s other messages beyond the node name \
+                     (layout, VAL_ or comments)",
+                    m.name, f.name
                 ))
             }
-            Some(_) => {}
+            Some(f) => f.nodes.extend(node.map(|(n, _)| n)),
         }
     }
-    Ok(first.unwrap_or_default())
+    Ok(families)
 }
 
-fn signal(dbc: &Dbc, m: &Message, s: &Signal) -> Result<Sig, String> {
+fn signal(dbc: &Dbc, m: &Message, s: &can_dbc::Signal) -> Result<SignalSpec, String> {
+    ident(&s.name)?;
     if s.byte_order != ByteOrder::LittleEndian {
         return Err("big-endian signals are not supported".into());
     }
-    if s.size == 0 || s.size > 64 || s.start_bit + s.size > 64 {
-        return Err(format!(
-            "bits {}..{} do not fit 8 bytes",
-            s.start_bit,
-            s.start_bit + s.size
-        ));
+    if s.size == 0 || s.start_bit + s.size > 64 {
+        return Err("does not fit 8 bytes".into());
     }
     let signed = s.value_type == ValueType::Signed;
     let mux = match s.multiplexer_indicator {
-        MultiplexIndicator::Plain => "MuxRole::Plain".to_string(),
-        MultiplexIndicator::Multiplexor if s.size <= 8 && !signed => "MuxRole::Switch".to_string(),
-        MultiplexIndicator::MultiplexedSignal(v) if v <= 255 => format!("MuxRole::Case({v})"),
+        MultiplexIndicator::Plain => MuxRole::Plain,
+        MultiplexIndicator::Multiplexor if s.size <= 8 && !signed => MuxRole::Switch,
+        MultiplexIndicator::MultiplexedSignal(v) if v <= 255 => MuxRole::Case(v),
         other => return Err(format!("unsupported multiplexing {other:?}")),
     };
     let num = |v: NumericValue| match v {
@@ -282,32 +188,34 @@ fn signal(dbc: &Dbc, m: &Message, s: &Signal) -> Result<Sig, String> {
     if !(s.factor.is_finite() && s.factor != 0.0 && s.offset.is_finite() && min <= max) {
         return Err("factor, offset or [min|max] unusable".into());
     }
-    // The raw range the codec derives (as `SignalSpec::raw_bounds`) must fit the bits.
-    let (bit_lo, bit_hi) = bit_range(s.size, signed);
-    let raw = |phys: f64| ((phys - s.offset) / s.factor).round();
-    let (lo, hi) = (raw(min).min(raw(max)), raw(min).max(raw(max)));
-    if lo < bit_lo as f64 || hi > bit_hi as f64 {
-        return Err(format!(
-            "[{min}|{max}] needs raw values beyond {} bits",
-            s.size
-        ));
+    // The raw range the codec derives (`SignalSpec::raw_bounds`) must fit the bits.
+    let (bit_lo, bit_hi) = if signed {
+        (-(1i128 << (s.size - 1)), (1i128 << (s.size - 1)) - 1)
+    } else {
+        (0, (1i128 << s.size) - 1)
+    };
+    let fits = |raw: i128| raw >= bit_lo && raw <= bit_hi;
+    let raw = |phys: f64| ((phys - s.offset) / s.factor).round() as i128;
+    if !fits(raw(min)) || !fits(raw(max)) {
+        return Err(format!("[{min}|{max}] needs more than {} bits", s.size));
     }
-    let mut invalid = None;
+    let mut invalid_raw = None;
     let mut values = Vec::new();
     for v in dbc
         .value_descriptions_for_signal(m.id, &s.name)
         .unwrap_or(&[])
     {
-        if v.id < bit_lo || v.id > bit_hi {
+        if !fits(i128::from(v.id)) {
             return Err(format!("VAL_ {} does not fit {} bits", v.id, s.size));
         }
         if v.description == INVALID {
-            invalid = Some(v.id);
+            invalid_raw = Some(v.id);
         } else {
+            ident(&v.description)?;
             values.push((v.id, v.description.clone()));
         }
     }
-    Ok(Sig {
+    Ok(SignalSpec {
         name: s.name.clone(),
         start: s.start_bit,
         len: s.size,
@@ -318,160 +226,209 @@ fn signal(dbc: &Dbc, m: &Message, s: &Signal) -> Result<Sig, String> {
         max,
         unit: s.unit.clone(),
         mux,
-        invalid,
-        values,
-        comment: dbc.signal_comment(m.id, &s.name).unwrap_or("").to_string(),
+        invalid_raw,
+        values: Values(values),
     })
 }
 
-fn write_signal(o: &mut String, s: &Sig) -> Result<(), String> {
-    let name = ident(&s.name)?;
+/// The generated source.
+fn render(nodes: &[&str], families: &[Family]) -> Result<String, fmt::Error> {
+    let mut out = String::new();
+    let o = &mut out;
+    writeln!(
+        o,
+        "// Generated by dbc/build.rs from exocal.dbc: edit the DBC, not this file.\n"
+    )?;
+    doc(
+        o,
+        "",
+        "The message families of `exocal.dbc`, one per [`MessageSpec`].",
+    )?;
+    writeln!(
+        o,
+        "#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]\npub enum Kind {{"
+    )?;
+    for f in families {
+        doc(o, "    ", &format!("{}.", title(f)))?;
+        writeln!(o, "    {},", f.name)?;
+    }
+    writeln!(o, "}}\n\nimpl Kind {{")?;
+    doc(o, "    ", "The family's layout.")?;
+    writeln!(
+        o,
+        "    pub const fn spec(self) -> &'static MessageSpec {{\n        match self {{"
+    )?;
+    for f in families {
+        writeln!(o, "            Kind::{} => &{},", f.name, upper(&f.name))?;
+    }
+    writeln!(o, "        }}\n    }}\n}}\n")?;
+    doc(o, "", "DBC node names (`BU_`) by node id.")?;
+    writeln!(
+        o,
+        "pub const NODE_NAMES: [&str; {}] = {nodes:?};\n",
+        nodes.len()
+    )?;
+    doc(o, "", "Every frame is 8 bytes.")?;
+    writeln!(o, "pub const DLC: u8 = 8;\n")?;
+
+    for f in families {
+        let module = snake(&f.name);
+        let id = if f.nodes.is_empty() {
+            format!("identifier `{:#05x}`", f.base)
+        } else {
+            let nodes: Vec<String> = f.nodes.iter().map(u8::to_string).collect();
+            format!(
+                "identifier `{:#05x} | node`, nodes {}",
+                f.base,
+                nodes.join(", ")
+            )
+        };
+        doc(o, "", &format!("{} ({id}): {}", title(f), f.comment))?;
+        let signals: Vec<String> = f
+            .signals
+            .iter()
+            .map(|s| format!("{module}::{}", upper(&s.spec.name)))
+            .collect();
+        writeln!(
+            o,
+            "pub static {}: MessageSpec = MessageSpec {{ kind: Kind::{}, name: {:?}, \
+             base_id: {:#05x}, nodes: &{:?}, signals: &[{}] }};\n",
+            upper(&f.name),
+            f.name,
+            f.name,
+            f.base,
+            f.nodes,
+            signals.join(", ")
+        )?;
+        doc(o, "", &format!("The signals of {}.", title(f)))?;
+        writeln!(
+            o,
+            "pub mod {module} {{\n    use super::{{MuxRole, SignalSpec}};"
+        )?;
+        for s in &f.signals {
+            signal_const(o, s)?;
+        }
+        writeln!(o, "}}\n")?;
+    }
+    doc(o, "", "Every message family, in DBC order.")?;
+    let all: Vec<String> = families
+        .iter()
+        .map(|f| format!("&{}", upper(&f.name)))
+        .collect();
+    writeln!(
+        o,
+        "pub static ALL: [&MessageSpec; {}] = [{}];",
+        all.len(),
+        all.join(", ")
+    )?;
+    Ok(out)
+}
+
+/// A `SignalSpec` constant, documented with the DBC comment and its layout, and the module of
+/// its named values.
+fn signal_const(o: &mut String, s: &Signal) -> fmt::Result {
+    let spec = &s.spec;
     let mut about = format!(
         "Bits {}..{}, {}, factor {:?}, offset {:?}, from {:?} to {:?}",
-        s.start,
-        s.start + s.len,
-        if s.signed { "signed" } else { "unsigned" },
-        s.factor,
-        s.offset,
-        s.min,
-        s.max
+        spec.start,
+        spec.start + spec.len,
+        if spec.signed { "signed" } else { "unsigned" },
+        spec.factor,
+        spec.offset,
+        spec.min,
+        spec.max,
     );
-    if !s.unit.is_empty() {
-        write!(about, " {}", s.unit).unwrap();
+    if !spec.unit.is_empty() {
+        write!(about, " {}", spec.unit)?;
     }
-    if let Some(raw) = s.invalid {
-        write!(about, "; raw {raw} is invalid (NaN)").unwrap();
+    match spec.mux {
+        MuxRole::Plain => {}
+        MuxRole::Switch => about.push_str("; the multiplexer switch"),
+        MuxRole::Case(v) => write!(about, "; only when the switch is {v}")?,
     }
-    if let Some(case) = s.mux.strip_prefix("MuxRole::Case(") {
-        write!(
-            about,
-            "; only when the switch is {}",
-            case.trim_end_matches(')')
-        )
-        .unwrap();
+    if let Some(raw) = spec.invalid_raw {
+        write!(about, "; raw {raw} is invalid (NaN)")?;
     }
-    if s.mux == "MuxRole::Switch" {
-        about.push_str("; the multiplexer switch");
-    }
-    let comment = if s.comment.is_empty() {
-        format!("`{}`.", s.name)
-    } else {
-        s.comment.clone()
+    let comment = match s.comment.as_str() {
+        "" => format!("`{}`.", spec.name),
+        text => text.to_string(),
     };
-    doc(o, 1, &format!("{comment}\n\n{about}."));
-    let values: Vec<String> = s
-        .values
-        .iter()
-        .map(|(raw, name)| format!("({raw}, {name:?})"))
-        .collect();
-    line(
+    doc(o, "    ", &format!("{comment}\n\n{about}."))?;
+    writeln!(
         o,
-        &format!(
-            "    pub const {}: SignalSpec = SignalSpec {{ name: {:?}, start: {}, len: {}, \
-             signed: {}, factor: {:?}, offset: {:?}, min: {:?}, max: {:?}, unit: {:?}, \
-             mux: {}, invalid_raw: {:?}, values: &[{}] }};",
-            name.to_uppercase(),
-            s.name,
-            s.start,
-            s.len,
-            s.signed,
-            s.factor,
-            s.offset,
-            s.min,
-            s.max,
-            s.unit,
-            s.mux,
-            s.invalid,
-            values.join(", ")
-        ),
-    );
-    if !s.values.is_empty() {
-        let ty = int_type(s.len, s.signed);
+        "    pub const {}: SignalSpec = {spec:?};",
+        upper(&spec.name)
+    )?;
+    if !spec.values.0.is_empty() {
+        let bits = [8, 16, 32, 64]
+            .into_iter()
+            .find(|b| spec.len <= *b)
+            .unwrap_or(64);
+        let ty = format!("{}{bits}", if spec.signed { 'i' } else { 'u' });
         doc(
             o,
-            1,
-            &format!("The named raw values of `{}` (`VAL_`).", s.name),
-        );
-        line(o, &format!("    pub mod {} {{", snake(&s.name)));
-        for (raw, value) in &s.values {
-            doc(o, 2, &format!("`{value}`."));
-            let konst = ident(value)?.to_uppercase();
-            line(o, &format!("        pub const {konst}: {ty} = {raw};"));
+            "    ",
+            &format!("The named raw values of `{}` (`VAL_`).", spec.name),
+        )?;
+        writeln!(o, "    pub mod {} {{", snake(&spec.name))?;
+        for (raw, name) in &spec.values.0 {
+            doc(o, "        ", &format!("`{name}`."))?;
+            writeln!(o, "        pub const {}: {ty} = {raw};", upper(name))?;
         }
-        line(o, "    }");
+        writeln!(o, "    }}")?;
     }
     Ok(())
 }
 
-/// The raw values `len` bits hold.
-fn bit_range(len: u64, signed: bool) -> (i64, i64) {
-    match (signed, len) {
-        (true, 64) => (i64::MIN, i64::MAX),
-        (true, n) => (-(1i64 << (n - 1)), (1i64 << (n - 1)) - 1),
-        (false, 64) => (0, i64::MAX),
-        (false, n) => (0, ((1u64 << n) - 1) as i64),
-    }
-}
-
-/// The smallest integer type that holds a raw value of `len` bits.
-fn int_type(len: u64, signed: bool) -> String {
-    let bits = [8, 16, 32, 64]
-        .into_iter()
-        .find(|b| len <= *b)
-        .unwrap_or(64);
-    format!("{}{bits}", if signed { 'i' } else { 'u' })
-}
-
-/// A comment with the member's node name replaced by `<node>` (for per-node families).
-fn generic(comment: &str, nodes: &[&str], f: &Family, node: u8) -> String {
-    if f.per_node {
-        comment.replace(nodes[usize::from(node)], "`<node>`")
+/// `JointState_<node>` or `Trigger`, for the docs.
+fn title(f: &Family) -> String {
+    if f.nodes.is_empty() {
+        format!("`{}`", f.name)
     } else {
-        comment.to_string()
+        format!("`{}_<node>`", f.name)
     }
 }
 
-/// `CamelCase` name → `snake_case` (`PosYZ` → `pos_yz`, `TimestampLo` → `timestamp_lo`).
+/// Refuses a name that is not a `CamelCase` identifier.
+fn ident(name: &str) -> Result<(), String> {
+    let mut chars = name.chars();
+    if chars.next().is_some_and(|c| c.is_ascii_uppercase())
+        && chars.all(|c| c.is_ascii_alphanumeric())
+    {
+        Ok(())
+    } else {
+        Err(format!("`{name}` is not a CamelCase identifier"))
+    }
+}
+
+/// `CamelCase` → `snake_case` (`PosYZ` → `pos_yz`, `TimestampLo` → `timestamp_lo`).
 fn snake(name: &str) -> String {
     let chars: Vec<char> = name.chars().collect();
     let mut out = String::new();
     for (i, &c) in chars.iter().enumerate() {
-        if c.is_ascii_uppercase() && i > 0 {
-            let prev = chars[i - 1];
-            let next_lower = chars.get(i + 1).is_some_and(|n| n.is_ascii_lowercase());
-            if prev.is_ascii_lowercase()
+        let prev = if i > 0 { chars[i - 1] } else { ' ' };
+        let next_lower = chars.get(i + 1).is_some_and(|n| n.is_ascii_lowercase());
+        if c.is_ascii_uppercase()
+            && (prev.is_ascii_lowercase()
                 || prev.is_ascii_digit()
-                || (prev.is_ascii_uppercase() && next_lower)
-            {
-                out.push('_');
-            }
+                || (prev.is_ascii_uppercase() && next_lower))
+        {
+            out.push('_');
         }
         out.push(c.to_ascii_lowercase());
     }
     out
 }
 
-/// A DBC name as a Rust identifier in `snake_case` (upper-case it for a constant).
-fn ident(name: &str) -> Result<String, String> {
-    let ok = name.chars().next().is_some_and(|c| c.is_ascii_alphabetic())
-        && name.chars().all(|c| c.is_ascii_alphanumeric());
-    if ok {
-        Ok(snake(name))
-    } else {
-        Err(format!("`{name}` is not a CamelCase identifier"))
-    }
+/// `CamelCase` → `UPPER_SNAKE_CASE`.
+fn upper(name: &str) -> String {
+    snake(name).to_uppercase()
 }
 
-fn doc(o: &mut String, indent: usize, text: &str) {
-    for l in text.lines() {
-        line(
-            o,
-            &format!("{}#[doc = {:?}]", "    ".repeat(indent), format!(" {l}")),
-        );
+/// `text` as `#[doc]` attributes (escaped as Rust strings), one per line.
+fn doc(o: &mut String, indent: &str, text: &str) -> fmt::Result {
+    for line in text.lines() {
+        writeln!(o, "{indent}#[doc = {:?}]", format!(" {line}"))?;
     }
-}
-
-fn line(o: &mut String, text: &str) {
-    o.push_str(text);
-    o.push('\n');
+    Ok(())
 }
