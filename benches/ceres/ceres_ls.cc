@@ -24,9 +24,9 @@
 //
 // Tolerances: Ceres stops when the relative cost change of a step falls below
 // `function_tolerance`, the step below `parameter_tolerance` (relative to |x|), or the
-// gradient's max-norm below `gradient_tolerance`. The defaults here (--ftol 1e-10
-// --ptol 1e-12 --gtol 1e-14) stop it at calib-core's optimum: the cost within 1e-12
-// (relative) of calib-core's (the bench and xtask's test check it).
+// gradient's max-norm below `gradient_tolerance`, and then keeps the point before that step.
+// The defaults here (--ftol 1e-12 --ptol 1e-12 --gtol 1e-14) stop it at calib-core's optimum:
+// the cost within 1e-12 (relative) of calib-core's (the bench and xtask's test check it).
 //
 // Every variant runs --repeats times on every dataset; one run is building the
 // ceres::Problem (one residual block per sample) and Solve, timed with the process CPU clock
@@ -36,7 +36,9 @@
 //   {"bench":"ceres-check", "k", "ceres", "eigen", "cost_start", "jac_max_abs_diff", ...}
 //   {"bench":"ceres", "variant", "k", "median_s", "runs_s", "wall_median_s", "solve_median_s",
 //    "iterations", "jacobian_evaluations", "residual_evaluations", "termination", "cost", "y",
-//    "err_a", "err_d", "err_alpha", "err_theta", "err_norm", "x": [28 values]}
+//    "err_a", "err_d", "err_alpha", "err_theta", "err_norm", "jacobian_evaluation_s",
+//    "residual_evaluation_s", "linear_solver_s", "minimizer_s" (Ceres' own wall-clock split of
+//    the last run), "x": [28 values]}
 //
 // Usage: ceres_ls DIR... [--repeats 5] [--variants analytic,autodiff] [--ftol F] [--ptol F]
 //        [--gtol F] [--verbose]
@@ -573,12 +575,15 @@ int main(int argc, char** argv) {
           "{\"bench\":\"ceres\",\"variant\":\"%s\",\"k\":%d,\"median_s\":%.6e,\"runs_s\":%s,\"wall_median_s\":%.6e,"
           "\"solve_median_s\":%.6e,\"iterations\":%d,\"successful_steps\":%d,\"jacobian_evaluations\":%d,"
           "\"residual_evaluations\":%d,\"termination\":\"%s\",\"message\":\"%s\",\"cost\":%.17g,\"y\":%.17g,"
-          "\"err_a\":%.6e,\"err_d\":%.6e,\"err_alpha\":%.6e,\"err_theta\":%.6e,\"err_norm\":%.6e,\"x\":%s}\n",
+          "\"err_a\":%.6e,\"err_d\":%.6e,\"err_alpha\":%.6e,\"err_theta\":%.6e,\"err_norm\":%.6e,"
+          "\"jacobian_evaluation_s\":%.6e,\"residual_evaluation_s\":%.6e,\"linear_solver_s\":%.6e,"
+          "\"minimizer_s\":%.6e,\"x\":%s}\n",
           variant.c_str(), data.k, median(cpu), list(cpu.data(), cpu.size()).c_str(), median(wall), median(solve_cpu),
           static_cast<int>(s.iterations.size()), s.num_successful_steps, s.num_jacobian_evaluations,
           s.num_residual_evaluations, ceres::TerminationTypeToString(s.termination_type),
           escape(s.message).c_str(), cost, y, err[0], err[1], err[2], err[3], std::sqrt(norm),
-          list(last.x.data(), P).c_str());
+          s.jacobian_evaluation_time_in_seconds, s.residual_evaluation_time_in_seconds,
+          s.linear_solver_time_in_seconds, s.minimizer_time_in_seconds, list(last.x.data(), P).c_str());
       std::fflush(stdout);
     }
   }

@@ -26,6 +26,7 @@
 //! (firmware uses the stack analyser).
 
 mod calib;
+mod ceres;
 mod common;
 mod daemon;
 mod firmware;
