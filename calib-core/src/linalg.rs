@@ -169,7 +169,10 @@ impl<const P: usize> Default for GramAccumulator<P> {
 /// then lose at most `1e6 · ε ≈ 2e-10` relative in the step and the singular values.
 pub const GRAM_MAX_CONDITION: f64 = 1e3;
 
-/// Rows of `HᵀH` updated together by [`GramAccumulator`] (see `update_rows`).
+/// Rows of `HᵀH` updated together by [`GramAccumulator`] (see `update_rows`). Two rows share
+/// the loads of `h` and give the core independent sums: 234 → 203 ns per sample of the LS
+/// (x86-64, baseline SSE2, CPU clock). Four rows, or four columns per step, hold more
+/// broadcast factors than the 16 SSE registers and spill: 231 and 235 ns.
 const GRAM_BLOCK: usize = 2;
 
 impl<const P: usize> GramAccumulator<P> {
