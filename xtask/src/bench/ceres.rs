@@ -141,6 +141,7 @@ mod tests {
     #[ignore = "needs libceres-dev and g++ (`cargo xtask setup` installs them): `cargo xtask test` runs it"]
     fn ceres_reaches_calib_cores_optimum() {
         let dir = paths::target_dir().join(format!("xtask-ceres-test-{}", std::process::id()));
+        let _cleanup = RemoveOnDrop(dir.clone());
         let built = build(&paths::workspace_root(), &dir).unwrap_or_else(|e| panic!("{e:#}"));
         let samples: Vec<Sample<7>> = Scenario::new(ScenarioConfig::paper(), 3)
             .step_by(5)
@@ -212,6 +213,14 @@ mod tests {
             }
         }
         assert_eq!(variants, 2, "analytic and autodiff");
-        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Removes its directory when dropped, the test passed or not.
+    struct RemoveOnDrop(std::path::PathBuf);
+
+    impl Drop for RemoveOnDrop {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
     }
 }
