@@ -240,7 +240,8 @@ fn bad_inputs_are_errors_naming_the_file_line_and_problem() {
             "c.log",
             b"(1.000000) can0 101#00\n(1.000100) can0 800#00\n".to_vec(),
             None,
-            "c.log: candump log, line 2: bad identifier \"800\"",
+            "c.log: candump log, line 2: bad identifier: 3 hex digits (≤ 7FF) or 8 hex digits \
+             (≤ 1FFFFFFF), in \"(1.000100) can0 800#00\"",
         ),
         (
             "m.mcap",

@@ -31,6 +31,9 @@ use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use crate::outcome::TimedSample;
 use crate::JOINTS;
 
+/// Characters of a bad line quoted in its error.
+pub const MAX_QUOTED: usize = 80;
+
 /// The CSV header, exactly.
 pub const CSV_HEADER: &str = "t,q1,q2,q3,q4,q5,q6,q7,x,y,z,qw,qx,qy,qz";
 
@@ -81,10 +84,14 @@ pub fn parse_candump(text: &str) -> Result<Vec<Received>, ReadError> {
         .enumerate()
         .filter(|(_, l)| !l.trim().is_empty())
         .map(|(n, line)| {
-            Received::from_candump(line.trim()).map_err(|e| ReadError {
-                kind: InputKind::Candump,
-                line: Some(n + 1),
-                what: e.to_string(),
+            let line = line.trim();
+            Received::from_candump(line).map_err(|e| {
+                let shown: String = line.chars().take(MAX_QUOTED).collect();
+                ReadError {
+                    kind: InputKind::Candump,
+                    line: Some(n + 1),
+                    what: format!("{e}, in {shown:?}"),
+                }
             })
         })
         .collect()
