@@ -11,9 +11,9 @@
 use std::time::Duration;
 
 use exocal_session::ingest::{Event, Ingest};
-use exocald::mcaplog::SessionLog;
-use exocald::record::{frame_record, Transform};
-use exocald::recorder::Recorder;
+use exocald::log::mcaplog::SessionLog;
+use exocald::log::records::{frame_record, Transform};
+use exocald::shell::tee::Recorder;
 
 const REPEATS: usize = 5;
 

@@ -11,8 +11,8 @@
 
 use calib_core::table_error;
 use exocal_hil::{Scenario, Suit};
+use exocald::cmd::demo::{demo_config, run, DemoOptions};
 use exocald::config::Config;
-use exocald::demo::{demo_config, run, DemoOptions};
 
 fn arg(name: &str, default: f64) -> f64 {
     let args: Vec<String> = std::env::args().collect();

@@ -8,7 +8,7 @@ use std::fmt;
 
 use crate::config::ConfigError;
 use crate::keys::KeyError;
-use crate::mcaplog::LogError;
+use crate::log::mcaplog::LogError;
 use exocal_bus::BusError;
 use exocal_session::pipeline::CalibrateError;
 use exocal_session::validate::Refusal;
@@ -99,6 +99,16 @@ pub enum DaemonError {
     Usage(String),
     /// Nodes that did not answer (69), by name.
     NoAnswer(Vec<String>),
+}
+
+impl From<crate::live::LiveError> for DaemonError {
+    /// The live view is I/O (74): its socket or its runtime.
+    fn from(e: crate::live::LiveError) -> Self {
+        DaemonError::Io {
+            what: e.what,
+            source: e.source,
+        }
+    }
 }
 
 impl DaemonError {

@@ -6,8 +6,8 @@ use calib_core::DhTable;
 use exocal_bus::embedded_can::Frame as _;
 use exocal_log::read::read_mcap_session;
 use exocald::config::{with_nominal, Config, DEFAULT_TOML};
-use exocald::mcaplog::{CanFrameRecord, CollectionEnd, Level, SessionLog};
-use exocald::record::Record;
+use exocald::log::mcaplog::{CanFrameRecord, CollectionEnd, Level, SessionLog};
+use exocald::log::records::Record;
 
 #[test]
 fn the_exported_configuration_loads_in_the_daemon_with_the_calibrated_table() {

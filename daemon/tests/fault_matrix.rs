@@ -22,10 +22,10 @@ use exocal_hil::scenario::{
     Babble, ClockJump, NodeClockSpec, Reboot, Scenario, TransferBehaviour, TransferFault,
 };
 use exocal_hil::Hil;
+use exocald::cmd::demo::{session_against_suit, RunningSuit, SuitSession};
 use exocald::config::Config;
-use exocald::demo::{session_against_suit, RunningSuit, SuitSession};
 use exocald::push::Holds;
-use exocald::runner::SessionSummary;
+use exocald::shell::runner::SessionSummary;
 
 const SPEED: f64 = 10.0;
 const SESSION_S: f64 = 40.0;
@@ -265,7 +265,7 @@ async fn run_case(case: &Case) -> SuitSession {
     scenario.seed = 7;
     (case.apply)(&mut scenario);
     scenario.validate().expect("case scenario is valid");
-    let mut config = exocald::demo::demo_config(Config::default_config(), &dir, SPEED);
+    let mut config = exocald::cmd::demo::demo_config(Config::default_config(), &dir, SPEED);
     config.calibration.window.min_duration_s = SESSION_S;
     config.calibration.window.max_duration_s = SESSION_S + 20.0;
     if case.name == OUT_OF_BOUNDS {
@@ -279,7 +279,7 @@ async fn run_case(case: &Case) -> SuitSession {
     let clock = SimClock::new(SPEED).unwrap();
     let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
     let suit = RunningSuit::start(hil, bus.attach(), clock);
-    let (_stop, shutdown) = exocald::shutdown::Shutdown::manual();
+    let (_stop, shutdown) = exocald::shell::shutdown::Shutdown::manual();
     let o = session_against_suit(
         suit,
         &mut bus.attach(),

@@ -9,10 +9,10 @@
 
 use std::path::{Path, PathBuf};
 
+use exocald::cmd::offline::{self, OfflineOptions};
 use exocald::config::Config;
 use exocald::exit::DaemonError;
-use exocald::offline::{self, OfflineOptions};
-use exocald::runner::SessionError;
+use exocald::shell::runner::SessionError;
 
 fn fixture(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -54,14 +54,14 @@ fn row_values(text: &str, key: &str) -> Vec<f64> {
 /// Today's live session of the fixture's seed and configuration (`exocald demo --seed 7`): its
 /// outcome.
 fn todays_live_rows(config: &Config, dir: &Path) -> exocal_session::pipeline::Outcome {
-    let opts = exocald::demo::DemoOptions {
+    let opts = exocald::cmd::demo::DemoOptions {
         seed: 7,
         speed: 1e6,
         output: dir.join("today"),
         hold: false,
     };
-    let config = exocald::demo::demo_config(config.clone(), &opts.output, 1.0);
-    let summary = match exocald::demo::run(&config, &opts) {
+    let config = exocald::cmd::demo::demo_config(config.clone(), &opts.output, 1.0);
+    let summary = match exocald::cmd::demo::run(&config, &opts) {
         Ok(r) => r.summary,
         Err(e) => e.summary.expect("a summary"),
     };

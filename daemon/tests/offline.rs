@@ -11,10 +11,10 @@ use exocal_log::read::read_mcap_session;
 use exocal_report::html::FIGURES;
 use exocal_session::formats::{csv_text, CSV_HEADER};
 use exocal_session::pipeline::Outcome;
+use exocald::cmd::offline::{self, Format, OfflineOptions};
 use exocald::config::Config;
 use exocald::exit::{code, DaemonError};
-use exocald::offline::{self, Format, OfflineOptions};
-use exocald::runner::{SessionError, SessionSummary};
+use exocald::shell::runner::{SessionError, SessionSummary};
 
 use common::live_session;
 

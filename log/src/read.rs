@@ -31,7 +31,7 @@ impl std::error::Error for ReadError {}
 /// A daemon session log, as the offline replay needs it.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct McapSession {
-    /// Received raw frames (topic [`RX`]), in file order.
+    /// Received raw frames (topic [`Topic::CanRx`]), in file order.
     pub frames: Vec<Received>,
     /// When the collection window closed (the log's `crate::CollectionEnd`), if the
     /// session got that far.

@@ -31,10 +31,10 @@ use exocal_hil::scenario::{
 };
 use exocal_hil::trial::{new_tables, TransferMix};
 use exocal_hil::Hil;
+use exocald::cmd::demo::{session_against_suit, PushTally, RunningSuit};
 use exocald::config::{Config, PushPolicy};
-use exocald::demo::{session_against_suit, PushTally, RunningSuit};
 use exocald::push::{push_tables, Holds};
-use exocald::runner::SessionSummary;
+use exocald::shell::runner::SessionSummary;
 
 #[path = "common/rogue.rs"]
 mod rogue;
@@ -352,7 +352,7 @@ async fn run_row(row: &Row) -> (Vec<String>, String) {
         clock,
     );
     let mut daemon_sock = SocketCan::open("vcan0").expect("daemon socket on vcan0");
-    let (_stop, shutdown) = exocald::shutdown::Shutdown::manual();
+    let (_stop, shutdown) = exocald::shell::shutdown::Shutdown::manual();
     let o = session_against_suit(
         suit,
         &mut daemon_sock,

@@ -364,7 +364,7 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
     );
     // Several cores: the daemon's parallel linearisation (wall clock; not pinned).
     let par_rows = by(&par_out, "calib-parallel");
-    let _ = writeln!(body, "**Several cores** (`daemon/src/parallel.rs`: the LS linearisation in one block of samples per thread, merged in order; the EM is sequential in time), K = 6,000, wall-clock medians of {repeats} runs, not pinned, on this machine ({} cores available):\n", std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let _ = writeln!(body, "**Several cores** (`session/src/parallel.rs`: the LS linearisation in one block of samples per thread, merged in order; the EM is sequential in time), K = 6,000, wall-clock medians of {repeats} runs, not pinned, on this machine ({} cores available):\n", std::thread::available_parallelism().map_or(1, |n| n.get()));
     let _ = writeln!(body, "| threads | LS, wall ms | LS + our EM, wall ms | CPU ms per LS + EM (all threads) | cost |\n|---|---|---|---|---|");
     for r in &par_rows {
         let _ = writeln!(

@@ -3,23 +3,23 @@
 //! Contract:
 //! - frame-level inputs — the daemon's MCAP session log (`/can/rx`) or a `candump -L` log — are
 //!   replayed frame by frame, in file order and with their recorded receive times, through the
-//!   live session's own [`Collector`] and calibrated by [`pipeline::run`]: the live session's
+//!   live session's own collector (`exocal_session::replay`) and calibrated by [`pipeline::run`]: the live session's
 //!   code path, minus the bus. The same frames give the same table, bit for bit;
 //! - an MCAP log is replayed up to the end of its collection window: the live session writes
 //!   an `exocal_log::CollectionEnd` record on `/collection` when it stops collecting, and
 //!   calibrated on exactly the first `frames` received frames
-//!   ([`exocal_report::McapSession::collection_frames`]); a log without the record (a session
+//!   ([`exocal_log::read::McapSession::collection_frames`]); a log without the record (a session
 //!   that never finished collecting) is replayed whole. A candump log is
 //!   replayed whole: `--export-candump` writes exactly the frames the calibration used, so it
 //!   replays to the same result;
 //! - an MCAP log cut short (a killed daemon's: no summary, no footer) is read through
-//!   [`crate::recover`]: every message of every complete chunk; the run warns how much was
+//!   [`crate::log::recover`]: every message of every complete chunk; the run warns how much was
 //!   recovered and where the file was cut ([`read_session_log`]);
-//! - CSV samples (`t,q1,…,q7,x,y,z,qw,qx,qy,qz`, see [`exocal_report::readers`]) bypass
+//! - CSV samples (`t,q1,…,q7,x,y,z,qw,qx,qy,qz`, see [`exocal_session::formats`]) bypass
 //!   alignment; the EM steps at the file's median sample interval (`session.grid_hz` when they
-//!   agree to [`CSV_RATE_TOLERANCE`]);
+//!   agree to [`exocal_session::replay::CSV_RATE_TOLERANCE`]);
 //! - the recording is judged by the live session's rules (`[session]`: `min_duration_s`, give or
-//!   take [`DURATION_SLACK_S`], every joint's excitation, `min_samples`): one the live daemon
+//!   take [`exocal_session::window::DURATION_SLACK_S`], every joint's excitation, `min_samples`): one the live daemon
 //!   would not have calibrated is not calibrated here either ([`replay`] names what it misses);
 //! - the outcome is judged as live: [`DaemonError::Validation`] (65) if validation refuses,
 //!   [`DaemonError::Session`] (66) if the session rules are not met,
@@ -40,31 +40,11 @@ use exocal_session::pipeline::{self, Calibrated};
 use exocal_session::replay::{replay, Recording};
 use exocal_session::Settings;
 
+pub use crate::cli::Format;
 use crate::config::Config;
 use crate::exit::DaemonError;
-use crate::recover::{self, Recovery};
-use crate::runner::{SessionError, SessionSummary};
-
-/// What the input file is.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum Format {
-    /// The daemon's MCAP session log (`/can/rx` frames).
-    Mcap,
-    /// A `candump -L` log.
-    Candump,
-    /// CSV samples: `t,q1,q2,q3,q4,q5,q6,q7,x,y,z,qw,qx,qy,qz`.
-    Csv,
-}
-
-impl std::fmt::Display for Format {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Format::Mcap => "MCAP",
-            Format::Candump => "candump",
-            Format::Csv => "CSV",
-        })
-    }
-}
+use crate::log::recover::{self, Recovery};
+use crate::shell::runner::{SessionError, SessionSummary};
 
 const MCAP_MAGIC: &[u8] = b"\x89MCAP";
 
@@ -100,7 +80,7 @@ pub fn detect_format(path: &Path, bytes: &[u8]) -> Result<Format, DaemonError> {
 }
 
 /// A daemon session log, finished or cut short: a finished file is read as it is; one without
-/// its end magic (a killed daemon's) is first recovered in memory ([`crate::recover`]: every
+/// its end magic (a killed daemon's) is first recovered in memory ([`crate::log::recover`]: every
 /// message of every complete chunk), and the [`Recovery`] says what was kept.
 pub fn read_session_log(
     path: &Path,
@@ -297,7 +277,7 @@ pub fn run(
         Err(e) => vec![e.to_string()],
         Ok(_) => Vec::new(),
     };
-    let html = crate::calreport::render(
+    let html = crate::shell::html_report::render(
         title,
         source,
         &replayed.settings,

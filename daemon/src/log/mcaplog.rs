@@ -41,7 +41,7 @@ use std::path::{Path, PathBuf};
 use exocal_log::{fox, timestamp, MESSAGE_ENCODING};
 pub use exocal_log::{proto, CanFrameRecord, CollectionEnd, Level, Topic};
 
-use crate::record::{Record, Transform, BASE_FRAME};
+use crate::log::records::{Record, Transform, BASE_FRAME};
 
 /// zstd level of the chunks: the best size per CPU time on the demo's log (BENCHMARKS.md,
 /// "Session log").
@@ -137,7 +137,7 @@ pub fn pose_in_frame(log_ns: u64, pose: &Transform) -> fox::PoseInFrame {
 }
 
 /// `foxglove.FrameTransforms` of the arm's frames.
-pub fn frame_transforms(log_ns: u64, links: &[crate::record::Link]) -> fox::FrameTransforms {
+pub fn frame_transforms(log_ns: u64, links: &[crate::log::records::Link]) -> fox::FrameTransforms {
     fox::FrameTransforms {
         transforms: links
             .iter()
@@ -396,7 +396,7 @@ impl<W: Write + Seek> SessionLog<W> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::record::Link;
+    use crate::log::records::Link;
     use exocal_session::align::{AlignedSample, Pose};
     use prost::Message as _;
     use std::io::Cursor;

@@ -1,5 +1,11 @@
 //! What each subcommand does, as functions returning a typed [`DaemonError`] (the binary maps
-//! it to an exit status).
+//! it to an exit status): `calibrate` here, the others in a module each.
+
+#[cfg(feature = "demo")]
+pub mod demo;
+pub mod nodes;
+pub mod offline;
+pub mod serve;
 
 use std::path::{Path, PathBuf};
 
@@ -11,10 +17,10 @@ use crate::cli::{
 };
 use crate::config::{Config, ConfigError, DEFAULT_TOML};
 use crate::exit::DaemonError;
-use crate::report::{Notifier, Reporter};
-use crate::runner::run_session;
-use crate::shutdown::Shutdown;
-use crate::summary::finish;
+use crate::shell::notify::{Notifier, Reporter};
+use crate::shell::runner::run_session;
+use crate::shell::shutdown::Shutdown;
+use crate::shell::summary::finish;
 use exocal_dbc::NodeId;
 
 /// Where a configuration came from.
@@ -105,7 +111,7 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
                 }
                 ConfigSource::BuiltIn => DEFAULT_TOML.to_string(),
             };
-            let opts = crate::offline::OfflineOptions {
+            let opts = crate::cmd::offline::OfflineOptions {
                 input: args.input,
                 format: args.format,
                 report: args.report,
@@ -113,7 +119,7 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
                 export_urdf: args.export_urdf,
                 export_candump: args.export_candump,
             };
-            finish(crate::offline::run(&config, &text, &opts).map_err(|e| *e))
+            finish(crate::cmd::offline::run(&config, &text, &opts).map_err(|e| *e))
         }
         Command::Recover(args) => recover_log(&args),
         Command::Nodes(args) => {
@@ -135,7 +141,7 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
         Command::Demo(args) => {
             let (config, source) = resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
             eprintln!("exocald: configuration from {source}");
-            let mut config = crate::demo::demo_config(config, &args.output, 1.0);
+            let mut config = crate::cmd::demo::demo_config(config, &args.output, 1.0);
             config.live.enabled |= args.live;
             if config.push.authenticate {
                 eprintln!(
@@ -144,16 +150,16 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
                     args.seed
                 );
             }
-            let opts = crate::demo::DemoOptions {
+            let opts = crate::cmd::demo::DemoOptions {
                 seed: args.seed,
                 speed: args.speed,
                 output: args.output.clone(),
                 hold: args.live,
             };
-            match crate::demo::run(&config, &opts).map_err(|e| *e) {
+            match crate::cmd::demo::run(&config, &opts).map_err(|e| *e) {
                 Ok(result) => {
-                    crate::summary::print_summary(&result.summary);
-                    let check = crate::demo::check_flash(&result);
+                    crate::shell::summary::print_summary(&result.summary);
+                    let check = crate::cmd::demo::check_flash(&result);
                     for (node, crc) in &result.flash_crc {
                         let crc = crc.map_or_else(|| "none".into(), |c| format!("{c:#010x}"));
                         println!("flash {node}: table CRC {crc}");
@@ -252,7 +258,7 @@ pub async fn calibrate_on_can(config: Config, dry_run: bool) -> Result<(), Daemo
 
 /// `exocald run`: wait for an authentic `Trigger` frame (StartCalibration) or SIGUSR1, run a
 /// session, and wait again, until SIGTERM/SIGINT; at most one session per cooldown
-/// ([`crate::serve`]).
+/// ([`crate::cmd::serve`]).
 /// Each state change is a line on stderr (`idle: …`, `trigger received (…)`), which is what
 /// a supervisor or a test waits on.
 pub async fn serve_on_can(config: Config, dry_run: bool) -> Result<(), DaemonError> {
@@ -270,7 +276,7 @@ pub async fn serve_on_can(config: Config, dry_run: bool) -> Result<(), DaemonErr
             let _ = tx.try_send(());
         }
     });
-    crate::serve::serve(
+    crate::cmd::serve::serve(
         &mut bus,
         &Clock::Wall,
         &config,
@@ -287,7 +293,8 @@ pub async fn serve_on_can(config: Config, dry_run: bool) -> Result<(), DaemonErr
 /// `exocald nodes`: the listing on stdout (a table, or JSON), then 69 if a node is missing.
 async fn nodes_on_can(config: &Config, args: &NodesArgs) -> Result<(), DaemonError> {
     let mut bus = open_can(config)?;
-    let listing = crate::nodes::list(&mut bus, &Clock::Wall, config, args.log.as_deref()).await?;
+    let listing =
+        crate::cmd::nodes::list(&mut bus, &Clock::Wall, config, args.log.as_deref()).await?;
     if args.json {
         let text = serde_json::to_string_pretty(&listing).map_err(|e| DaemonError::Internal {
             what: "formatting the listing as JSON".into(),
@@ -324,14 +331,14 @@ fn recover_log(args: &RecoverArgs) -> Result<(), DaemonError> {
     let file = std::fs::File::create(&args.output)
         .map_err(io(format!("creating {}", args.output.display())))?;
     let out = std::io::BufWriter::new(file);
-    let (recovery, out) = crate::recover::recover(&bytes, out, Some(mcap::Compression::Zstd))
+    let (recovery, out) = crate::log::recover::recover(&bytes, out, Some(mcap::Compression::Zstd))
         .map_err(|e| match e {
-            crate::recover::RecoverError::NotMcap => {
+            crate::log::recover::RecoverError::NotMcap => {
                 DaemonError::Input(format!("{}: {e}", args.input.display()))
             }
-            crate::recover::RecoverError::Write(e) => DaemonError::Log {
+            crate::log::recover::RecoverError::Write(e) => DaemonError::Log {
                 what: format!("writing {}", args.output.display()),
-                source: crate::mcaplog::LogError::Mcap(e),
+                source: crate::log::mcaplog::LogError::Mcap(e),
             },
         })?;
     out.into_inner()

@@ -12,7 +12,7 @@
 //! - "the last session's pushed table" of a node is the table it returned to the last complete
 //!   readback in the newest session log (by modification time) of the output directory that
 //!   holds one: the push's verification readback, which is what the node confirmed holding when
-//!   that session ended. A log cut short is read through [`crate::recover`]. `--log FILE` names
+//!   that session ended. A log cut short is read through [`crate::log::recover`]. `--log FILE` names
 //!   the log instead;
 //! - a node that does not answer is named; [`read_tables`] never fails for a silent node, only
 //!   for the bus ([`exocal_bus::BusError`]).
@@ -241,7 +241,7 @@ pub fn log_tables(path: &Path) -> Result<BTreeMap<NodeId, Table>, DaemonError> {
         what: format!("reading {}", path.display()),
         source,
     })?;
-    let (session, _) = crate::offline::read_session_log(path, &bytes)?;
+    let (session, _) = crate::cmd::offline::read_session_log(path, &bytes)?;
     Ok(pushed_tables(&session.frames))
 }
 

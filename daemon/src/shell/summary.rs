@@ -3,7 +3,7 @@
 //! every subcommand that runs a session and by the serve loop; it imports nothing of theirs.
 
 use crate::exit::DaemonError;
-use crate::runner::{SessionError, SessionSummary};
+use crate::shell::runner::{SessionError, SessionSummary};
 
 /// Prints what a session did, to stdout (one line per fact).
 pub fn print_summary(summary: &SessionSummary) {

@@ -23,9 +23,9 @@ use exocal_dbc::{Message, Trigger, TriggerCommand};
 
 use crate::config::Config;
 use crate::exit::DaemonError;
-use crate::report::{Notifier, Reporter};
-use crate::runner::{run_session, TICK};
-use crate::shutdown::Shutdown;
+use crate::shell::notify::{Notifier, Reporter};
+use crate::shell::runner::{run_session, TICK};
+use crate::shell::shutdown::Shutdown;
 
 /// The file, in the output directory, that keeps the last accepted trigger counter.
 pub const COUNTER_FILE: &str = "trigger-counter";
@@ -267,7 +267,7 @@ pub async fn serve<T: Transport>(
                 }
             }
         };
-        match crate::summary::finish(result) {
+        match crate::shell::summary::finish(result) {
             Ok(()) => {}
             Err(DaemonError::Interrupted) => return Err(DaemonError::Interrupted),
             Err(e) => reporter.message(&format!("session failed: {e}")),

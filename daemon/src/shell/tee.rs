@@ -9,8 +9,8 @@ use std::io::{BufWriter, Write};
 use exocal_log::{proto, CanFrameRecord, CollectionEnd, Level};
 
 use crate::live::LiveView;
-use crate::mcaplog::{Counts, LogError, SessionLog};
-use crate::record::{Link, Record, Transform};
+use crate::log::mcaplog::{Counts, LogError, SessionLog};
+use crate::log::records::{Link, Record, Transform};
 use exocal_session::align::AlignedSample;
 use exocal_session::window::Progress;
 
@@ -56,7 +56,7 @@ impl<'a, W: Write + std::io::Seek> Recorder<'a, W> {
         self.record(log_ns, Record::EePose(pose))
     }
 
-    /// Records the arm's frames ([`crate::record::arm_transforms`]).
+    /// Records the arm's frames ([`crate::log::records::arm_transforms`]).
     pub fn arm_transforms(&mut self, log_ns: u64, links: &[Link]) -> Result<(), LogError> {
         self.record(log_ns, Record::Arm(links))
     }

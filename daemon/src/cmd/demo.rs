@@ -9,7 +9,7 @@
 //! tables and the same log messages, on any machine and at any `speed`; `speed` only holds the
 //! run to at most that many simulated seconds per real second, so a person can watch it.
 //! The hil plays the scenario, the daemon runs one ordinary session
-//! ([`crate::runner::run_session`]) on the other end of the bus, and when it is done the hil is
+//! ([`crate::shell::runner::run_session`]) on the other end of the bus, and when it is done the hil is
 //! stopped and each joint node's flash file is read back: the demo succeeds only if every node
 //! persisted exactly the table the daemon pushed (same CRC). SIGTERM or SIGINT interrupts the
 //! session as in `calibrate`: the log is finished before the process exits. With the live view
@@ -40,8 +40,8 @@ use crate::config::Config;
 use crate::exit::DaemonError;
 use crate::live::LiveView;
 use crate::push::Holds;
-use crate::report::{Notifier, Reporter};
-use crate::runner::{run_session_with, SessionError, SessionSummary};
+use crate::shell::notify::{Notifier, Reporter};
+use crate::shell::runner::{run_session_with, SessionError, SessionSummary};
 
 /// Options of a demo run.
 #[derive(Debug, Clone)]
@@ -83,7 +83,7 @@ pub fn demo_config(base: Config, output: &Path, speed: f64) -> Config {
 /// With `[live] enabled`, the live view is started for it on `[live] listen`.
 pub fn run(config: &Config, opts: &DemoOptions) -> Result<DemoResult, Box<SessionError>> {
     let live = match config.live.enabled {
-        true => Some(LiveView::start(config.live.listen, config)?),
+        true => Some(LiveView::start(config.live.listen, config).map_err(DaemonError::from)?),
         false => None,
     };
     if let Some(live) = &live {
@@ -190,7 +190,7 @@ async fn session(
     let mut daemon_end = bus.attach();
     let pacer = tokio::spawn(pace(clock, opts.speed));
     // SIGTERM/SIGINT end the session like `calibrate`'s: the log is finished, nothing is lost.
-    let shutdown = crate::shutdown::Shutdown::on_signals();
+    let shutdown = crate::shell::shutdown::Shutdown::on_signals();
     let run = session_against_suit_with(
         suit,
         &mut daemon_end,
@@ -342,7 +342,7 @@ impl SuitSession {
     }
 }
 
-/// One ordinary daemon session ([`crate::runner::run_session`], no dry run) on `daemon_end`
+/// One ordinary daemon session ([`crate::shell::runner::run_session`], no dry run) on `daemon_end`
 /// against `suit`, ended by `shutdown` or by itself; then the suit is stopped and the flash
 /// read back.
 pub async fn session_against_suit<D: Transport>(
@@ -524,7 +524,10 @@ mod tests {
         // The log reads back with every channel, and as many raw frames as ingest counted.
         let bytes = std::fs::read(&s.log_path).unwrap();
         let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
-        assert_eq!(summary.channels.len(), crate::mcaplog::Topic::ALL.len());
+        assert_eq!(
+            summary.channels.len(),
+            crate::log::mcaplog::Topic::ALL.len()
+        );
         let rx = s.log_counts.iter().find(|(t, _)| t == "/can/rx").unwrap().1;
         assert!(rx >= s.frames.received, "{rx} < {}", s.frames.received);
         std::fs::remove_dir_all(&dir).unwrap();

@@ -1,12 +1,12 @@
 //! What a session records, once: each thing a session logs is one [`Record`], handed by the
-//! [`crate::recorder::Recorder`] to every observer of the session's data — the MCAP log
-//! ([`crate::mcaplog::SessionLog`]) and, when enabled, the live view ([`crate::live::LiveView`]).
+//! [`crate::shell::tee::Recorder`] to every observer of the session's data — the MCAP log
+//! ([`crate::log::mcaplog::SessionLog`]) and, when enabled, the live view ([`crate::live::LiveView`]).
 //!
 //! Contract:
 //! - a record carries its log time (host wall-clock ns, the session clock) and borrows its data;
 //!   observers encode it as they need (the log in the schema of `exocal-log`, the live view the
 //!   same messages over the Foxglove WebSocket protocol);
-//! - the log's errors are the session's ([`crate::recorder::Recorder::record`] returns them);
+//! - the log's errors are the session's ([`crate::shell::tee::Recorder::record`] returns them);
 //!   the live view never fails a session (a client that cannot keep up misses messages, nothing else);
 //! - the arm's frames ([`arm_transforms`]) follow the URDF the report exports
 //!   (`base_link → link1 … link7 → tool0`, `exocal_report::export::urdf`), so the transforms and a

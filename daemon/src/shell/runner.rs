@@ -30,11 +30,11 @@ use serde::Serialize;
 use crate::config::Config;
 use crate::exit::DaemonError;
 use crate::live::LiveView;
-use crate::mcaplog::{CollectionEnd, Counts, Level, LogError, SessionLog};
+use crate::log::mcaplog::{CollectionEnd, Counts, Level, LogError, SessionLog};
+use crate::log::records::{self, Transform};
 use crate::push::{push_tables, PushObserver, PushReport};
-use crate::record::{self, Transform};
-use crate::recorder::Recorder;
-use crate::report::{Notifier, Reporter};
+use crate::shell::notify::{Notifier, Reporter};
+use crate::shell::tee::Recorder;
 use exocal_session::collect::{Collected, Collector};
 use exocal_session::estimate::{Estimate, EstimateJob};
 use exocal_session::ingest::{ClockReport, Event, FrameStats, StallReport};
@@ -47,7 +47,7 @@ pub const TICK: Duration = Duration::from_millis(100);
 /// averages out in the fit (an in-process bus whose hil sends frames in ~10 ms batches sees ~5 ms
 /// RMS and still aligns well); tens of ms mean the timestamps cannot be trusted.
 pub const CLOCK_RESIDUAL_WARN_US: f64 = 20_000.0;
-/// Records written in one go between two housekeeping turns ([`Io::between_records`]).
+/// Records written in one go between two housekeeping turns (the log's flush, the watchdog).
 pub const RECORDS_PER_TURN: usize = 256;
 
 /// Rate (Hz) at which the arm's frames are written to `/tf` for Foxglove.
@@ -225,7 +225,7 @@ impl Io<'_> {
     }
 
     fn frame(&mut self, sent: bool, frame: &Frame, t: Duration) {
-        let r = self.log.can_frame(sent, &record::frame_record(frame, t));
+        let r = self.log.can_frame(sent, &records::frame_record(frame, t));
         self.check(r);
     }
 
@@ -307,7 +307,7 @@ pub async fn run_session<T: Transport>(
     reporter: &mut Reporter,
 ) -> Result<SessionSummary, SessionError> {
     let live = match config.live.enabled {
-        true => Some(LiveView::start(config.live.listen, config)?),
+        true => Some(LiveView::start(config.live.listen, config).map_err(DaemonError::from)?),
         false => None,
     };
     if let Some(live) = &live {
@@ -370,7 +370,7 @@ pub async fn run_session_with<T: Transport>(
 
     let mut tick = tokio::time::interval(TICK);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let mut live = Live {
+    let mut running = Running {
         bus,
         clock,
         config,
@@ -381,8 +381,8 @@ pub async fn run_session_with<T: Transport>(
         summary: SessionSummary::new(log_path),
     };
     tokio::pin!(shutdown);
-    let result = live.run(dry_run, start, shutdown).await;
-    let mut summary = live.summary;
+    let result = running.run(dry_run, start, shutdown).await;
+    let mut summary = running.summary;
     io.reporter.finish();
     if let Err(e) = &result {
         // Into the log only: the caller reports the error (the binary prints it once).
@@ -414,7 +414,7 @@ pub async fn run_session_with<T: Transport>(
 /// One live session in progress: the bus, the log and what was collected so far. Its steps
 /// run in order — [`Live::collect`], [`Live::align`], [`Live::calibrate`], [`Live::push`] —
 /// and each keeps the bus drained, the log flushed and the watchdog fed while it waits.
-struct Live<'a, 'io, T> {
+struct Running<'a, 'io, T> {
     bus: &'a mut T,
     clock: &'a Clock,
     config: &'a Config,
@@ -426,7 +426,7 @@ struct Live<'a, 'io, T> {
     summary: SessionSummary,
 }
 
-impl<T: Transport> Live<'_, '_, T> {
+impl<T: Transport> Running<'_, '_, T> {
     /// The whole session after the log is open; `start` is its bus-clock start.
     async fn run<S: Future<Output = ()>>(
         &mut self,
@@ -685,7 +685,7 @@ impl<T: Transport> Live<'_, '_, T> {
                     Err(e) => (session, vec![e.to_string()]),
                     Ok(_) => (calibration, Vec::new()),
                 };
-                let html = crate::calreport::render(
+                let html = crate::shell::html_report::render(
                     title,
                     source,
                     &cfg.calibration,
@@ -706,13 +706,13 @@ impl<T: Transport> Live<'_, '_, T> {
         let table = calibrated.outcome.table();
         let step = ((self.config.calibration.window.grid_hz / TF_HZ).round() as usize).max(1);
         for (i, s) in collected.samples.iter().step_by(step).enumerate() {
-            let links = record::arm_transforms(&table, &s.joints);
+            let links = records::arm_transforms(&table, &s.joints);
             let r = self.io.log.arm_transforms(self.log_time(s.t), &links);
             self.io.check(r);
             self.io.between_records(i);
         }
         let s = &self.summary;
-        let record = record::calibration_record(
+        let record = records::calibration_record(
             &calibrated.outcome,
             &s.clocks,
             s.aligned_samples,
@@ -768,7 +768,7 @@ impl<T: Transport> Live<'_, '_, T> {
             self.io.event(now, Level::Info, &line);
         }
         let s = &self.summary;
-        let record = record::calibration_record(
+        let record = records::calibration_record(
             outcome,
             &s.clocks,
             s.aligned_samples,
@@ -815,7 +815,7 @@ impl<T: Transport> Live<'_, '_, T> {
         let (collected, html) = self
             .off_loop("session report", shutdown, move || {
                 let collected = collector.collected(&config.calibration);
-                let html = crate::calreport::render(
+                let html = crate::shell::html_report::render(
                     title,
                     source,
                     &config.calibration,
@@ -849,7 +849,7 @@ impl<T: Transport> Live<'_, '_, T> {
     /// Writes the report next to the log; a report that cannot be written is a warning, never
     /// a reason to withhold a validated table.
     fn write_report(&mut self, html: &str, what: &str) {
-        let path = crate::calreport::report_path_for_log(&self.summary.log_path);
+        let path = crate::shell::html_report::report_path_for_log(&self.summary.log_path);
         let now = self.clock.now();
         match std::fs::write(&path, html) {
             Ok(()) => {
@@ -888,7 +888,7 @@ pub fn write_summary(summary: &SessionSummary, out: &mut impl Write) -> std::io:
 mod tests {
     use super::*;
 
-    use crate::shutdown::Shutdown;
+    use crate::shell::shutdown::Shutdown;
     use exocal_bus::InProcessBus;
     use exocal_bus::SimClock;
     use exocal_hil::{Hil, Scenario};
@@ -995,7 +995,10 @@ mod tests {
         let summary = mcap::Summary::read(&bytes)
             .unwrap()
             .expect("a finished file");
-        assert_eq!(summary.channels.len(), crate::mcaplog::Topic::ALL.len());
+        assert_eq!(
+            summary.channels.len(),
+            crate::log::mcaplog::Topic::ALL.len()
+        );
         summary
     }
 

@@ -1,7 +1,7 @@
 //! Recovery of a session log cut short (`kill -9`, power loss, OOM kill).
 //!
 //! The daemon closes, flushes and syncs a chunk at least every `output.flush_interval_s`
-//! ([`crate::mcaplog`]), so a killed session's file is a run of complete records followed by
+//! ([`crate::log::mcaplog`]), so a killed session's file is a run of complete records followed by
 //! the chunk that was open: its length field never written, its compressed stream unfinished,
 //! and no summary or footer. Readers that start from the footer refuse it.
 //!
@@ -469,8 +469,8 @@ pub fn recover_in_memory(bytes: &[u8]) -> Result<(Recovery, Vec<u8>), RecoverErr
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mcaplog::{CanFrameRecord, Level, SessionLog, Topic};
-    use crate::record::Record;
+    use crate::log::mcaplog::{CanFrameRecord, Level, SessionLog, Topic};
+    use crate::log::records::Record;
     use std::collections::BTreeMap;
 
     /// A finished session log of 30 flushed chunks (two message kinds each), its bytes.
