@@ -21,6 +21,7 @@ use std::collections::BinaryHeap;
 use std::time::Duration;
 
 use crate::{BusError, Frame, Received, Transport};
+use embedded_can::Frame as _;
 
 /// What the wire does to frames: probabilities per frame (0 = never) and hold-back times.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -202,13 +203,13 @@ impl Faults {
     }
 
     fn maybe_corrupt(&mut self, frame: Frame) -> Frame {
-        let len = frame.len;
-        if frame.remote || len == 0 || !self.rng.chance(self.config.corrupt) {
+        let len = frame.data().len() as u64;
+        if frame.is_remote_frame() || len == 0 || !self.rng.chance(self.config.corrupt) {
             return frame;
         }
-        let bit = self.rng.next_u64() % (u64::from(len) * 8);
+        let bit = self.rng.next_u64() % (len * 8);
         let mut out = frame;
-        out.data[(bit / 8) as usize] ^= 1 << (bit % 8);
+        out.flip_bit(bit as u32);
         self.stats.corrupted += 1;
         out
     }
@@ -339,7 +340,7 @@ impl<T: Transport> Transport for FaultInjector<T> {
 mod tests {
     use super::*;
     use crate::InProcessBus;
-    use embedded_can::{Frame as _, StandardId};
+    use embedded_can::StandardId;
 
     fn frame(i: u16) -> Frame {
         Frame::new(StandardId::new(i & 0x7FF).unwrap(), &i.to_le_bytes()).unwrap()

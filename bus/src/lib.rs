@@ -30,7 +30,6 @@
 use std::future::Future;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
-use std::time::Duration;
 
 mod clock;
 pub use clock::{Clock, SimClock};
@@ -39,104 +38,13 @@ pub mod fault;
 pub use fault::{FaultConfig, FaultInjector, Faults};
 
 pub use embedded_can;
-use embedded_can::{Frame as _, Id};
+/// The frame types live with the protocol (sans I/O): re-exported here for the transports.
+pub use exocal_dbc::frame::{Frame, Received};
 
 #[cfg(feature = "socketcan")]
 mod socket;
 #[cfg(feature = "socketcan")]
 pub use socket::SocketCan;
-
-/// A classic CAN frame (0..=8 data bytes), standard or extended identifier, data or remote.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Frame {
-    id: Id,
-    len: u8,
-    data: [u8; 8],
-    remote: bool,
-}
-
-impl embedded_can::Frame for Frame {
-    fn new(id: impl Into<Id>, data: &[u8]) -> Option<Self> {
-        if data.len() > 8 {
-            return None;
-        }
-        let mut buf = [0u8; 8];
-        buf[..data.len()].copy_from_slice(data);
-        Some(Frame {
-            id: id.into(),
-            len: data.len() as u8,
-            data: buf,
-            remote: false,
-        })
-    }
-
-    fn new_remote(id: impl Into<Id>, dlc: usize) -> Option<Self> {
-        (dlc <= 8).then(|| Frame {
-            id: id.into(),
-            len: dlc as u8,
-            data: [0; 8],
-            remote: true,
-        })
-    }
-
-    fn is_extended(&self) -> bool {
-        matches!(self.id, Id::Extended(_))
-    }
-
-    fn is_remote_frame(&self) -> bool {
-        self.remote
-    }
-
-    fn id(&self) -> Id {
-        self.id
-    }
-
-    fn dlc(&self) -> usize {
-        usize::from(self.len)
-    }
-
-    fn data(&self) -> &[u8] {
-        if self.remote {
-            &[]
-        } else {
-            &self.data[..usize::from(self.len)]
-        }
-    }
-}
-
-impl Frame {
-    /// Copies any `embedded_can` frame.
-    pub fn from_frame<F: embedded_can::Frame>(f: &F) -> Frame {
-        if f.is_remote_frame() {
-            Frame {
-                id: f.id(),
-                len: f.dlc().min(8) as u8,
-                data: [0; 8],
-                remote: true,
-            }
-        } else {
-            Frame::new(f.id(), &f.data()[..f.data().len().min(8)]).expect("at most 8 bytes")
-        }
-    }
-
-    /// The raw identifier (11 or 29 bits).
-    pub fn raw_id(&self) -> u32 {
-        match self.id {
-            Id::Standard(id) => u32::from(id.as_raw()),
-            Id::Extended(id) => id.as_raw(),
-        }
-    }
-}
-
-/// A frame as received, with its receive timestamp.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Received {
-    /// The frame.
-    pub frame: Frame,
-    /// Receive time since the transport clock's epoch (the UNIX epoch for SocketCAN and for the
-    /// in-process bus's default clock).
-    pub timestamp: Duration,
-}
 
 /// Why a transport operation failed.
 #[derive(Debug)]
@@ -327,7 +235,7 @@ impl Transport for Endpoint {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use embedded_can::{ExtendedId, StandardId};
+    use embedded_can::{Frame as _, StandardId};
 
     fn frame(id: u16, byte: u8) -> Frame {
         Frame::new(StandardId::new(id).unwrap(), &[byte; 8]).unwrap()
@@ -371,19 +279,5 @@ mod tests {
         drop(bus.attach());
         a.send_now(&frame(1, 1));
         assert_eq!(format!("{bus:?}"), "InProcessBus { endpoints: 1 }");
-    }
-
-    #[test]
-    fn frame_type_follows_embedded_can() {
-        assert!(Frame::new(StandardId::new(1).unwrap(), &[0; 9]).is_none());
-        let f = Frame::new(ExtendedId::new(0x1234_5678).unwrap(), &[1, 2, 3]).unwrap();
-        assert!(f.is_extended());
-        assert_eq!(
-            (f.raw_id(), f.dlc(), f.data()),
-            (0x1234_5678, 3, &[1u8, 2, 3][..])
-        );
-        let r = Frame::new_remote(StandardId::new(7).unwrap(), 4).unwrap();
-        assert!(r.is_remote_frame() && r.data().is_empty() && r.dlc() == 4);
-        assert_eq!(Frame::from_frame(&r), r);
     }
 }

@@ -22,17 +22,22 @@
 //! clock, so that other processes on a shared core do not count), their median (`median_s`),
 //! the median wall time (`wall_median_s`), and the
 //! accuracy of the result (LS cost Σ‖e‖², the paper's y of eq. 10, and the largest parameter
-//! error of each kind against Table 4). A first line (`"bench":"calib-core-kernels"`) gives the
-//! per-sample cost of one LS linearisation split into its kernels. Nothing else goes to stdout.
+//! error of each kind against Table 4), and for LS the passes over the samples it made
+//! (`linearisations`, `cost_passes`, counted on one more, untimed run). A first line
+//! (`"bench":"calib-core-kernels"`) gives the per-sample cost of one LS linearisation split into
+//! its kernels. Nothing else goes to stdout.
 
 use std::fs::{self, File};
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use std::cell::Cell;
+
 use calib_core::{
-    em_drift_vec, identify_ls, objective_y, pose_error, table_error, DhTable, DriftEmOptions, LsOptions, LsResult, ParamErrors,
-    ParamKind, Sample, Scenario, ScenarioConfig, SUIT_PARAMS,
+    em_drift_vec, identify_ls, identify_ls_with, normal_equations, objective_y, pose_error, table_error, DhTable, DriftEmOptions,
+    GramAccumulator, Linearise, LsOptions, LsResult, ParamErrors, ParamKind, Sample, Scenario, ScenarioConfig, Sequential,
+    SUIT_PARAMS,
 };
 
 struct Args {
@@ -178,6 +183,38 @@ impl Stopwatch {
     }
 }
 
+/// The passes over the samples an LS makes: linearisations (FK, Jacobians and the
+/// normal-equation update per sample) and cost-only evaluations.
+struct Counting<'a> {
+    inner: Sequential<'a, 7>,
+    linearisations: Cell<usize>,
+    costs: Cell<usize>,
+}
+
+impl Linearise<7, SUIT_PARAMS> for Counting<'_> {
+    fn normal_equations(&self, table: &DhTable<7>, out: &mut GramAccumulator<SUIT_PARAMS>) -> f64 {
+        self.linearisations.set(self.linearisations.get() + 1);
+        self.inner.normal_equations(table, out)
+    }
+
+    fn cost(&self, table: &DhTable<7>) -> f64 {
+        self.costs.set(self.costs.get() + 1);
+        Linearise::<7, SUIT_PARAMS>::cost(&self.inner, table)
+    }
+}
+
+/// (linearisations, cost-only passes) of the LS of `samples`, counted on an untimed run.
+fn ls_passes(samples: &[Sample<7>]) -> Result<(usize, usize), String> {
+    let counting = Counting {
+        inner: Sequential(samples),
+        linearisations: Cell::new(0),
+        costs: Cell::new(0),
+    };
+    identify_ls_with::<7, SUIT_PARAMS>(&DhTable::paper_nominal(), samples, &LsOptions::paper(), &counting)
+        .map_err(|e| format!("LS: {e}"))?;
+    Ok((counting.linearisations.get(), counting.costs.get()))
+}
+
 fn run_ls(samples: &[Sample<7>]) -> Result<LsResult<7, SUIT_PARAMS>, String> {
     identify_ls::<7, SUIT_PARAMS>(&DhTable::paper_nominal(), samples, &LsOptions::paper()).map_err(|e| format!("LS: {e}"))
 }
@@ -203,8 +240,9 @@ fn bench(args: &Args) -> Result<(), String> {
             last = Some(r);
         }
         let r = last.ok_or("no run")?;
+        let (linearisations, cost_passes) = ls_passes(samples)?;
         println!(
-            "{{\"bench\":\"calib-core\",\"solver\":\"ls\",\"k\":{k},\"seed\":{},\"dir\":\"{}\",\"median_s\":{:e},\"runs_s\":{},\"wall_median_s\":{:e},\"iterations\":{},\"condition\":{:e},\"cost_start\":{:e},\"y_start\":{:e},{}}}",
+            "{{\"bench\":\"calib-core\",\"solver\":\"ls\",\"k\":{k},\"seed\":{},\"dir\":\"{}\",\"median_s\":{:e},\"runs_s\":{},\"wall_median_s\":{:e},\"iterations\":{},\"linearisations\":{linearisations},\"cost_passes\":{cost_passes},\"condition\":{:e},\"cost_start\":{:e},\"y_start\":{:e},{}}}",
             args.seed,
             dir.display(),
             median(&times),
@@ -277,9 +315,24 @@ fn time_per_call(reps: usize, n: usize, mut f: impl FnMut()) -> f64 {
     median(&times)
 }
 
+/// Least CPU time (s) of one call of `f`, over `reps` batches of `n` calls.
+fn fastest_per_call(reps: usize, n: usize, mut f: impl FnMut()) -> f64 {
+    (0..reps)
+        .map(|_| {
+            let t0 = Stopwatch::start();
+            for _ in 0..n {
+                f();
+            }
+            t0.read().0 / n as f64
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
 /// Per-sample cost of one LS linearisation, split into its kernels: FK + identification
 /// Jacobian, the residual Jacobian `M(e)·J`, and absorbing the 6 rows into the streaming QR;
-/// plus one SVD analysis of the 28 × 28 triangle.
+/// plus one SVD analysis of the 28 × 28 triangle. Then what `identify_ls` does per pass: a
+/// whole linearisation per sample, the normal-equation update alone, a cost-only pass, and the
+/// analyses of the normal equations, cold and warm.
 fn kernels(all: &[Sample<7>]) {
     use calib_core::model::error_jacobian;
     use calib_core::QrAccumulator;
@@ -327,8 +380,42 @@ fn kernels(all: &[Sample<7>]) {
     let analyse = time_per_call(7, 20, || {
         black_box(black_box(&acc).analyse(1e-9));
     });
+    // What an LS pass is made of (per sample), on the first n samples at Table 1: a whole
+    // linearisation (FK, Jacobians, the 6 residual rows, the normal-equation update), the
+    // normal-equation update alone (`identify_ls` splits the rows as 3 position rows and 3
+    // rotation rows, zero in the 14 a and d columns), and a cost-only pass; and one analysis of
+    // the normal equations (Cholesky, SVD), cold and warm. Each the fastest of its batches (the
+    // least disturbed by other processes on a shared core), to be set against the fastest LS run
+    // and a peak measured the same way.
+    let mut gram = GramAccumulator::<SUIT_PARAMS>::new();
+    let linearisation = fastest_per_call(15, 5, || {
+        gram.clear();
+        black_box(normal_equations(black_box(&table), s, &mut gram));
+    }) / n as f64;
+    let cost_pass = fastest_per_call(15, 5, || {
+        black_box(calib_core::ls::cost(black_box(&table), s));
+    }) / n as f64;
+    let (pos, rot) = ([rows[0], rows[1], rows[2]], [rows[3], rows[4], rows[5]]);
+    let mut acc6 = GramAccumulator::<SUIT_PARAMS>::new();
+    let mut gram_update = || acc6.add_rows_3_3(black_box(&pos), &[e[0], e[1], e[2]], black_box(&rot), &[e[3], e[4], e[5]], 14);
+    // The fastest of 25 batches: set against a peak measured the same way (`benches/peak.c`),
+    // the run least disturbed by other processes on a shared core.
+    let gram_rows = fastest_per_call(25, 20_000, &mut gram_update);
+    let gram_analyse = fastest_per_call(15, 10, || {
+        black_box(black_box(&gram).analyse(1e-9));
+    });
+    // The LS starts every analysis after the first from the previous iterate's singular
+    // vectors: here, the normal equations at the optimum from the analysis at Table 1.
+    let start = gram.analyse(1e-9);
+    let mut at_optimum = GramAccumulator::<SUIT_PARAMS>::new();
+    if let Ok(ls) = run_ls(s) {
+        normal_equations(&ls.table, s, &mut at_optimum);
+    }
+    let gram_analyse_warm = fastest_per_call(15, 10, || {
+        black_box(black_box(&at_optimum).analyse_from(1e-9, start.as_ref()));
+    });
     println!(
-        "{{\"bench\":\"calib-core-kernels\",\"fk_jacobian_s\":{fk_jac:e},\"residual_jacobian_s\":{residual_jac:e},\"qr_6_rows_s\":{qr_rows:e},\"qr_6_rows_sqrt_s\":{qr_rows_sqrt:e},\"analyse_s\":{analyse:e}}}"
+        "{{\"bench\":\"calib-core-kernels\",\"fk_jacobian_s\":{fk_jac:e},\"residual_jacobian_s\":{residual_jac:e},\"qr_6_rows_s\":{qr_rows:e},\"qr_6_rows_sqrt_s\":{qr_rows_sqrt:e},\"analyse_s\":{analyse:e},\"linearisation_per_sample_s\":{linearisation:e},\"cost_per_sample_s\":{cost_pass:e},\"gram_6_rows_s\":{gram_rows:e},\"gram_analyse_s\":{gram_analyse:e},\"gram_analyse_warm_s\":{gram_analyse_warm:e}}}"
     );
 }
 

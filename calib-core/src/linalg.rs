@@ -169,6 +169,12 @@ impl<const P: usize> Default for GramAccumulator<P> {
 /// then lose at most `1e6 · ε ≈ 2e-10` relative in the step and the singular values.
 pub const GRAM_MAX_CONDITION: f64 = 1e3;
 
+/// Rows of `HᵀH` updated together by [`GramAccumulator`] (see `update_rows`). Two rows share
+/// the loads of `h` and give the core independent sums: 234 → 203 ns per sample of the LS
+/// (x86-64, baseline SSE2, CPU clock). Four rows, or four columns per step, hold more
+/// broadcast factors than the 16 SSE registers and spill: 231 and 235 ns.
+const GRAM_BLOCK: usize = 2;
+
 impl<const P: usize> GramAccumulator<P> {
     /// An empty accumulator.
     pub fn new() -> Self {
@@ -252,40 +258,71 @@ impl<const P: usize> GramAccumulator<P> {
         self.rows += 6;
     }
 
-    /// `HᵀH += hᵀh` and `Hᵀy += hᵀy` in the rows `rows_from..rows_to` of `HᵀH` (upper triangle).
+    /// `HᵀH += hᵀh` and `Hᵀy += hᵀy` in the rows `rows_from..rows_to` of `HᵀH` (upper triangle),
+    /// [`GRAM_BLOCK`] rows at a time.
     #[inline]
     fn update<const R: usize>(&mut self, h: [&[f64; P]; R], y: &[f64; R], rows_from: usize, rows_to: usize) {
         const { assert!(R > 0, "at least one row") };
-        for i in rows_from..rows_to {
-            let hi: [f64; R] = core::array::from_fn(|r| h[r][i]);
-            // From an even column, so that the row splits into pairs (vectorised, no scalar
-            // remainder); the extra entry g[i][i−1] is below the diagonal and never read.
-            let start = i & !1;
-            let mut pairs = self.g[i][start..].chunks_exact_mut(2);
-            for (c, g2) in (&mut pairs).enumerate() {
-                let k = start + 2 * c;
-                // From the first product, not from 0.0 + it: the same sum (up to the sign of a
-                // zero) for one addition fewer.
-                let (mut s0, mut s1) = (hi[0] * h[0][k], hi[0] * h[0][k + 1]);
-                for r in 1..R {
-                    s0 += hi[r] * h[r][k];
-                    s1 += hi[r] * h[r][k + 1];
-                }
-                g2[0] += s0;
-                g2[1] += s1;
-            }
-            if let Some(g1) = pairs.into_remainder().first_mut() {
-                let mut sum = hi[0] * h[0][P - 1];
-                for r in 1..R {
-                    sum += hi[r] * h[r][P - 1];
-                }
-                *g1 += sum;
-            }
-            let mut sum = hi[0] * y[0];
+        let mut i = rows_from;
+        while !i.is_multiple_of(GRAM_BLOCK) && i < rows_to {
+            self.update_rows::<R, 1>(h, y, i);
+            i += 1;
+        }
+        // Aligned blocks: their rows start at the same even column.
+        while i + GRAM_BLOCK <= rows_to {
+            self.update_rows::<R, GRAM_BLOCK>(h, y, i);
+            i += GRAM_BLOCK;
+        }
+        while i < rows_to {
+            self.update_rows::<R, 1>(h, y, i);
+            i += 1;
+        }
+    }
+
+    /// [`GramAccumulator::update`] of the `B` rows `i..i + B` of `HᵀH`, from column `i & !1`
+    /// (an even column, so that every row splits into pairs of columns: vectorised, without a
+    /// scalar remainder when `P` is even). The entries left of the diagonal that this adds to
+    /// (`g[i + j][i & !1 .. i + j]`) are never read. Each entry gets the same sum, in the same
+    /// order, as with `B = 1`: the result does not depend on `B`; the `B` rows share the loads
+    /// of `h` and give the core `2B` independent sums per pair of columns.
+    #[inline(always)]
+    fn update_rows<const R: usize, const B: usize>(&mut self, h: [&[f64; P]; R], y: &[f64; R], i: usize) {
+        let hi: [[f64; R]; B] = core::array::from_fn(|j| core::array::from_fn(|r| h[r][i + j]));
+        let start = i & !1;
+        let rows = &mut self.g[i..i + B];
+        let mut k = start;
+        while k + 2 <= P {
+            // From the first product, not from 0.0 + it: the same sum (up to the sign of a
+            // zero) for one addition fewer.
+            let mut s: [[f64; 2]; B] = core::array::from_fn(|j| [hi[j][0] * h[0][k], hi[j][0] * h[0][k + 1]]);
             for r in 1..R {
-                sum += hi[r] * y[r];
+                let (h0, h1) = (h[r][k], h[r][k + 1]);
+                for (sj, hj) in s.iter_mut().zip(&hi) {
+                    sj[0] += hj[r] * h0;
+                    sj[1] += hj[r] * h1;
+                }
             }
-            self.b[i] += sum;
+            for (row, sj) in rows.iter_mut().zip(&s) {
+                row[k] += sj[0];
+                row[k + 1] += sj[1];
+            }
+            k += 2;
+        }
+        if k < P {
+            for (row, hj) in rows.iter_mut().zip(&hi) {
+                let mut sum = hj[0] * h[0][k];
+                for r in 1..R {
+                    sum += hj[r] * h[r][k];
+                }
+                row[k] += sum;
+            }
+        }
+        for (j, hj) in hi.iter().enumerate() {
+            let mut sum = hj[0] * y[0];
+            for r in 1..R {
+                sum += hj[r] * y[r];
+            }
+            self.b[i + j] += sum;
         }
     }
 
@@ -796,6 +833,94 @@ mod tests {
             gram.add_rows(&[[u, u]], &[u], 0);
         }
         assert!(gram.analyse(1e-9).is_none());
+    }
+
+    /// The update, entry by entry and in the plainest order: each entry's products summed over
+    /// the rows in order, then added (indices, as in the formula).
+    #[allow(clippy::needless_range_loop)]
+    fn reference_update<const P: usize, const R: usize>(
+        g: &mut [[f64; P]; P],
+        b: &mut [f64; P],
+        h: &[[f64; P]; R],
+        y: &[f64; R],
+        first: usize,
+    ) {
+        for i in first..P {
+            for k in i..P {
+                let mut s = h[0][i] * h[0][k];
+                for r in 1..R {
+                    s += h[r][i] * h[r][k];
+                }
+                g[i][k] += s;
+            }
+            let mut s = h[0][i] * y[0];
+            for r in 1..R {
+                s += h[r][i] * y[r];
+            }
+            b[i] += s;
+        }
+    }
+
+    fn random_rows<const P: usize, const R: usize>(rng: &mut Rng, first: usize) -> [[f64; P]; R] {
+        core::array::from_fn(|_| core::array::from_fn(|j| if j < first { 0.0 } else { rng.normal() }))
+    }
+
+    /// The blocked update gives every entry of the upper triangle the same sum, in the same
+    /// order, as the plain one: bit for bit, for even and odd sizes and first rows.
+    #[allow(clippy::needless_range_loop)]
+    fn blocked_update_is_bit_identical<const P: usize>(firsts: &[usize]) {
+        let mut rng = Rng::new(P as u64);
+        let mut acc = GramAccumulator::<P>::new();
+        let (mut g, mut b) = ([[0.0; P]; P], [0.0; P]);
+        for round in 0..20 {
+            let first = firsts[round % firsts.len()];
+            let h3 = random_rows::<P, 3>(&mut rng, first);
+            let y3 = [rng.normal(), rng.normal(), rng.normal()];
+            acc.add_rows(&h3, &y3, first);
+            reference_update(&mut g, &mut b, &h3, &y3, first);
+            let full = random_rows::<P, 3>(&mut rng, 0);
+            let tail = random_rows::<P, 3>(&mut rng, first);
+            let (yf, yt) = (
+                [rng.normal(), rng.normal(), rng.normal()],
+                [rng.normal(), rng.normal(), rng.normal()],
+            );
+            acc.add_rows_3_3(&full, &yf, &tail, &yt, first);
+            // The same 6 rows, full ones first: zero in the tail's leading columns.
+            let six = [full[0], full[1], full[2], tail[0], tail[1], tail[2]];
+            let y6 = [yf[0], yf[1], yf[2], yt[0], yt[1], yt[2]];
+            let mut g_lead = [[0.0; P]; P];
+            let mut b_lead = [0.0; P];
+            // Rows 0..first of HᵀH see only the full rows; the reference adds them separately.
+            reference_update(&mut g_lead, &mut b_lead, &full, &yf, 0);
+            for i in 0..first.min(P) {
+                for k in i..P {
+                    g[i][k] += g_lead[i][k];
+                }
+                b[i] += b_lead[i];
+            }
+            let (mut g_tail, mut b_tail) = ([[0.0; P]; P], [0.0; P]);
+            reference_update(&mut g_tail, &mut b_tail, &six, &y6, first.min(P));
+            for i in first.min(P)..P {
+                for k in i..P {
+                    g[i][k] += g_tail[i][k];
+                }
+                b[i] += b_tail[i];
+            }
+            for i in 0..P {
+                assert_eq!(acc.b[i].to_bits(), b[i].to_bits(), "P = {P}, b[{i}]");
+                for k in i..P {
+                    assert_eq!(acc.g[i][k].to_bits(), g[i][k].to_bits(), "P = {P}, g[{i}][{k}]");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn blocked_update_equals_the_plain_one_bit_for_bit() {
+        blocked_update_is_bit_identical::<28>(&[0, 14, 3, 27]);
+        blocked_update_is_bit_identical::<7>(&[0, 1, 2, 5, 6]);
+        blocked_update_is_bit_identical::<8>(&[0, 3, 4, 7]);
+        blocked_update_is_bit_identical::<1>(&[0]);
     }
 
     #[test]

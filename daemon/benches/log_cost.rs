@@ -10,10 +10,10 @@
 
 use std::time::Duration;
 
-use exocald::ingest::{Event, Ingest};
-use exocald::mcaplog::SessionLog;
-use exocald::record::{frame_record, Transform};
-use exocald::recorder::Recorder;
+use exocal_session::ingest::{Event, Ingest};
+use exocald::log::mcaplog::SessionLog;
+use exocald::log::records::{frame_record, Transform};
+use exocald::shell::tee::Recorder;
 
 const REPEATS: usize = 5;
 
@@ -86,12 +86,9 @@ fn main() {
         .find(|a| !a.starts_with('-'))
         .expect("usage: log_cost SESSION.mcap");
     let bytes = std::fs::read(&path).expect("read the log");
-    let session = exocal_report::readers::read_mcap_session(&bytes).expect("an exocald log");
-    let frames: Vec<exocal_bus::Received> = session
-        .frames
-        .iter()
-        .filter_map(exocald::offline::received)
-        .collect();
+    let frames = exocal_log::read::read_mcap_session(&bytes)
+        .expect("an exocald log")
+        .frames;
     let dir = std::env::temp_dir().join(format!("exocal-log-cost-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let n = frames.len() as f64;

@@ -11,8 +11,8 @@
 
 use calib_core::table_error;
 use exocal_hil::{Scenario, Suit};
+use exocald::cmd::demo::{demo_config, run, DemoOptions};
 use exocald::config::Config;
-use exocald::demo::{demo_config, run, DemoOptions};
 
 fn arg(name: &str, default: f64) -> f64 {
     let args: Vec<String> = std::env::args().collect();
@@ -54,8 +54,8 @@ fn main() {
             let output = root.join(format!("seed{seed}-{}", stop.is_some()));
             let mut config = demo_config(Config::default_config(), &output, 1.0);
             if stop.is_some() {
-                config.session.min_duration_s = 15.0;
-                config.session.stop_at_expected_error = stop;
+                config.calibration.window.min_duration_s = 15.0;
+                config.calibration.window.stop_at_expected_error = stop;
             }
             let opts = DemoOptions {
                 seed,
@@ -69,7 +69,7 @@ fn main() {
             let te = table_error(&outcome.table(), &truth, &fresh);
             // The session's own poses (the suit's true joints over its window, every 30 ms):
             // what the stated expected error is an RMS over.
-            let window_s = summary.aligned_samples as f64 / config.session.grid_hz;
+            let window_s = summary.aligned_samples as f64 / config.calibration.window.grid_hz;
             let own: Vec<[f64; 7]> = (0..(window_s / 0.03) as usize)
                 .map(|k| suit.true_joints(k as f64 * 0.03))
                 .collect();

@@ -25,7 +25,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let nominal = DhTable::paper_nominal();
     let fit_samples: Vec<_> = fit.iter().map(|s| s.sample).collect();
     let started = std::time::Instant::now();
-    let calibration = exocald::pipeline::ls_then_em(
+    let calibration = exocal_session::pipeline::ls_then_em(
         &nominal,
         &fit_samples,
         &LsOptions::new(),

@@ -5,8 +5,8 @@
 //! (defaults: K = 6,000 samples at the scenario's 100 Hz, seed 1).
 
 use calib_core::{Scenario, ScenarioConfig};
-use exocal_report::readers::write_csv;
-use exocal_report::TimedSample;
+use exocal_session::formats::csv_text;
+use exocal_session::outcome::TimedSample;
 
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -33,8 +33,6 @@ fn main() {
             sample: s.sample,
         })
         .collect();
-    let mut text = Vec::new();
-    write_csv(&samples, &mut text).expect("writing to memory");
-    std::fs::write(out, text).unwrap_or_else(|e| panic!("writing {out}: {e}"));
+    std::fs::write(out, csv_text(&samples)).unwrap_or_else(|e| panic!("writing {out}: {e}"));
     eprintln!("{out}: {k} samples");
 }

@@ -125,7 +125,7 @@ pub struct OfflineArgs {
     pub input: PathBuf,
     /// Input format; detected from the extension or the content when omitted.
     #[arg(long, value_enum)]
-    pub format: Option<crate::offline::Format>,
+    pub format: Option<Format>,
     /// HTML report. Default: `<input>.offline.html` next to the input.
     #[arg(long, value_name = "OUT.html")]
     pub report: Option<PathBuf>,
@@ -184,6 +184,27 @@ pub struct CheckConfigArgs {
     pub print_default: bool,
 }
 
+/// What the input file is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Format {
+    /// The daemon's MCAP session log (`/can/rx` frames).
+    Mcap,
+    /// A `candump -L` log.
+    Candump,
+    /// CSV samples: `t,q1,q2,q3,q4,q5,q6,q7,x,y,z,qw,qx,qy,qz`.
+    Csv,
+}
+
+impl std::fmt::Display for Format {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Format::Mcap => "MCAP",
+            Format::Candump => "candump",
+            Format::Csv => "CSV",
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -235,7 +256,7 @@ mod tests {
         match cli.command {
             Command::Offline(a) => {
                 assert_eq!(a.input, PathBuf::from("s.mcap"));
-                assert_eq!(a.format, Some(crate::offline::Format::Candump));
+                assert_eq!(a.format, Some(Format::Candump));
                 assert_eq!(a.report, Some(PathBuf::from("r.html")));
                 assert_eq!(a.export_urdf, Some(PathBuf::from("a.urdf")));
                 assert_eq!(a.export_toml, None);

@@ -15,12 +15,12 @@
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-use calib_core::{DhRow, DhTable, JointRanges, ParamKind};
+use calib_core::{DhRow, DhTable, JointRanges};
 use serde::Deserialize;
 use toml::de::{DeTable, DeValue};
+use toml_edit::{Array, DocumentMut, Item, Value};
 
-/// Number of joints (and of D-H rows) of the exoskeleton.
-pub const JOINTS: usize = 7;
+pub use exocal_session::{Bounds, Settings, ValidationRules, WindowRules, JOINTS};
 
 /// The configuration shipped with the daemon (`daemon/exocald.toml`).
 pub const DEFAULT_TOML: &str = include_str!("../exocald.toml");
@@ -56,76 +56,6 @@ pub mod limits {
     pub const MAX_EXPECTED_ROTATION_ERROR_MRAD: f64 = 1_000.0;
     /// Longest cooldown between triggered sessions, s: a day.
     pub const MAX_COOLDOWN_S: f64 = 86_400.0;
-}
-
-/// Anatomical bounds a table must respect to be pushed, as the file states them (SI units).
-/// [`Bounds::table`] turns them into calib-core's per-parameter [`calib_core::Bounds`].
-#[derive(Debug, Clone, PartialEq)]
-pub struct Bounds {
-    /// Allowed `a_i` (m), `(min, max)`.
-    pub a: [(f64, f64); JOINTS],
-    /// Allowed `d_i` (m), `(min, max)`.
-    pub d: [(f64, f64); JOINTS],
-    /// Largest |α_i − nominal α_i| (rad).
-    pub alpha_deviation: f64,
-    /// Largest |offset_i − nominal offset_i| (rad).
-    pub offset_deviation: f64,
-    /// Anatomical rotation range of each joint (rad).
-    pub joint_range: JointRanges<JOINTS>,
-}
-
-impl Bounds {
-    /// The per-parameter bounds of a table whose nominal is `nominal`: `a` and `d` as
-    /// configured, `α` and the joint offset within their deviation of nominal (calib-core
-    /// compares angles modulo 2π).
-    pub fn table(&self, nominal: &DhTable<JOINTS>) -> calib_core::Bounds<JOINTS> {
-        let mut b = calib_core::Bounds::none();
-        for (j, row) in nominal.rows.iter().enumerate() {
-            let around = |x: f64, dev: f64| Some((x - dev, x + dev));
-            b.limits[ParamKind::A as usize][j] = Some(self.a[j]);
-            b.limits[ParamKind::D as usize][j] = Some(self.d[j]);
-            b.limits[ParamKind::Alpha as usize][j] = around(row.alpha, self.alpha_deviation);
-            b.limits[ParamKind::Theta as usize][j] =
-                around(row.theta_offset, self.offset_deviation);
-        }
-        b
-    }
-}
-
-/// Collection window rules.
-#[derive(Debug, Clone, PartialEq)]
-pub struct SessionRules {
-    /// Shortest collection window (s).
-    pub min_duration_s: f64,
-    /// Longest collection window (s): a session without enough data by then fails.
-    pub max_duration_s: f64,
-    /// Fraction (0, 1] of each joint's range the motion must visit.
-    pub excitation_required: f64,
-    /// Aligned samples (on the grid) needed before calibrating.
-    pub min_samples: usize,
-    /// Rate of the common time grid the streams are resampled onto (Hz).
-    pub grid_hz: f64,
-    /// A hole longer than this (s) in any stream is a gap: grid points inside it are excluded.
-    pub max_gap_s: f64,
-    /// Stop when good enough: `(mm, mrad)`. When set, the window closes as soon as (after
-    /// `min_duration_s`, every joint covered, enough samples) the expected table error of the
-    /// motion so far is within both, and at `max_duration_s` at the latest, calibrating what
-    /// it has if the motion suffices. `None`: the window closes at `min_duration_s`.
-    pub stop_at_expected_error: Option<(f64, f64)>,
-}
-
-/// What a calibration must satisfy to be pushed.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ValidationRules {
-    /// Largest condition number of the (column-scaled) identification problem.
-    pub max_condition_number: f64,
-    /// Fraction (0, 1) of the session, at its end, kept out of the fit.
-    pub holdout_fraction: f64,
-    /// Largest expected table error (1σ, RMS position over the session's poses, mm) a pushed
-    /// table may have, from the drift EM's Cramér-Rao bound.
-    pub max_expected_position_error_mm: f64,
-    /// The same for rotation (mrad).
-    pub max_expected_rotation_error_mrad: f64,
 }
 
 /// Where and how the MCAP log is written.
@@ -198,16 +128,9 @@ pub struct TriggerRules {
 pub struct Config {
     /// The SocketCAN interface the nodes are on (`can0`; `vcan0` on a bench).
     pub interface: String,
-    /// CAN node id of the node on joint `i + 1`.
-    pub joint_nodes: [u8; JOINTS],
-    /// The nominal D-H table the suit was built to.
-    pub nominal: DhTable<JOINTS>,
-    /// Anatomical bounds a pushed table must respect (`[bounds]`).
-    pub bounds: Bounds,
-    /// Collection window rules (`[session]`).
-    pub session: SessionRules,
-    /// What a calibration must satisfy to be pushed (`[validation]`).
-    pub validation: ValidationRules,
+    /// What the data path reads (`[nodes]`, `[nominal]`, `[bounds]`, `[session]`,
+    /// `[validation]`): the session crate's settings.
+    pub calibration: Settings,
     /// Where and how the session log is written (`[output]`).
     pub output: OutputConfig,
     /// Table push policy (`[push]`).
@@ -719,7 +642,7 @@ impl Checker<'_> {
         }
 
         let s = &raw.session;
-        let session = SessionRules {
+        let session = WindowRules {
             min_duration_s: self.positive_at_most(
                 "session.min_duration_s",
                 s.min_duration_s,
@@ -892,11 +815,13 @@ impl Checker<'_> {
 
         Ok(Config {
             interface,
-            joint_nodes,
-            nominal,
-            bounds,
-            session,
-            validation,
+            calibration: Settings {
+                joint_nodes,
+                nominal,
+                bounds,
+                window: session,
+                validation,
+            },
             output,
             push,
             live,
@@ -906,6 +831,77 @@ impl Checker<'_> {
 }
 
 // ---- writing ----------------------------------------------------------------------------------
+
+/// Why a configuration with a calibrated table cannot be written.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ExportError {
+    /// The base configuration is not valid TOML (the parser's message).
+    BaseToml(String),
+    /// The base configuration has no `[nominal]` table.
+    NoNominal,
+    /// A parameter is not finite (`d3`, …).
+    NotFinite(String),
+}
+
+impl fmt::Display for ExportError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ExportError::BaseToml(e) => write!(f, "the base configuration is not TOML: {e}"),
+            ExportError::NoNominal => write!(f, "the base configuration has no [nominal] table"),
+            ExportError::NotFinite(p) => write!(f, "parameter {p} is not finite"),
+        }
+    }
+}
+
+impl std::error::Error for ExportError {}
+
+/// `base` (a configuration text: the one the daemon ran with, or its shipped default) with its
+/// `[nominal]` table replaced by `table`: only the four `[nominal]` arrays are rewritten
+/// (lengths in metres, angles in degrees, as the file speaks), every other key, comment and
+/// layout kept. The result is a complete configuration whose nominal table is the calibrated
+/// one (`exocald offline --export-toml`).
+pub fn with_nominal(base: &str, table: &DhTable<JOINTS>) -> Result<String, ExportError> {
+    for (i, r) in table.rows.iter().enumerate() {
+        let values = [
+            ("a", r.a),
+            ("alpha", r.alpha),
+            ("d", r.d),
+            ("offset", r.theta_offset),
+        ];
+        if let Some((name, _)) = values.iter().find(|(_, v)| !v.is_finite()) {
+            return Err(ExportError::NotFinite(format!("{name}{}", i + 1)));
+        }
+    }
+    let mut doc: DocumentMut = base
+        .parse()
+        .map_err(|e: toml_edit::TomlError| ExportError::BaseToml(e.to_string()))?;
+    let nominal = doc
+        .get_mut("nominal")
+        .and_then(Item::as_table_like_mut)
+        .ok_or(ExportError::NoNominal)?;
+    type Column = (&'static str, fn(&calib_core::DhRow) -> f64);
+    let columns: [Column; 4] = [
+        ("a", |r| r.a),
+        ("alpha_deg", |r| r.alpha.to_degrees()),
+        ("d", |r| r.d),
+        ("offset_deg", |r| r.theta_offset.to_degrees()),
+    ];
+    for (key, get) in columns {
+        let values: Array = table.rows.iter().map(get).collect();
+        match nominal.get_mut(key).and_then(Item::as_value_mut) {
+            // Keep the key's decoration (comments, spacing) and replace the value.
+            Some(old) => {
+                let decor = old.decor().clone();
+                *old = Value::Array(values);
+                *old.decor_mut() = decor;
+            }
+            None => {
+                nominal.insert(key, Item::Value(Value::Array(values)));
+            }
+        }
+    }
+    Ok(doc.to_string())
+}
 
 impl Config {
     /// The configuration as a TOML file in the file's own units (degrees, seconds, metres),
@@ -926,10 +922,10 @@ impl Config {
             )
         };
         let text = |s: &str| toml::Value::String(s.to_string()).to_string();
-        let n = &self.nominal.rows;
-        let b = &self.bounds;
-        let s = &self.session;
-        let v = &self.validation;
+        let n = &self.calibration.nominal.rows;
+        let b = &self.calibration.bounds;
+        let s = &self.calibration.window;
+        let v = &self.calibration.validation;
         let p = &self.push;
         let mut out = String::new();
         let w = &mut out;
@@ -938,7 +934,7 @@ impl Config {
         let _ = writeln!(
             w,
             "[nodes]\njoints = [{}]\n",
-            list(&mut self.joint_nodes.iter().map(|j| j.to_string()))
+            list(&mut self.calibration.joint_nodes.iter().map(|j| j.to_string()))
         );
         let _ = writeln!(
             w,
@@ -1011,6 +1007,54 @@ impl Config {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use calib_core::ParamKind;
+
+    #[test]
+    fn config_export_replaces_only_the_nominal_arrays() {
+        let base = "# head\n[can]\ninterface = \"can0\" # keep me\n\n[nominal]\n# rows\na = [1.0]\nalpha_deg = [0.0] # twist\nd = [0.0]\noffset_deg = [0.0]\n\n[push]\nretries = 3\n";
+        let t = DhTable::<JOINTS>::paper_actual();
+        let out = with_nominal(base, &t).unwrap();
+        assert!(out.contains("interface = \"can0\" # keep me"), "{out}");
+        assert!(out.contains("# rows"));
+        assert!(out.contains("# twist"));
+        assert!(out.contains("retries = 3"));
+        let doc: toml_edit::DocumentMut = out.parse().unwrap();
+        let read = |k: &str| -> Vec<f64> {
+            doc["nominal"][k]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_float().unwrap())
+                .collect()
+        };
+        assert_eq!(read("a"), t.rows.map(|r| r.a).to_vec());
+        assert_eq!(read("d"), t.rows.map(|r| r.d).to_vec());
+        for (deg, r) in read("alpha_deg").iter().zip(&t.rows) {
+            assert!((deg.to_radians() - r.alpha).abs() < 1e-15);
+        }
+        for (deg, r) in read("offset_deg").iter().zip(&t.rows) {
+            assert!((deg.to_radians() - r.theta_offset).abs() < 1e-15);
+        }
+    }
+
+    #[test]
+    fn config_export_errors_name_the_problem() {
+        let t = DhTable::<JOINTS>::paper_actual();
+        assert!(matches!(
+            with_nominal("a = [", &t),
+            Err(ExportError::BaseToml(_))
+        ));
+        assert_eq!(
+            with_nominal("[can]\nx = 1\n", &t),
+            Err(ExportError::NoNominal)
+        );
+        let mut bad = t;
+        bad.rows[2].d = f64::NAN;
+        assert_eq!(
+            with_nominal("[nominal]\n", &bad),
+            Err(ExportError::NotFinite("d3".into()))
+        );
+    }
 
     /// The default text with `from` replaced by `to` (which must occur exactly once).
     fn edited(from: &str, to: &str) -> String {
@@ -1039,19 +1083,22 @@ mod tests {
     fn the_shipped_default_is_valid_and_is_table_1() {
         let c = Config::parse(DEFAULT_TOML).unwrap();
         assert_eq!(c.interface, "can0");
-        assert_eq!(c.joint_nodes, [1, 2, 3, 4, 5, 6, 7]);
-        let a: Vec<f64> = c.nominal.rows.iter().map(|r| r.a).collect();
+        assert_eq!(c.calibration.joint_nodes, [1, 2, 3, 4, 5, 6, 7]);
+        let a: Vec<f64> = c.calibration.nominal.rows.iter().map(|r| r.a).collect();
         assert_eq!(a, [0.04, 0.04, 0.431, 0.244, 0.0, 0.0, 0.0]);
-        assert!((c.nominal.rows[0].alpha + std::f64::consts::FRAC_PI_2).abs() < 1e-12);
-        assert!((c.nominal.rows[1].theta_offset - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
-        assert_eq!(c.bounds.a[2], (0.377, 0.485));
-        assert!((c.bounds.joint_range.limits[4].0 + 20f64.to_radians()).abs() < 1e-12);
+        assert!((c.calibration.nominal.rows[0].alpha + std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+        assert!(
+            (c.calibration.nominal.rows[1].theta_offset - std::f64::consts::FRAC_PI_2).abs()
+                < 1e-12
+        );
+        assert_eq!(c.calibration.bounds.a[2], (0.377, 0.485));
+        assert!((c.calibration.bounds.joint_range.limits[4].0 + 20f64.to_radians()).abs() < 1e-12);
         // The table bounds: a and d as configured, α and the offset around nominal.
-        let t = c.bounds.table(&c.nominal);
+        let t = c.calibration.bounds.table(&c.calibration.nominal);
         assert_eq!(t.limits[ParamKind::A as usize][2], Some((0.377, 0.485)));
         let (lo, hi) = t.limits[ParamKind::Alpha as usize][0].unwrap();
-        assert!((0.5 * (lo + hi) - c.nominal.rows[0].alpha).abs() < 1e-12);
-        assert!((0.5 * (hi - lo) - c.bounds.alpha_deviation).abs() < 1e-12);
+        assert!((0.5 * (lo + hi) - c.calibration.nominal.rows[0].alpha).abs() < 1e-12);
+        assert!((0.5 * (hi - lo) - c.calibration.bounds.alpha_deviation).abs() < 1e-12);
         assert_eq!(c.push.retries, 3);
         assert_eq!(Config::default_config(), c);
     }
@@ -1100,7 +1147,10 @@ mod tests {
     #[test]
     fn stop_when_good_enough_is_off_unless_set_and_its_limits_are_checked() {
         assert_eq!(
-            Config::default_config().session.stop_at_expected_error,
+            Config::default_config()
+                .calibration
+                .window
+                .stop_at_expected_error,
             None
         );
         let on = edited(
@@ -1108,7 +1158,11 @@ mod tests {
             "stop_at_expected_error = [2.0, 6.0]",
         );
         assert_eq!(
-            Config::parse(&on).unwrap().session.stop_at_expected_error,
+            Config::parse(&on)
+                .unwrap()
+                .calibration
+                .window
+                .stop_at_expected_error,
             Some((2.0, 6.0))
         );
         let bad = edited(

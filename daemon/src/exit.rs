@@ -8,9 +8,11 @@ use std::fmt;
 
 use crate::config::ConfigError;
 use crate::keys::KeyError;
-use crate::mcaplog::LogError;
-use crate::pipeline::CalibrateError;
+use crate::log::mcaplog::LogError;
 use exocal_bus::BusError;
+use exocal_session::pipeline::CalibrateError;
+use exocal_session::validate::Refusal;
+use exocal_session::window::Shortfall;
 
 /// sysexits(3) statuses used by exocald.
 pub mod code {
@@ -52,12 +54,15 @@ pub enum DaemonError {
     },
     /// A node did not accept the table (69); the report says which.
     Push(String),
-    /// Not enough motion/samples before the session's maximum duration (66).
-    Session(String),
+    /// Not enough motion/samples before the session's maximum duration (66): what was missing.
+    Session(Vec<Shortfall>),
     /// The samples could not be calibrated at all (66): too few, or calib-core's reason.
     Calibration(CalibrateError),
     /// The calibration was refused by validation (65): the reasons.
-    Validation(Vec<String>),
+    Validation(Vec<Refusal>),
+    /// A validated table cannot be pushed (65): it does not fit the protocol's table
+    /// (the row of `joint`, 1-based, and why).
+    Unpushable(String),
     /// I/O failure (74): what was being done, and the error.
     Io {
         /// What was being done.
@@ -96,6 +101,16 @@ pub enum DaemonError {
     NoAnswer(Vec<String>),
 }
 
+impl From<crate::live::LiveError> for DaemonError {
+    /// The live view is I/O (74): its socket or its runtime.
+    fn from(e: crate::live::LiveError) -> Self {
+        DaemonError::Io {
+            what: e.what,
+            source: e.source,
+        }
+    }
+}
+
 impl DaemonError {
     /// The process exit status for this error.
     pub fn exit_code(&self) -> u8 {
@@ -105,7 +120,7 @@ impl DaemonError {
                 code::UNAVAILABLE
             }
             DaemonError::Session(_) | DaemonError::Calibration(_) => code::NOINPUT,
-            DaemonError::Validation(_) => code::DATAERR,
+            DaemonError::Validation(_) | DaemonError::Unpushable(_) => code::DATAERR,
             DaemonError::Io { .. } | DaemonError::Bus { .. } | DaemonError::Log { .. } => {
                 code::IOERR
             }
@@ -117,6 +132,12 @@ impl DaemonError {
     }
 }
 
+/// Every item's line, separated by `; `.
+fn lines<T: fmt::Display>(items: &[T]) -> String {
+    let all: Vec<String> = items.iter().map(T::to_string).collect();
+    all.join("; ")
+}
+
 impl fmt::Display for DaemonError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
@@ -126,15 +147,12 @@ impl fmt::Display for DaemonError {
                 write!(f, "CAN interface `{name}`: {reason}")
             }
             DaemonError::Push(why) => write!(f, "push failed: {why}"),
-            DaemonError::Session(why) => write!(f, "session incomplete: {why}"),
+            DaemonError::Session(why) => write!(f, "session incomplete: {}", lines(why)),
             DaemonError::Calibration(e) => write!(f, "session incomplete: {e}"),
             DaemonError::Validation(reasons) => {
-                write!(
-                    f,
-                    "calibration refused, nothing pushed: {}",
-                    reasons.join("; ")
-                )
+                write!(f, "calibration refused, nothing pushed: {}", lines(reasons))
             }
+            DaemonError::Unpushable(why) => write!(f, "calibration refused, nothing pushed: {why}"),
             DaemonError::Io { what, source } => write!(f, "{what}: {source}"),
             DaemonError::Bus { what, source } => write!(f, "{what}: {source}"),
             DaemonError::Log { what, source } => write!(f, "{what}: {source}"),
@@ -198,8 +216,8 @@ mod tests {
                 name: "can9".into(),
                 reason: "no such device".into(),
             },
-            DaemonError::Session("joint 3 covered 10% of its range".into()),
-            DaemonError::Validation(vec!["a".into()]),
+            DaemonError::Session(vec![Shortfall::Samples { have: 3, need: 9 }]),
+            DaemonError::Validation(vec![Refusal::NoExpectedAccuracy]),
             DaemonError::Io {
                 what: "writing log".into(),
                 source: std::io::Error::other("disk full"),

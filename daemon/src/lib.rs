@@ -1,62 +1,43 @@
-//! exocald: the SocketCAN service that aligns, calibrates, logs and pushes.
+//! exocald: the shell around the session crate — sockets, timers, signals, systemd, the push,
+//! the log and the live view. The data path itself (ingest, alignment, the window, LS, EM,
+//! validation) is `exocal_session`'s; nothing here re-implements math, codecs or the data path.
 //!
-//! | module | contract |
+//! | module | role |
 //! |---|---|
-//! | [`align`] | per-node clock models, resampling onto one grid |
-//! | [`ingest`] | frames → decoded messages → per-node streams; counts unknown/malformed |
-//! | [`config`] | strict TOML configuration; errors name key and line |
 //! | [`cli`] | the command line (clap) |
-//! | [`record`] | what a session records, once: the records and their content (frames, arm, calibration) |
-//! | [`recorder`] | every record to every observer: the log, the live view |
-//! | [`mcaplog`] | the per-session MCAP log (zstd chunks, flushed on an interval, protobuf with Foxglove's schemas) |
-//! | [`live`] | the live view: the session over the Foxglove WebSocket protocol (`[live]`) |
-//! | [`session`] | the collection window: coverage, sample counts, ready/failed |
-//! | [`report`] | progress bar / systemd `STATUS=` / plain lines; READY and WATCHDOG |
-//! | [`collect`] | what a session gathers, live or replayed: frames → aligned samples and their quality |
-//! | [`pipeline`] | aligned samples → split, LS, drift EM, validation, node rows, report detail (pure) |
-//! | [`parallel`] | the LS linearisation in sample blocks on several cores (std scoped threads) |
-//! | [`validate`] | bounds, condition number and held-out accuracy before any push |
+//! | [`config`] | strict TOML configuration; errors name key and line; the one writer of its keys |
+//! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
+//! | [`cmd`] | one module per subcommand: what each does (`calibrate` in [`cmd`] itself) |
+//! | [`cmd::serve`] | `exocald run`: which `Trigger` frames start a session (authenticated, cooldown) |
+//! | [`cmd::offline`] | recalibration from a recorded MCAP, candump or CSV file, through the same data path |
+//! | [`cmd::nodes`] | `exocald nodes`: every joint node's table, read over the bus, against the last push |
+//! | `cmd::demo` | exocal-hil and the daemon in one process on the in-process bus (feature `demo`, on by default) |
+//! | [`shell`] | one live session and what it needs around the data path |
+//! | [`shell::runner`] | one session on any transport: collect, align, calibrate, validate, push, log |
 //! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
 //! | [`keys`] | the node and trigger keys, from the systemd credential `exocal-keys` |
-//! | [`serve`] | `exocald run`: which `Trigger` frames start a session (authenticated, cooldown) |
-//! | [`runner`] | one session on any transport: collect, align, calibrate, validate, push, log |
-//! | [`summary`] | a session's summary as printed on stdout |
-//! | `demo` | exocal-hil and the daemon in one process on the in-process bus (feature `demo`, on by default) |
-//! | [`offline`] | recalibration from a recorded MCAP, candump or CSV file, through the same pipeline |
-//! | [`calreport`] | the HTML report of a session (live or offline), from what the pipeline computed |
-//! | [`nodes`] | `exocald nodes`: every joint node's table, read over the bus, against the last push |
-//! | [`recover`] | a session log cut short (kill -9, power loss) read record by record and rewritten complete |
-//! | [`exit`] | [`exit::DaemonError`] and its sysexits status |
-//! | [`shutdown`] | SIGTERM/SIGINT as a flag a session waits on |
-//! | [`app`] | what each subcommand does |
+//! | [`shell::notify`] | progress bar / systemd `STATUS=` / plain lines; READY and WATCHDOG |
+//! | [`shell::shutdown`] | SIGTERM/SIGINT as a flag a session waits on |
+//! | [`shell::summary`] | a session's summary as printed on stdout |
+//! | [`shell::tee`] | every record to every observer: the log, the live view |
+//! | [`shell::html_report`] | the HTML report of a session (live or offline), rendered from what the session computed |
+//! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
+//! | [`keys`] | the node and trigger keys, from the systemd credential `exocal-keys` |
+//! | [`log`] | the session log: what is recorded, how it is written, how a cut log is recovered |
+//! | [`log::records`] | what a session records, once: the records and their content (frames, arm, calibration) |
+//! | [`shell::tee`] | every record to every observer: the log, the live view |
+//! | [`log::mcaplog`] | the per-session MCAP log (zstd chunks, flushed on an interval, protobuf with Foxglove's schemas) |
+//! | [`log::recover`] | a session log cut short (kill -9, power loss) read record by record and rewritten complete |
+//! | [`live`] | the live view: the session over the Foxglove WebSocket protocol (`[live]`) |
 
 #![warn(missing_docs)]
 
-pub mod align;
-pub mod app;
-pub mod calreport;
 pub mod cli;
-pub mod collect;
+pub mod cmd;
 pub mod config;
-#[cfg(feature = "demo")]
-pub mod demo;
 pub mod exit;
-pub mod ingest;
 pub mod keys;
 pub mod live;
-pub mod mcaplog;
-pub mod nodes;
-pub mod offline;
-pub mod parallel;
-pub mod pipeline;
+pub mod log;
 pub mod push;
-pub mod record;
-pub mod recorder;
-pub mod recover;
-pub mod report;
-pub mod runner;
-pub mod serve;
-pub mod session;
-pub mod shutdown;
-pub mod summary;
-pub mod validate;
+pub mod shell;

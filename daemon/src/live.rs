@@ -6,7 +6,7 @@
 //! - off unless `[live] enabled = true` (or `exocald demo --live`); it listens on
 //!   `[live] listen` (loopback by default) on a runtime of its own (one worker thread), so
 //!   neither the session's loop nor a paused demo clock ever waits for a client;
-//! - it is an observer of the session's records ([`crate::recorder::Recorder`] hands it every
+//! - it is an observer of the session's records ([`crate::shell::tee::Recorder`] hands it every
 //!   [`Record`] the log gets) and never fails the session: a slow client misses messages;
 //! - channels, with the log's schemas (`exocal-log`): `/joint_states` (all seven joints) and
 //!   `/tf` (the arm's frames on the current table, as the exported URDF names them) and
@@ -27,9 +27,8 @@ use parking_lot::Mutex;
 use prost::Message as _;
 
 use crate::config::{Config, JOINTS};
-use crate::exit::DaemonError;
-use crate::mcaplog;
-use crate::record::{arm_transforms, Record};
+use crate::log::mcaplog;
+use crate::log::records::{arm_transforms, Record};
 
 /// Most messages per second of log time on the streaming channels (`/joint_states`, `/tf`,
 /// `/ee_pose`): plenty to watch an arm move, a few percent of what the bus carries.
@@ -53,7 +52,7 @@ struct State {
     table: calib_core::DhTable<JOINTS>,
     limits: [(f64, f64); JOINTS],
     joints: [Option<(f64, f64)>; JOINTS],
-    pose: Option<crate::record::Transform>,
+    pose: Option<crate::log::records::Transform>,
     last_sent_ns: Option<u64>,
     /// The latest message of the latched channels, by topic.
     latched: Vec<(&'static str, Vec<u8>)>,
@@ -139,10 +138,31 @@ fn table_of(rows: impl Iterator<Item = calib_core::DhRow>) -> Option<calib_core:
     })
 }
 
+/// Why the live view did not start: what was being done, and the error.
+#[derive(Debug)]
+pub struct LiveError {
+    /// What was being done.
+    pub what: String,
+    /// The error.
+    pub source: std::io::Error,
+}
+
+impl std::fmt::Display for LiveError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}: {}", self.what, self.source)
+    }
+}
+
+impl std::error::Error for LiveError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        Some(&self.source)
+    }
+}
+
 impl LiveView {
     /// Starts the server on `listen`, the arm on `config`'s nominal table.
-    pub fn start(listen: SocketAddr, config: &Config) -> Result<LiveView, DaemonError> {
-        let err = |e: foxglove::FoxgloveError| DaemonError::Io {
+    pub fn start(listen: SocketAddr, config: &Config) -> Result<LiveView, LiveError> {
+        let err = |e: foxglove::FoxgloveError| LiveError {
             what: format!("starting the live view on {listen}"),
             source: std::io::Error::other(e),
         };
@@ -167,8 +187,8 @@ impl LiveView {
             })
         };
         let channels = build().map_err(err)?;
-        let table = config.nominal;
-        let limits = config.bounds.joint_range.limits;
+        let table = config.calibration.nominal;
+        let limits = config.calibration.bounds.joint_range.limits;
         let mut state = State {
             table,
             limits,
@@ -187,7 +207,7 @@ impl LiveView {
             .thread_name("exocald-live")
             .enable_all()
             .build()
-            .map_err(|source| DaemonError::Io {
+            .map_err(|source| LiveError {
                 what: format!("starting the live view's runtime for {listen}"),
                 source,
             })?;

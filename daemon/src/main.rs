@@ -19,7 +19,7 @@ fn main() -> ExitCode {
             return ExitCode::from(status);
         }
     };
-    match exocald::app::run(cli) {
+    match exocald::cmd::run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("exocald: {e}");

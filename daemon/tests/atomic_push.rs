@@ -23,8 +23,8 @@ use exocal_dbc::table::Table;
 use exocal_dbc::NodeId;
 use exocal_hil::trial::{new_tables, TransferMix};
 use exocal_hil::Hil;
+use exocald::cmd::demo::{PushTally, RunningSuit};
 use exocald::config::PushPolicy;
-use exocald::demo::{PushTally, RunningSuit};
 use exocald::push::push_tables;
 
 /// Simulated seconds per second of the (paused, virtual) runtime clock.

@@ -22,10 +22,10 @@ use exocal_hil::scenario::{
     Babble, ClockJump, NodeClockSpec, Reboot, Scenario, TransferBehaviour, TransferFault,
 };
 use exocal_hil::Hil;
+use exocald::cmd::demo::{session_against_suit, RunningSuit, SuitSession};
 use exocald::config::Config;
-use exocald::demo::{session_against_suit, RunningSuit, SuitSession};
 use exocald::push::Holds;
-use exocald::runner::SessionSummary;
+use exocald::shell::runner::SessionSummary;
 
 const SPEED: f64 = 10.0;
 const SESSION_S: f64 = 40.0;
@@ -265,13 +265,13 @@ async fn run_case(case: &Case) -> SuitSession {
     scenario.seed = 7;
     (case.apply)(&mut scenario);
     scenario.validate().expect("case scenario is valid");
-    let mut config = exocald::demo::demo_config(Config::default_config(), &dir, SPEED);
-    config.session.min_duration_s = SESSION_S;
-    config.session.max_duration_s = SESSION_S + 20.0;
+    let mut config = exocald::cmd::demo::demo_config(Config::default_config(), &dir, SPEED);
+    config.calibration.window.min_duration_s = SESSION_S;
+    config.calibration.window.max_duration_s = SESSION_S + 20.0;
     if case.name == OUT_OF_BOUNDS {
-        config.bounds.a[2] = (0.42, 0.485);
+        config.calibration.bounds.a[2] = (0.42, 0.485);
     }
-    scenario.duration_s = config.session.max_duration_s + 120.0;
+    scenario.duration_s = config.calibration.window.max_duration_s + 120.0;
     // Authenticated, as on a suit (the demo's derived keys).
     config.push.keys = exocal_dbc::auth::KeySet::derived(7);
     exocal_hil::flash::provision(&flash_dir, &config.push.keys).expect("key slots");
@@ -279,7 +279,7 @@ async fn run_case(case: &Case) -> SuitSession {
     let clock = SimClock::new(SPEED).unwrap();
     let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
     let suit = RunningSuit::start(hil, bus.attach(), clock);
-    let (_stop, shutdown) = exocald::shutdown::Shutdown::manual();
+    let (_stop, shutdown) = exocald::shell::shutdown::Shutdown::manual();
     let o = session_against_suit(
         suit,
         &mut bus.attach(),
@@ -342,7 +342,7 @@ fn check(case: &Case, o: &SuitSession, clean_err: Option<f64>) -> (Vec<String>, 
         }
         (Expect::Refused, Some(s)) => match s.outcome.as_ref() {
             Some(c) if !c.verdict.accepted() => {
-                format!("refused: {}", c.verdict.reasons.join("; "))
+                format!("refused: {}", lines(&c.verdict.reasons))
             }
             _ => {
                 bad.push("an out-of-bounds calibration was not refused".into());
@@ -427,7 +427,7 @@ fn row(
             if c.verdict.accepted() {
                 "accepted".into()
             } else {
-                format!("refused ({})", c.verdict.reasons.join("; "))
+                format!("refused ({})", lines(&c.verdict.reasons))
             }
         });
     let err = heldout_error(o).map_or("-".into(), |e| {
@@ -509,4 +509,10 @@ fn write_doc(path: &Path, rows: &[String]) -> std::io::Result<()> {
         std::fs::create_dir_all(dir)?;
     }
     std::fs::write(path, text)
+}
+
+/// Every refusal's line, `; `-separated.
+fn lines(reasons: &[exocal_session::validate::Refusal]) -> String {
+    let all: Vec<String> = reasons.iter().map(ToString::to_string).collect();
+    all.join("; ")
 }

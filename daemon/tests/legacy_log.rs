@@ -9,10 +9,10 @@
 
 use std::path::{Path, PathBuf};
 
+use exocald::cmd::offline::{self, OfflineOptions};
 use exocald::config::Config;
 use exocald::exit::DaemonError;
-use exocald::offline::{self, OfflineOptions};
-use exocald::runner::SessionError;
+use exocald::shell::runner::SessionError;
 
 fn fixture(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -53,15 +53,15 @@ fn row_values(text: &str, key: &str) -> Vec<f64> {
 
 /// Today's live session of the fixture's seed and configuration (`exocald demo --seed 7`): its
 /// outcome.
-fn todays_live_rows(config: &Config, dir: &Path) -> exocald::pipeline::Outcome {
-    let opts = exocald::demo::DemoOptions {
+fn todays_live_rows(config: &Config, dir: &Path) -> exocal_session::pipeline::Outcome {
+    let opts = exocald::cmd::demo::DemoOptions {
         seed: 7,
         speed: 1e6,
         output: dir.join("today"),
         hold: false,
     };
-    let config = exocald::demo::demo_config(config.clone(), &opts.output, 1.0);
-    let summary = match exocald::demo::run(&config, &opts) {
+    let config = exocald::cmd::demo::demo_config(config.clone(), &opts.output, 1.0);
+    let summary = match exocald::cmd::demo::run(&config, &opts) {
         Ok(r) => r.summary,
         Err(e) => e.summary.expect("a summary"),
     };
@@ -107,7 +107,7 @@ fn a_json_log_of_the_old_writer_replays_offline_to_the_live_table() {
     assert_eq!(summary.aligned_samples as u64, live["aligned_samples"]);
     // The recorded table has the right shape (the old writer wrote f64 in shortest round-trip
     // form); the replay gives today's live table, bit for bit.
-    type Field = fn(&exocald::pipeline::NodeRow) -> f64;
+    type Field = fn(&exocal_session::pipeline::NodeRow) -> f64;
     let fields: [(&str, Field); 6] = [
         ("a", |r| r.a),
         ("alpha", |r| r.alpha),

@@ -11,8 +11,8 @@ use prost::Message as _;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 use tokio_tungstenite::tungstenite::Message;
 
+use exocald::cmd::demo::{demo_config, run_with, DemoOptions};
 use exocald::config::Config;
-use exocald::demo::{demo_config, run_with, DemoOptions};
 use exocald::live::LiveView;
 
 /// What the client got, per topic.

@@ -16,25 +16,28 @@ use exocal_dbc::table::{Field, Table};
 use exocal_dbc::NodeId;
 use exocal_hil::scenario::{TransferBehaviour, TransferFault};
 use exocal_hil::{Hil, Linger, Scenario};
+use exocald::cmd::nodes::{self, Listing};
 use exocald::config::Config;
-use exocald::nodes::{self, Listing};
-use exocald::runner::SessionSummary;
+use exocald::shell::runner::SessionSummary;
 
 /// One live session of the paper scenario, as `exocald demo` runs it, with 20 s of collection
 /// and validation limits wide enough that it pushes (what is pushed does not matter here; seed
 /// 3 at 20 s fits joint 4's a 6.7 mm above its true value, 3 mm from the bound, and is refused).
 fn pushed_session(dir: &Path) -> (Config, SessionSummary) {
-    let opts = exocald::demo::DemoOptions {
+    let opts = exocald::cmd::demo::DemoOptions {
         seed: 2,
         speed: 1e6,
         output: dir.to_path_buf(),
         hold: false,
     };
-    let mut config = exocald::demo::demo_config(Config::default_config(), dir, 1.0);
-    config.session.min_duration_s = 20.0;
-    config.validation.max_expected_position_error_mm = 1e3;
-    config.validation.max_expected_rotation_error_mrad = 1e3;
-    match exocald::demo::run(&config, &opts) {
+    let mut config = exocald::cmd::demo::demo_config(Config::default_config(), dir, 1.0);
+    config.calibration.window.min_duration_s = 20.0;
+    config.calibration.validation.max_expected_position_error_mm = 1e3;
+    config
+        .calibration
+        .validation
+        .max_expected_rotation_error_mrad = 1e3;
+    match exocald::cmd::demo::run(&config, &opts) {
         Ok(r) => (config, r.summary),
         Err(e) => panic!("{}\n{:#?}", e.error, e.summary),
     }

@@ -7,13 +7,14 @@ mod common;
 
 use std::path::{Path, PathBuf};
 
+use exocal_log::read::read_mcap_session;
 use exocal_report::html::FIGURES;
-use exocal_report::readers::{read_mcap_session, write_csv};
+use exocal_session::formats::{csv_text, CSV_HEADER};
+use exocal_session::pipeline::Outcome;
+use exocald::cmd::offline::{self, Format, OfflineOptions};
 use exocald::config::Config;
 use exocald::exit::{code, DaemonError};
-use exocald::offline::{self, Format, OfflineOptions};
-use exocald::pipeline::Outcome;
-use exocald::runner::{SessionError, SessionSummary};
+use exocald::shell::runner::{SessionError, SessionSummary};
 
 use common::live_session;
 
@@ -144,7 +145,7 @@ fn offline_recalibration_agrees_with_the_live_session() {
     );
 
     // (c) The aligned samples as CSV bypass alignment and give the same table to rounding.
-    let samples: Vec<_> = exocald::pipeline::timed(
+    let samples: Vec<_> = exocal_session::pipeline::timed(
         &offline::recalibrate(
             &offline::read_input(
                 &live.log_path,
@@ -160,9 +161,7 @@ fn offline_recalibration_agrees_with_the_live_session() {
         .samples,
     );
     let csv = dir.join("samples.csv");
-    let mut text = Vec::new();
-    write_csv(&samples, &mut text).unwrap();
-    std::fs::write(&csv, text).unwrap();
+    std::fs::write(&csv, csv_text(&samples)).unwrap();
     let from_csv = OfflineOptions {
         input: csv,
         report: Some(dir.join("csv.html")),
@@ -185,7 +184,13 @@ fn offline_recalibration_agrees_with_the_live_session() {
         assert_eq!(robot.joints.len(), 8);
         assert_eq!(robot.links.len(), 9);
         let loaded = Config::load(&toml_out).unwrap();
-        for (row, want) in loaded.nominal.rows.iter().zip(&outcome.node_rows) {
+        for (row, want) in loaded
+            .calibration
+            .nominal
+            .rows
+            .iter()
+            .zip(&outcome.node_rows)
+        {
             assert!((row.a - want.a).abs() < 1e-12, "{row:?} vs {want:?}");
             assert!((row.alpha - want.alpha).abs() < 1e-9);
         }
@@ -217,7 +222,7 @@ fn run_bad(dir: &Path, name: &str, bytes: &[u8], format: Option<Format>) -> Daem
 #[test]
 fn bad_inputs_are_errors_naming_the_file_line_and_problem() {
     let dir = temp_dir("bad");
-    let header = exocal_report::readers::CSV_HEADER;
+    let header = CSV_HEADER;
     let cases: [(&str, Vec<u8>, Option<Format>, &str); 6] = [
         (
             "s.csv",
@@ -235,7 +240,8 @@ fn bad_inputs_are_errors_naming_the_file_line_and_problem() {
             "c.log",
             b"(1.000000) can0 101#00\n(1.000100) can0 800#00\n".to_vec(),
             None,
-            "c.log: candump log, line 2: bad identifier \"800\"",
+            "c.log: candump log, line 2: bad identifier: 3 hex digits (≤ 7FF) or 8 hex digits \
+             (≤ 1FFFFFFF), in \"(1.000100) can0 800#00\"",
         ),
         (
             "m.mcap",
@@ -286,15 +292,13 @@ fn scenario_csv(path: &Path, seconds: f64) {
             sample: s.sample,
         })
         .collect();
-    let mut text = Vec::new();
-    write_csv(&samples, &mut text).unwrap();
-    std::fs::write(path, text).unwrap();
+    std::fs::write(path, csv_text(&samples)).unwrap();
 }
 
 #[test]
 fn a_recording_the_live_daemon_would_not_calibrate_is_not_calibrated_and_the_report_says_why() {
     let dir = temp_dir("short");
-    let header = exocal_report::readers::CSV_HEADER;
+    let header = CSV_HEADER;
     let few = dir.join("few.csv");
     std::fs::write(
         &few,
@@ -338,7 +342,7 @@ fn a_recording_the_live_daemon_would_not_calibrate_is_not_calibrated_and_the_rep
     // The same 30 s under a configuration whose window is 30 s: calibrated (whatever the
     // validation then says).
     let mut shorter = default.clone();
-    shorter.session.min_duration_s = 30.0;
+    shorter.calibration.window.min_duration_s = 30.0;
     let (result, _) = run(&short, &shorter);
     match result {
         Ok(s) => assert!(s.outcome.is_some()),
@@ -365,7 +369,7 @@ fn the_binary_exits_65_on_a_bad_csv_and_64_on_a_csv_candump_export() {
     assert_eq!(out.status.code(), Some(65), "{err}");
     assert!(err.contains("bad.csv: CSV samples, line 1"), "{err}");
 
-    let header = exocal_report::readers::CSV_HEADER;
+    let header = CSV_HEADER;
     std::fs::write(&csv, format!("{header}\n0,0,0,0,0,0,0,0,0,0,0,1,0,0,0\n")).unwrap();
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_exocald"))
         .args(["offline", "--input"])

@@ -3,6 +3,8 @@
 //! The contract is the file `exocal.dbc` next to this crate ([`DBC`] holds its text). This crate
 //! is its typed, `no_std` codec and the table-transfer state machines:
 //!
+//! - [`spec`] holds the identifiers, layouts and scaling of every message, generated from the
+//!   DBC at build time (`build.rs`); nothing else here restates them.
 //! - [`decode`] turns an 11-bit identifier and a payload into a [`Message`], rejecting unknown
 //!   identifiers, a DLC other than 8, bad multiplexer values and out-of-range raw values with a
 //!   [`DecodeError`]; [`Message::encode`] is the inverse and refuses values the DBC cannot carry
@@ -23,11 +25,28 @@
 #![warn(missing_docs)]
 
 pub mod auth;
+pub mod frame;
+mod layout;
 pub mod message;
 pub mod pose;
-pub mod spec;
 pub mod table;
 pub mod transfer;
+
+pub use frame::{Frame, Received};
+#[allow(clippy::approx_constant)] // the DBC's 2π bounds, 6.283185, are not `TAU`
+pub mod spec {
+    //! The protocol's tables, generated at build time from `exocal.dbc` by `build.rs`: a
+    //! [`Kind`] and a [`MessageSpec`] static per message family (`JOINT_STATE`), a module of
+    //! [`SignalSpec`] constants per family (`joint_state::ANGLE`), the named `VAL_` values
+    //! (`heartbeat::state::FAULT`), [`NODE_NAMES`] and [`ALL`]. The DBC's comments are their
+    //! docs. Edit the DBC, never these.
+    //!
+    //! The types they are made of, [`lookup`] and the signal-level codec are hand-written (see
+    //! [`SignalSpec`] and [`MessageSpec::check`]).
+
+    pub use crate::layout::{lookup, MessageSpec, MuxRole, SignalSpec};
+    include!(concat!(env!("OUT_DIR"), "/spec.rs"));
+}
 
 pub use message::{
     decode, decode_frame, CmdCode, Command, Heartbeat, ImuVector, JointState, Message, NackReason,

@@ -2,15 +2,19 @@
 //!
 //! Contract: [`decode`] accepts exactly the frames the DBC defines (standard 11-bit id, 8 data
 //! bytes, a defined multiplexer value, every raw value within its DBC range or equal to the
-//! signal's invalid marker) and nothing else; [`Message::encode`] produces only such frames, so
-//! `decode(encode(m)) == m` up to the signal resolution. Reserved (unused) bits are written as
-//! zero and ignored on decode.
+//! signal's invalid marker, every enumerated value listed) and nothing else; [`Message::encode`]
+//! produces only such frames, so `decode(encode(m)) == m` up to the signal resolution. Reserved
+//! (unused) bits are written as zero and ignored on decode.
+//!
+//! Identifiers, layouts, ranges and the values of enumerated signals come from the generated
+//! [`crate::spec`]; [`crate::spec::lookup`] and [`crate::spec::MessageSpec::check`] do the
+//! validation for every message alike. What is written here by hand is what the DBC cannot say:
+//! which typed field each signal is, and the types themselves.
 
 use crate::spec::{
-    s::*, MessageSpec, SignalSpec, DLC, EE_POSE, HEARTBEAT, IMU_ACCEL, IMU_GYRO, IMU_MAG,
-    JOINT_STATE,
+    ee_pose, heartbeat, imu_accel, imu_gyro, imu_mag, joint_state, lookup, table_cmd, table_reply,
+    trigger, Kind, SignalSpec, DLC,
 };
-use crate::spec::{TABLE_CMD, TABLE_REPLY, TRIGGER};
 use crate::table::Field;
 use crate::{DecodeError, EncodeError, NodeId};
 
@@ -83,26 +87,42 @@ pub enum PosePage {
 impl PosePage {
     /// Page number (the multiplexer value).
     pub fn number(&self) -> u8 {
+        use ee_pose::page::*;
         match self {
-            PosePage::TimePosX { .. } => 0,
-            PosePage::PosYZ { .. } => 1,
-            PosePage::QuatWX { .. } => 2,
-            PosePage::QuatYZ { .. } => 3,
+            PosePage::TimePosX { .. } => TIME_POS_X,
+            PosePage::PosYZ { .. } => POS_YZ,
+            PosePage::QuatWX { .. } => QUAT_WX,
+            PosePage::QuatYZ { .. } => QUAT_YZ,
         }
     }
 }
 
 /// Node state reported in the heartbeat.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u8)]
 pub enum NodeState {
     /// Booting, not yet sampling.
-    Boot = 0,
+    Boot = heartbeat::state::BOOT,
     /// Sampling and sending.
-    Operational = 1,
+    Operational = heartbeat::state::OPERATIONAL,
     /// A table transfer is open.
-    Staging = 2,
+    Staging = heartbeat::state::STAGING,
     /// Sensor or storage fault.
-    Fault = 3,
+    Fault = heartbeat::state::FAULT,
+}
+
+impl NodeState {
+    /// Every state.
+    pub const ALL: [NodeState; 4] = [
+        NodeState::Boot,
+        NodeState::Operational,
+        NodeState::Staging,
+        NodeState::Fault,
+    ];
+
+    fn from_raw(raw: i64) -> Option<NodeState> {
+        NodeState::ALL.into_iter().find(|s| *s as i64 == raw)
+    }
 }
 
 /// `Heartbeat_<node>`.
@@ -144,27 +164,30 @@ pub enum CmdCode {
 }
 
 impl CmdCode {
-    /// Wire value (the `Cmd` multiplexer value).
+    /// Wire value (the `Cmd` multiplexer value). Segment commands carry the field's sequence
+    /// number above `SegA`'s.
     pub fn code(self) -> u8 {
+        use table_cmd::cmd::*;
         match self {
-            CmdCode::Begin => 1,
-            CmdCode::Segment(f) => 16 + f.seq(),
-            CmdCode::Commit => 32,
-            CmdCode::CommitAuth => 33,
-            CmdCode::Readback => 48,
-            CmdCode::Abort => 63,
+            CmdCode::Begin => BEGIN,
+            CmdCode::Segment(f) => SEG_A + f.seq(),
+            CmdCode::Commit => COMMIT,
+            CmdCode::CommitAuth => COMMIT_AUTH,
+            CmdCode::Readback => READBACK,
+            CmdCode::Abort => ABORT,
         }
     }
 
     /// From a wire value.
     pub fn from_code(code: u8) -> Option<CmdCode> {
+        use table_cmd::cmd::*;
         match code {
-            1 => Some(CmdCode::Begin),
-            16..=21 => Field::from_seq(code - 16).map(CmdCode::Segment),
-            32 => Some(CmdCode::Commit),
-            33 => Some(CmdCode::CommitAuth),
-            48 => Some(CmdCode::Readback),
-            63 => Some(CmdCode::Abort),
+            BEGIN => Some(CmdCode::Begin),
+            SEG_A..=SEG_SIGMA => Field::from_seq(code - SEG_A).map(CmdCode::Segment),
+            COMMIT => Some(CmdCode::Commit),
+            COMMIT_AUTH => Some(CmdCode::CommitAuth),
+            READBACK => Some(CmdCode::Readback),
+            ABORT => Some(CmdCode::Abort),
             _ => None,
         }
     }
@@ -227,35 +250,37 @@ pub struct TableCmd {
 
 /// Why a node refused a command.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u8)]
 pub enum NackReason {
     /// The session differs from the open transfer's.
-    BadSession = 1,
+    BadSession = table_reply::nack_reason::BAD_SESSION,
     /// A segment out of sequence, or a repeat with a different value.
-    OutOfOrder = 2,
+    OutOfOrder = table_reply::nack_reason::OUT_OF_ORDER,
     /// The staged table's CRC differs from the Commit's.
-    CrcMismatch = 3,
+    CrcMismatch = table_reply::nack_reason::CRC_MISMATCH,
     /// Commit before all segments were staged.
-    Incomplete = 4,
+    Incomplete = table_reply::nack_reason::INCOMPLETE,
     /// A value outside its range.
-    OutOfRange = 5,
+    OutOfRange = table_reply::nack_reason::OUT_OF_RANGE,
     /// No transfer is open.
-    NotStaging = 6,
+    NotStaging = table_reply::nack_reason::NOT_STAGING,
     /// Writing the table to flash failed; the old table stays.
-    FlashError = 7,
+    FlashError = table_reply::nack_reason::FLASH_ERROR,
     /// A table format the node does not know.
-    BadFormat = 8,
+    BadFormat = table_reply::nack_reason::BAD_FORMAT,
     /// Readback asked of a node holding no table.
-    NoTable = 9,
+    NoTable = table_reply::nack_reason::NO_TABLE,
     /// A node holding a key got a Commit without a valid `CommitAuth`, or a `CommitAuth` whose
     /// MAC does not verify.
-    BadMac = 10,
+    BadMac = table_reply::nack_reason::BAD_MAC,
     /// A `CommitAuth` whose MAC verifies for a counter at or below the one the node stored: a
     /// replay or a stale sender.
-    StaleCounter = 11,
+    StaleCounter = table_reply::nack_reason::STALE_COUNTER,
 }
 
 impl NackReason {
-    fn from_raw(raw: i64) -> Option<NackReason> {
+    /// Every reason.
+    pub const ALL: [NackReason; 11] = {
         use NackReason::*;
         [
             BadSession,
@@ -270,8 +295,10 @@ impl NackReason {
             BadMac,
             StaleCounter,
         ]
-        .into_iter()
-        .find(|r| *r as i64 == raw)
+    };
+
+    fn from_raw(raw: i64) -> Option<NackReason> {
+        NackReason::ALL.into_iter().find(|r| *r as i64 == raw)
     }
 }
 
@@ -323,11 +350,21 @@ pub struct TableReply {
 
 /// What an operator asks for (`Trigger.Command`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u8)]
 pub enum TriggerCommand {
     /// Start a calibration session.
-    StartCalibration = 1,
+    StartCalibration = trigger::command::START_CALIBRATION,
     /// Abort the running session.
-    Abort = 2,
+    Abort = trigger::command::ABORT,
+}
+
+impl TriggerCommand {
+    /// Every command.
+    pub const ALL: [TriggerCommand; 2] = [TriggerCommand::StartCalibration, TriggerCommand::Abort];
+
+    fn from_raw(raw: i64) -> Option<TriggerCommand> {
+        TriggerCommand::ALL.into_iter().find(|c| *c as i64 == raw)
+    }
 }
 
 /// Operator request (`Trigger`), authenticated with the trigger key
@@ -365,188 +402,163 @@ pub enum Message {
     Trigger(Trigger),
 }
 
-fn node_of(spec: &MessageSpec, id: u16) -> Option<NodeId> {
-    let node = (id & 0xF) as u8;
-    if id & !0xF == spec.base_id && spec.nodes.contains(&node) {
-        NodeId::new(node)
-    } else {
-        None
-    }
-}
-
-fn check_node(spec: &MessageSpec, node: NodeId) -> Result<u16, EncodeError> {
-    if spec.nodes.contains(&node.raw()) {
-        Ok(spec.id(node.raw()))
-    } else {
-        Err(EncodeError::BadNode(node))
-    }
-}
-
-fn get_u(spec: &SignalSpec, id: u16, d: &[u8; 8]) -> Result<i64, DecodeError> {
-    spec.decode_raw(id, d)
-}
+/// The signals of an IMU family: the x, y, z axes and the low timestamp.
+type ImuSignals = [&'static SignalSpec; 4];
+const GYRO: ImuSignals = [
+    &imu_gyro::X,
+    &imu_gyro::Y,
+    &imu_gyro::Z,
+    &imu_gyro::TIMESTAMP_LO,
+];
+const ACCEL: ImuSignals = [
+    &imu_accel::X,
+    &imu_accel::Y,
+    &imu_accel::Z,
+    &imu_accel::TIMESTAMP_LO,
+];
+const MAG: ImuSignals = [
+    &imu_mag::X,
+    &imu_mag::Y,
+    &imu_mag::Z,
+    &imu_mag::TIMESTAMP_LO,
+];
 
 /// Decodes a classic CAN frame given as an 11-bit identifier and its payload.
 pub fn decode(id: u16, data: &[u8]) -> Result<Message, DecodeError> {
-    let known = crate::spec::ALL.iter().any(|spec| {
-        if spec.nodes.is_empty() {
-            spec.base_id == id
-        } else {
-            node_of(spec, id).is_some()
-        }
-    });
-    if !known {
-        return Err(DecodeError::UnknownId(u32::from(id)));
-    }
+    let (spec, node) = lookup(id).ok_or(DecodeError::UnknownId(u32::from(id)))?;
     let d: &[u8; 8] = data.try_into().map_err(|_| DecodeError::BadDlc {
         id,
         dlc: data.len().min(255) as u8,
     })?;
-    if id == TRIGGER.base_id {
-        let command = match TRIGGER_COMMAND.decode_raw(id, d)? {
-            1 => TriggerCommand::StartCalibration,
-            _ => TriggerCommand::Abort,
-        };
-        return Ok(Message::Trigger(Trigger {
-            command,
-            counter_lo: get_u(&TRIGGER_COUNTER_LO, id, d)? as u16,
-            mac: get_u(&TRIGGER_MAC, id, d)? as u32,
-        }));
-    }
-    if let Some(node) = node_of(&JOINT_STATE, id) {
-        return Ok(Message::JointState(JointState {
-            node,
-            timestamp_us: get_u(&JS_TIMESTAMP, id, d)? as u32,
-            angle: JS_ANGLE.decode(id, d)?,
-            rate: JS_RATE.decode(id, d)?,
-        }));
-    }
-    if node_of(&EE_POSE, id).is_some() {
-        let seq = get_u(&EE_SEQ, id, d)? as u8;
-        let page = match EE_PAGE.raw(d) {
-            0 => PosePage::TimePosX {
-                timestamp_us: get_u(&EE_TIMESTAMP, id, d)? as u32,
-                x: EE_POS_X.decode(id, d)?,
-            },
-            1 => PosePage::PosYZ {
-                y: EE_POS_Y.decode(id, d)?,
-                z: EE_POS_Z.decode(id, d)?,
-            },
-            2 => PosePage::QuatWX {
-                w: EE_QUAT_W.decode(id, d)?,
-                x: EE_QUAT_X.decode(id, d)?,
-            },
-            _ => PosePage::QuatYZ {
-                y: EE_QUAT_Y.decode(id, d)?,
-                z: EE_QUAT_Z.decode(id, d)?,
-            },
-        };
-        return Ok(Message::EePose(PoseFrame { seq, page }));
-    }
-    for (spec, axes, wrap) in [
-        (
-            &IMU_GYRO,
-            &GYRO,
-            Message::ImuGyro as fn(ImuVector) -> Message,
-        ),
-        (&IMU_ACCEL, &ACCEL, Message::ImuAccel),
-        (&IMU_MAG, &MAG, Message::ImuMag),
-    ] {
-        if let Some(node) = node_of(spec, id) {
-            let mut xyz = [0.0; 3];
-            for (v, axis) in xyz.iter_mut().zip(axes.iter()) {
-                *v = axis.decode(id, d)?;
-            }
-            return Ok(wrap(ImuVector {
-                node,
-                xyz,
-                timestamp_lo: get_u(&IMU_TIMESTAMP_LO, id, d)? as u16,
-            }));
-        }
-    }
-    if let Some(node) = node_of(&HEARTBEAT, id) {
-        let state = match get_u(&HB_STATE, id, d)? {
-            0 => NodeState::Boot,
-            1 => NodeState::Operational,
-            2 => NodeState::Staging,
-            _ => NodeState::Fault,
-        };
-        return Ok(Message::Heartbeat(Heartbeat {
-            node,
-            state,
-            boot_count: get_u(&HB_BOOT_COUNT, id, d)? as u8,
-            tx_errors: get_u(&HB_TX_ERRORS, id, d)? as u8,
-            rx_errors: get_u(&HB_RX_ERRORS, id, d)? as u8,
-            table_crc: get_u(&HB_TABLE_CRC, id, d)? as u32,
-            fw_major: get_u(&HB_FW_MAJOR, id, d)? as u8,
-            fw_minor: get_u(&HB_FW_MINOR, id, d)? as u8,
-        }));
-    }
-    if let Some(node) = node_of(&TABLE_CMD, id) {
-        let session = get_u(&CMD_SESSION, id, d)? as u8;
-        let value = CMD.raw(d) as u8;
-        let cmd = match CmdCode::from_code(value) {
-            Some(CmdCode::Begin) => {
-                get_u(&CMD_SEGMENT_COUNT, id, d)?;
-                Command::Begin
-            }
-            Some(CmdCode::Segment(f)) => Command::Segment(f, get_u(&SEGMENTS[f as usize], id, d)?),
-            Some(CmdCode::Commit) => Command::Commit {
-                crc: get_u(&CMD_TABLE_CRC, id, d)? as u32,
-            },
-            Some(CmdCode::CommitAuth) => Command::CommitAuth {
-                counter_lo: get_u(&CMD_COUNTER_LO, id, d)? as u16,
-                mac: get_u(&CMD_COMMIT_MAC, id, d)? as u32,
-            },
-            Some(CmdCode::Readback) => Command::Readback {
-                nonce: get_u(&CMD_NONCE, id, d)? as u32,
-            },
-            Some(CmdCode::Abort) => Command::Abort,
-            None => return Err(DecodeError::BadMux { id, value }),
-        };
-        return Ok(Message::TableCmd(TableCmd { node, session, cmd }));
-    }
-    let node = node_of(&TABLE_REPLY, id).ok_or(DecodeError::UnknownId(u32::from(id)))?;
-    let session = get_u(&REPLY_SESSION, id, d)? as u8;
-    let value = REPLY.raw(d) as u8;
-    let cmd_of = |spec: &SignalSpec| {
-        CmdCode::from_code(spec.raw(d) as u8).ok_or(DecodeError::BadEnum {
-            id,
-            signal: spec.name,
+    spec.check(id, d)?;
+    // Every signal this frame carries now holds a value the DBC allows, which fits the field
+    // it is cast to below; the errors left are a DBC value this code does not know.
+    let raw = |s: &SignalSpec| s.raw(d);
+    let phys = |s: &SignalSpec| s.value(d);
+    let node = node.ok_or(DecodeError::UnknownId(u32::from(id)));
+    let bad_enum = |s: &SignalSpec| DecodeError::BadEnum { id, signal: s.name };
+    let imu = |[x, y, z, ts]: ImuSignals| -> Result<ImuVector, DecodeError> {
+        Ok(ImuVector {
+            node: node?,
+            xyz: [phys(x), phys(y), phys(z)],
+            timestamp_lo: raw(ts) as u16,
         })
     };
-    let reply = match value {
-        0 => Reply::Ack {
-            cmd: cmd_of(&ACKED_CMD)?,
-            held_crc: get_u(&HELD_CRC, id, d)? as u32,
-        },
-        1 => Reply::Nack {
-            cmd: cmd_of(&NACKED_CMD)?,
-            held_crc: get_u(&NACK_HELD_CRC, id, d)? as u32,
-            reason: NackReason::from_raw(get_u(&NACK_REASON, id, d)?).ok_or(
-                DecodeError::BadEnum {
-                    id,
-                    signal: NACK_REASON.name,
+    Ok(match spec.kind {
+        Kind::JointState => Message::JointState(JointState {
+            node: node?,
+            timestamp_us: raw(&joint_state::TIMESTAMP) as u32,
+            angle: phys(&joint_state::ANGLE),
+            rate: phys(&joint_state::RATE),
+        }),
+        Kind::EePose => {
+            use ee_pose::*;
+            let page = match raw(&PAGE) as u8 {
+                page::TIME_POS_X => PosePage::TimePosX {
+                    timestamp_us: raw(&TIMESTAMP) as u32,
+                    x: phys(&POS_X),
                 },
-            )?,
-        },
-        2 => Reply::Freshness {
-            counter: get_u(&NODE_COUNTER, id, d)? as u32,
-        },
-        3 => Reply::ReadbackMac {
-            mac: get_u(&RB_MAC, id, d)? as u32,
-        },
-        16..=21 => {
-            let f = Field::ALL[usize::from(value - 16)];
-            Reply::Readback(f, get_u(&READBACK[f as usize], id, d)?)
+                page::POS_YZ => PosePage::PosYZ {
+                    y: phys(&POS_Y),
+                    z: phys(&POS_Z),
+                },
+                page::QUAT_WX => PosePage::QuatWX {
+                    w: phys(&QUAT_W),
+                    x: phys(&QUAT_X),
+                },
+                page::QUAT_YZ => PosePage::QuatYZ {
+                    y: phys(&QUAT_Y),
+                    z: phys(&QUAT_Z),
+                },
+                value => return Err(DecodeError::BadMux { id, value }),
+            };
+            Message::EePose(PoseFrame {
+                seq: raw(&SEQ) as u8,
+                page,
+            })
         }
-        _ => return Err(DecodeError::BadMux { id, value }),
-    };
-    Ok(Message::TableReply(TableReply {
-        node,
-        session,
-        reply,
-    }))
+        Kind::ImuGyro => Message::ImuGyro(imu(GYRO)?),
+        Kind::ImuAccel => Message::ImuAccel(imu(ACCEL)?),
+        Kind::ImuMag => Message::ImuMag(imu(MAG)?),
+        Kind::Heartbeat => {
+            use heartbeat::*;
+            Message::Heartbeat(Heartbeat {
+                node: node?,
+                state: NodeState::from_raw(raw(&STATE)).ok_or(bad_enum(&STATE))?,
+                boot_count: raw(&BOOT_COUNT) as u8,
+                tx_errors: raw(&TX_ERRORS) as u8,
+                rx_errors: raw(&RX_ERRORS) as u8,
+                table_crc: raw(&TABLE_CRC) as u32,
+                fw_major: raw(&FW_MAJOR) as u8,
+                fw_minor: raw(&FW_MINOR) as u8,
+            })
+        }
+        Kind::TableCmd => {
+            use table_cmd::*;
+            let value = raw(&CMD) as u8;
+            let cmd = match CmdCode::from_code(value).ok_or(DecodeError::BadMux { id, value })? {
+                CmdCode::Begin => Command::Begin,
+                CmdCode::Segment(f) => Command::Segment(f, raw(f.segment())),
+                CmdCode::Commit => Command::Commit {
+                    crc: raw(&TABLE_CRC) as u32,
+                },
+                CmdCode::CommitAuth => Command::CommitAuth {
+                    counter_lo: raw(&COUNTER_LO) as u16,
+                    mac: raw(&COMMIT_MAC) as u32,
+                },
+                CmdCode::Readback => Command::Readback {
+                    nonce: raw(&NONCE) as u32,
+                },
+                CmdCode::Abort => Command::Abort,
+            };
+            Message::TableCmd(TableCmd {
+                node: node?,
+                session: raw(&SESSION) as u8,
+                cmd,
+            })
+        }
+        Kind::TableReply => {
+            use table_reply::*;
+            let cmd_of = |s: &SignalSpec| CmdCode::from_code(raw(s) as u8).ok_or(bad_enum(s));
+            let reply = match raw(&REPLY) as u8 {
+                reply::ACK => Reply::Ack {
+                    cmd: cmd_of(&ACKED_CMD)?,
+                    held_crc: raw(&HELD_CRC) as u32,
+                },
+                reply::NACK => Reply::Nack {
+                    cmd: cmd_of(&NACKED_CMD)?,
+                    held_crc: raw(&NACK_HELD_CRC) as u32,
+                    reason: NackReason::from_raw(raw(&NACK_REASON))
+                        .ok_or(bad_enum(&NACK_REASON))?,
+                },
+                reply::FRESHNESS => Reply::Freshness {
+                    counter: raw(&NODE_COUNTER) as u32,
+                },
+                reply::READBACK_MAC => Reply::ReadbackMac {
+                    mac: raw(&RB_MAC) as u32,
+                },
+                value @ reply::READBACK_A..=reply::READBACK_SIGMA => {
+                    let f = Field::from_seq(value - reply::READBACK_A)
+                        .ok_or(DecodeError::BadMux { id, value })?;
+                    Reply::Readback(f, raw(f.readback()))
+                }
+                value => return Err(DecodeError::BadMux { id, value }),
+            };
+            Message::TableReply(TableReply {
+                node: node?,
+                session: raw(&SESSION) as u8,
+                reply,
+            })
+        }
+        Kind::Trigger => {
+            use trigger::*;
+            Message::Trigger(Trigger {
+                command: TriggerCommand::from_raw(raw(&COMMAND)).ok_or(bad_enum(&COMMAND))?,
+                counter_lo: raw(&COUNTER_LO) as u16,
+                mac: raw(&MAC) as u32,
+            })
+        }
+    })
 }
 
 /// Decodes an `embedded_can` frame: extended identifiers are unknown, remote frames refused.
@@ -575,115 +587,137 @@ impl Message {
         }
     }
 
+    /// The message family.
+    pub fn kind(&self) -> Kind {
+        match self {
+            Message::JointState(_) => Kind::JointState,
+            Message::EePose(_) => Kind::EePose,
+            Message::ImuGyro(_) => Kind::ImuGyro,
+            Message::ImuAccel(_) => Kind::ImuAccel,
+            Message::ImuMag(_) => Kind::ImuMag,
+            Message::Heartbeat(_) => Kind::Heartbeat,
+            Message::TableCmd(_) => Kind::TableCmd,
+            Message::TableReply(_) => Kind::TableReply,
+            Message::Trigger(_) => Kind::Trigger,
+        }
+    }
+
     /// Encodes to `(identifier, payload, dlc)`; dlc is always 8.
     pub fn encode(&self) -> Result<(u16, [u8; 8], u8), EncodeError> {
+        let spec = self.kind().spec();
+        let id = match self.node() {
+            Some(node) => spec.id_for(node)?,
+            None => spec.base_id,
+        };
         let mut d = [0u8; 8];
-        let id = match self {
+        let d = &mut d;
+        let imu = |m: &ImuVector, [x, y, z, ts]: ImuSignals, d: &mut [u8; 8]| {
+            for (axis, v) in [x, y, z].into_iter().zip(m.xyz) {
+                axis.encode(d, v)?;
+            }
+            ts.encode_raw(d, i64::from(m.timestamp_lo))
+        };
+        match self {
             Message::JointState(m) => {
-                let id = check_node(&JOINT_STATE, m.node)?;
-                JS_TIMESTAMP.encode_raw(&mut d, i64::from(m.timestamp_us))?;
-                JS_ANGLE.encode(&mut d, m.angle)?;
-                JS_RATE.encode(&mut d, m.rate)?;
-                id
+                use joint_state::*;
+                TIMESTAMP.encode_raw(d, i64::from(m.timestamp_us))?;
+                ANGLE.encode(d, m.angle)?;
+                RATE.encode(d, m.rate)?;
             }
             Message::EePose(m) => {
-                EE_PAGE.encode_raw(&mut d, i64::from(m.page.number()))?;
-                EE_SEQ.encode_raw(&mut d, i64::from(m.seq))?;
+                use ee_pose::*;
+                PAGE.encode_raw(d, i64::from(m.page.number()))?;
+                SEQ.encode_raw(d, i64::from(m.seq))?;
                 match m.page {
                     PosePage::TimePosX { timestamp_us, x } => {
-                        EE_TIMESTAMP.encode_raw(&mut d, i64::from(timestamp_us))?;
-                        EE_POS_X.encode(&mut d, x)?;
+                        TIMESTAMP.encode_raw(d, i64::from(timestamp_us))?;
+                        POS_X.encode(d, x)?;
                     }
                     PosePage::PosYZ { y, z } => {
-                        EE_POS_Y.encode(&mut d, y)?;
-                        EE_POS_Z.encode(&mut d, z)?;
+                        POS_Y.encode(d, y)?;
+                        POS_Z.encode(d, z)?;
                     }
                     PosePage::QuatWX { w, x } => {
-                        EE_QUAT_W.encode(&mut d, w)?;
-                        EE_QUAT_X.encode(&mut d, x)?;
+                        QUAT_W.encode(d, w)?;
+                        QUAT_X.encode(d, x)?;
                     }
                     PosePage::QuatYZ { y, z } => {
-                        EE_QUAT_Y.encode(&mut d, y)?;
-                        EE_QUAT_Z.encode(&mut d, z)?;
+                        QUAT_Y.encode(d, y)?;
+                        QUAT_Z.encode(d, z)?;
                     }
                 }
-                EE_POSE.id(NodeId::END_EFFECTOR.raw())
             }
-            Message::ImuGyro(m) => encode_imu(&IMU_GYRO, &GYRO, m, &mut d)?,
-            Message::ImuAccel(m) => encode_imu(&IMU_ACCEL, &ACCEL, m, &mut d)?,
-            Message::ImuMag(m) => encode_imu(&IMU_MAG, &MAG, m, &mut d)?,
+            Message::ImuGyro(m) => imu(m, GYRO, d)?,
+            Message::ImuAccel(m) => imu(m, ACCEL, d)?,
+            Message::ImuMag(m) => imu(m, MAG, d)?,
             Message::Heartbeat(m) => {
-                let id = check_node(&HEARTBEAT, m.node)?;
-                HB_STATE.encode_raw(&mut d, m.state as i64)?;
-                HB_BOOT_COUNT.encode_raw(&mut d, i64::from(m.boot_count))?;
-                HB_TX_ERRORS.encode_raw(&mut d, i64::from(m.tx_errors))?;
-                HB_RX_ERRORS.encode_raw(&mut d, i64::from(m.rx_errors))?;
-                HB_TABLE_CRC.encode_raw(&mut d, i64::from(m.table_crc))?;
-                HB_FW_MAJOR.encode_raw(&mut d, i64::from(m.fw_major))?;
-                HB_FW_MINOR.encode_raw(&mut d, i64::from(m.fw_minor))?;
-                id
+                use heartbeat::*;
+                STATE.encode_raw(d, m.state as i64)?;
+                BOOT_COUNT.encode_raw(d, i64::from(m.boot_count))?;
+                TX_ERRORS.encode_raw(d, i64::from(m.tx_errors))?;
+                RX_ERRORS.encode_raw(d, i64::from(m.rx_errors))?;
+                TABLE_CRC.encode_raw(d, i64::from(m.table_crc))?;
+                FW_MAJOR.encode_raw(d, i64::from(m.fw_major))?;
+                FW_MINOR.encode_raw(d, i64::from(m.fw_minor))?;
             }
             Message::TableCmd(m) => {
-                let id = check_node(&TABLE_CMD, m.node)?;
-                CMD.encode_raw(&mut d, i64::from(m.cmd.code().code()))?;
-                CMD_SESSION.encode_raw(&mut d, i64::from(m.session))?;
+                use table_cmd::*;
+                CMD.encode_raw(d, i64::from(m.cmd.code().code()))?;
+                SESSION.encode_raw(d, i64::from(m.session))?;
                 match m.cmd {
-                    Command::Begin => CMD_SEGMENT_COUNT.encode_raw(&mut d, 6)?,
-                    Command::Segment(f, raw) => SEGMENTS[f as usize].encode_raw(&mut d, raw)?,
-                    Command::Commit { crc } => CMD_TABLE_CRC.encode_raw(&mut d, i64::from(crc))?,
+                    Command::Begin => SEGMENT_COUNT.encode_raw(d, Field::ALL.len() as i64)?,
+                    Command::Segment(f, raw) => f.segment().encode_raw(d, raw)?,
+                    Command::Commit { crc } => TABLE_CRC.encode_raw(d, i64::from(crc))?,
                     Command::CommitAuth { counter_lo, mac } => {
-                        CMD_COUNTER_LO.encode_raw(&mut d, i64::from(counter_lo))?;
-                        CMD_COMMIT_MAC.encode_raw(&mut d, i64::from(mac))?;
+                        COUNTER_LO.encode_raw(d, i64::from(counter_lo))?;
+                        COMMIT_MAC.encode_raw(d, i64::from(mac))?;
                     }
-                    Command::Readback { nonce } => {
-                        CMD_NONCE.encode_raw(&mut d, i64::from(nonce))?
-                    }
+                    Command::Readback { nonce } => NONCE.encode_raw(d, i64::from(nonce))?,
                     Command::Abort => {}
                 }
-                id
             }
             Message::TableReply(m) => {
-                let id = check_node(&TABLE_REPLY, m.node)?;
-                REPLY_SESSION.encode_raw(&mut d, i64::from(m.session))?;
-                match m.reply {
+                use table_reply::*;
+                SESSION.encode_raw(d, i64::from(m.session))?;
+                let switch = match m.reply {
                     Reply::Ack { cmd, held_crc } => {
-                        REPLY.encode_raw(&mut d, 0)?;
-                        ACKED_CMD.encode_raw(&mut d, i64::from(cmd.code()))?;
-                        HELD_CRC.encode_raw(&mut d, i64::from(held_crc))?;
+                        ACKED_CMD.encode_raw(d, i64::from(cmd.code()))?;
+                        HELD_CRC.encode_raw(d, i64::from(held_crc))?;
+                        reply::ACK
                     }
                     Reply::Nack {
                         cmd,
                         held_crc,
                         reason,
                     } => {
-                        REPLY.encode_raw(&mut d, 1)?;
-                        NACKED_CMD.encode_raw(&mut d, i64::from(cmd.code()))?;
-                        NACK_HELD_CRC.encode_raw(&mut d, i64::from(held_crc))?;
-                        NACK_REASON.encode_raw(&mut d, reason as i64)?;
+                        NACKED_CMD.encode_raw(d, i64::from(cmd.code()))?;
+                        NACK_HELD_CRC.encode_raw(d, i64::from(held_crc))?;
+                        NACK_REASON.encode_raw(d, reason as i64)?;
+                        reply::NACK
                     }
                     Reply::Readback(f, raw) => {
-                        REPLY.encode_raw(&mut d, 16 + i64::from(f.seq()))?;
-                        READBACK[f as usize].encode_raw(&mut d, raw)?;
+                        f.readback().encode_raw(d, raw)?;
+                        reply::READBACK_A + f.seq()
                     }
                     Reply::Freshness { counter } => {
-                        REPLY.encode_raw(&mut d, 2)?;
-                        NODE_COUNTER.encode_raw(&mut d, i64::from(counter))?;
+                        NODE_COUNTER.encode_raw(d, i64::from(counter))?;
+                        reply::FRESHNESS
                     }
                     Reply::ReadbackMac { mac } => {
-                        REPLY.encode_raw(&mut d, 3)?;
-                        RB_MAC.encode_raw(&mut d, i64::from(mac))?;
+                        RB_MAC.encode_raw(d, i64::from(mac))?;
+                        reply::READBACK_MAC
                     }
-                }
-                id
+                };
+                REPLY.encode_raw(d, i64::from(switch))?;
             }
             Message::Trigger(t) => {
-                TRIGGER_COMMAND.encode_raw(&mut d, t.command as i64)?;
-                TRIGGER_COUNTER_LO.encode_raw(&mut d, i64::from(t.counter_lo))?;
-                TRIGGER_MAC.encode_raw(&mut d, i64::from(t.mac))?;
-                TRIGGER.base_id
+                use trigger::*;
+                COMMAND.encode_raw(d, t.command as i64)?;
+                COUNTER_LO.encode_raw(d, i64::from(t.counter_lo))?;
+                MAC.encode_raw(d, i64::from(t.mac))?;
             }
-        };
-        Ok((id, d, DLC))
+        }
+        Ok((id, *d, DLC))
     }
 
     /// Encodes into any `embedded_can` frame type.
@@ -692,20 +726,6 @@ impl Message {
         let id = embedded_can::StandardId::new(id).ok_or(EncodeError::Frame)?;
         F::new(id, &data).ok_or(EncodeError::Frame)
     }
-}
-
-fn encode_imu(
-    spec: &MessageSpec,
-    axes: &[SignalSpec; 3],
-    m: &ImuVector,
-    d: &mut [u8; 8],
-) -> Result<u16, EncodeError> {
-    let id = check_node(spec, m.node)?;
-    for (axis, v) in axes.iter().zip(m.xyz) {
-        axis.encode(d, v)?;
-    }
-    IMU_TIMESTAMP_LO.encode_raw(d, i64::from(m.timestamp_lo))?;
-    Ok(id)
 }
 
 #[cfg(test)]
@@ -739,7 +759,7 @@ mod tests {
         ]
     }
     fn reason() -> impl Strategy<Value = NackReason> {
-        (1i64..=11).prop_map(|r| NackReason::from_raw(r).unwrap())
+        prop::sample::select(&NackReason::ALL[..])
     }
     /// Any value on the signal's grid, or (for signals with a marker) NaN.
     fn grid(spec: SignalSpec) -> impl Strategy<Value = f64> {
@@ -751,28 +771,26 @@ mod tests {
             on_grid.boxed()
         }
     }
-    fn imu(axes: [SignalSpec; 3]) -> impl Strategy<Value = ImuVector> {
-        (
-            node(),
-            grid(axes[0]),
-            grid(axes[1]),
-            grid(axes[2]),
-            any::<u16>(),
-        )
-            .prop_map(|(node, x, y, z, timestamp_lo)| ImuVector {
+    fn imu([x, y, z, _]: ImuSignals) -> impl Strategy<Value = ImuVector> {
+        (node(), grid(*x), grid(*y), grid(*z), any::<u16>()).prop_map(
+            |(node, x, y, z, timestamp_lo)| ImuVector {
                 node,
                 xyz: [x, y, z],
                 timestamp_lo,
-            })
+            },
+        )
     }
 
     fn message() -> impl Strategy<Value = Message> {
         let page = prop_oneof![
-            (any::<u32>(), grid(EE_POS_X))
+            (any::<u32>(), grid(ee_pose::POS_X))
                 .prop_map(|(timestamp_us, x)| PosePage::TimePosX { timestamp_us, x }),
-            (grid(EE_POS_Y), grid(EE_POS_Z)).prop_map(|(y, z)| PosePage::PosYZ { y, z }),
-            (grid(EE_QUAT_W), grid(EE_QUAT_X)).prop_map(|(w, x)| PosePage::QuatWX { w, x }),
-            (grid(EE_QUAT_Y), grid(EE_QUAT_Z)).prop_map(|(y, z)| PosePage::QuatYZ { y, z }),
+            (grid(ee_pose::POS_Y), grid(ee_pose::POS_Z))
+                .prop_map(|(y, z)| PosePage::PosYZ { y, z }),
+            (grid(ee_pose::QUAT_W), grid(ee_pose::QUAT_X))
+                .prop_map(|(w, x)| PosePage::QuatWX { w, x }),
+            (grid(ee_pose::QUAT_Y), grid(ee_pose::QUAT_Z))
+                .prop_map(|(y, z)| PosePage::QuatYZ { y, z }),
         ];
         let command = prop_oneof![
             Just(Command::Begin),
@@ -794,21 +812,22 @@ mod tests {
             any::<u32>().prop_map(|counter| Reply::Freshness { counter }),
             any::<u32>().prop_map(|mac| Reply::ReadbackMac { mac }),
         ];
-        let states = [
-            NodeState::Boot,
-            NodeState::Operational,
-            NodeState::Staging,
-            NodeState::Fault,
-        ];
+        let states = NodeState::ALL;
         prop_oneof![
-            (joint(), any::<u32>(), grid(JS_ANGLE), grid(JS_RATE)).prop_map(
-                |(node, timestamp_us, angle, rate)| Message::JointState(JointState {
-                    node,
-                    timestamp_us,
-                    angle,
-                    rate
-                })
-            ),
+            (
+                joint(),
+                any::<u32>(),
+                grid(joint_state::ANGLE),
+                grid(joint_state::RATE)
+            )
+                .prop_map(|(node, timestamp_us, angle, rate)| Message::JointState(
+                    JointState {
+                        node,
+                        timestamp_us,
+                        angle,
+                        rate
+                    }
+                )),
             (0u8..64, page).prop_map(|(seq, page)| Message::EePose(PoseFrame { seq, page })),
             imu(GYRO).prop_map(Message::ImuGyro),
             imu(ACCEL).prop_map(Message::ImuAccel),

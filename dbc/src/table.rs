@@ -5,7 +5,7 @@
 //! (ISO-HDLC, the one of `zlib.crc32`) is taken over the six raw values as 32-bit little-endian
 //! words in sequence order (a, α, d, θ-offset, τ, σ): 24 bytes.
 
-use crate::spec::s::SEGMENTS;
+use crate::spec::{table_cmd, table_reply, SignalSpec};
 use crate::EncodeError;
 
 const CRC32: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC);
@@ -52,17 +52,47 @@ impl Field {
         self as u8
     }
 
+    /// The `TableCmd` signal that carries this field (`SegA`, …).
+    pub const fn segment(self) -> &'static SignalSpec {
+        match self {
+            Field::A => &table_cmd::SEG_A,
+            Field::Alpha => &table_cmd::SEG_ALPHA,
+            Field::D => &table_cmd::SEG_D,
+            Field::ThetaOffset => &table_cmd::SEG_THETA_OFFSET,
+            Field::Tau => &table_cmd::SEG_TAU,
+            Field::Sigma => &table_cmd::SEG_SIGMA,
+        }
+    }
+
+    /// The `TableReply` signal that reads this field back (`RbA`, …).
+    pub const fn readback(self) -> &'static SignalSpec {
+        match self {
+            Field::A => &table_reply::RB_A,
+            Field::Alpha => &table_reply::RB_ALPHA,
+            Field::D => &table_reply::RB_D,
+            Field::ThetaOffset => &table_reply::RB_THETA_OFFSET,
+            Field::Tau => &table_reply::RB_TAU,
+            Field::Sigma => &table_reply::RB_SIGMA,
+        }
+    }
+
     /// Valid raw range of this field.
     pub fn raw_bounds(self) -> (i64, i64) {
-        SEGMENTS[self as usize].raw_bounds()
+        self.segment().raw_bounds()
     }
 
     /// SI value → raw, checked.
     pub fn raw_from_si(self, value: f64) -> Result<i64, EncodeError> {
-        let spec = &SEGMENTS[self as usize];
+        let spec = self.segment();
         let mut scratch = [0u8; 8];
         spec.encode(&mut scratch, value)?;
         Ok(spec.raw(&scratch))
+    }
+
+    /// Raw → SI value.
+    fn si(self, raw: i64) -> f64 {
+        let spec = self.segment();
+        raw as f64 * spec.factor + spec.offset
     }
 }
 
@@ -80,7 +110,7 @@ impl Table {
             let (lo, hi) = field.raw_bounds();
             if value < lo || value > hi {
                 return Err(EncodeError::OutOfRange {
-                    signal: SEGMENTS[*field as usize].name,
+                    signal: field.segment().name,
                 });
             }
         }
@@ -116,16 +146,12 @@ impl Table {
 
     /// SI value of one field (m, rad, s, rad/s).
     pub fn si(&self, field: Field) -> f64 {
-        self.raw[field as usize] as f64 * 1e-6
+        field.si(self.raw[field as usize])
     }
 
     /// `[a, α, d, θ-offset, τ, σ]` in SI units.
     pub fn to_si(&self) -> [f64; 6] {
-        let mut out = [0.0; 6];
-        for (o, r) in out.iter_mut().zip(self.raw) {
-            *o = r as f64 * 1e-6;
-        }
-        out
+        Field::ALL.map(|f| self.si(f))
     }
 
     /// The 24 bytes the CRC covers (and the emulated flash stores).
@@ -142,7 +168,7 @@ impl Table {
         let mut raw = [0i64; 6];
         for (i, chunk) in bytes.chunks_exact(4).enumerate() {
             let word = u32::from_le_bytes([chunk[0], chunk[1], chunk[2], chunk[3]]);
-            raw[i] = if SEGMENTS[i].signed {
+            raw[i] = if Field::ALL[i].segment().signed {
                 i64::from(word as i32)
             } else {
                 i64::from(word)

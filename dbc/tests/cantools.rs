@@ -1,14 +1,18 @@
-//! Cross-check with python `cantools`: frames encoded by Rust decode in cantools, against
-//! `exocal.dbc`, to the values the Rust messages hold, signal by signal.
+//! Cross-checks with python `cantools`, a DBC parser independent of the `can-dbc` crate that
+//! `build.rs` generates the tables with: the generated tables hold what cantools reads from
+//! `exocal.dbc`, every message and signal of it; and frames encoded by Rust decode in cantools
+//! to the values the Rust messages hold, signal by signal.
 //!
 //! Needs python3 (and PyPI on first run, to create the venv `tools/pyenv.sh` makes). Without
-//! them the test fails; it never skips.
+//! them the tests fail; they never skip.
 
 use exocal_dbc::pose::Pose;
+use exocal_dbc::spec::{lookup, MuxRole, ALL};
 use exocal_dbc::{
     CmdCode, Command, Field, Heartbeat, ImuVector, JointState, Message, NackReason, NodeId,
     NodeState, PosePage, Reply, TableCmd, TableReply, Trigger, TriggerCommand,
 };
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::process::Command as Proc;
@@ -277,7 +281,6 @@ fn corpus() -> Vec<Message> {
 
 #[test]
 fn rust_encoded_frames_decode_identically_in_cantools() {
-    let python = cantools_python();
     let mut lines = String::new();
     let corpus = corpus();
     for m in &corpus {
@@ -298,20 +301,111 @@ fn rust_encoded_frames_decode_identically_in_cantools() {
     let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR"));
     let input = dir.join("cantools_frames.txt");
     std::fs::write(&input, lines).unwrap();
-    let out = Proc::new(&python)
-        .arg(crate_dir().join("tests/cantools_check.py"))
-        .arg(crate_dir().join("exocal.dbc"))
-        .arg(&input)
-        .output()
-        .expect("python runs");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "cantools disagrees:\n{stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
+    let stdout = run_python(
+        "cantools_check.py",
+        &[&crate_dir().join("exocal.dbc"), &input],
     );
     assert!(
         stdout.contains(&format!("checked {} frames, 0 mismatches", corpus.len())),
         "{stdout}"
     );
+}
+
+/// Runs one of the python scripts in `tests/` with the given arguments; its stdout.
+fn run_python(script: &str, args: &[&std::path::Path]) -> String {
+    let out = Proc::new(cantools_python())
+        .arg(crate_dir().join("tests").join(script))
+        .args(args)
+        .output()
+        .expect("python runs");
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{script} failed:\n{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
+}
+
+#[test]
+fn generated_tables_hold_what_cantools_reads_from_the_dbc() {
+    let dump = run_python("cantools_layout.py", &[&crate_dir().join("exocal.dbc")]);
+    // Signals seen per message name.
+    let mut seen: BTreeMap<String, usize> = BTreeMap::new();
+    for line in dump.lines() {
+        let fields: [&str; 16] = line
+            .split('\t')
+            .collect::<Vec<_>>()
+            .try_into()
+            .unwrap_or_else(|_| panic!("unexpected line {line:?}"));
+        let [id, extended, message, dlc, name, start, len, order, signed, scale, offset, min, max, unit, mux, choices] =
+            fields;
+        let what = format!("{message}.{name}");
+        assert_eq!(
+            (extended, dlc, order),
+            ("False", "8", "little_endian"),
+            "{what}"
+        );
+        let id = u16::from_str_radix(id, 16).unwrap();
+        let (spec, node) =
+            lookup(id).unwrap_or_else(|| panic!("{message} ({id:#x}) not generated"));
+        let full = match node {
+            Some(node) => format!("{}_{}", spec.name, node.name()),
+            None => spec.name.to_string(),
+        };
+        assert_eq!(full, message, "name of {id:#x}");
+        let s = spec
+            .signal(name)
+            .unwrap_or_else(|| panic!("{what} not generated"));
+        let float = |v: &str| v.parse::<f64>().unwrap();
+        assert_eq!(s.start.to_string(), start, "{what} start");
+        assert_eq!(s.len.to_string(), len, "{what} length");
+        assert_eq!(
+            s.signed.to_string(),
+            signed.to_lowercase(),
+            "{what} signedness"
+        );
+        // repr() and Rust's parser both round exactly: the doubles must be equal, not close.
+        assert_eq!(s.factor, float(scale), "{what} factor");
+        assert_eq!(s.offset, float(offset), "{what} offset");
+        assert_eq!(s.min, float(min), "{what} min");
+        assert_eq!(s.max, float(max), "{what} max");
+        assert_eq!(s.unit, unit, "{what} unit");
+        let role = match mux {
+            "M" => MuxRole::Switch,
+            "-" => MuxRole::Plain,
+            case => MuxRole::Case(case.strip_prefix('m').unwrap().parse().unwrap()),
+        };
+        assert_eq!(s.mux, role, "{what} multiplexing");
+        let mut invalid = None;
+        let mut values = Vec::new();
+        for choice in choices.split(';').filter(|c| !c.is_empty()) {
+            let (raw, label) = choice.split_once('=').unwrap();
+            let raw: i64 = raw.parse().unwrap();
+            if label == "Invalid" {
+                invalid = Some(raw);
+            } else {
+                values.push((raw, label));
+            }
+        }
+        assert_eq!(s.invalid_raw, invalid, "{what} invalid marker");
+        assert_eq!(s.values, values, "{what} VAL_ table");
+        *seen.entry(full).or_default() += 1;
+    }
+    // Nothing generated that the DBC lacks: every family, every node, every signal.
+    let mut generated = BTreeMap::new();
+    for spec in ALL {
+        let names: Vec<String> = if spec.nodes.is_empty() {
+            vec![spec.name.to_string()]
+        } else {
+            spec.nodes
+                .iter()
+                .map(|&n| format!("{}_{}", spec.name, NodeId::new(n).unwrap().name()))
+                .collect()
+        };
+        for name in names {
+            generated.insert(name, spec.signals.len());
+        }
+    }
+    assert_eq!(seen, generated);
 }

@@ -37,6 +37,7 @@ use exocal_dbc::message::{
     TableReply,
 };
 use exocal_dbc::pose::Pose;
+use exocal_dbc::spec;
 use exocal_dbc::transfer::NodeTransfer;
 use exocal_dbc::{NodeId, Table};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
@@ -55,6 +56,10 @@ const TX_LATENCY_S: f64 = 50e-6;
 const REPLY_LATENCY_S: f64 = 300e-6;
 /// Firmware version the nodes report (2: protocol exocal-2, authenticated transfers).
 const FW: (u8, u8) = (2, 0);
+
+/// Identifiers the DBC leaves unused, where malformed frames with an unknown identifier are drawn
+/// (a test checks the range against the generated tables).
+const UNUSED_IDS: std::ops::Range<u16> = 0x300..0x580;
 
 /// One IMU channel: value in the sensor frame, noise, full scale, message.
 type ImuChannel = (Vector3<f64>, f64, f64, fn(ImuVector) -> Message);
@@ -697,16 +702,18 @@ impl Suit {
         let frame = match pick {
             0 => {
                 // A JointState identifier with a short payload.
-                let node = 1 + (r.uniform() * 7.0) as u16;
+                let nodes = spec::JOINT_STATE.nodes;
+                let node = nodes[(r.uniform() * nodes.len() as f64) as usize];
                 let len = (r.uniform() * 8.0) as usize;
                 Frame::new(
-                    StandardId::new(0x100 | node).expect("11 bits"),
+                    StandardId::new(spec::JOINT_STATE.id(node)).expect("11 bits"),
                     &[byte; 8][..len],
                 )
             }
             1 => {
-                // An identifier the DBC does not define (0x300..0x57F is unused).
-                let id = 0x300 + (r.uniform() * f64::from(0x280u16)) as u16;
+                // An identifier the DBC does not define.
+                let width = f64::from(UNUSED_IDS.end - UNUSED_IDS.start);
+                let id = UNUSED_IDS.start + (r.uniform() * width) as u16;
                 Frame::new(StandardId::new(id).expect("11 bits"), &[byte; 8])
             }
             _ => {
@@ -766,13 +773,15 @@ impl Suit {
     /// handled (subject to loss, the node being up, and its transfer behaviour); everything else
     /// is ignored, as node firmware would.
     pub fn receive(&mut self, frame: &Frame, t_s: f64) {
-        let raw = frame.raw_id();
-        let addressed =
-            !frame.is_extended() && raw & !0xF == 0x600 && (1..=7).contains(&(raw & 0xF));
-        if !addressed {
+        if frame.is_extended() {
             return;
         }
-        let n = (raw & 0xF) as usize - 1;
+        // A table command addresses a joint node: index n of `self.nodes`.
+        let n = match spec::lookup(frame.raw_id() as u16) {
+            Some((family, Some(node))) if family.kind == spec::Kind::TableCmd => node.joint_index(),
+            _ => None,
+        };
+        let Some(n) = n else { return };
         if !self.nodes[n].up {
             return;
         }
@@ -924,6 +933,11 @@ pub(crate) mod tests {
     }
 
     #[test]
+    fn unused_ids_are_unused() {
+        assert!(UNUSED_IDS.clone().all(|id| spec::lookup(id).is_none()));
+    }
+
+    #[test]
     fn paper_scenario_sends_every_message_at_its_rate_and_all_decode() {
         let dir = temp_dir("rates");
         let mut suit = Suit::new(Scenario::paper(), &dir).unwrap();
@@ -932,23 +946,24 @@ pub(crate) mod tests {
             decode_frame(f).unwrap_or_else(|e| panic!("{f:?}: {e}"));
         }
         let c = counts(&frames);
-        let near = |id: u32, want: f64, tol: f64| {
-            let got = c.get(&id).copied().unwrap_or(0) as f64;
+        let near = |message: &spec::MessageSpec, node: NodeId, want: f64, tol: f64| {
+            let id = message.id(node.raw());
+            let got = c.get(&u32::from(id)).copied().unwrap_or(0) as f64;
             assert!(
                 (got - want).abs() <= tol,
                 "{id:#x}: {got} frames, want {want}"
             );
         };
-        for j in 1..=7 {
-            near(0x100 | j, 1000.0, 2.0);
+        for j in NodeId::JOINTS {
+            near(&spec::JOINT_STATE, j, 1000.0, 2.0);
         }
-        for n in 1..=8 {
-            near(0x200 | n, 1000.0, 2.0);
-            near(0x210 | n, 1000.0, 2.0);
-            near(0x220 | n, 1000.0, 2.0);
-            near(0x700 | n, 10.0, 1.0);
+        for n in NodeId::ALL {
+            near(&spec::IMU_GYRO, n, 1000.0, 2.0);
+            near(&spec::IMU_ACCEL, n, 1000.0, 2.0);
+            near(&spec::IMU_MAG, n, 1000.0, 2.0);
+            near(&spec::HEARTBEAT, n, 10.0, 1.0);
         }
-        near(0x148, 4000.0, 8.0);
+        near(&spec::EE_POSE, NodeId::END_EFFECTOR, 4000.0, 8.0);
         assert_eq!(c.len(), 7 + 3 * 8 + 8 + 1, "no other identifiers");
         let _ = std::fs::remove_dir_all(&dir);
     }
@@ -1120,7 +1135,9 @@ pub(crate) mod tests {
         let c = counts(&rest);
         assert_eq!(
             c.keys().copied().collect::<Vec<_>>(),
-            (1..=8).map(|n| 0x700 | n).collect::<Vec<u32>>(),
+            NodeId::ALL
+                .map(|n| u32::from(spec::HEARTBEAT.id(n.raw())))
+                .to_vec(),
             "{c:?}"
         );
         assert!(c.values().all(|n| (9..=11).contains(n)), "{c:?}");
@@ -1162,7 +1179,9 @@ pub(crate) mod tests {
             })
             .collect();
         assert!(!crcs.is_empty() && crcs.iter().all(|&c| c == table.crc()));
-        assert!(later.iter().all(|f| f.raw_id() & !0xF == 0x700));
+        assert!(later
+            .iter()
+            .all(|f| matches!(decode_frame(f), Ok(Message::Heartbeat(_)))));
         for d in [dir, long_dir] {
             let _ = std::fs::remove_dir_all(d);
         }

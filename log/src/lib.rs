@@ -33,6 +33,8 @@ pub const SCHEMA_ENCODING: &str = "protobuf";
 /// The message encoding of logs written before the log was binary (JSON with JSON Schemas).
 pub const LEGACY_MESSAGE_ENCODING: &str = "json";
 
+pub mod read;
+
 /// Our message types, generated from `proto/exocal.proto` (package `exocal`).
 #[allow(missing_docs, clippy::doc_markdown)]
 pub mod proto {
@@ -207,6 +209,21 @@ pub struct CanFrameRecord {
 }
 
 impl CanFrameRecord {
+    /// The frame recorded, `None` when its identifier or length is not a classic CAN frame's.
+    pub fn frame(&self) -> Option<exocal_dbc::Frame> {
+        use embedded_can::{ExtendedId, Frame as _, Id, StandardId};
+        let id: Id = if self.extended {
+            ExtendedId::new(self.id)?.into()
+        } else {
+            StandardId::new(u16::try_from(self.id).ok()?)?.into()
+        };
+        if self.remote {
+            exocal_dbc::Frame::new_remote(id, usize::from(self.dlc))
+        } else {
+            exocal_dbc::Frame::new(id, &self.data)
+        }
+    }
+
     /// The message as written.
     pub fn to_proto(&self) -> proto::CanFrame {
         let mut flags = 0;

@@ -1,35 +1,21 @@
-//! Exports: the calibrated table as the daemon's TOML configuration and as URDF joint origins,
-//! and recorded frames as a `candump -L` log.
+//! Exports: the calibrated table as URDF joint origins.
 //!
 //! Contract:
-//! - [`config_toml`] rewrites only the four `[nominal]` arrays of a configuration text (the one
-//!   the daemon ran with, or its shipped default), keeping every other key, comment and layout:
-//!   the result is a complete configuration the daemon loads, whose nominal table is the
-//!   calibrated one (lengths in metres, angles in degrees, as the file speaks);
 //! - [`urdf`] writes a chain `base_link → link1 … link7 → tool0` whose revolute joint `jointN`
 //!   turns about its z axis by the joint's *reading*: each joint's origin carries the previous
 //!   row's `Tz(d) Tx(a) Rx(α)` and its own `Rz(θ offset)`, the fixed joint `tool0_joint` the last
-//!   row's; forward kinematics of the URDF equals the table's (tested);
-//! - [`write_candump`] writes one `(seconds.micros) iface ID#DATA` line per frame, the format
-//!   `candump -L` writes and `canplayer` and [`crate::readers::parse_candump`] read.
+//!   row's; forward kinematics of the URDF equals the table's (tested).
 
 use std::fmt::{self, Write as _};
-use std::io;
 
 use calib_core::DhTable;
 use nalgebra::Rotation3;
-use toml_edit::{Array, DocumentMut, Item, Value};
 
 use crate::input::JOINTS;
-use crate::readers::RecordedFrame;
 
 /// Why an export failed.
 #[derive(Debug, Clone, PartialEq)]
 pub enum ExportError {
-    /// The base configuration is not valid TOML (the parser's message).
-    BaseToml(String),
-    /// The base configuration has no `[nominal]` table.
-    NoNominal,
     /// A parameter is not finite (`a3`, …).
     NotFinite(String),
 }
@@ -37,8 +23,6 @@ pub enum ExportError {
 impl fmt::Display for ExportError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            ExportError::BaseToml(e) => write!(f, "the base configuration is not TOML: {e}"),
-            ExportError::NoNominal => write!(f, "the base configuration has no [nominal] table"),
             ExportError::NotFinite(p) => write!(f, "parameter {p} is not finite"),
         }
     }
@@ -60,40 +44,6 @@ fn check_finite(table: &DhTable<JOINTS>) -> Result<(), ExportError> {
         }
     }
     Ok(())
-}
-
-/// `base` (a daemon configuration) with its `[nominal]` table replaced by `table`.
-pub fn config_toml(base: &str, table: &DhTable<JOINTS>) -> Result<String, ExportError> {
-    check_finite(table)?;
-    let mut doc: DocumentMut = base
-        .parse()
-        .map_err(|e: toml_edit::TomlError| ExportError::BaseToml(e.to_string()))?;
-    let nominal = doc
-        .get_mut("nominal")
-        .and_then(Item::as_table_like_mut)
-        .ok_or(ExportError::NoNominal)?;
-    type Column = (&'static str, fn(&calib_core::DhRow) -> f64);
-    let columns: [Column; 4] = [
-        ("a", |r| r.a),
-        ("alpha_deg", |r| r.alpha.to_degrees()),
-        ("d", |r| r.d),
-        ("offset_deg", |r| r.theta_offset.to_degrees()),
-    ];
-    for (key, get) in columns {
-        let values: Array = table.rows.iter().map(get).collect();
-        match nominal.get_mut(key).and_then(Item::as_value_mut) {
-            // Keep the key's decoration (comments, spacing) and replace the value.
-            Some(old) => {
-                let decor = old.decor().clone();
-                *old = Value::Array(values);
-                *old.decor_mut() = decor;
-            }
-            None => {
-                nominal.insert(key, Item::Value(Value::Array(values)));
-            }
-        }
-    }
-    Ok(doc.to_string())
 }
 
 fn origin(out: &mut String, xyz: [f64; 3], rpy: (f64, f64, f64)) {
@@ -175,95 +125,19 @@ fn xml_escape(s: &str) -> String {
         .replace('"', "&quot;")
 }
 
-/// One `candump -L` line (no newline).
-pub fn candump_line(frame: &RecordedFrame, iface: &str) -> String {
-    let mut s = format!(
-        "({}.{:06}) {iface} ",
-        frame.t.as_secs(),
-        frame.t.subsec_micros()
-    );
-    if frame.extended {
-        let _ = write!(s, "{:08X}#", frame.id);
-    } else {
-        let _ = write!(s, "{:03X}#", frame.id);
-    }
-    if frame.remote {
-        s.push('R');
-    } else {
-        for b in &frame.data {
-            let _ = write!(s, "{b:02X}");
-        }
-    }
-    s
-}
-
-/// Writes `frames` as a `candump -L` log on interface `iface`.
-pub fn write_candump(
-    frames: &[RecordedFrame],
-    iface: &str,
-    out: &mut impl io::Write,
-) -> io::Result<()> {
-    for f in frames {
-        writeln!(out, "{}", candump_line(f, iface))?;
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use calib_core::Frame;
-    use std::time::Duration;
 
     fn calibrated() -> DhTable<JOINTS> {
         DhTable::paper_actual()
     }
 
     #[test]
-    fn config_export_replaces_only_the_nominal_arrays() {
-        let base = "# head\n[can]\ninterface = \"can0\" # keep me\n\n[nominal]\n# rows\na = [1.0]\nalpha_deg = [0.0] # twist\nd = [0.0]\noffset_deg = [0.0]\n\n[push]\nretries = 3\n";
-        let t = calibrated();
-        let out = config_toml(base, &t).unwrap();
-        assert!(out.contains("interface = \"can0\" # keep me"), "{out}");
-        assert!(out.contains("# rows"));
-        assert!(out.contains("# twist"));
-        assert!(out.contains("retries = 3"));
-        let doc: toml_edit::DocumentMut = out.parse().unwrap();
-        let read = |k: &str| -> Vec<f64> {
-            doc["nominal"][k]
-                .as_array()
-                .unwrap()
-                .iter()
-                .map(|v| v.as_float().unwrap())
-                .collect()
-        };
-        assert_eq!(read("a"), t.rows.map(|r| r.a).to_vec());
-        assert_eq!(read("d"), t.rows.map(|r| r.d).to_vec());
-        for (deg, r) in read("alpha_deg").iter().zip(&t.rows) {
-            assert!((deg.to_radians() - r.alpha).abs() < 1e-15);
-        }
-        for (deg, r) in read("offset_deg").iter().zip(&t.rows) {
-            assert!((deg.to_radians() - r.theta_offset).abs() < 1e-15);
-        }
-    }
-
-    #[test]
-    fn config_export_errors_name_the_problem() {
-        let t = calibrated();
-        assert!(matches!(
-            config_toml("a = [", &t),
-            Err(ExportError::BaseToml(_))
-        ));
-        assert_eq!(
-            config_toml("[can]\nx = 1\n", &t),
-            Err(ExportError::NoNominal)
-        );
-        let mut bad = t;
+    fn a_non_finite_table_is_not_exported() {
+        let mut bad = calibrated();
         bad.rows[2].d = f64::NAN;
-        assert_eq!(
-            config_toml("[nominal]\n", &bad),
-            Err(ExportError::NotFinite("d3".into()))
-        );
         assert_eq!(
             urdf("x", &bad, &[(-1.0, 1.0); JOINTS])
                 .unwrap_err()
@@ -311,34 +185,5 @@ mod tests {
             assert!((a.p - b.p).norm() < 1e-12, "{:?} vs {:?}", a.p, b.p);
             assert!((a.r - b.r).norm() < 1e-12);
         }
-    }
-
-    #[test]
-    fn candump_lines_are_candump_dash_l() {
-        let f = RecordedFrame {
-            t: Duration::new(1_700_000_000, 123_456_789),
-            id: 0x123,
-            extended: false,
-            remote: false,
-            data: vec![0xDE, 0xAD, 0xBE, 0xEF],
-        };
-        assert_eq!(
-            candump_line(&f, "vcan0"),
-            "(1700000000.123456) vcan0 123#DEADBEEF"
-        );
-        let e = RecordedFrame {
-            id: 0x1ABCDE,
-            extended: true,
-            remote: true,
-            data: vec![],
-            ..f.clone()
-        };
-        assert_eq!(
-            candump_line(&e, "can1"),
-            "(1700000000.123456) can1 001ABCDE#R"
-        );
-        let mut out = Vec::new();
-        write_candump(&[f.clone(), f], "vcan0", &mut out).unwrap();
-        assert_eq!(String::from_utf8(out).unwrap().lines().count(), 2);
     }
 }

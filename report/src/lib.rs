@@ -1,17 +1,15 @@
-//! exocal-report: the calibration report, the exports, and the offline session readers.
+//! exocal-report: renders what a session computed; computes nothing.
 //!
 //! | module | contract |
 //! |---|---|
-//! | [`input`] | [`ReportInput`]: plain data a live session and an offline run fill alike |
+//! | [`input`] | [`ReportInput`]: the session crate's outcome, with a title and a source line |
 //! | [`plot`] | SVG charts (plotters), returned as strings |
 //! | [`html`] | [`html::render`]: one self-contained HTML file, no external resources |
-//! | [`export`] | the calibrated table as the daemon's TOML and as URDF; frames as `candump -L` |
-//! | [`readers`] | offline inputs: `candump -L` logs, the daemon's MCAP logs, CSV samples |
+//! | [`export`] | the calibrated table as URDF |
 //!
-//! Nothing here knows about CAN sockets or the daemon, and nothing here calibrates: the
-//! daemon's pipeline computes the calibration (LS, EM, validation, correlations) and hands it
-//! here to render; its `offline` command replays recorded frames through its own ingest and
-//! alignment.
+//! Nothing here knows about CAN, files, the daemon or its configuration keys, and nothing here
+//! calibrates: the session crate's pipeline computes the calibration (LS, EM, validation,
+//! correlations) and its data quality, and hands them here to render.
 
 #![warn(missing_docs)]
 
@@ -19,10 +17,8 @@ pub mod export;
 pub mod html;
 pub mod input;
 pub mod plot;
-pub mod readers;
 
 pub use input::{
     Calibration, Correlation, EmDetail, LsDetail, Quality, ReportInput, SessionInput,
     StreamQuality, TimedSample, VerdictSummary, JOINTS, PARAMS,
 };
-pub use readers::{McapSession, ReadError, RecordedFrame};

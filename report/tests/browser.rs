@@ -60,7 +60,8 @@ fn input() -> ReportInput {
         ..DriftEmOptions::new(cfg.drift.dt)
     };
     let calibration =
-        exocald::pipeline::ls_then_em(&nominal, &samples, &LsOptions::new(), &em, true).unwrap();
+        exocal_session::pipeline::ls_then_em(&nominal, &samples, &LsOptions::new(), &em, true)
+            .unwrap();
     assert!(
         calibration.em.is_ok(),
         "{:?}",

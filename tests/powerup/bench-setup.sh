@@ -63,6 +63,29 @@ After=sys-subsystem-net-devices-vcan0.device
 WatchdogSec=3s
 UNIT
 
+# A busy controller: while the boot's session runs, one busy loop per CPU competes with exocald
+# for the processor (systemd's watchdog once killed exocald when the host was loaded: the
+# alignment and its log ran on the main loop's thread). The emulated suit stands for the nodes'
+# own microcontrollers, which a controller's load does not slow: it keeps a high CPU weight.
+# The test stops the load once the boot's session is over.
+cat > /etc/systemd/system/bench-load.service <<'UNIT'
+[Unit]
+Description=bench: one busy loop per CPU during the boot's calibration
+Before=exocald.service
+
+[Service]
+Type=exec
+ExecStart=/bin/sh -c 'for i in $(seq "$(nproc)"); do (while :; do :; done) & done; wait'
+CPUWeight=200
+
+[Install]
+WantedBy=multi-user.target
+UNIT
+systemctl enable bench-load.service
+cat >> /etc/systemd/system/exocal-hil.service.d/bench.conf <<'UNIT'
+CPUWeight=10000
+UNIT
+
 # A directory every user may write to: only the unit's sandbox can keep it out.
 mkdir -p /srv/world-writable && chmod 1777 /srv/world-writable
 echo "bench setup done"

@@ -31,10 +31,10 @@ use exocal_hil::scenario::{
 };
 use exocal_hil::trial::{new_tables, TransferMix};
 use exocal_hil::Hil;
+use exocald::cmd::demo::{session_against_suit, PushTally, RunningSuit};
 use exocald::config::{Config, PushPolicy};
-use exocald::demo::{session_against_suit, PushTally, RunningSuit};
 use exocald::push::{push_tables, Holds};
-use exocald::runner::SessionSummary;
+use exocald::shell::runner::SessionSummary;
 
 #[path = "common/rogue.rs"]
 mod rogue;
@@ -327,14 +327,17 @@ async fn run_row(row: &Row) -> (Vec<String>, String) {
     let mut config = Config::default_config();
     config.interface = "vcan0".into();
     config.output.directory = dir.join("out");
-    config.session.min_duration_s = 6.0;
-    config.session.max_duration_s = 12.0;
-    config.session.min_samples = 300;
-    config.session.excitation_required = 0.1;
+    config.calibration.window.min_duration_s = 6.0;
+    config.calibration.window.max_duration_s = 12.0;
+    config.calibration.window.min_samples = 300;
+    config.calibration.window.excitation_required = 0.1;
     // A 6–12 s window calibrates to ±2–4 mm (1σ): above the shipped 3 mm limit at times. The
     // matrix tests the transport and the push under faults, so it accepts coarser tables.
-    config.validation.max_expected_position_error_mm = 10.0;
-    config.validation.max_expected_rotation_error_mrad = 30.0;
+    config.calibration.validation.max_expected_position_error_mm = 10.0;
+    config
+        .calibration
+        .validation
+        .max_expected_rotation_error_mrad = 30.0;
     config.push.timeout_ms = 200;
     config.push.backoff_initial_ms = 50;
     config.push.backoff_max_ms = 200;
@@ -349,7 +352,7 @@ async fn run_row(row: &Row) -> (Vec<String>, String) {
         clock,
     );
     let mut daemon_sock = SocketCan::open("vcan0").expect("daemon socket on vcan0");
-    let (_stop, shutdown) = exocald::shutdown::Shutdown::manual();
+    let (_stop, shutdown) = exocald::shell::shutdown::Shutdown::manual();
     let o = session_against_suit(
         suit,
         &mut daemon_sock,
@@ -424,7 +427,10 @@ async fn run_row(row: &Row) -> (Vec<String>, String) {
     };
     let verdict = match s.outcome.as_ref() {
         Some(c) if c.verdict.accepted() => "accepted".to_string(),
-        Some(c) => format!("refused ({})", c.verdict.reasons.join("; ")),
+        Some(c) => {
+            let reasons: Vec<String> = c.verdict.reasons.iter().map(|r| r.to_string()).collect();
+            format!("refused ({})", reasons.join("; "))
+        }
         None => "no calibration".into(),
     };
     let pushed = push.map_or("none".into(), |p| {

@@ -52,7 +52,9 @@ struct Recording {
     toml: String,
 }
 
-fn record(host: &[PathBuf], work: &Path) -> Result<Recording> {
+/// `demo`: the host's exocald with the demo (the workspace build's); `host`: the host's
+/// shipped binaries.
+fn record(demo: &Path, host: &[PathBuf], work: &Path) -> Result<Recording> {
     let host_exocald = &host[0];
     let root = paths::workspace_root();
     let shipped = fs::read_to_string(root.join("daemon/exocald.toml"))?;
@@ -69,16 +71,16 @@ fn record(host: &[PathBuf], work: &Path) -> Result<Recording> {
         .join("\n");
     let cfg = work.join("exocald.toml");
     fs::write(&cfg, config + "\n")?;
-    let demo = work.join("demo");
-    let _ = fs::remove_dir_all(&demo);
-    let mut cmd = Command::new(host_exocald);
+    let out = work.join("demo");
+    let _ = fs::remove_dir_all(&out);
+    let mut cmd = Command::new(demo);
     cmd.arg("--config")
         .arg(&cfg)
         .args(["demo", "--speed", "4", "--output"])
-        .arg(&demo);
+        .arg(&out);
     println!("==> recording a session: exocald demo (host)");
     run_checked(&mut cmd, "exocald demo", &[0])?;
-    let mcap = fs::read_dir(&demo)?
+    let mcap = fs::read_dir(&out)?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .find(|p| p.extension().is_some_and(|e| e == "mcap"))
         .context("the demo wrote no MCAP")?;
@@ -253,7 +255,8 @@ pub fn check(targets: &[Target]) -> Result<Vec<String>> {
     let work = paths::target_dir().join("xtask/cross");
     fs::create_dir_all(&work)?;
     let host = targets::build(&TARGETS[0])?;
-    let rec = record(&host, &work)?;
+    let demo = targets::build_demo()?;
+    let rec = record(&demo, &host, &work)?;
     let controllers: Vec<Target> = targets
         .iter()
         .copied()

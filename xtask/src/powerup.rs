@@ -86,6 +86,7 @@ pub fn power_up(opts: &harness::Opts) -> Result<PowerUp> {
     };
 
     let setup = root.join("target/xtask/powerup-setup.sh");
+    std::fs::create_dir_all(setup.parent().context("target/xtask")?)?;
     let bench = std::fs::read_to_string(root.join("tests/powerup/bench-setup.sh"))
         .context("read tests/powerup/bench-setup.sh")?;
     std::fs::write(

@@ -22,10 +22,11 @@ use crate::{harness, host, paths, process, targets};
 ///
 /// Install everything `test` needs on a fresh Debian machine (as root): the Debian packages
 /// (cross gcc and the target C libraries, qemu-user-static, Chromium, lintian, python3-venv,
-/// systemd, and where this kernel has no vcan QEMU, Debian's kernel, busybox-static, cpio), the
-/// rustup targets and the Python venv; then the self-check: C and Rust hello-worlds built for
-/// every cross target and run under qemu-user, headless Chromium, lintian, the venv's modules,
-/// the guest's kernel, modules and busybox.
+/// systemd, g++ and libceres-dev, and where this kernel has no vcan QEMU, Debian's kernel,
+/// busybox-static, cpio), the rustup targets and the Python venv; then the self-check: C and
+/// Rust hello-worlds built for every cross target and run under qemu-user, headless Chromium, a
+/// program built against Ceres, lintian, the venv's modules, the guest's kernel, modules and
+/// busybox.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Run the self-check only (install nothing).
@@ -64,6 +65,19 @@ pub const PACKAGES: &[(&str, &str)] = &[
         "util-linux",
         "unshare, nsenter and taskset in the harness and the benches",
     ),
+    (
+        "g++",
+        "builds the Ceres side of the calibration bench (benches/ceres) and its test",
+    ),
+    (
+        "libceres-dev",
+        "Ceres Solver, what the calibration bench compares calib-core's LS with (xtask's Ceres test)",
+    ),
+    (
+        "libeigen3-dev",
+        "the Eigen headers Ceres' headers include (-I/usr/include/eigen3)",
+    ),
+    ("libgoogle-glog-dev", "glog, which the Ceres program links (-lglog)"),
 ];
 
 /// The no_std target calib-core is cross-built for.
@@ -146,6 +160,7 @@ pub fn check() -> Vec<Result<String>> {
                 lines.push(check_cross_rust(&t, &scratch));
             }
             lines.push(check_chromium(&scratch));
+            lines.push(check_ceres(&scratch));
         }
         Err(e) => lines.push(Err(anyhow::anyhow!("create {}: {e}", scratch.display()))),
     }
@@ -305,6 +320,38 @@ fn check_chromium(dir: &Path) -> Result<String> {
         bail!("headless chromium did not draw the test SVG (package chromium): {dom:?}");
     }
     Ok("headless chromium renders SVG".into())
+}
+
+/// A C++ program that includes Ceres' headers builds against libceres (as the calibration
+/// bench's does, `xtask/src/bench/ceres.rs`) and runs.
+fn check_ceres(dir: &Path) -> Result<String> {
+    let src = dir.join("ceres.cc");
+    std::fs::write(
+        &src,
+        "#include <ceres/ceres.h>\n#include <cstdio>\nint main() { ceres::Solver::Options o; \
+         std::string why; std::printf(\"%s %d\\n\", CERES_VERSION_STRING, o.IsValid(&why) ? 1 : 0); }\n",
+    )?;
+    let bin = dir.join("ceres-check");
+    process::output(
+        Command::new("g++")
+            .args(["-std=c++17", "-O1", "-I/usr/include/eigen3"])
+            .arg(&src)
+            .arg("-o")
+            .arg(&bin)
+            .args(["-lceres", "-lglog"]),
+        "g++ with Ceres (packages g++ libceres-dev libeigen3-dev libgoogle-glog-dev)",
+    )?;
+    let out = process::output(
+        &mut Command::new(&bin),
+        "run a program linked with libceres",
+    )?;
+    let version = out.split_whitespace().next().unwrap_or("?").to_string();
+    if !out.trim().ends_with(" 1") {
+        bail!("the Ceres check program printed {out:?} (package libceres-dev)");
+    }
+    Ok(format!(
+        "Ceres {version} builds and runs (g++, libceres-dev)"
+    ))
 }
 
 /// The venv has every module the cross-checks import.

@@ -109,23 +109,26 @@ pub fn build(t: &Target) -> Result<Vec<PathBuf>> {
     Ok(binaries(t))
 }
 
-/// Release-builds the shipped binaries for every target of `targets` in one cargo invocation:
-/// cargo then interleaves the targets' crates on the cores, where one build alone leaves a core
-/// idle in its serial stretches (the largest crates, the links).
+/// Release-builds the shipped binaries for every target of `targets` in one cargo invocation
+/// (cargo then interleaves the targets' crates on the cores, where one build alone leaves a core
+/// idle in its serial stretches), as they ship: without default features, so the daemon links
+/// no emulator (`exocald demo` is the workspace build's, not the package's). Each target's
+/// binaries are then copied to [`binaries`]'s place, apart from the workspace build's
+/// `target/release` (whose `exocald` has the demo).
 pub fn build_all(targets: &[Target]) -> Result<()> {
     let root = paths::workspace_root();
     let mut cmd = Command::new(paths::cargo());
     cmd.current_dir(&root)
-        .args(["build", "--release"])
+        .args(["build", "--release", "--no-default-features"])
         .stdin(Stdio::null());
     for t in targets {
-        // The build machine's own binaries live in target/release, shared with the tests.
+        // The build machine's own binaries are built in target/release, beside the tests' (the
+        // same dependencies; only the daemon differs, without its demo).
         if t.qemu.is_some() {
             cmd.args(["--target", t.triple]);
         }
     }
-    // Each binary is its own package's; `-p` each, as `cargo xtask test` builds them: the same
-    // feature set, so no rebuild.
+    // Each binary is its own package's; `-p` each.
     cmd.arg("--bins");
     for b in BINARIES {
         cmd.args(["-p", b]);
@@ -135,17 +138,40 @@ pub fn build_all(targets: &[Target]) -> Result<()> {
         let triples: Vec<&str> = targets.iter().map(|t| t.triple).collect();
         bail!("release build for {} failed", triples.join(", "));
     }
+    for t in targets {
+        let built = match t.qemu {
+            None => paths::target_dir().join("release"),
+            Some(_) => paths::target_dir().join(t.triple).join("release"),
+        };
+        for (b, to) in BINARIES.iter().zip(binaries(t)) {
+            std::fs::create_dir_all(to.parent().context("shipped directory")?)?;
+            std::fs::copy(built.join(b), &to)
+                .with_context(|| format!("copy {} to {}", built.join(b).display(), to.display()))?;
+        }
+    }
     Ok(())
 }
 
-/// Where [`build`] puts the shipped binaries for `t`.
+/// Where [`build`] puts the shipped binaries for `t`: `target/shipped/<triple>/`.
 pub fn binaries(t: &Target) -> Vec<PathBuf> {
-    let dir = if t.qemu.is_none() {
-        paths::target_dir().join("release")
-    } else {
-        paths::target_dir().join(t.triple).join("release")
-    };
+    let dir = paths::target_dir().join("shipped").join(t.triple);
     BINARIES.iter().map(|b| dir.join(b)).collect()
+}
+
+/// Release-builds the workspace's own `exocald` (default features: with `exocald demo`, as the
+/// README's `cargo run --release -p exocald -- demo` builds it) and returns its path. What the
+/// figures, the benches and the cross check's recording run.
+pub fn build_demo() -> Result<PathBuf> {
+    let status = Command::new(paths::cargo())
+        .current_dir(paths::workspace_root())
+        .args(["build", "--release", "-p", "exocald", "--bin", "exocald"])
+        .stdin(Stdio::null())
+        .status()
+        .context("cargo build")?;
+    if !status.success() {
+        bail!("release build of exocald (with the demo) failed");
+    }
+    Ok(paths::target_dir().join("release/exocald"))
 }
 
 /// The command that runs a binary built for `t` on this machine.

@@ -82,6 +82,8 @@ pub fn run(args: Args) -> Result<u8> {
     // debug emulator cannot keep its nodes' clocks in step with real time): build them, and
     // tell the suites where.
     let bins = steps.time("release build", || targets::build(&targets::TARGETS[0]))?;
+    // The figures and the README's demo run the workspace build (with the demo).
+    steps.time("release build (demo)", targets::build_demo)?;
     let bin_dir = bins[0].parent().context("binary directory")?;
     std::env::set_var("EXOCAL_BIN_DIR", bin_dir);
 

@@ -4,22 +4,22 @@ use std::path::Path;
 
 use exocald::config::Config;
 use exocald::exit::DaemonError;
-use exocald::runner::{SessionError, SessionSummary};
+use exocald::shell::runner::{SessionError, SessionSummary};
 
 /// One live session of the paper scenario with `seed`, as `exocald demo` runs it (the emulated
 /// suit and the daemon on the in-process bus, on simulated time, as fast as the machine
 /// goes), with 20 s of collection, logging to `dir`. A refused table or a failed push still
 /// leaves a calibration to look at: their summary is returned too.
 pub fn live_session(dir: &Path, seed: u64) -> (Config, SessionSummary) {
-    let opts = exocald::demo::DemoOptions {
+    let opts = exocald::cmd::demo::DemoOptions {
         seed,
         speed: 1e6,
         output: dir.to_path_buf(),
         hold: false,
     };
-    let mut config = exocald::demo::demo_config(Config::default_config(), dir, 1.0);
-    config.session.min_duration_s = 20.0;
-    let summary = match exocald::demo::run(&config, &opts).map_err(|e| *e) {
+    let mut config = exocald::cmd::demo::demo_config(Config::default_config(), dir, 1.0);
+    config.calibration.window.min_duration_s = 20.0;
+    let summary = match exocald::cmd::demo::run(&config, &opts).map_err(|e| *e) {
         Ok(r) => r.summary,
         Err(SessionError {
             error: DaemonError::Validation(_) | DaemonError::Push(_),

@@ -2,11 +2,13 @@
 //!
 //! Parts (all by default, or pick with `--only calib,firmware,daemon,ingest`):
 //!
-//! * `calib` ([`calib`]): calib-core's LS against `scipy.optimize.least_squares` on the same exported
-//!   datasets (`calib-core/examples/export_dataset.rs`, `benches/scipy_ls.py`, run from a venv
-//!   under `<target>/bench-venv` that this command creates and fills from
-//!   `benches/requirements.txt`), both pinned to CPU 0 with `taskset -c 0`; LS + our EM at
-//!   K = 1,000 and 6,000; the per-sample kernel costs that bound the LS time.
+//! * `calib` ([`calib`]): calib-core's LS against `scipy.optimize.least_squares` and Ceres Solver
+//!   on the same exported datasets (`calib-core/examples/export_dataset.rs`,
+//!   `benches/scipy_ls.py`, run from a venv under `<target>/bench-venv` that this command creates
+//!   and fills from `benches/requirements.txt`; `benches/ceres/ceres_ls.cc`, built by [`ceres`]
+//!   against libceres-dev), all pinned to CPU 0 with `taskset -c 0`, the goals judged on paired
+//!   rounds; LS + our EM at K = 1,000 and 6,000; the per-sample kernel costs that bound the LS
+//!   time, and the normal-equation update against this core's measured peak.
 //! * `firmware` ([`firmware`], [`stack`]): `benches/firmware` (its own workspace) built for `thumbv7em-none-eabihf`:
 //!   section sizes (`size -A`), code size per crate (`nm -S`), the peak stack measured by stack
 //!   painting while the LS runs under `qemu-system-arm -machine mps2-an386` (a Cortex-M4F), and
@@ -23,9 +25,10 @@
 //! section then says why), 2 on bad arguments.
 //!
 //! [`common`] holds what the parts share, [`report`] writes the file; no part imports another
-//! (firmware uses the stack analyser).
+//! (firmware uses the stack analyser, calib the Ceres build).
 
 mod calib;
+mod ceres;
 mod common;
 mod daemon;
 mod firmware;
@@ -44,7 +47,7 @@ use common::{Ctx, Section};
 /// A part of the benchmark.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Part {
-    /// calib-core against scipy, LS + EM, the kernels.
+    /// calib-core against scipy and Ceres, LS + EM, the kernels.
     Calib,
     /// calib-core's LS path on thumbv7em-none-eabihf: sizes, measured and bounded stack.
     Firmware,
@@ -54,9 +57,9 @@ pub enum Part {
     Ingest,
 }
 
-/// Benchmarks against scipy and candump, firmware memory; writes BENCHMARKS.md.
+/// Benchmarks against scipy, Ceres and candump, firmware memory; writes BENCHMARKS.md.
 ///
-/// Measure calib-core against scipy, its firmware memory use, and the daemon's ingest against
+/// Measure calib-core against scipy and Ceres, its firmware memory use, and the daemon's ingest against
 /// candump; write BENCHMARKS.md (long: not part of `test`).
 #[derive(Debug, clap::Args)]
 pub struct Args {

@@ -1,0 +1,535 @@
+//! `exocald demo`: the emulated suit (exocal-hil, the paper's Section 4 scenario) and the daemon
+//! in one process on the in-process bus — no CAN, no root.
+//!
+//! Contract: the whole run is on simulated time. [`run`] makes its own single-threaded tokio
+//! runtime with a paused clock, so the hil's clock, the bus timestamps and every timer of the
+//! session (housekeeping tick, push timeouts) are virtual: time stands still while any task can
+//! run or the calibration is busy, and jumps to the next timer otherwise. The same seed and
+//! configuration therefore give the same frames, the same aligned samples, the same pushed
+//! tables and the same log messages, on any machine and at any `speed`; `speed` only holds the
+//! run to at most that many simulated seconds per real second, so a person can watch it.
+//! The hil plays the scenario, the daemon runs one ordinary session
+//! ([`crate::shell::runner::run_session`]) on the other end of the bus, and when it is done the hil is
+//! stopped and each joint node's flash file is read back: the demo succeeds only if every node
+//! persisted exactly the table the daemon pushed (same CRC). SIGTERM or SIGINT interrupts the
+//! session as in `calibrate`: the log is finished before the process exits. With the live view
+//! (`[live] enabled`, `exocald demo --live`) the session is served over the Foxglove WebSocket
+//! protocol ([`crate::live`]); with [`DemoOptions::hold`] it stays up after the session until
+//! SIGTERM or SIGINT, so a person can look at the calibrated arm.
+//!
+//! [`RunningSuit`] and [`session_against_suit`] are that pairing on any transport, with any
+//! scenario and configuration: the fault matrix, the atomic-push trials and the vcan
+//! reliability suites run the suit through them.
+//!
+//! Keys: with `push.authenticate` (the default) the demo needs no setup: it derives one AES-128
+//! key per node from the seed, in-process ([`exocal_dbc::auth::KeySet::derived`]), writes them
+//! to the emulated nodes' key slots and gives them to the daemon, so the push is the
+//! authenticated one a suit gets. Anyone who knows the seed knows these keys: they are for the
+//! emulated suit only (a suit's keys come from the `exocal-keys` credential).
+
+use std::future::Future;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use exocal_bus::{Clock, InProcessBus, SimClock, Transport};
+use exocal_dbc::NodeId;
+use exocal_hil::flash::FlashError;
+use exocal_hil::{Hil, HilError, Linger, Scenario};
+
+use crate::config::Config;
+use crate::exit::DaemonError;
+use crate::live::LiveView;
+use crate::push::Holds;
+use crate::shell::notify::{Notifier, Reporter};
+use crate::shell::runner::{run_session_with, SessionError, SessionSummary};
+
+/// Options of a demo run.
+#[derive(Debug, Clone)]
+pub struct DemoOptions {
+    /// Seed of the emulated suit's scenario and of the keys the demo derives.
+    pub seed: u64,
+    /// At most this many simulated seconds per real second (pacing only: the results do not
+    /// depend on it).
+    pub speed: f64,
+    /// Session logs go to `output/`, the emulated nodes' flash to `output/flash/`.
+    pub output: PathBuf,
+    /// With the live view: keep serving after the session until SIGTERM or SIGINT.
+    pub hold: bool,
+}
+
+/// The demo's result: the session, and per joint node the CRC of its flash after the run.
+#[derive(Debug)]
+pub struct DemoResult {
+    /// What the session did.
+    pub summary: SessionSummary,
+    /// Per joint node, the CRC of the table in its flash (`None`: no table, or unreadable).
+    pub flash_crc: Vec<(NodeId, Option<u32>)>,
+}
+
+/// The configuration for a session against the hil on the in-process bus: the built-in
+/// defaults (or `base`), logging to `output`. Push timeouts are in simulated time; a hil whose
+/// clock runs `speed` times faster than its runtime's answers within about `speed` ms of it
+/// (timers have ~1 ms resolution), so they are scaled up with the speed. The demo's hil runs at
+/// speed 1 on virtual time.
+pub fn demo_config(base: Config, output: &Path, speed: f64) -> Config {
+    let mut c = base;
+    c.interface = "in-process".into();
+    c.output.directory = output.to_path_buf();
+    c.push.timeout_ms = c.push.timeout_ms.max((speed * 20.0).ceil() as u64);
+    c
+}
+
+/// Runs the demo on its own paused runtime (see the module docs); call it outside any runtime.
+/// With `[live] enabled`, the live view is started for it on `[live] listen`.
+pub fn run(config: &Config, opts: &DemoOptions) -> Result<DemoResult, Box<SessionError>> {
+    let live = match config.live.enabled {
+        true => Some(LiveView::start(config.live.listen, config).map_err(DaemonError::from)?),
+        false => None,
+    };
+    if let Some(live) = &live {
+        eprintln!(
+            "exocald: live view: connect Foxglove to ws://{}:{}{}",
+            config.live.listen.ip(),
+            live.port(),
+            if opts.hold {
+                " (it stays up after the session: Ctrl-C to stop)"
+            } else {
+                ""
+            }
+        );
+    }
+    run_with(config, opts, live.as_ref())
+}
+
+/// [`run`] with the live view `live` (or none), whoever started it.
+pub fn run_with(
+    config: &Config,
+    opts: &DemoOptions,
+    live: Option<&LiveView>,
+) -> Result<DemoResult, Box<SessionError>> {
+    if !(opts.speed.is_finite() && opts.speed > 0.0) {
+        return Err(DaemonError::Usage(format!(
+            "speed {} (must be finite and positive)",
+            opts.speed
+        ))
+        .into());
+    }
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .start_paused(true)
+        .build()
+        .map_err(|source| DaemonError::Io {
+            what: "starting the async runtime".into(),
+            source,
+        })?;
+    runtime
+        .block_on(session(config, opts, live))
+        .map_err(Box::new)
+}
+
+/// Simulated time between two looks at the pace.
+const PACE_STEP: Duration = Duration::from_millis(10);
+
+/// Holds simulated time to at most `speed` × real time since the start: every [`PACE_STEP`] of
+/// simulated time, when simulated time is ahead, the runtime's only thread sleeps until real
+/// time catches up. Blocking is the point: nothing runs meanwhile, so pacing changes when
+/// things happen in real time and never what happens in simulated time.
+async fn pace(clock: SimClock, speed: f64) {
+    let started = Instant::now();
+    loop {
+        let ahead = clock.now_s() / speed - started.elapsed().as_secs_f64();
+        if ahead > 0.0 {
+            std::thread::sleep(Duration::from_secs_f64(ahead));
+        }
+        tokio::time::sleep(PACE_STEP).await;
+    }
+}
+
+async fn session(
+    config: &Config,
+    opts: &DemoOptions,
+    live: Option<&LiveView>,
+) -> Result<DemoResult, SessionError> {
+    let flash_dir = opts.output.join("flash");
+    std::fs::create_dir_all(&flash_dir).map_err(|source| DaemonError::Io {
+        what: format!("creating {}", flash_dir.display()),
+        source,
+    })?;
+    let mut scenario = Scenario::paper();
+    scenario.seed = opts.seed;
+    // Long enough for collection, calibration and push; the hil is stopped when we are done.
+    scenario.duration_s = scenario
+        .duration_s
+        .max(config.calibration.window.max_duration_s + 120.0);
+    let mut config = config.clone();
+    let provisioned = if config.push.authenticate {
+        config.push.keys = exocal_dbc::auth::KeySet::derived(opts.seed);
+        exocal_hil::flash::provision(&flash_dir, &config.push.keys).map(|_| ())
+    } else {
+        // Unauthenticated: the emulated nodes must not keep keys from an earlier demo here.
+        NodeId::JOINTS.iter().try_for_each(|&n| {
+            match std::fs::remove_file(exocal_hil::flash::key_path(&flash_dir, n)) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e),
+                _ => Ok(()),
+            }
+        })
+    };
+    provisioned.map_err(|source| DaemonError::Io {
+        what: format!("setting up the demo keys in {}", flash_dir.display()),
+        source,
+    })?;
+    let config = &config;
+    let hil = Hil::new(scenario, &flash_dir).map_err(|e| DaemonError::Interface {
+        name: "in-process hil".into(),
+        reason: e.to_string(),
+    })?;
+    // Speed 1 on the paused runtime's virtual clock.
+    let clock = SimClock::new(1.0).expect("a positive speed");
+    let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+    let suit = RunningSuit::start(hil, bus.attach(), clock);
+    let mut daemon_end = bus.attach();
+    let pacer = tokio::spawn(pace(clock, opts.speed));
+    // SIGTERM/SIGINT end the session like `calibrate`'s: the log is finished, nothing is lost.
+    let shutdown = crate::shell::shutdown::Shutdown::on_signals();
+    let run = session_against_suit_with(
+        suit,
+        &mut daemon_end,
+        &clock.bus_clock(),
+        config,
+        shutdown.wait(),
+        live,
+    )
+    .await;
+    pacer.abort();
+    if opts.hold && live.is_some() {
+        // Real time from here on: the paused clock would skip any wait.
+        let signal = shutdown.wait();
+        tokio::task::spawn_blocking(move || {
+            tokio::runtime::Builder::new_current_thread()
+                .build()
+                .map(|rt| rt.block_on(signal))
+        })
+        .await
+        .ok();
+    }
+    let summary = run.result?;
+    let flash_crc = run
+        .flash
+        .into_iter()
+        .map(|(n, crc)| (n, crc.ok().flatten()))
+        .collect();
+    Ok(DemoResult { summary, flash_crc })
+}
+
+/// The emulated suit playing on one end of a transport, as a task of the current runtime: its
+/// motion, then its nodes answering (heartbeats, table transfers) until [`RunningSuit::stop`].
+pub struct RunningSuit {
+    task: tokio::task::JoinHandle<Result<(), HilError>>,
+    flash_dir: PathBuf,
+    /// The CRC of the table each joint node held when the suit started (its factory table).
+    pub factory: Vec<(NodeId, Option<u32>)>,
+}
+
+impl RunningSuit {
+    /// Starts `hil` on `bus`, its time on `clock` (make the clock right before this call).
+    pub fn start<T: Transport + 'static>(mut hil: Hil, mut bus: T, clock: SimClock) -> Self {
+        let factory = NodeId::JOINTS
+            .iter()
+            .map(|&n| (n, hil.suit().held_table(n).map(|t| t.crc())))
+            .collect();
+        let flash_dir = hil.suit().flash_dir().to_path_buf();
+        let task = tokio::spawn(async move {
+            hil.play(&mut bus, &clock, std::future::pending()).await?;
+            hil.linger(
+                &mut bus,
+                &clock,
+                Linger::UntilStopped,
+                std::future::pending(),
+            )
+            .await?;
+            Ok(())
+        });
+        RunningSuit {
+            task,
+            flash_dir,
+            factory,
+        }
+    }
+
+    /// Stops the nodes and reads every joint node's flash back: the CRC of the table it holds
+    /// (`None`: never written, so still the factory table), or why the file is unreadable.
+    pub async fn stop(self) -> Vec<(NodeId, Result<Option<u32>, FlashError>)> {
+        self.task.abort();
+        let _ = self.task.await;
+        NodeId::JOINTS
+            .iter()
+            .map(|&n| {
+                let crc = exocal_hil::flash::read(&self.flash_dir, n)
+                    .map(|img| img.map(|i| i.table.crc()));
+                (n, crc)
+            })
+            .collect()
+    }
+}
+
+/// What one session against the emulated suit left.
+#[derive(Debug)]
+pub struct SuitSession {
+    /// The session's result, as `exocald calibrate` would end.
+    pub result: Result<SessionSummary, SessionError>,
+    /// The CRC of each joint node's factory table.
+    pub factory: Vec<(NodeId, Option<u32>)>,
+    /// Each joint node's flash after the session (see [`RunningSuit::stop`]).
+    pub flash: Vec<(NodeId, Result<Option<u32>, FlashError>)>,
+    /// Wall-clock time the session took.
+    pub wall: Duration,
+}
+
+impl SuitSession {
+    /// The session's summary, also when it ended in an error that has one.
+    pub fn summary(&self) -> Option<&SessionSummary> {
+        match &self.result {
+            Ok(s) => Some(s),
+            Err(e) => e.summary.as_ref(),
+        }
+    }
+
+    /// What every session against the suit must keep, whatever its faults: nothing pushed
+    /// unless validation accepted the table; every joint node's flash readable, holding its
+    /// factory table or exactly the table pushed to it, and agreeing with the push report
+    /// (`New`: the pushed table, `Old`: the factory one; `Unknown` claims nothing). Returns what
+    /// was broken, one line each (empty: all kept).
+    pub fn problems(&self) -> Vec<String> {
+        let mut bad = Vec::new();
+        let s = self.summary();
+        let accepted = s
+            .and_then(|s| s.outcome.as_ref())
+            .is_some_and(|c| c.verdict.accepted());
+        let push = s.and_then(|s| s.push.as_ref());
+        if !accepted && push.is_some() {
+            bad.push("pushed although validation refused".to_string());
+        }
+        for ((node, factory), (_, flash)) in self.factory.iter().zip(&self.flash) {
+            let held = match flash {
+                Ok(crc) => crc.or(*factory),
+                Err(e) => {
+                    bad.push(format!("{node}: flash unreadable: {e}"));
+                    continue;
+                }
+            };
+            let report = push.and_then(|p| p.nodes.iter().find(|r| r.node == node.name()));
+            let sent = report.map(|r| r.new_crc);
+            if held != *factory && held != sent {
+                bad.push(format!(
+                    "{node}: flash holds {held:#010x?}, neither its factory table nor the pushed one"
+                ));
+            }
+            if let Some(r) = report {
+                let agrees = match r.holds {
+                    Holds::New => held == sent,
+                    Holds::Old => held == *factory,
+                    Holds::Unknown => true,
+                };
+                if !agrees {
+                    bad.push(format!(
+                        "{node}: report {:?} but flash {held:#010x?}",
+                        r.holds
+                    ));
+                }
+            }
+        }
+        bad
+    }
+}
+
+/// One ordinary daemon session ([`crate::shell::runner::run_session`], no dry run) on `daemon_end`
+/// against `suit`, ended by `shutdown` or by itself; then the suit is stopped and the flash
+/// read back.
+pub async fn session_against_suit<D: Transport>(
+    suit: RunningSuit,
+    daemon_end: &mut D,
+    clock: &Clock,
+    config: &Config,
+    shutdown: impl Future<Output = ()>,
+) -> SuitSession {
+    session_against_suit_with(suit, daemon_end, clock, config, shutdown, None).await
+}
+
+/// [`session_against_suit`], the session served on the live view `live` too.
+pub async fn session_against_suit_with<D: Transport>(
+    suit: RunningSuit,
+    daemon_end: &mut D,
+    clock: &Clock,
+    config: &Config,
+    shutdown: impl Future<Output = ()>,
+    live: Option<&LiveView>,
+) -> SuitSession {
+    let mut notifier = Notifier::disabled();
+    let mut reporter = Reporter::detect(&notifier);
+    let started = Instant::now();
+    let result = run_session_with(
+        daemon_end,
+        clock,
+        config,
+        false,
+        shutdown,
+        &mut notifier,
+        &mut reporter,
+        live,
+    )
+    .await;
+    let wall = started.elapsed();
+    let factory = suit.factory.clone();
+    let flash = suit.stop().await;
+    SuitSession {
+        result,
+        factory,
+        flash,
+        wall,
+    }
+}
+
+/// What push trials (a push against the suit under transfer faults) came to, node by node: a
+/// node's flash must hold its old or its new table (never a mix), and the push report must say
+/// which (`New`/`Old`; `Unknown` claims nothing and is counted with its reason).
+#[derive(Debug, Default)]
+pub struct PushTally {
+    /// Trials counted.
+    pub runs: u64,
+    /// Node transfers counted.
+    pub nodes: u64,
+    /// Reports `New`.
+    pub new: u64,
+    /// Reports `Old`.
+    pub old: u64,
+    /// Reports `Unknown`.
+    pub unknown: u64,
+    /// Nodes whose flash holds neither their old nor their new table.
+    pub mixed: u64,
+    /// A mixed table or a report that disagrees with the flash, one line each.
+    pub problems: Vec<String>,
+    /// Every `Unknown`: trial, node, the daemon's reason, what the flash holds.
+    pub unknown_why: Vec<String>,
+}
+
+impl PushTally {
+    /// Counts one trial: per joint node its old and new table (as pushed), its flash after the
+    /// trial ([`RunningSuit::stop`]) and the push report; `trial` names it in the lines, and a
+    /// problem line shows its `faults` too.
+    pub fn add(
+        &mut self,
+        trial: &str,
+        faults: &impl std::fmt::Debug,
+        tables: &[(NodeId, exocal_dbc::Table, exocal_dbc::Table)],
+        flash: &[(NodeId, Result<Option<u32>, FlashError>)],
+        report: &crate::push::PushReport,
+    ) {
+        self.runs += 1;
+        for (((node, old, new), (_, flash)), rep) in tables.iter().zip(flash).zip(&report.nodes) {
+            self.nodes += 1;
+            // No flash file yet means the factory table (nothing was ever written).
+            let held = match flash {
+                Ok(crc) => crc.unwrap_or(old.crc()),
+                Err(e) => {
+                    self.problems
+                        .push(format!("{trial} {node}: flash unreadable: {e}"));
+                    continue;
+                }
+            };
+            let (holds_new, holds_old) = (held == new.crc(), held == old.crc());
+            if !holds_new && !holds_old {
+                self.mixed += 1;
+            }
+            let agrees = match rep.holds {
+                Holds::New => {
+                    self.new += 1;
+                    holds_new
+                }
+                Holds::Old => {
+                    self.old += 1;
+                    holds_old
+                }
+                Holds::Unknown => {
+                    self.unknown += 1;
+                    self.unknown_why.push(format!(
+                        "{trial} {node}: {} (flash {})",
+                        rep.error.as_deref().unwrap_or("no error given"),
+                        if holds_new { "new" } else { "old" }
+                    ));
+                    true
+                }
+            };
+            if !(holds_new || holds_old) || !agrees {
+                self.problems.push(format!(
+                    "{trial} {node}: report {:?} (held_crc {:?}), flash {held:#010x} (old {:#010x}, new {:#010x}), faults {faults:?}",
+                    rep.holds,
+                    rep.held_crc,
+                    old.crc(),
+                    new.crc(),
+                ));
+            }
+        }
+    }
+}
+
+/// Checks that every node's flash holds the table the daemon pushed to it.
+pub fn check_flash(result: &DemoResult) -> Result<(), DaemonError> {
+    let Some(push) = &result.summary.push else {
+        return Err(DaemonError::Push("nothing was pushed".into()));
+    };
+    let mut wrong = Vec::new();
+    for (report, (node, crc)) in push.nodes.iter().zip(&result.flash_crc) {
+        if *crc != Some(report.new_crc) {
+            wrong.push(format!(
+                "{node}: flash holds {crc:?}, pushed {:#010x}",
+                report.new_crc
+            ));
+        }
+    }
+    if wrong.is_empty() {
+        Ok(())
+    } else {
+        Err(DaemonError::Push(wrong.join("; ")))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_paper_scenario_calibrates_pushes_and_persists() {
+        let dir = std::env::temp_dir().join(format!("exocald-demo-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let opts = DemoOptions {
+            seed: 2024,
+            speed: 1e6,
+            output: dir.clone(),
+            hold: false,
+        };
+        let config = demo_config(Config::default_config(), &dir, 1.0);
+        let result = match run(&config, &opts).map_err(|e| *e) {
+            Ok(r) => r,
+            Err(SessionError { error, summary }) => panic!("{error}\n{summary:#?}"),
+        };
+        check_flash(&result).unwrap();
+        let s = &result.summary;
+        let v = &s.outcome.as_ref().unwrap().verdict;
+        assert!(
+            v.improvement >= 0.8,
+            "held-out improvement {}",
+            v.improvement
+        );
+        assert_eq!(s.frames.unknown + s.frames.malformed, 0);
+        // The log reads back with every channel, and as many raw frames as ingest counted.
+        let bytes = std::fs::read(&s.log_path).unwrap();
+        let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
+        assert_eq!(
+            summary.channels.len(),
+            crate::log::mcaplog::Topic::ALL.len()
+        );
+        let rx = s.log_counts.iter().find(|(t, _)| t == "/can/rx").unwrap().1;
+        assert!(rx >= s.frames.received, "{rx} < {}", s.frames.received);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

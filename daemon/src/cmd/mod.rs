@@ -1,0 +1,422 @@
+//! What each subcommand does, as functions returning a typed [`DaemonError`] (the binary maps
+//! it to an exit status): `calibrate` here, the others in a module each.
+
+#[cfg(feature = "demo")]
+pub mod demo;
+pub mod nodes;
+pub mod offline;
+pub mod serve;
+
+use std::path::{Path, PathBuf};
+
+use exocal_bus::{Clock, SocketCan};
+use tokio::signal::unix::{signal, SignalKind};
+
+use crate::cli::{
+    CheckConfigArgs, Cli, Command, NodesArgs, RecoverArgs, SessionArgs, SYSTEM_CONFIG,
+};
+use crate::config::{Config, ConfigError, DEFAULT_TOML};
+use crate::exit::DaemonError;
+use crate::shell::notify::{Notifier, Reporter};
+use crate::shell::runner::run_session;
+use crate::shell::shutdown::Shutdown;
+use crate::shell::summary::finish;
+use exocal_dbc::NodeId;
+
+/// Where a configuration came from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ConfigSource {
+    /// Loaded from this file.
+    File(PathBuf),
+    /// The built-in defaults ([`crate::config::DEFAULT_TOML`]).
+    BuiltIn,
+}
+
+impl std::fmt::Display for ConfigSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ConfigSource::File(p) => write!(f, "{}", p.display()),
+            ConfigSource::BuiltIn => write!(f, "built-in defaults"),
+        }
+    }
+}
+
+/// Loads `explicit` if given; otherwise `system` if it exists; otherwise the built-in defaults.
+pub fn resolve_config(
+    explicit: Option<&Path>,
+    system: &Path,
+) -> Result<(Config, ConfigSource), ConfigError> {
+    match explicit {
+        Some(p) => Ok((Config::load(p)?, ConfigSource::File(p.to_path_buf()))),
+        None if system.exists() => Ok((Config::load(system)?, ConfigSource::File(system.into()))),
+        None => Ok((Config::default_config(), ConfigSource::BuiltIn)),
+    }
+}
+
+/// Applies the command-line overrides of `calibrate`/`run` to `config`.
+pub fn apply_overrides(config: &mut Config, args: &SessionArgs) {
+    if let Some(i) = &args.interface {
+        config.interface = i.clone();
+    }
+    if let Some(o) = &args.output {
+        config.output.directory = o.clone();
+    }
+}
+
+/// Checks that the network interface `name` exists, with an error saying how to create it.
+pub fn require_interface(name: &str) -> Result<(), DaemonError> {
+    let valid = !name.is_empty() && name.len() <= 15 && !name.contains('/') && name != "..";
+    if !valid || !Path::new("/sys/class/net").join(name).exists() {
+        let hint = if name.starts_with("vcan") {
+            format!(
+                "no such interface; on a bench create it with `ip link add {name} type vcan && \
+                 ip link set {name} up` (or install systemd/80-vcan0.netdev)"
+            )
+        } else {
+            "no such interface; check the CAN adapter and its systemd-networkd file \
+             (systemd/80-can0.network), or pass --interface"
+                .to_string()
+        };
+        return Err(DaemonError::Interface {
+            name: name.to_string(),
+            reason: hint,
+        });
+    }
+    Ok(())
+}
+
+/// Runs the parsed command line.
+pub fn run(cli: Cli) -> Result<(), DaemonError> {
+    match cli.command {
+        Command::CheckConfig(args) => check_config(cli.config.as_deref(), &args),
+        Command::Calibrate(args) => {
+            let mut config = session_config(cli.config.as_deref(), &args)?;
+            attach_keys(&mut config, false)?;
+            runtime()?.block_on(calibrate_on_can(config, args.dry_run))
+        }
+        Command::Run(args) => {
+            let mut config = session_config(cli.config.as_deref(), &args)?;
+            attach_keys(&mut config, true)?;
+            runtime()?.block_on(serve_on_can(config, args.dry_run))
+        }
+        Command::Offline(args) => {
+            let (config, source) = resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
+            eprintln!("exocald: configuration from {source}");
+            let text = match &source {
+                ConfigSource::File(p) => {
+                    std::fs::read_to_string(p).map_err(|source| DaemonError::Io {
+                        what: format!("reading {}", p.display()),
+                        source,
+                    })?
+                }
+                ConfigSource::BuiltIn => DEFAULT_TOML.to_string(),
+            };
+            let opts = crate::cmd::offline::OfflineOptions {
+                input: args.input,
+                format: args.format,
+                report: args.report,
+                export_toml: args.export_toml,
+                export_urdf: args.export_urdf,
+                export_candump: args.export_candump,
+            };
+            finish(crate::cmd::offline::run(&config, &text, &opts).map_err(|e| *e))
+        }
+        Command::Recover(args) => recover_log(&args),
+        Command::Nodes(args) => {
+            let (mut config, source) =
+                resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
+            apply_overrides(
+                &mut config,
+                &SessionArgs {
+                    interface: args.interface.clone(),
+                    output: args.output.clone(),
+                    dry_run: true,
+                },
+            );
+            eprintln!("exocald: configuration from {source}");
+            require_interface(&config.interface)?;
+            runtime()?.block_on(nodes_on_can(&config, &args))
+        }
+        #[cfg(feature = "demo")]
+        Command::Demo(args) => {
+            let (config, source) = resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
+            eprintln!("exocald: configuration from {source}");
+            let mut config = crate::cmd::demo::demo_config(config, &args.output, 1.0);
+            config.live.enabled |= args.live;
+            if config.push.authenticate {
+                eprintln!(
+                    "exocald: demo keys: one AES-128 key per node derived in-process from the \
+                     seed ({}): not secret, for the emulated suit only",
+                    args.seed
+                );
+            }
+            let opts = crate::cmd::demo::DemoOptions {
+                seed: args.seed,
+                speed: args.speed,
+                output: args.output.clone(),
+                hold: args.live,
+            };
+            match crate::cmd::demo::run(&config, &opts).map_err(|e| *e) {
+                Ok(result) => {
+                    crate::shell::summary::print_summary(&result.summary);
+                    let check = crate::cmd::demo::check_flash(&result);
+                    for (node, crc) in &result.flash_crc {
+                        let crc = crc.map_or_else(|| "none".into(), |c| format!("{c:#010x}"));
+                        println!("flash {node}: table CRC {crc}");
+                    }
+                    if check.is_ok() {
+                        println!("every node persisted the pushed table (CRC match)");
+                    }
+                    check
+                }
+                Err(e) => finish(Err(e)),
+            }
+        }
+    }
+}
+
+fn session_config(path: Option<&Path>, args: &SessionArgs) -> Result<Config, DaemonError> {
+    let (mut config, source) = resolve_config(path, Path::new(SYSTEM_CONFIG))?;
+    apply_overrides(&mut config, args);
+    eprintln!("exocald: configuration from {source}");
+    require_interface(&config.interface)?;
+    Ok(config)
+}
+
+/// With `push.authenticate`, loads the keys from the `exocal-keys` credential into `config`
+/// (a key for every joint node, and the trigger key for `run`), or fails (exit 78) before the
+/// bus is touched; says on stderr (the journal) which way it is, never the keys.
+pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError> {
+    if !config.push.authenticate {
+        eprintln!(
+            "exocald: WARNING: authentication is off ([push] authenticate = false): any sender on \
+             the bus can change a node's table{}",
+            if trigger { " or start a session" } else { "" }
+        );
+        return Ok(());
+    }
+    let nodes: Vec<NodeId> = config
+        .calibration
+        .joint_nodes
+        .iter()
+        .filter_map(|&n| NodeId::new(n))
+        .collect();
+    config.push.keys = crate::keys::load_credential(&nodes, trigger)?;
+    eprintln!(
+        "exocald: table transfers{} are authenticated (AES-128-CMAC, freshness counters): keys \
+         of {} joint node(s){} from the credential {}",
+        if trigger { " and triggers" } else { "" },
+        nodes.len(),
+        if trigger { " and the trigger key" } else { "" },
+        crate::keys::CREDENTIAL
+    );
+    Ok(())
+}
+
+/// The daemon's runtime: one thread drives the bus, the timers and the log, polling the socket
+/// itself. With worker threads, a worker woke from epoll for every batch of frames and woke the
+/// loop's thread in turn: in the emulated guest that handoff (context switches, futexes) was a
+/// quarter of the daemon's CPU while ingesting (perf, benches/ingest.sh's load). Calibration
+/// and the in-collection estimates run on tokio's blocking pool (`spawn_blocking`), the live
+/// view on a runtime of its own.
+fn runtime() -> Result<tokio::runtime::Runtime, DaemonError> {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .map_err(|source| DaemonError::Io {
+            what: "starting the async runtime".into(),
+            source,
+        })
+}
+
+fn open_can(config: &Config) -> Result<SocketCan, DaemonError> {
+    SocketCan::open(&config.interface).map_err(|e| DaemonError::Interface {
+        name: config.interface.clone(),
+        reason: e.to_string(),
+    })
+}
+
+/// `exocald calibrate`: one session on the configured CAN interface.
+pub async fn calibrate_on_can(config: Config, dry_run: bool) -> Result<(), DaemonError> {
+    let shutdown = Shutdown::on_signals();
+    let mut bus = open_can(&config)?;
+    let mut notifier = Notifier::from_env();
+    let mut reporter = Reporter::detect(&notifier);
+    let clock = Clock::Wall;
+    let result = run_session(
+        &mut bus,
+        &clock,
+        &config,
+        dry_run,
+        shutdown.wait(),
+        &mut notifier,
+        &mut reporter,
+    )
+    .await;
+    finish(result)
+}
+
+/// `exocald run`: wait for an authentic `Trigger` frame (StartCalibration) or SIGUSR1, run a
+/// session, and wait again, until SIGTERM/SIGINT; at most one session per cooldown
+/// ([`crate::cmd::serve`]).
+/// Each state change is a line on stderr (`idle: …`, `trigger received (…)`), which is what
+/// a supervisor or a test waits on.
+pub async fn serve_on_can(config: Config, dry_run: bool) -> Result<(), DaemonError> {
+    let shutdown = Shutdown::on_signals();
+    let mut bus = open_can(&config)?;
+    let mut notifier = Notifier::from_env();
+    let mut reporter = Reporter::detect(&notifier);
+    let mut usr1 = signal(SignalKind::user_defined1()).map_err(|source| DaemonError::Io {
+        what: "installing the SIGUSR1 handler".into(),
+        source,
+    })?;
+    let (tx, mut local) = tokio::sync::mpsc::channel(1);
+    tokio::spawn(async move {
+        while usr1.recv().await.is_some() {
+            let _ = tx.try_send(());
+        }
+    });
+    crate::cmd::serve::serve(
+        &mut bus,
+        &Clock::Wall,
+        &config,
+        dry_run,
+        &shutdown,
+        &mut local,
+        &mut notifier,
+        &mut reporter,
+    )
+    .await
+    .map(|_| ())
+}
+
+/// `exocald nodes`: the listing on stdout (a table, or JSON), then 69 if a node is missing.
+async fn nodes_on_can(config: &Config, args: &NodesArgs) -> Result<(), DaemonError> {
+    let mut bus = open_can(config)?;
+    let listing =
+        crate::cmd::nodes::list(&mut bus, &Clock::Wall, config, args.log.as_deref()).await?;
+    if args.json {
+        let text = serde_json::to_string_pretty(&listing).map_err(|e| DaemonError::Internal {
+            what: "formatting the listing as JSON".into(),
+            source: Box::new(e),
+        })?;
+        println!("{text}");
+    } else {
+        for line in listing.lines() {
+            println!("{line}");
+        }
+    }
+    if listing.missing.is_empty() {
+        Ok(())
+    } else {
+        Err(DaemonError::NoAnswer(listing.missing))
+    }
+}
+
+/// `exocald recover IN OUT`: the complete file, and one line saying what was kept.
+fn recover_log(args: &RecoverArgs) -> Result<(), DaemonError> {
+    let io = |what: String| move |source| DaemonError::Io { what, source };
+    let same = match (args.input.canonicalize(), args.output.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
+    };
+    if same {
+        return Err(DaemonError::Usage(format!(
+            "OUT {} is IN: write the recovered log to another file",
+            args.output.display()
+        )));
+    }
+    let bytes =
+        std::fs::read(&args.input).map_err(io(format!("reading {}", args.input.display())))?;
+    let file = std::fs::File::create(&args.output)
+        .map_err(io(format!("creating {}", args.output.display())))?;
+    let out = std::io::BufWriter::new(file);
+    let (recovery, out) = crate::log::recover::recover(&bytes, out, Some(mcap::Compression::Zstd))
+        .map_err(|e| match e {
+            crate::log::recover::RecoverError::NotMcap => {
+                DaemonError::Input(format!("{}: {e}", args.input.display()))
+            }
+            crate::log::recover::RecoverError::Write(e) => DaemonError::Log {
+                what: format!("writing {}", args.output.display()),
+                source: crate::log::mcaplog::LogError::Mcap(e),
+            },
+        })?;
+    out.into_inner()
+        .map_err(|e| e.into_error())
+        .and_then(|f| f.sync_all())
+        .map_err(io(format!("writing {}", args.output.display())))?;
+    println!("{}: {recovery}", args.input.display());
+    println!(
+        "wrote {}: {} messages, with summary, indexes and footer",
+        args.output.display(),
+        recovery.messages
+    );
+    Ok(())
+}
+
+fn check_config(path: Option<&Path>, args: &CheckConfigArgs) -> Result<(), DaemonError> {
+    if args.print_default {
+        print!("{DEFAULT_TOML}");
+        return Ok(());
+    }
+    let (config, source) = resolve_config(path, Path::new(SYSTEM_CONFIG))?;
+    println!("# configuration from {source}: valid");
+    println!("# the effective values, in the file's units (degrees, seconds, metres):");
+    print!("{}", config.to_toml());
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn config_resolution_prefers_explicit_then_system_then_builtin() {
+        let none = Path::new("/nonexistent/exocald.toml");
+        let (c, s) = resolve_config(None, none).unwrap();
+        assert_eq!(s, ConfigSource::BuiltIn);
+        assert_eq!(c, Config::default_config());
+
+        let dir = std::env::temp_dir().join(format!("exocald-app-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let sys = dir.join("sys.toml");
+        std::fs::write(&sys, DEFAULT_TOML.replace("\"can0\"", "\"vcan7\"")).unwrap();
+        let (c, s) = resolve_config(None, &sys).unwrap();
+        assert_eq!(
+            (c.interface.as_str(), s),
+            ("vcan7", ConfigSource::File(sys.clone()))
+        );
+
+        let err = resolve_config(Some(&dir.join("missing.toml")), &sys).unwrap_err();
+        assert!(matches!(err, ConfigError::Io { .. }));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_missing_interface_is_a_clear_error() {
+        let e = require_interface("vcan93").unwrap_err();
+        assert_eq!(e.exit_code(), crate::exit::code::UNAVAILABLE);
+        let shown = e.to_string();
+        assert!(
+            shown.contains("vcan93") && shown.contains("ip link add"),
+            "{shown}"
+        );
+        assert!(require_interface("../etc").is_err());
+        assert!(require_interface("lo").is_ok());
+    }
+
+    #[test]
+    fn overrides_replace_interface_and_output() {
+        let mut c = Config::default_config();
+        apply_overrides(
+            &mut c,
+            &SessionArgs {
+                interface: Some("vcan0".into()),
+                output: Some("/tmp/x".into()),
+                dry_run: false,
+            },
+        );
+        assert_eq!(c.interface, "vcan0");
+        assert_eq!(c.output.directory, PathBuf::from("/tmp/x"));
+    }
+}

@@ -1,0 +1,277 @@
+//! What a session records, once: each thing a session logs is one [`Record`], handed by the
+//! [`crate::shell::tee::Recorder`] to every observer of the session's data — the MCAP log
+//! ([`crate::log::mcaplog::SessionLog`]) and, when enabled, the live view ([`crate::live::LiveView`]).
+//!
+//! Contract:
+//! - a record carries its log time (host wall-clock ns, the session clock) and borrows its data;
+//!   observers encode it as they need (the log in the schema of `exocal-log`, the live view the
+//!   same messages over the Foxglove WebSocket protocol);
+//! - the log's errors are the session's ([`crate::shell::tee::Recorder::record`] returns them);
+//!   the live view never fails a session (a client that cannot keep up misses messages, nothing else);
+//! - the arm's frames ([`arm_transforms`]) follow the URDF the report exports
+//!   (`base_link → link1 … link7 → tool0`, `exocal_report::export::urdf`), so the transforms and a
+//!   URDF of the same table describe one tree.
+
+use exocal_bus::Frame;
+use exocal_log::{proto, CanFrameRecord, CollectionEnd, Level};
+
+use crate::config::JOINTS;
+use crate::push::{Holds, PushReport};
+use exocal_session::align::AlignedSample;
+use exocal_session::ingest::ClockReport;
+use exocal_session::pipeline::{NodeRow, Outcome};
+use exocal_session::window::Progress;
+
+/// The root of the arm's frames (frame 0 of the D-H table), as in the exported URDF.
+pub const BASE_FRAME: &str = "base_link";
+/// The tool frame (after the last row), as in the exported URDF.
+pub const TOOL_FRAME: &str = "tool0";
+
+/// A rigid transform: translation (m) and unit quaternion `[w, x, y, z]`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Transform {
+    /// Translation (m).
+    pub translation: [f64; 3],
+    /// Rotation, unit quaternion `[w, x, y, z]`.
+    pub rotation_wxyz: [f64; 4],
+}
+
+/// One frame of the arm relative to its parent.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Link {
+    /// The parent frame's name.
+    pub parent: String,
+    /// This frame's name.
+    pub child: String,
+    /// Pose of `child` in `parent`.
+    pub transform: Transform,
+}
+
+/// One thing a session records.
+#[derive(Debug, Clone, Copy)]
+pub enum Record<'a> {
+    /// A raw frame received (`sent == false`) or sent.
+    Frame {
+        /// Whether the daemon sent it (`false`: received).
+        sent: bool,
+        /// The frame and its timestamps.
+        frame: &'a CanFrameRecord,
+    },
+    /// A decoded joint reading: joint `joint` (1-based), angle (rad) and rate (rad/s).
+    Joint {
+        /// Joint number, 1-based.
+        joint: usize,
+        /// Joint angle (rad).
+        angle: f64,
+        /// Joint rate (rad/s).
+        rate: f64,
+    },
+    /// A measured end-effector pose in [`BASE_FRAME`].
+    EePose(&'a Transform),
+    /// The arm's frames ([`arm_transforms`]).
+    Arm(&'a [Link]),
+    /// A sample on the common grid, as fed to the calibration.
+    Aligned(&'a AlignedSample),
+    /// Collection progress.
+    Progress(&'a Progress),
+    /// The end of the collection window.
+    CollectionEnd(&'a CollectionEnd),
+    /// The calibration result (and, once pushed, the push report).
+    Calibration(&'a proto::Calibration),
+    /// What happened, human-readable.
+    Event {
+        /// Severity.
+        level: Level,
+        /// The text.
+        message: &'a str,
+    },
+}
+
+/// The raw frame `frame` seen at `t` (host time; on SocketCAN also the kernel's timestamp).
+pub fn frame_record(frame: &Frame, t: std::time::Duration) -> CanFrameRecord {
+    use exocal_bus::embedded_can::Frame as _;
+    let ns = t.as_nanos().min(u128::from(u64::MAX)) as u64;
+    CanFrameRecord {
+        id: frame.raw_id(),
+        extended: frame.is_extended(),
+        remote: frame.is_remote_frame(),
+        dlc: frame.dlc() as u8,
+        data: frame.data().to_vec(),
+        host_ns: ns,
+        kernel_ns: Some(ns),
+    }
+}
+
+fn quat_wxyz(r: &nalgebra::Matrix3<f64>) -> [f64; 4] {
+    let q = nalgebra::UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix(r));
+    [q.w, q.i, q.j, q.k]
+}
+
+/// The arm's frames at joint readings `q` for `table`, in the exported URDF's convention: link
+/// `i` turns about its z axis by reading `q[i-1]` (plus the row's θ offset) at the previous row's
+/// `Tz(d) Tx(a) Rx(α)`; [`TOOL_FRAME`] sits at the last row's. Composed, they are the table's
+/// forward kinematics.
+pub fn arm_transforms(table: &calib_core::DhTable<JOINTS>, q: &[f64; JOINTS]) -> Vec<Link> {
+    use nalgebra::{Matrix3, Rotation3, Vector3};
+    let tail = |row: &calib_core::DhRow| -> (Matrix3<f64>, Vector3<f64>) {
+        (
+            *Rotation3::from_axis_angle(&Vector3::x_axis(), row.alpha).matrix(),
+            Vector3::new(row.a, 0.0, row.d),
+        )
+    };
+    let name = |i: usize| match i {
+        0 => BASE_FRAME.to_string(),
+        i if i > JOINTS => TOOL_FRAME.to_string(),
+        i => format!("link{i}"),
+    };
+    let mut links = Vec::with_capacity(JOINTS + 1);
+    for (i, (row, &qi)) in table.rows.iter().zip(q).enumerate() {
+        let (r0, p) = match i.checked_sub(1) {
+            None => (Matrix3::identity(), Vector3::zeros()),
+            Some(prev) => tail(&table.rows[prev]),
+        };
+        let rz = Rotation3::from_axis_angle(&Vector3::z_axis(), qi + row.theta_offset);
+        links.push(Link {
+            parent: name(i),
+            child: name(i + 1),
+            transform: Transform {
+                translation: [p.x, p.y, p.z],
+                rotation_wxyz: quat_wxyz(&(r0 * rz.matrix())),
+            },
+        });
+    }
+    let (r, p) = tail(&table.rows[JOINTS - 1]);
+    links.push(Link {
+        parent: name(JOINTS),
+        child: name(JOINTS + 1),
+        transform: Transform {
+            translation: [p.x, p.y, p.z],
+            rotation_wxyz: quat_wxyz(&r),
+        },
+    });
+    links
+}
+
+fn dh_row(r: &NodeRow) -> proto::DhRow {
+    proto::DhRow {
+        a: r.a,
+        alpha: r.alpha,
+        d: r.d,
+        theta_offset: r.theta_offset,
+        tau: r.tau,
+        sigma: r.sigma,
+    }
+}
+
+/// The calibration result as logged: the outcome, the clock fits and grid figures, and the
+/// push report once there is one.
+pub fn calibration_record(
+    outcome: &Outcome,
+    clocks: &[ClockReport],
+    aligned_samples: usize,
+    gaps: usize,
+    push: Option<&PushReport>,
+) -> proto::Calibration {
+    let v = &outcome.verdict;
+    proto::Calibration {
+        before: outcome.before.iter().map(dh_row).collect(),
+        after: outcome.node_rows.iter().map(dh_row).collect(),
+        refused: v.reasons.iter().map(ToString::to_string).collect(),
+        fit_samples: outcome.fit_samples as u64,
+        heldout_samples: outcome.heldout_samples as u64,
+        condition_number: v.condition_number,
+        expected_position_mm: v.expected.map(|e| e.position_mm),
+        expected_rotation_mrad: v.expected.map(|e| e.rotation_mrad),
+        heldout_nominal: v.nominal.mean_error,
+        heldout_calibrated: v.candidate.mean_error,
+        heldout_t: v.heldout_t,
+        ls_iterations: outcome.ls.iterations as u64,
+        em_iterations: outcome.em.as_ref().map_or(0, |e| e.iterations as u64),
+        em_converged: outcome.em.as_ref().is_some_and(|e| e.converged),
+        em_error: outcome.em_error.map_or_else(String::new, |e| e.to_string()),
+        clocks: clocks
+            .iter()
+            .map(|c| proto::ClockFit {
+                node: c.node.clone(),
+                samples: c.samples as u64,
+                unmapped: c.unmapped as u64,
+                jumps: c.jumps as u64,
+                skew_ppm: c.skew_ppm,
+                residual_rms_us: c.residual_rms_us,
+                outliers: c.outliers as u64,
+            })
+            .collect(),
+        aligned_samples: aligned_samples as u64,
+        gaps: gaps as u64,
+        drift: outcome
+            .em
+            .as_ref()
+            .and_then(|em| em.drift_95)
+            .map_or_else(Vec::new, |d| {
+                d.iter()
+                    .map(|d| proto::DriftFit {
+                        tau_s: d.tau_s,
+                        tau_low_s: d.tau_95_s[0],
+                        tau_high_s: d.tau_95_s[1],
+                        sigma_mrad: d.sigma_mrad,
+                        sigma_low_mrad: d.sigma_95_mrad[0],
+                        sigma_high_mrad: d.sigma_95_mrad[1],
+                    })
+                    .collect()
+            }),
+        reading_drift_rms_mrad: outcome.reading_drift_rms.iter().map(|r| r * 1e3).collect(),
+        push: push.map_or_else(Vec::new, |p| {
+            p.nodes
+                .iter()
+                .map(|n| proto::NodePush {
+                    node: n.node.clone(),
+                    new_crc: n.new_crc,
+                    held_crc: n.held_crc,
+                    holds: match n.holds {
+                        Holds::New => "new",
+                        Holds::Old => "old",
+                        Holds::Unknown => "unknown",
+                    }
+                    .to_string(),
+                    attempts: n.attempts,
+                    error: n.error.clone().unwrap_or_default(),
+                    authenticated: n.authenticated,
+                })
+                .collect()
+        }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+
+    fn iso(t: &Transform) -> Isometry3<f64> {
+        let [w, x, y, z] = t.rotation_wxyz;
+        Isometry3::from_parts(
+            Translation3::new(t.translation[0], t.translation[1], t.translation[2]),
+            UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z)),
+        )
+    }
+
+    #[test]
+    fn the_arm_frames_compose_to_the_tables_forward_kinematics() {
+        let table = calib_core::DhTable::<JOINTS>::paper_nominal();
+        let q = [0.3, -0.7, 0.2, 1.1, -0.1, 0.25, 0.6];
+        let links = arm_transforms(&table, &q);
+        assert_eq!(links.len(), JOINTS + 1);
+        assert_eq!(links[0].parent, "base_link");
+        assert_eq!(links[1].parent, "link1");
+        assert_eq!(links[JOINTS].child, "tool0");
+        for w in links.windows(2) {
+            assert_eq!(w[0].child, w[1].parent);
+        }
+        let chain = links
+            .iter()
+            .fold(Isometry3::identity(), |acc, l| acc * iso(&l.transform));
+        let fk = table.fk(&q);
+        assert!((chain.translation.vector - fk.p).norm() < 1e-12);
+        assert!((chain.rotation.to_rotation_matrix().matrix() - fk.r).norm() < 1e-12);
+    }
+}

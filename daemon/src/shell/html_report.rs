@@ -1,0 +1,87 @@
+//! The HTML calibration report of a session, for live and offline runs alike.
+//!
+//! Contract:
+//! - [`report_input`] turns what the pipeline computed ([`Calibrated`]: the samples, the split,
+//!   the summary and the detail) into an [`exocal_report::ReportInput`]: the report shows
+//!   exactly the data and the split the calibration used, and computes no calibration itself;
+//! - [`render`] renders a session's report: its calibration's, or why there is none; the
+//!   data-quality part comes with what was collected ([`Collected::quality`]);
+//! - a live session writes its report next to its MCAP log ([`report_path_for_log`]:
+//!   `exocal-….mcap` → `exocal-….html`); a report that cannot be written is a warning in the
+//!   session, never a reason to withhold a validated table.
+
+use std::path::{Path, PathBuf};
+
+use exocal_report::{Quality, ReportInput, SessionInput, VerdictSummary};
+
+use exocal_session::align::AlignedSample;
+use exocal_session::collect::Collected;
+use exocal_session::pipeline::{timed, Calibrated};
+use exocal_session::Settings;
+
+/// The report next to a session log: same folder and stem, extension `html`.
+pub fn report_path_for_log(log: &Path) -> PathBuf {
+    log.with_extension("html")
+}
+
+/// The report of a calibration (see the module docs).
+pub fn report_input(
+    title: String,
+    source: String,
+    settings: &Settings,
+    calibrated: &Calibrated,
+    quality: Quality,
+) -> ReportInput {
+    let verdict = &calibrated.outcome.verdict;
+    ReportInput {
+        title,
+        source,
+        nominal: settings.nominal,
+        calibration: calibrated.detail.clone(),
+        judged: Some(calibrated.judged),
+        fit: calibrated.fit().to_vec(),
+        held_out: calibrated.held_out().to_vec(),
+        quality,
+        verdict: Some(VerdictSummary {
+            accepted: verdict.accepted(),
+            reasons: verdict.reasons.iter().map(ToString::to_string).collect(),
+        }),
+    }
+}
+
+/// The HTML report of a session, live or offline: its calibration's when there is one (`Ok`),
+/// else (`Err`: why not, one line per reason) what the session had.
+pub fn render(
+    title: String,
+    source: String,
+    settings: &Settings,
+    collected: &Collected,
+    calibrated: Result<&Calibrated, &[String]>,
+) -> String {
+    let quality = collected.quality.clone();
+    match calibrated {
+        Ok(c) => exocal_report::html::render(&report_input(title, source, settings, c, quality)),
+        Err(why) => {
+            let input = session_input(title, source, &collected.samples, why.to_vec(), quality);
+            exocal_report::html::render_session(&input)
+        }
+    }
+}
+
+/// The report of a session that was not calibrated (`reasons`: the session rules it did not
+/// meet), with the data it had.
+pub fn session_input(
+    title: String,
+    source: String,
+    samples: &[AlignedSample],
+    reasons: Vec<String>,
+    quality: Quality,
+) -> SessionInput {
+    SessionInput {
+        title,
+        source,
+        reasons,
+        samples: timed(samples),
+        quality,
+    }
+}

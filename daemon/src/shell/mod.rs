@@ -1,0 +1,9 @@
+//! One live session and what it needs around the data path: the session loop, the fan-out of
+//! its records, systemd notification, signals, the printed summary and the HTML report file.
+
+pub mod html_report;
+pub mod notify;
+pub mod runner;
+pub mod shutdown;
+pub mod summary;
+pub mod tee;

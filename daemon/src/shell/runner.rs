@@ -1,0 +1,1157 @@
+//! One calibration session on any transport: collect → align → calibrate → validate → push,
+//! with the MCAP log written throughout.
+//!
+//! Contract:
+//! - [`run_session`] owns the session's log: it is created first and finished on every path
+//!   (success, refusal, error, shutdown), so a session always leaves a readable file;
+//! - nothing is pushed unless the calibration passed validation, the session was not
+//!   interrupted, and `dry_run` is off; a shutdown (the `shutdown` future completing) before the
+//!   push starts ends the session with [`DaemonError::Interrupted`]; once started, the push runs
+//!   to its end (it is bounded by the push policy, and every node transfer is atomic);
+//! - session time (durations, push timeouts, log times) is `clock` — the wall clock on SocketCAN,
+//!   a [`exocal_bus::SimClock`] on the in-process bus — so a simulated suit at any speed sees the
+//!   same behaviour; the housekeeping tick and the push's wait for replies are tokio timers (on
+//!   the demo's paused runtime they are simulated too, which makes the demo reproducible);
+//!   the watchdog and the log's flush cadence use real time and never decide what is collected;
+//! - the heavy calibration runs on a blocking thread while the loop keeps draining (and
+//!   logging) the bus, feeding the watchdog and flushing the log.
+
+use std::future::Future;
+use std::io::{BufWriter, Write};
+use std::path::PathBuf;
+use std::pin::Pin;
+use std::time::{Duration, Instant};
+
+use exocal_bus::{Clock, Frame, Received, Transport};
+use exocal_dbc::table::Table;
+use exocal_dbc::NodeId;
+use serde::Serialize;
+
+use crate::config::Config;
+use crate::exit::DaemonError;
+use crate::live::LiveView;
+use crate::log::mcaplog::{CollectionEnd, Counts, Level, LogError, SessionLog};
+use crate::log::records::{self, Transform};
+use crate::push::{push_tables, PushObserver, PushReport};
+use crate::shell::notify::{Notifier, Reporter};
+use crate::shell::tee::Recorder;
+use exocal_session::collect::{Collected, Collector};
+use exocal_session::estimate::{Estimate, EstimateJob};
+use exocal_session::ingest::{ClockReport, Event, FrameStats, StallReport};
+use exocal_session::pipeline::{self, Calibrated, Outcome};
+use exocal_session::window::{Phase, Shortfall};
+
+/// Real time between two turns of the housekeeping tick.
+pub const TICK: Duration = Duration::from_millis(100);
+/// A clock fit whose residual exceeds this (µs RMS) is reported as unreliable. Receive jitter
+/// averages out in the fit (an in-process bus whose hil sends frames in ~10 ms batches sees ~5 ms
+/// RMS and still aligns well); tens of ms mean the timestamps cannot be trusted.
+pub const CLOCK_RESIDUAL_WARN_US: f64 = 20_000.0;
+/// Records written in one go between two housekeeping turns (the log's flush, the watchdog).
+pub const RECORDS_PER_TURN: usize = 256;
+
+/// Rate (Hz) at which the arm's frames are written to `/tf` for Foxglove.
+pub const TF_HZ: f64 = 20.0;
+
+/// What a session did (also when it failed: see [`SessionError`]).
+#[derive(Debug, Clone, Serialize)]
+pub struct SessionSummary {
+    /// The session log (for an offline run, the input).
+    pub log_path: PathBuf,
+    /// Messages written to the log, per topic: `(topic, count)`.
+    pub log_counts: Vec<(String, u64)>,
+    /// Frames received in the collection window: those the calibration used (frames that
+    /// arrive while calibrating and pushing are not counted), as an offline replay of the log
+    /// counts them.
+    pub frames: FrameStats,
+    /// One report per node clock (joints, then the end effector).
+    pub clocks: Vec<ClockReport>,
+    /// Receiver stalls (not counted in any node's clock jumps).
+    pub stalls: StallReport,
+    /// Samples on the common grid.
+    pub aligned_samples: usize,
+    /// Grid points excluded as gaps.
+    pub gaps: usize,
+    /// The calibration; `None` when none was computed.
+    pub outcome: Option<Outcome>,
+    /// The push, per node; `None` when nothing was pushed.
+    pub push: Option<PushReport>,
+    /// The HTML calibration report, once written (next to the log for a live session).
+    pub report_path: Option<PathBuf>,
+    /// What the user waited after the collection window, when every node's table was verified.
+    pub latency: Option<Latency>,
+}
+
+/// The power-up latency: from the end of the collection window until every node's table was
+/// verified (CRC read back) — alignment, calibration, validation, report and push.
+///
+/// `real` is this machine's monotonic clock over that span; `session` the session clock's. On
+/// the wall clock (SocketCAN) the two agree and the latency is `real`. On simulated time (the
+/// demo) the session clock stands still while the daemon computes and the real clock hardly
+/// moves while the emulated bus and nodes answer, so the latency a suit on a real bus would see
+/// is their sum: this machine's computing plus the bus's and the nodes' time as emulated.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Latency {
+    /// This machine's monotonic clock from the end of the window to the last verified table.
+    pub real: Duration,
+    /// The session clock over the same span.
+    pub session: Duration,
+    /// Whether the session clock was simulated.
+    pub simulated: bool,
+}
+
+impl Latency {
+    /// The latency a user waits: see [`Latency`].
+    pub fn total(&self) -> Duration {
+        if self.simulated {
+            self.real + self.session
+        } else {
+            self.real
+        }
+    }
+}
+
+impl SessionSummary {
+    /// The summary of a session logged to `log_path` (or replayed from it) that did nothing yet.
+    pub fn new(log_path: PathBuf) -> SessionSummary {
+        SessionSummary {
+            log_path,
+            log_counts: Vec::new(),
+            frames: FrameStats::default(),
+            clocks: Vec::new(),
+            stalls: StallReport::default(),
+            aligned_samples: 0,
+            gaps: 0,
+            outcome: None,
+            push: None,
+            report_path: None,
+            latency: None,
+        }
+    }
+
+    /// Records what the session collected.
+    pub fn collected(&mut self, c: &Collected) {
+        self.frames = c.frames.clone();
+        self.clocks = c.clocks.clone();
+        self.stalls = c.stalls;
+        self.aligned_samples = c.samples.len();
+        self.gaps = c.gaps;
+    }
+}
+
+/// A failed session: why, and what it did up to then (the log is finished).
+#[derive(Debug)]
+pub struct SessionError {
+    /// Why the session failed.
+    pub error: DaemonError,
+    /// What it did up to then; `None` when it failed before it started.
+    pub summary: Option<SessionSummary>,
+}
+
+impl From<DaemonError> for SessionError {
+    fn from(error: DaemonError) -> Self {
+        SessionError {
+            error,
+            summary: None,
+        }
+    }
+}
+
+impl From<DaemonError> for Box<SessionError> {
+    fn from(error: DaemonError) -> Self {
+        Box::new(SessionError::from(error))
+    }
+}
+
+fn io_err(what: &str, e: LogError) -> DaemonError {
+    DaemonError::Log {
+        what: what.to_string(),
+        source: e,
+    }
+}
+
+fn ns(d: Duration) -> u64 {
+    d.as_nanos().min(u128::from(u64::MAX)) as u64
+}
+
+/// The log (and the session's other observers), the notifier and the reporter, and the
+/// real-time start, bundled for the loop.
+struct Io<'a> {
+    log: Recorder<'a, BufWriter<std::fs::File>>,
+    notifier: &'a mut Notifier,
+    reporter: &'a mut Reporter,
+    started: Instant,
+    log_error: Option<LogError>,
+}
+
+impl Io<'_> {
+    /// Remembers the first log error (the session then ends with it) and carries on.
+    fn check(&mut self, r: Result<(), LogError>) {
+        if let Err(e) = r {
+            self.log_error.get_or_insert(e);
+        }
+    }
+
+    /// The first log error, if any, as the session's error.
+    fn log_failed(&mut self) -> Result<(), DaemonError> {
+        match self.log_error.take() {
+            Some(e) => Err(io_err("writing the log", e)),
+            None => Ok(()),
+        }
+    }
+
+    fn housekeeping(&mut self) {
+        let now = self.started.elapsed();
+        let r = self.log.tick(ns(now)).map(|_| ());
+        self.check(r);
+        self.notifier.watchdog(now);
+    }
+
+    /// Between two of many records written in one go (a session's aligned samples, its arm
+    /// on the calibrated table): every [`RECORDS_PER_TURN`] records, the housekeeping turn
+    /// (flush, watchdog), so a long session's log writing cannot starve the watchdog.
+    fn between_records(&mut self, written: usize) {
+        if written % RECORDS_PER_TURN == RECORDS_PER_TURN - 1 {
+            self.housekeeping();
+        }
+    }
+
+    fn event(&mut self, t: Duration, level: Level, message: &str) {
+        if level >= Level::Warning {
+            self.reporter.message(message);
+        }
+        let r = self.log.event(ns(t), level, message);
+        self.check(r);
+    }
+
+    fn frame(&mut self, sent: bool, frame: &Frame, t: Duration) {
+        let r = self.log.can_frame(sent, &records::frame_record(frame, t));
+        self.check(r);
+    }
+
+    /// Logs one received frame and feeds it to the collection.
+    fn take_frame(&mut self, rx: &Received, collector: &mut Collector) {
+        self.frame(false, &rx.frame, rx.timestamp);
+        let t = ns(rx.timestamp);
+        match collector.on_frame(rx) {
+            Event::Joint {
+                joint, angle, rate, ..
+            } => {
+                let r = self.log.joint_state(t, joint + 1, angle, rate);
+                self.check(r);
+            }
+            Event::Pose(p) => {
+                let pose = Transform {
+                    translation: p.position,
+                    rotation_wxyz: p.quat,
+                };
+                let r = self.log.ee_pose(t, &pose);
+                self.check(r);
+            }
+            Event::Unknown(e) | Event::Malformed(e) => {
+                // The first few are worth a line each; the counters carry the rest.
+                let s = collector.ingest.stats();
+                if s.unknown + s.malformed <= 10 {
+                    self.event(rx.timestamp, Level::Warning, &format!("bad frame: {e}"));
+                }
+            }
+            Event::Message(exocal_dbc::Message::Trigger(t))
+                if t.command == exocal_dbc::TriggerCommand::StartCalibration =>
+            {
+                self.event(
+                    rx.timestamp,
+                    Level::Warning,
+                    "trigger ignored (CAN Trigger frame): a session is running",
+                );
+            }
+            Event::Message(_) | Event::Partial => {}
+        }
+    }
+}
+
+impl PushObserver for Io<'_> {
+    fn frame(&mut self, sent: bool, frame: &Frame, t: Duration) {
+        Io::frame(self, sent, frame, t);
+    }
+
+    fn tick(&mut self) {
+        self.housekeeping();
+    }
+}
+
+/// Node tables to push, from the calibrated rows.
+pub fn node_tables(outcome: &Outcome, config: &Config) -> Result<Vec<(NodeId, Table)>, String> {
+    outcome
+        .node_rows
+        .iter()
+        .enumerate()
+        .map(|(i, r)| {
+            let node = NodeId::new(config.calibration.joint_nodes[i])
+                .ok_or_else(|| format!("joint {}: no node id", i + 1))?;
+            let table = Table::from_si(r.a, r.alpha, r.d, r.theta_offset, r.tau, r.sigma)
+                .map_err(|e| format!("{node}: the table does not fit the DBC: {e}"))?;
+            Ok((node, table))
+        })
+        .collect()
+}
+
+/// Runs one session on `bus` (see the module docs). `clock` is the bus clock. With
+/// `[live] enabled`, the live view serves the session (started here, stopped at its end).
+pub async fn run_session<T: Transport>(
+    bus: &mut T,
+    clock: &Clock,
+    config: &Config,
+    dry_run: bool,
+    shutdown: impl Future<Output = ()>,
+    notifier: &mut Notifier,
+    reporter: &mut Reporter,
+) -> Result<SessionSummary, SessionError> {
+    let live = match config.live.enabled {
+        true => Some(LiveView::start(config.live.listen, config).map_err(DaemonError::from)?),
+        false => None,
+    };
+    if let Some(live) = &live {
+        reporter.message(&format!(
+            "live view: connect Foxglove to ws://{}:{}",
+            config.live.listen.ip(),
+            live.port()
+        ));
+    }
+    run_session_with(
+        bus,
+        clock,
+        config,
+        dry_run,
+        shutdown,
+        notifier,
+        reporter,
+        live.as_ref(),
+    )
+    .await
+}
+
+/// [`run_session`] with the live view `live` (whoever started it keeps it after the session).
+#[allow(clippy::too_many_arguments)]
+pub async fn run_session_with<T: Transport>(
+    bus: &mut T,
+    clock: &Clock,
+    config: &Config,
+    dry_run: bool,
+    shutdown: impl Future<Output = ()>,
+    notifier: &mut Notifier,
+    reporter: &mut Reporter,
+    live: Option<&LiveView>,
+) -> Result<SessionSummary, SessionError> {
+    let start = clock.now();
+    let flush_ns = (config.output.flush_interval_s * 1e9) as u64;
+    let (log_path, log) = SessionLog::create_in(&config.output.directory, ns(start), flush_ns)
+        .map_err(|e| {
+            io_err(
+                &format!("creating the log in {}", config.output.directory.display()),
+                e,
+            )
+        })?;
+    let mut io = Io {
+        log: Recorder::new(log, live),
+        notifier,
+        reporter,
+        started: Instant::now(),
+        log_error: None,
+    };
+    io.reporter
+        .message(&format!("logging to {}", log_path.display()));
+    io.event(
+        start,
+        Level::Info,
+        &format!("session started on {}", config.interface),
+    );
+    io.notifier.ready("collecting free motion");
+    io.housekeeping();
+
+    let mut tick = tokio::time::interval(TICK);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut running = Running {
+        bus,
+        clock,
+        config,
+        io: &mut io,
+        collector: Collector::new(&config.calibration),
+        origin: Duration::ZERO,
+        tick,
+        summary: SessionSummary::new(log_path),
+    };
+    tokio::pin!(shutdown);
+    let result = running.run(dry_run, start, shutdown).await;
+    let mut summary = running.summary;
+    io.reporter.finish();
+    if let Err(e) = &result {
+        // Into the log only: the caller reports the error (the binary prints it once).
+        let r = io.log.event(ns(clock.now()), Level::Error, &e.to_string());
+        io.check(r);
+    }
+    io.notifier.stopping();
+    let counts: Counts = io.log.counts();
+    let log_error = io.log_error.take();
+    let finished = io.log.finish();
+    summary.log_counts = counts
+        .iter()
+        .map(|(t, n)| (t.name().to_string(), *n))
+        .collect();
+    let result = match (result, log_error, finished) {
+        (Err(e), _, _) => Err(e),
+        (Ok(()), Some(e), _) | (Ok(()), None, Err(e)) => Err(io_err("writing the log", e)),
+        (Ok(()), None, Ok(_)) => Ok(()),
+    };
+    match result {
+        Ok(()) => Ok(summary),
+        Err(error) => Err(SessionError {
+            error,
+            summary: Some(summary),
+        }),
+    }
+}
+
+/// One live session in progress: the bus, the log and what was collected so far. Its steps
+/// run in order — [`Live::collect`], [`Live::align`], [`Live::calibrate`], [`Live::push`] —
+/// and each keeps the bus drained, the log flushed and the watchdog fed while it waits.
+struct Running<'a, 'io, T> {
+    bus: &'a mut T,
+    clock: &'a Clock,
+    config: &'a Config,
+    io: &'a mut Io<'io>,
+    collector: Collector,
+    /// Bus time of the collection's first frame: aligned sample times are relative to it.
+    origin: Duration,
+    tick: tokio::time::Interval,
+    summary: SessionSummary,
+}
+
+impl<T: Transport> Running<'_, '_, T> {
+    /// The whole session after the log is open; `start` is its bus-clock start.
+    async fn run<S: Future<Output = ()>>(
+        &mut self,
+        dry_run: bool,
+        start: Duration,
+        mut shutdown: Pin<&mut S>,
+    ) -> Result<(), DaemonError> {
+        if let Err(e) = self.collect(shutdown.as_mut()).await {
+            self.summary.frames = self.collector.ingest.stats().clone();
+            return Err(e);
+        }
+        let window_closed = (Instant::now(), self.clock.monotonic());
+        let collected = self.align(shutdown.as_mut()).await?;
+        self.summary.collected(&collected);
+        let calibrated = self.calibrate(&collected, shutdown.as_mut()).await?;
+        self.log_result(&collected, &calibrated);
+        let accepted = calibrated.outcome.verdict.accepted();
+        let reasons = calibrated.outcome.verdict.reasons.clone();
+        self.summary.outcome = Some(calibrated.outcome);
+        if !accepted {
+            return Err(DaemonError::Validation(reasons));
+        }
+        if dry_run {
+            self.io
+                .event(self.clock.now(), Level::Info, "dry run: nothing pushed");
+            return Ok(());
+        }
+        self.io.log_failed()?;
+        // Last chance to stop before touching the nodes.
+        if futures_ready(&mut shutdown) {
+            return Err(DaemonError::Interrupted);
+        }
+        self.push(start).await?;
+        self.summary.latency = Some(Latency {
+            real: window_closed.0.elapsed(),
+            session: self.clock.monotonic().saturating_sub(window_closed.1),
+            simulated: matches!(self.clock, Clock::Simulated(_)),
+        });
+        Ok(())
+    }
+
+    /// Step 1: collects until the session rules are met (or cannot be). The tick goes before
+    /// the bus so a saturated bus cannot starve the watchdog.
+    async fn collect<S: Future<Output = ()>>(
+        &mut self,
+        mut shutdown: Pin<&mut S>,
+    ) -> Result<(), DaemonError> {
+        // The window is timed on the clock's monotonic reading: a step of the host's wall clock
+        // (NTP at boot) neither stretches nor cuts it.
+        let started = self.clock.monotonic();
+        let required = self.config.calibration.window.excitation_required;
+        let mut estimate_job: Option<tokio::task::JoinHandle<Option<Estimate>>> = None;
+        let mut last_estimate_s = 0.0;
+        let every = EstimateJob::every_s(&self.config.calibration);
+        loop {
+            tokio::select! {
+                biased;
+                () = &mut shutdown => return Err(DaemonError::Interrupted),
+                _ = self.tick.tick() => {
+                    self.io.housekeeping();
+                    let elapsed = self.clock.monotonic().saturating_sub(started).as_secs_f64();
+                    if estimate_job.is_none() && elapsed - last_estimate_s >= every {
+                        last_estimate_s = elapsed;
+                        let job = EstimateJob::of(&self.collector, &self.config.calibration);
+                        estimate_job = Some(tokio::task::spawn_blocking(|| job.run()));
+                    }
+                    let session = &self.collector.window;
+                    let progress = session.progress(elapsed);
+                    self.io.reporter.update(&progress, required, self.io.notifier);
+                    let r = self.io.log.progress(ns(self.clock.now()), &progress);
+                    self.io.check(r);
+                    match session.phase(elapsed) {
+                        Phase::Collecting => {}
+                        Phase::Ready => break,
+                        Phase::Failed(why) => {
+                            if let Some(job) = estimate_job.take() {
+                                job.abort();
+                            }
+                            self.summary.frames = self.collector.ingest.stats().clone();
+                            self.session_report(&why, shutdown.as_mut()).await?;
+                            return Err(DaemonError::Session(why));
+                        }
+                    }
+                }
+                done = async { estimate_job.as_mut().expect("guarded").await }, if estimate_job.is_some() => {
+                    estimate_job = None;
+                    if let Ok(Some(e)) = done {
+                        self.collector.window.set_condition_number(e.condition);
+                        if let Some(x) = e.expected {
+                            self.collector.window.set_expected(x);
+                        }
+                    }
+                }
+                rx = self.bus.recv() => {
+                    let rx = rx.map_err(|source| DaemonError::Bus { what: "receiving CAN".into(), source })?;
+                    self.io.take_frame(&rx, &mut self.collector);
+                }
+            }
+            self.io.log_failed()?;
+        }
+        if let Some(job) = estimate_job {
+            job.abort();
+        }
+        let s = self.collector.ingest.stats().clone();
+        let now = self.clock.now();
+        // The record `exocald offline` honours: a replay of this log calibrates on the first
+        // `frames` frames of /can/rx, as this session did.
+        let end = CollectionEnd {
+            frames: s.received,
+            window_end_ns: ns(now),
+            unknown: s.unknown,
+            malformed: s.malformed,
+            invalid_angles: s.invalid_angles,
+            dropped: self.bus.dropped(),
+        };
+        let r = self.io.log.collection_end(&end);
+        self.io.check(r);
+        self.io.event(
+            now,
+            Level::Info,
+            &format!(
+                "collection done: {} frames ({} unknown, {} malformed, {} invalid angles, {} dropped by the receiver)",
+                s.received, s.unknown, s.malformed, s.invalid_angles, end.dropped
+            ),
+        );
+        for (node, repeats) in s.babbling() {
+            self.io.event(
+                now,
+                Level::Warning,
+                &format!("{node} is babbling: {repeats} frames repeated verbatim"),
+            );
+        }
+        Ok(())
+    }
+
+    /// Step 2: aligns what was collected (on a blocking thread: the clock fits and the
+    /// resampling are seconds of CPU on a slow controller); logs the aligned samples and what
+    /// the clocks showed.
+    async fn align<S: Future<Output = ()>>(
+        &mut self,
+        shutdown: Pin<&mut S>,
+    ) -> Result<Collected, DaemonError> {
+        let collected = self.aligned_off_loop(shutdown).await?;
+        let now = self.clock.now();
+        let stalls = collected.stalls;
+        if stalls.count > 0 {
+            let line = format!(
+                "{stalls}: every node's frames arrived late together while their clocks ran on; \
+                 their samples are kept on the nodes' clocks (not clock jumps)"
+            );
+            self.io.event(now, Level::Warning, &line);
+        }
+        for c in &collected.clocks {
+            if let Some(r) = c.residual_rms_us.filter(|&r| r > CLOCK_RESIDUAL_WARN_US) {
+                let line = format!(
+                    "{}: receive-time residual {r:.0} µs RMS: timestamps are unreliable (a \
+                     lagging sender or a loaded receiver); expect a poor alignment",
+                    c.node
+                );
+                self.io.event(now, Level::Warning, &line);
+            }
+            if c.jumps > 0 || c.unmapped > 0 {
+                let line = format!(
+                    "{}: {} clock jump(s)/reboot(s), {} samples excluded",
+                    c.node, c.jumps, c.unmapped
+                );
+                self.io.event(now, Level::Warning, &line);
+            }
+        }
+        for (i, s) in collected.samples.iter().enumerate() {
+            let r = self.io.log.aligned(self.log_time(s.t), s);
+            self.io.check(r);
+            self.io.between_records(i);
+        }
+        self.io.event(
+            now,
+            Level::Info,
+            &format!(
+                "aligned {} samples on a {} Hz grid, {} grid points excluded as gaps",
+                collected.samples.len(),
+                self.config.calibration.window.grid_hz,
+                collected.gaps
+            ),
+        );
+        Ok(collected)
+    }
+
+    /// The collection, aligned on a blocking thread while the loop keeps the bus drained, the
+    /// log flushed and the watchdog fed. The collection moves to the job (no copy of a long
+    /// session); a fresh collector decodes, for the log, what arrives afterwards.
+    async fn aligned_off_loop<S: Future<Output = ()>>(
+        &mut self,
+        shutdown: Pin<&mut S>,
+    ) -> Result<Collected, DaemonError> {
+        self.origin = self.collector.ingest.origin().unwrap_or_default();
+        let collector = std::mem::replace(
+            &mut self.collector,
+            Collector::new(&self.config.calibration),
+        );
+        let config = self.config.clone();
+        self.off_loop("aligning", shutdown, move || {
+            collector.collected(&config.calibration)
+        })
+        .await
+    }
+
+    /// Runs `job` on tokio's blocking pool while this thread keeps the bus drained (and
+    /// logged), the log flushed and the watchdog fed: no CPU-bound step runs on the loop's
+    /// thread, so none can starve the watchdog however slow or busy the controller.
+    async fn off_loop<R: Send + 'static, S: Future<Output = ()>>(
+        &mut self,
+        what: &str,
+        mut shutdown: Pin<&mut S>,
+        job: impl FnOnce() -> R + Send + 'static,
+    ) -> Result<R, DaemonError> {
+        let job = tokio::task::spawn_blocking(job);
+        tokio::pin!(job);
+        let done = loop {
+            tokio::select! {
+                biased;
+                () = &mut shutdown => return Err(DaemonError::Interrupted),
+                done = &mut job => break done,
+                _ = self.tick.tick() => self.io.housekeeping(),
+                rx = self.bus.recv() => {
+                    if let Ok(rx) = rx {
+                        self.io.take_frame(&rx, &mut self.collector);
+                    }
+                }
+            }
+        };
+        done.map_err(|e| DaemonError::Internal {
+            what: format!("in the {what} task"),
+            source: Box::new(e),
+        })
+    }
+
+    /// Step 3: runs the pipeline and renders the report on a blocking thread, the bus drained
+    /// and the watchdog fed meanwhile; writes the report next to the log.
+    async fn calibrate<S: Future<Output = ()>>(
+        &mut self,
+        collected: &Collected,
+        shutdown: Pin<&mut S>,
+    ) -> Result<Calibrated, DaemonError> {
+        self.io.notifier.status("calibrating");
+        self.io
+            .reporter
+            .message("calibrating (least squares, then EM)");
+        let (calibration, source) = self.report_titles("calibration");
+        let (session, _) = self.report_titles("session");
+        let (input, cfg) = (collected.clone(), self.config.clone());
+        // The report is rendered on the blocking thread too: it is a few hundred ms of SVG.
+        let (calibrated, html) = self
+            .off_loop("calibration", shutdown, move || {
+                let calibrated = pipeline::run(&input.samples, &cfg.calibration);
+                let (title, reasons) = match &calibrated {
+                    Err(e) => (session, vec![e.to_string()]),
+                    Ok(_) => (calibration, Vec::new()),
+                };
+                let html = crate::shell::html_report::render(
+                    title,
+                    source,
+                    &cfg.calibration,
+                    &input,
+                    calibrated.as_ref().map_err(|_| reasons.as_slice()),
+                );
+                (calibrated, html)
+            })
+            .await?;
+        // The samples would not calibrate: the report says why, as for a session that ran out
+        // of time.
+        self.write_report(&html, "calibration report");
+        Ok(calibrated?)
+    }
+
+    /// The calibration's record, its line and the arm on the calibrated table, into the log.
+    fn log_result(&mut self, collected: &Collected, calibrated: &Calibrated) {
+        let table = calibrated.outcome.table();
+        let step = ((self.config.calibration.window.grid_hz / TF_HZ).round() as usize).max(1);
+        for (i, s) in collected.samples.iter().step_by(step).enumerate() {
+            let links = records::arm_transforms(&table, &s.joints);
+            let r = self.io.log.arm_transforms(self.log_time(s.t), &links);
+            self.io.check(r);
+            self.io.between_records(i);
+        }
+        let s = &self.summary;
+        let record = records::calibration_record(
+            &calibrated.outcome,
+            &s.clocks,
+            s.aligned_samples,
+            s.gaps,
+            None,
+        );
+        let now = self.clock.now();
+        let r = self.io.log.calibration(ns(now), &record);
+        self.io.check(r);
+        let v = &calibrated.outcome.verdict;
+        self.io.event(
+            now,
+            Level::Info,
+            &format!(
+                "expected table error {}; held-out pose error {:.3e} → {:.3e} ({:.1}% better than nominal, paired t {:.1}), condition number {:.3e}",
+                v.expected
+                    .map_or_else(|| "unknown".to_string(), |e| e.to_string()),
+                v.nominal.mean_error,
+                v.candidate.mean_error,
+                v.improvement * 100.0,
+                v.heldout_t,
+                v.condition_number
+            ),
+        );
+    }
+
+    /// Step 4: pushes the validated table to every node with CRC readback.
+    async fn push(&mut self, start: Duration) -> Result<(), DaemonError> {
+        let outcome = self
+            .summary
+            .outcome
+            .as_ref()
+            .ok_or(DaemonError::Interrupted)?;
+        let tables = node_tables(outcome, self.config).map_err(DaemonError::Unpushable)?;
+        self.io.notifier.status("pushing tables");
+        self.io.reporter.message("pushing the tables to the nodes");
+        let first_session = (ns(start) / 1_000_000 % 251) as u8;
+        let report = push_tables(
+            self.bus,
+            self.clock,
+            &tables,
+            &self.config.push,
+            first_session,
+            self.io,
+        )
+        .await
+        .map_err(|source| DaemonError::Bus {
+            what: "pushing tables".into(),
+            source,
+        })?;
+        let now = self.clock.now();
+        for line in report.lines() {
+            self.io.event(now, Level::Info, &line);
+        }
+        let s = &self.summary;
+        let record = records::calibration_record(
+            outcome,
+            &s.clocks,
+            s.aligned_samples,
+            s.gaps,
+            Some(&report),
+        );
+        let r = self.io.log.calibration(ns(now), &record);
+        self.io.check(r);
+        let failed: Vec<String> = report
+            .lines()
+            .into_iter()
+            .zip(&report.nodes)
+            .filter(|(_, n)| n.holds != crate::push::Holds::New)
+            .map(|(l, _)| l)
+            .collect();
+        let complete = report.complete();
+        self.summary.push = Some(report);
+        if !complete {
+            return Err(DaemonError::Push(failed.join("; ")));
+        }
+        self.io.event(
+            self.clock.now(),
+            Level::Info,
+            "every node holds its new table (CRC read back)",
+        );
+        Ok(())
+    }
+
+    /// The report of a session that ends without a calibration (`why`: the session rules it
+    /// did not meet), next to its log as a calibrated session's would be: what the motion lacked.
+    async fn session_report<S: Future<Output = ()>>(
+        &mut self,
+        why: &[Shortfall],
+        shutdown: Pin<&mut S>,
+    ) -> Result<(), DaemonError> {
+        let (title, source) = self.report_titles("session");
+        self.origin = self.collector.ingest.origin().unwrap_or_default();
+        let collector = std::mem::replace(
+            &mut self.collector,
+            Collector::new(&self.config.calibration),
+        );
+        let config = self.config.clone();
+        let why: Vec<String> = why.iter().map(Shortfall::to_string).collect();
+        let (collected, html) = self
+            .off_loop("session report", shutdown, move || {
+                let collected = collector.collected(&config.calibration);
+                let html = crate::shell::html_report::render(
+                    title,
+                    source,
+                    &config.calibration,
+                    &collected,
+                    Err(&why),
+                );
+                (collected, html)
+            })
+            .await?;
+        self.write_report(&html, "session report");
+        self.summary.collected(&collected);
+        Ok(())
+    }
+
+    /// The report's title and source line for a live session.
+    fn report_titles(&self, what: &str) -> (String, String) {
+        let path = &self.summary.log_path;
+        let name = path
+            .file_name()
+            .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+        (
+            format!("exocald {what} — {name}"),
+            format!(
+                "live session on {}, logged to {}",
+                self.config.interface,
+                path.display()
+            ),
+        )
+    }
+
+    /// Writes the report next to the log; a report that cannot be written is a warning, never
+    /// a reason to withhold a validated table.
+    fn write_report(&mut self, html: &str, what: &str) {
+        let path = crate::shell::html_report::report_path_for_log(&self.summary.log_path);
+        let now = self.clock.now();
+        match std::fs::write(&path, html) {
+            Ok(()) => {
+                self.io
+                    .event(now, Level::Info, &format!("{what}: {}", path.display()));
+                self.summary.report_path = Some(path);
+            }
+            Err(e) => self.io.event(
+                now,
+                Level::Warning,
+                &format!("cannot write the report {}: {e}", path.display()),
+            ),
+        }
+    }
+
+    /// Log time of the aligned sample at `t` s of the session.
+    fn log_time(&self, t: f64) -> u64 {
+        ns(self.origin + Duration::from_secs_f64(t.max(0.0)))
+    }
+}
+
+/// Whether a pinned future is already complete (polled once, without waiting).
+fn futures_ready<F: Future<Output = ()>>(f: &mut Pin<&mut F>) -> bool {
+    let waker = std::task::Waker::noop();
+    let mut cx = std::task::Context::from_waker(waker);
+    f.as_mut().poll(&mut cx).is_ready()
+}
+
+/// Writes `summary` as pretty JSON to `out` (for `--report`).
+pub fn write_summary(summary: &SessionSummary, out: &mut impl Write) -> std::io::Result<()> {
+    serde_json::to_writer_pretty(&mut *out, summary)?;
+    writeln!(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    use crate::shell::shutdown::Shutdown;
+    use exocal_bus::InProcessBus;
+    use exocal_bus::SimClock;
+    use exocal_hil::{Hil, Scenario};
+    use exocal_session::validate::Refusal;
+
+    fn temp_dir(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("exocald-runner-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        d
+    }
+
+    /// Runs one session against the paper hil, on the test runtime's paused clock (virtual time,
+    /// as the demo runs: the outcome does not depend on the machine's load); `stop_after_s`
+    /// raises the shutdown flag after that much simulated time. Returns the result and the
+    /// flash CRCs before and after.
+    async fn session(
+        config: Config,
+        dir: &std::path::Path,
+        stop_after_s: Option<f64>,
+    ) -> (
+        Result<SessionSummary, SessionError>,
+        Vec<Option<u32>>,
+        Vec<Option<u32>>,
+    ) {
+        session_on(config, dir, stop_after_s, Scenario::paper()).await
+    }
+
+    /// [`session`] against the hil playing `scenario` (for 400 s at most).
+    async fn session_on(
+        config: Config,
+        dir: &std::path::Path,
+        stop_after_s: Option<f64>,
+        mut scenario: Scenario,
+    ) -> (
+        Result<SessionSummary, SessionError>,
+        Vec<Option<u32>>,
+        Vec<Option<u32>>,
+    ) {
+        let flash = dir.join("flash");
+        std::fs::create_dir_all(&flash).unwrap();
+        scenario.duration_s = 400.0;
+        let mut hil = Hil::new(scenario, &flash).unwrap();
+        let crcs = |flash: &std::path::Path| -> Vec<Option<u32>> {
+            NodeId::JOINTS
+                .iter()
+                .map(|&n| {
+                    exocal_hil::flash::read(flash, n)
+                        .unwrap()
+                        .map(|i| i.table.crc())
+                })
+                .collect()
+        };
+        let before = crcs(&flash);
+        let clock = SimClock::new(1.0).unwrap();
+        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+        let mut hil_end = bus.attach();
+        let mut daemon_end = bus.attach();
+        let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await });
+        let (stop, shutdown) = Shutdown::manual();
+        if let Some(s) = stop_after_s {
+            tokio::spawn(async move {
+                tokio::time::sleep(Duration::from_secs_f64(s)).await;
+                let _ = stop.send(true);
+            });
+        }
+        let mut notifier = Notifier::disabled();
+        let mut reporter = Reporter::Plain { last_line: None };
+        let result = run_session(
+            &mut daemon_end,
+            &clock.bus_clock(),
+            &config,
+            false,
+            shutdown.wait(),
+            &mut notifier,
+            &mut reporter,
+        )
+        .await;
+        hil_task.abort();
+        let _ = hil_task.await;
+        (result, before, crcs(&flash))
+    }
+
+    fn config(dir: &std::path::Path) -> Config {
+        let mut c = Config::default_config();
+        c.output.directory = dir.to_path_buf();
+        c.calibration.window.min_duration_s = 15.0;
+        c.push.timeout_ms = 400;
+        // The hil's nodes here hold no keys (authenticated pushes: push.rs, demo, atomic_push).
+        c.push.authenticate = false;
+        c
+    }
+
+    fn topic_count(summary: &SessionSummary, topic: &str) -> u64 {
+        summary
+            .log_counts
+            .iter()
+            .find(|(t, _)| t == topic)
+            .map_or(0, |c| c.1)
+    }
+
+    /// The file must be finished: a summary section with every channel.
+    fn assert_finished(path: &std::path::Path) -> mcap::Summary {
+        let bytes = std::fs::read(path).unwrap();
+        let summary = mcap::Summary::read(&bytes)
+            .unwrap()
+            .expect("a finished file");
+        assert_eq!(
+            summary.channels.len(),
+            crate::log::mcaplog::Topic::ALL.len()
+        );
+        summary
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn shutdown_during_collection_finishes_the_log_and_pushes_nothing() {
+        let dir = temp_dir("sigterm");
+        // Mid-collection (the minimum is 15 s).
+        let (result, before, after) = session(config(&dir), &dir, Some(8.0)).await;
+        let err = result.unwrap_err();
+        assert!(
+            matches!(err.error, DaemonError::Interrupted),
+            "{}",
+            err.error
+        );
+        assert_eq!(err.error.exit_code(), crate::exit::code::TEMPFAIL);
+        let summary = err.summary.unwrap();
+        assert!(summary.push.is_none());
+        assert_eq!(topic_count(&summary, "/can/tx"), 0);
+        assert!(topic_count(&summary, "/can/rx") > 1000);
+        let stats = assert_finished(&summary.log_path).stats.unwrap();
+        assert_eq!(
+            stats.message_count,
+            summary.log_counts.iter().map(|c| c.1).sum::<u64>()
+        );
+        assert_eq!(before, after, "no node's table changed");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_refused_calibration_pushes_nothing_and_says_why() {
+        let dir = temp_dir("refused");
+        let mut c = config(&dir);
+        // No minute of motion gives a table to a micrometre: validation must refuse.
+        c.calibration.validation.max_expected_position_error_mm = 1e-3;
+        let (result, before, after) = session(c, &dir, None).await;
+        let err = result.unwrap_err();
+        match &err.error {
+            DaemonError::Validation(reasons) => {
+                assert!(
+                    reasons.iter().any(|r| matches!(
+                        r,
+                        Refusal::ExpectedPosition { max, .. } if *max == 1e-3
+                    )),
+                    "{reasons:?}"
+                );
+            }
+            other => panic!("{other}"),
+        }
+        assert_eq!(err.error.exit_code(), crate::exit::code::DATAERR);
+        let summary = err.summary.unwrap();
+        assert!(summary.outcome.is_some() && summary.push.is_none());
+        assert!(summary.latency.is_none(), "nothing was verified");
+        assert_eq!(topic_count(&summary, "/can/tx"), 0);
+        assert_eq!(topic_count(&summary, "/calibration"), 1);
+        assert_finished(&summary.log_path);
+        assert_eq!(before, after);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_session_that_stops_when_good_enough_ends_early_and_reaches_its_limits() {
+        let dir = temp_dir("good-enough");
+        let mut c = config(&dir);
+        c.calibration.window.stop_at_expected_error = Some((2.0, 6.0));
+        let (result, before, after) = session(c, &dir, None).await;
+        let summary = result.expect("the session pushes");
+        // The paper's scenario reaches ±2.0 mm well before its minute (±1.3 mm at 60 s).
+        assert!(
+            summary.aligned_samples < 5_000,
+            "stopped after {} samples",
+            summary.aligned_samples
+        );
+        let e = summary.outcome.as_ref().unwrap().verdict.expected.unwrap();
+        assert!(e.position_mm <= 2.0 && e.rotation_mrad <= 6.0, "{e}");
+        assert!(summary.push.as_ref().unwrap().complete());
+        assert_ne!(before, after, "the nodes hold the new tables");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_session_without_enough_motion_fails_at_the_maximum_duration() {
+        let dir = temp_dir("short");
+        let mut c = config(&dir);
+        c.calibration.window.min_samples = 1_000_000;
+        c.calibration.window.max_duration_s = 16.0;
+        let (result, _, _) = session(c, &dir, None).await;
+        let err = result.unwrap_err();
+        assert!(
+            matches!(err.error, DaemonError::Session(_)),
+            "{}",
+            err.error
+        );
+        assert!(
+            err.error.to_string().contains("1000000 required"),
+            "{}",
+            err.error
+        );
+        assert_eq!(err.error.exit_code(), crate::exit::code::NOINPUT);
+        let summary = err.summary.unwrap();
+        assert_finished(&summary.log_path);
+        // The report says why and shows the data the session had.
+        let report = summary
+            .report_path
+            .expect("a report for the failed session");
+        let html = std::fs::read_to_string(&report).unwrap();
+        assert!(html.contains("Not calibrated"), "{html}");
+        assert!(html.contains("1000000 required"));
+        assert!(
+            summary.aligned_samples > 1000,
+            "{}",
+            summary.aligned_samples
+        );
+        assert!(html.contains(&format!("<td>{}</td>", summary.aligned_samples)));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_bus_stall_is_a_receiver_stall_and_a_reboot_is_that_nodes_jump() {
+        use exocal_hil::scenario::{BusStall, Reboot};
+        let dir = temp_dir("stall");
+        let mut c = config(&dir);
+        // Refused (no table is good to a micrometre): the alignment is what this test is about.
+        c.calibration.validation.max_expected_position_error_mm = 1e-3;
+        let mut scenario = Scenario::paper();
+        // Every node's frames 400 ms late for 3 s, then Joint4 reboots.
+        scenario.faults.bus_stalls.push(BusStall {
+            from_s: 5.0,
+            to_s: 8.0,
+            late_ms: 400.0,
+        });
+        scenario.faults.reboots.push(Reboot {
+            node: 4,
+            at_s: 11.0,
+            down_s: 0.5,
+        });
+        let (result, _, _) = session_on(c, &dir, None, scenario).await;
+        let summary = match result {
+            Ok(s) => s,
+            Err(e) => e.summary.expect("a summary"),
+        };
+        assert_eq!(summary.stalls.count, 1, "{:?}", summary.stalls);
+        assert!(
+            summary
+                .stalls
+                .longest_ms
+                .is_some_and(|ms| (300.0..500.0).contains(&ms)),
+            "{:?}",
+            summary.stalls
+        );
+        for c in &summary.clocks {
+            let want = usize::from(c.node == "Joint4");
+            assert_eq!(c.jumps, want, "{c:?}");
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

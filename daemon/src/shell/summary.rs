@@ -1,0 +1,105 @@
+//! The session summary as `exocald` prints it on stdout: what the user reads after a session
+//! (log path, frames, clocks, expected table error, verdict, push), one line per fact. Used by
+//! every subcommand that runs a session and by the serve loop; it imports nothing of theirs.
+
+use crate::exit::DaemonError;
+use crate::shell::runner::{SessionError, SessionSummary};
+
+/// Prints what a session did, to stdout (one line per fact).
+pub fn print_summary(summary: &SessionSummary) {
+    println!("log: {}", summary.log_path.display());
+    let f = &summary.frames;
+    println!(
+        "frames: {} received, {} unknown, {} malformed, {} invalid angles",
+        f.received, f.unknown, f.malformed, f.invalid_angles
+    );
+    println!(
+        "aligned samples: {} ({} grid points excluded as gaps)",
+        summary.aligned_samples, summary.gaps
+    );
+    if summary.stalls.count > 0 {
+        println!("clocks: {}", summary.stalls);
+    }
+    for c in &summary.clocks {
+        println!(
+            "clock {}: skew {} ppm, {} jump(s), {} samples excluded",
+            c.node,
+            c.skew_ppm
+                .map_or_else(|| "?".into(), |s| format!("{s:+.1}")),
+            c.jumps,
+            c.unmapped
+        );
+    }
+    if let Some(o) = &summary.outcome {
+        let v = &o.verdict;
+        if let Some(e) = v.expected {
+            println!("expected table error: {e}");
+        }
+        if o.reading_drift_rms.iter().any(|&r| r > 0.0) {
+            let mrad: Vec<String> = o
+                .reading_drift_rms
+                .iter()
+                .map(|r| format!("{:.2}", r * 1e3))
+                .collect();
+            println!(
+                "rough drift taken out of the readings, RMS per joint: {} mrad",
+                mrad.join(" ")
+            );
+        }
+        if let Some(drift) = o.em.as_ref().and_then(|em| em.drift_95) {
+            for (j, d) in drift.iter().enumerate() {
+                println!("drift joint {}: {d} (95%)", j + 1);
+            }
+        }
+        println!(
+            "held-out mean pose error: nominal {:.4e}, calibrated {:.4e} ({:.1}% better); condition number {:.3e}",
+            v.nominal.mean_error,
+            v.candidate.mean_error,
+            v.improvement * 100.0,
+            v.condition_number
+        );
+        for reason in &v.reasons {
+            println!("refused: {reason}");
+        }
+    }
+    if let Some(p) = &summary.push {
+        for line in p.lines() {
+            println!("push {line}");
+        }
+    }
+    if let Some(l) = &summary.latency {
+        if l.simulated {
+            println!(
+                "end of collection to every table verified: {:.3} s ({:.3} s computing on this \
+                 machine + {:.3} s of emulated bus and nodes)",
+                l.total().as_secs_f64(),
+                l.real.as_secs_f64(),
+                l.session.as_secs_f64()
+            );
+        } else {
+            println!(
+                "end of collection to every table verified: {:.3} s",
+                l.total().as_secs_f64()
+            );
+        }
+    }
+    if let Some(r) = &summary.report_path {
+        println!("report: {}", r.display());
+    }
+}
+
+/// Prints the summary of a session result and returns its error.
+pub fn finish(result: Result<SessionSummary, SessionError>) -> Result<(), DaemonError> {
+    match result {
+        Ok(summary) => {
+            print_summary(&summary);
+            Ok(())
+        }
+        Err(SessionError { error, summary }) => {
+            if let Some(s) = summary {
+                print_summary(&s);
+            }
+            Err(error)
+        }
+    }
+}

@@ -1,0 +1,234 @@
+//! What a session gathers before it calibrates, live or replayed: frames in, aligned samples
+//! and their data quality out.
+//!
+//! Contract:
+//! - [`Collector::on_frame`] is the one place a received frame is taken: decoded by
+//!   [`Ingest`], and each joint angle and pose counted by the [`Window`]. The live
+//!   session feeds it from the bus (and logs the [`Event`] it returns); `exocald offline`
+//!   feeds it the frames of a recording. The same frames give the same [`Collected`], bit for
+//!   bit;
+//! - [`Collector::collected`] aligns what was gathered: every node's clock fitted, all streams
+//!   resampled onto the `window.grid_hz` grid, gaps longer than `window.max_gap_s` excluded,
+//!   and the data-quality summary the report shows;
+//! - [`Collected::from_samples`] is the same for samples that need no alignment (a CSV file):
+//!   no frames, no clocks.
+
+use crate::outcome::{Quality, StreamQuality};
+use exocal_dbc::Received;
+
+use crate::align::{AlignParams, AlignedSample};
+use crate::ingest::{ClockReport, Event, FrameStats, Ingest, StallReport};
+use crate::window::Window;
+use crate::Settings;
+
+/// A session's frames so far: the decoded streams and the collection window.
+#[derive(Debug, Clone)]
+pub struct Collector {
+    /// The decoded streams and the frame counters.
+    pub ingest: Ingest,
+    /// The collection window: coverage, sample counts, ready/failed.
+    pub window: Window,
+}
+
+impl Collector {
+    /// An empty collection under `config`'s node ids, session rules and joint ranges.
+    pub fn new(settings: &Settings) -> Collector {
+        Collector {
+            ingest: Ingest::new(settings.joint_nodes),
+            window: Window::new(settings.window.clone(), settings.bounds.joint_range),
+        }
+    }
+
+    /// Takes one received frame (see the module docs); returns what ingest made of it.
+    pub fn on_frame(&mut self, rx: &Received) -> Event {
+        let event = self.ingest.on_frame(rx);
+        match &event {
+            Event::Joint { joint, angle, .. } => self.window.joint_sample(*joint, *angle),
+            Event::Pose(_) => self.window.pose_sample(),
+            _ => {}
+        }
+        event
+    }
+
+    /// Aligns what was gathered (see the module docs).
+    pub fn collected(&self, settings: &Settings) -> Collected {
+        let (aligned, clocks) = self.ingest.align(
+            &AlignParams::default(),
+            settings.window.grid_hz,
+            settings.window.max_gap_s,
+        );
+        let stalls = StallReport::of(&aligned.stalls);
+        let quality = frame_quality(
+            settings,
+            self.ingest.stats(),
+            &clocks,
+            stalls,
+            &self.ingest.stream_rates(),
+            &aligned.samples,
+            aligned.gaps,
+        );
+        Collected {
+            frames: self.ingest.stats().clone(),
+            clocks,
+            stalls,
+            samples: aligned.samples,
+            gaps: aligned.gaps,
+            quality,
+        }
+    }
+}
+
+/// What a session gathered, aligned: the calibration's input and its data quality.
+#[derive(Debug, Clone, Default)]
+pub struct Collected {
+    /// Frame counters of the collection window.
+    pub frames: FrameStats,
+    /// One report per node clock (joints, then the end effector).
+    pub clocks: Vec<ClockReport>,
+    /// Receiver stalls (not counted in any node's clock jumps).
+    pub stalls: StallReport,
+    /// The samples on the grid, time-ordered.
+    pub samples: Vec<AlignedSample>,
+    /// Grid points excluded as gaps.
+    pub gaps: usize,
+    /// The data-quality summary the report shows.
+    pub quality: Quality,
+}
+
+impl Collected {
+    /// Samples that need no alignment (CSV), with their data quality.
+    pub fn from_samples(samples: Vec<AlignedSample>, settings: &Settings) -> Collected {
+        Collected {
+            quality: sample_quality(settings, &samples),
+            samples,
+            ..Collected::default()
+        }
+    }
+}
+
+fn ranges(settings: &Settings) -> [(f64, f64); crate::JOINTS] {
+    settings.bounds.joint_range.limits
+}
+
+fn duration(samples: &[AlignedSample]) -> f64 {
+    match (samples.first(), samples.last()) {
+        (Some(a), Some(b)) => b.t - a.t,
+        _ => 0.0,
+    }
+}
+
+/// Data quality of a frame-level session: counters, per-node rate, loss and clock, alignment.
+/// `rates` is [`crate::ingest::Ingest::stream_rates`], in the order of `clocks` (joints, then
+/// the end effector).
+fn frame_quality(
+    settings: &Settings,
+    stats: &FrameStats,
+    clocks: &[ClockReport],
+    stalls: StallReport,
+    rates: &[(Option<f64>, Option<f64>)],
+    samples: &[AlignedSample],
+    gaps: usize,
+) -> Quality {
+    let counters = [
+        ("received", stats.received),
+        ("decoded", stats.decoded),
+        ("unknown", stats.unknown),
+        ("malformed", stats.malformed),
+        ("invalid angles", stats.invalid_angles),
+        ("bad poses", stats.bad_poses),
+        ("poses", stats.poses),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), v))
+    .collect();
+    let streams = clocks
+        .iter()
+        .zip(rates.iter().chain(std::iter::repeat(&(None, None))))
+        .map(|(c, &(rate, loss))| StreamQuality {
+            name: c.node.clone(),
+            samples: c.samples,
+            rate_hz: rate.unwrap_or(0.0),
+            loss,
+            excluded: c.unmapped,
+            jumps: c.jumps,
+            skew_ppm: c.skew_ppm,
+            jitter_us: c.residual_rms_us,
+        })
+        .collect();
+    Quality {
+        duration_s: duration(samples),
+        grid_hz: settings.window.grid_hz,
+        gaps,
+        counters,
+        streams,
+        joint_ranges: ranges(settings),
+        excitation_required: Some(settings.window.excitation_required),
+        receiver_stalls: stalls.count,
+        longest_stall_ms: stalls.longest_ms,
+    }
+}
+
+/// Data quality of plain samples (CSV): span, the grid rate they were calibrated at, no
+/// frame counters or clocks.
+fn sample_quality(settings: &Settings, samples: &[AlignedSample]) -> Quality {
+    let span = duration(samples);
+    let rate = if span > 0.0 {
+        (samples.len() - 1) as f64 / span
+    } else {
+        0.0
+    };
+    Quality {
+        duration_s: span,
+        grid_hz: settings.window.grid_hz,
+        gaps: 0,
+        counters: Vec::new(),
+        streams: vec![StreamQuality {
+            name: "CSV samples".into(),
+            samples: samples.len(),
+            rate_hz: rate,
+            loss: None,
+            excluded: 0,
+            jumps: 0,
+            skew_ppm: None,
+            jitter_us: None,
+        }],
+        joint_ranges: ranges(settings),
+        excitation_required: Some(settings.window.excitation_required),
+        receiver_stalls: 0,
+        longest_stall_ms: None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use exocal_dbc::message::{JointState, Message};
+    use exocal_dbc::Frame;
+    use exocal_dbc::NodeId;
+    use std::time::Duration;
+
+    #[test]
+    fn a_frame_reaches_ingest_and_the_window_and_its_event_comes_back() {
+        let config = Settings::suit_default();
+        let mut c = Collector::new(&config);
+        for k in 0..3u32 {
+            let msg = Message::JointState(JointState {
+                node: NodeId::new(3).unwrap(),
+                timestamp_us: 10_000 * (k + 1),
+                angle: 0.25,
+                rate: 0.0,
+            });
+            let event = c.on_frame(&Received {
+                frame: msg.to_frame::<Frame>().unwrap(),
+                timestamp: Duration::from_millis(10 * u64::from(k)),
+            });
+            assert!(matches!(event, Event::Joint { joint: 2, .. }), "{event:?}");
+        }
+        assert_eq!(c.ingest.stats().received, 3);
+        assert_eq!(c.ingest.joint_samples(2), 3);
+        // Three samples in one bin of joint 3's range: that bin counts as visited.
+        let coverage = c.window.progress(0.0).coverage;
+        assert!((coverage[2] - 1.0 / 36.0).abs() < 1e-12, "{coverage:?}");
+        assert_eq!(coverage[0], 0.0);
+    }
+}

@@ -1,0 +1,320 @@
+//! The text formats of recorded sessions: `candump -L` logs (frames) and CSV samples.
+//!
+//! Contract:
+//! - [`parse_candump`] returns the frames in file order with their recorded receive times
+//!   (each line read by the protocol crate's one candump reader, [`Received::from_candump`]);
+//!   it neither decodes nor reorders — the session's ingest does that, as for a live bus;
+//! - [`parse_csv`] returns calibration samples directly (no alignment) in the format below;
+//! - bad input is a [`ReadError`] naming the input kind, the 1-based line (where there is one)
+//!   and what is wrong; nothing here panics on any input. Parsing takes text, never a file.
+//!
+//! # The CSV sample format
+//!
+//! One header line, then one sample per line; blank lines and lines starting with `#` are
+//! ignored. Columns, comma-separated, in this order:
+//!
+//! ```text
+//! t,q1,q2,q3,q4,q5,q6,q7,x,y,z,qw,qx,qy,qz
+//! ```
+//!
+//! `t` is the time in seconds (strictly increasing), `q1`…`q7` the seven joint readings in
+//! radians (joint 1 = shoulder), `x,y,z` the measured end-effector position in metres in the
+//! base frame, and `qw,qx,qy,qz` its orientation as a unit quaternion (scalar first; a norm
+//! within 1e-3 of 1 is normalised, anything else is an error).
+
+use std::fmt;
+
+use calib_core::{Frame, Sample};
+use exocal_dbc::Received;
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+
+use crate::outcome::TimedSample;
+use crate::JOINTS;
+
+/// Characters of a bad line quoted in its error.
+pub const MAX_QUOTED: usize = 80;
+
+/// The CSV header, exactly.
+pub const CSV_HEADER: &str = "t,q1,q2,q3,q4,q5,q6,q7,x,y,z,qw,qx,qy,qz";
+
+/// Which reader failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum InputKind {
+    /// A candump log (`candump -L` format).
+    Candump,
+    /// CSV samples (joint angles and poses).
+    Csv,
+}
+
+impl fmt::Display for InputKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            InputKind::Candump => "candump log",
+            InputKind::Csv => "CSV samples",
+        })
+    }
+}
+
+/// Bad input: which kind, where (1-based line), what.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ReadError {
+    /// Which reader failed.
+    pub kind: InputKind,
+    /// 1-based line.
+    pub line: Option<usize>,
+    /// What is wrong.
+    pub what: String,
+}
+
+impl fmt::Display for ReadError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.line {
+            Some(l) => write!(f, "{}, line {l}: {}", self.kind, self.what),
+            None => write!(f, "{}: {}", self.kind, self.what),
+        }
+    }
+}
+
+impl std::error::Error for ReadError {}
+
+/// Parses a `candump -L` log: `(seconds.fraction) iface ID#DATA` per line; blank lines are
+/// skipped.
+pub fn parse_candump(text: &str) -> Result<Vec<Received>, ReadError> {
+    text.lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty())
+        .map(|(n, line)| {
+            let line = line.trim();
+            Received::from_candump(line).map_err(|e| {
+                let shown: String = line.chars().take(MAX_QUOTED).collect();
+                ReadError {
+                    kind: InputKind::Candump,
+                    line: Some(n + 1),
+                    what: format!("{e}, in {shown:?}"),
+                }
+            })
+        })
+        .collect()
+}
+
+/// `frames` as a `candump -L` log on interface `iface`, one line each.
+pub fn candump_text(frames: &[Received], iface: &str) -> String {
+    let mut out = String::new();
+    for f in frames {
+        out.push_str(&f.candump(iface).to_string());
+        out.push('\n');
+    }
+    out
+}
+
+fn csv_err(line: usize, what: impl Into<String>) -> ReadError {
+    ReadError {
+        kind: InputKind::Csv,
+        line: Some(line),
+        what: what.into(),
+    }
+}
+
+/// Parses CSV samples (format in the module docs).
+pub fn parse_csv(text: &str) -> Result<Vec<TimedSample>, ReadError> {
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .map(|(n, l)| (n + 1, l.trim()))
+        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
+    let (n, header) = lines.next().ok_or_else(|| ReadError {
+        kind: InputKind::Csv,
+        line: None,
+        what: "empty file: no header".into(),
+    })?;
+    let header: String = header
+        .split(',')
+        .map(str::trim)
+        .collect::<Vec<_>>()
+        .join(",");
+    if header != CSV_HEADER {
+        return Err(csv_err(n, format!("header must be `{CSV_HEADER}`")));
+    }
+    let names: Vec<&str> = CSV_HEADER.split(',').collect();
+    let mut out: Vec<TimedSample> = Vec::new();
+    for (n, line) in lines {
+        let fields: Vec<&str> = line.split(',').map(str::trim).collect();
+        if fields.len() != names.len() {
+            return Err(csv_err(
+                n,
+                format!("{} columns, expected {}", fields.len(), names.len()),
+            ));
+        }
+        let mut v = [0.0; 15];
+        for ((x, field), name) in v.iter_mut().zip(&fields).zip(&names) {
+            *x = field
+                .parse::<f64>()
+                .ok()
+                .filter(|x| x.is_finite())
+                .ok_or_else(|| csv_err(n, format!("{name} = {field:?} is not a finite number")))?;
+        }
+        let t = v[0];
+        if let Some(prev) = out.last() {
+            if t <= prev.t {
+                return Err(csv_err(
+                    n,
+                    format!("t = {t} does not increase (previous {})", prev.t),
+                ));
+            }
+        }
+        let q = Quaternion::new(v[11], v[12], v[13], v[14]);
+        let norm = q.norm();
+        if (norm - 1.0).abs() > 1e-3 {
+            return Err(csv_err(n, format!("quaternion norm {norm:.6}, expected 1")));
+        }
+        let rot = UnitQuaternion::from_quaternion(q);
+        out.push(TimedSample {
+            t,
+            sample: Sample {
+                joints: std::array::from_fn(|j| v[1 + j]),
+                pose: Frame {
+                    r: rot.to_rotation_matrix().into_inner(),
+                    p: Vector3::new(v[8], v[9], v[10]),
+                },
+            },
+        });
+    }
+    if out.is_empty() {
+        return Err(ReadError {
+            kind: InputKind::Csv,
+            line: None,
+            what: "no samples after the header".into(),
+        });
+    }
+    Ok(out)
+}
+
+/// `samples` in the CSV format [`parse_csv`] reads (full precision).
+pub fn csv_text(samples: &[TimedSample]) -> String {
+    use fmt::Write as _;
+    let mut out = format!("{CSV_HEADER}\n");
+    for s in samples {
+        let q = UnitQuaternion::from_matrix(&s.sample.pose.r);
+        let p = s.sample.pose.p;
+        let _ = write!(out, "{}", s.t);
+        for j in s.sample.joints.iter().take(JOINTS) {
+            let _ = write!(out, ",{j}");
+        }
+        let _ = writeln!(
+            out,
+            ",{},{},{},{},{},{},{}",
+            p.x, p.y, p.z, q.w, q.i, q.j, q.k
+        );
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use calib_core::{Scenario, ScenarioConfig};
+    use std::time::Duration;
+
+    #[test]
+    fn candump_logs_parse_exactly() {
+        let log = "(1700000000.123456) vcan0 123#DEADBEEF\n\n(1700000001.5) can1 1ABCDEF0#\n(1700000002.000000001) vcan0 7FF#R\n";
+        let f = parse_candump(log).unwrap();
+        assert_eq!(f.len(), 3);
+        assert_eq!(f[0].timestamp, Duration::new(1_700_000_000, 123_456_000));
+        assert_eq!(f[0].frame.raw_id(), 0x123);
+        assert_eq!(f[1].timestamp, Duration::new(1_700_000_001, 500_000_000));
+        assert_eq!(f[1].frame.raw_id(), 0x1ABC_DEF0);
+        assert_eq!(f[2].timestamp.subsec_nanos(), 1);
+    }
+
+    #[test]
+    fn candump_errors_name_the_line_and_the_problem() {
+        let e = parse_candump("(0.5) vcan0 001#\n(1.0) vcan0 800#00\n").unwrap_err();
+        assert_eq!((e.kind, e.line), (InputKind::Candump, Some(2)));
+        assert!(
+            e.to_string()
+                .starts_with("candump log, line 2: bad identifier"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_written_candump_log_reads_back_to_the_same_frames() {
+        let log: String = (0..100u32)
+            .map(|i| {
+                let id = if i % 3 == 0 {
+                    format!("{:08X}", 0x1000 + i)
+                } else {
+                    format!("{:03X}", 0x100 + i)
+                };
+                let data: String = match i % 17 {
+                    5 => "R".into(),
+                    _ => (0..(i % 9) as u8).map(|b| format!("{b:02X}")).collect(),
+                };
+                format!(
+                    "({}.{:06}) vcan0 {id}#{data}\n",
+                    1_700_000_000 + i / 10,
+                    i * 9_876
+                )
+            })
+            .collect();
+        let frames = parse_candump(&log).unwrap();
+        assert_eq!(frames.len(), 100);
+        assert_eq!(candump_text(&frames, "vcan0"), log);
+    }
+
+    fn samples(k: usize) -> Vec<TimedSample> {
+        Scenario::new(ScenarioConfig::paper(), 2)
+            .take(k)
+            .enumerate()
+            .map(|(i, s)| TimedSample {
+                t: i as f64 * 0.01,
+                sample: s.sample,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn csv_round_trips_through_csv_text() {
+        let s = samples(50);
+        let text = format!("# a comment\n\n{}", csv_text(&s));
+        let back = parse_csv(&text).unwrap();
+        assert_eq!(back.len(), s.len());
+        for (a, b) in back.iter().zip(&s) {
+            assert_eq!(a.t, b.t);
+            assert_eq!(a.sample.joints, b.sample.joints);
+            assert_eq!(a.sample.pose.p, b.sample.pose.p);
+            assert!((a.sample.pose.r - b.sample.pose.r).norm() < 1e-14);
+        }
+    }
+
+    #[test]
+    fn csv_errors_name_the_line_and_column() {
+        let ok = "0.1,0,0,0,0,0,0,0,0.1,0.2,0.3,1,0,0,0";
+        let cases = [
+            (format!("t,q1\n{ok}"), 1, "header"),
+            (format!("{CSV_HEADER}\n{ok},9"), 2, "16 columns"),
+            (
+                format!("{CSV_HEADER}\n{}", ok.replace("0.2", "nan")),
+                2,
+                "y = \"nan\"",
+            ),
+            (format!("{CSV_HEADER}\n{ok}\n{ok}"), 3, "does not increase"),
+            (
+                format!("{CSV_HEADER}\n{}", ok.replace(",1,0,0,0", ",2,0,0,0")),
+                2,
+                "quaternion norm",
+            ),
+        ];
+        for (text, line, what) in cases {
+            let e = parse_csv(&text).unwrap_err();
+            assert_eq!(e.line, Some(line), "{text}");
+            assert!(e.to_string().contains(what), "{e}");
+        }
+        assert!(parse_csv("").unwrap_err().to_string().contains("no header"));
+        assert!(parse_csv(CSV_HEADER)
+            .unwrap_err()
+            .to_string()
+            .contains("no samples"));
+    }
+}

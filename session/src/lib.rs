@@ -1,0 +1,49 @@
+//! exocal-session: the data path of a calibration session, sans I/O.
+//!
+//! Frames with their receive time in; aligned samples, their quality and a judged calibration
+//! out. The daemon feeds it from the bus, `exocald offline` from a recording, the tests from
+//! the emulated suit: the same frames give the same outcome, bit for bit. Nothing here reads a
+//! clock, a file or a socket (time is always an argument), so the same code runs live, in a
+//! replay and in a test at any speed.
+//!
+//! One module per stage, data flowing one way:
+//!
+//! | module | stage |
+//! |---|---|
+//! | [`rules`] | what the data path reads: node ids, nominal table, bounds, window and validation rules |
+//! | [`ingest`] | frames → decoded messages → per-node streams; counts unknown/malformed frames |
+//! | [`align`] | per-node clock models, resampling onto one grid |
+//! | [`window`] | the collection window: coverage, sample counts, ready/failed and why |
+//! | [`collect`] | frames → aligned samples and their data quality, live or replayed |
+//! | [`estimate`] | the in-collection estimates: condition number, expected table error so far |
+//! | [`pipeline`] | aligned samples → split, LS, drift EM, validation, node rows, report detail |
+//! | [`formats`] | the text formats of recorded sessions: `candump -L` logs, CSV samples |
+//! | [`parallel`] | the LS linearisation in sample blocks on several cores (std scoped threads) |
+//! | [`replay`] | a recorded session (frames or samples) through the same stages, judged by the same rules |
+//! | [`validate`] | bounds, condition number and held-out accuracy before any push; typed refusals |
+//! | [`outcome`] | the detail every consumer reads (LS, EM, correlations, data quality) |
+
+#![warn(missing_docs)]
+
+pub mod align;
+pub mod collect;
+pub mod estimate;
+pub mod formats;
+pub mod ingest;
+pub mod outcome;
+pub mod parallel;
+pub mod pipeline;
+pub mod replay;
+pub mod rules;
+pub mod validate;
+pub mod window;
+
+pub use rules::{Bounds, Settings, ValidationRules, WindowRules};
+
+/// Joints of the suit, declared once for the workspace (calib-core's model of the arm).
+pub const JOINTS: usize = calib_core::SUIT_JOINTS;
+/// D-H parameters of the suit (`4 × JOINTS`), indexed `kind·JOINTS + joint` (kinds a, d, α, θ).
+pub const PARAMS: usize = calib_core::SUIT_PARAMS;
+
+// The protocol's joint nodes (from exocal.dbc) are the arm's joints.
+const _: () = assert!(exocal_dbc::NodeId::JOINTS.len() == JOINTS);

@@ -1,0 +1,100 @@
+//! A recorded session replayed through the live data path.
+//!
+//! Contract:
+//! - recorded frames are taken in file order, with their recorded receive times, by the live
+//!   session's own [`Collector`]: the live code path minus the bus, so the same frames give the
+//!   same samples (and, through [`crate::pipeline::run`], the same table) bit for bit;
+//! - recorded samples (a CSV file) bypass alignment; the EM then steps at the recording's
+//!   median sample interval (`window.grid_hz` when the two agree to [`CSV_RATE_TOLERANCE`]);
+//! - the recording is judged by the live session's window rules at its end
+//!   ([`Window::at_end`]): one the live daemon would not have calibrated has
+//!   [`Replay::shortfalls`] saying why.
+
+use exocal_dbc::Received;
+
+use crate::align::AlignedSample;
+use crate::collect::{Collected, Collector};
+use crate::outcome::TimedSample;
+use crate::window::{Shortfall, Window};
+use crate::Settings;
+
+/// Relative difference between a recording's sample rate and `window.grid_hz` below which the
+/// configured rate is kept (a CSV `t` column's decimal rounding, not a different rate).
+pub const CSV_RATE_TOLERANCE: f64 = 1e-6;
+
+/// A recorded session.
+#[derive(Debug, Clone)]
+pub enum Recording {
+    /// Frames to replay (for a session log, cut at its collection end).
+    Frames(Vec<Received>),
+    /// Samples that bypass alignment.
+    Samples(Vec<TimedSample>),
+}
+
+/// The recording as the live session would have collected it, before calibrating.
+#[derive(Debug, Clone)]
+pub struct Replay {
+    /// What the live session would have gathered (for samples: unaligned).
+    pub collected: Collected,
+    /// The settings the calibration runs with (for samples, `window.grid_hz` is theirs).
+    pub settings: Settings,
+    /// First to last frame (or sample), seconds.
+    pub duration_s: f64,
+    /// The window rules the recording does not meet: empty when the live daemon would have
+    /// calibrated it.
+    pub shortfalls: Vec<Shortfall>,
+}
+
+/// Replays `recording` under `settings` (see the module docs).
+pub fn replay(recording: &Recording, settings: &Settings) -> Replay {
+    let mut settings = settings.clone();
+    match recording {
+        Recording::Frames(frames) => {
+            let mut collector = Collector::new(&settings);
+            for rx in frames {
+                collector.on_frame(rx);
+            }
+            let duration_s = match (frames.first(), frames.last()) {
+                (Some(a), Some(b)) => b.timestamp.saturating_sub(a.timestamp).as_secs_f64(),
+                _ => 0.0,
+            };
+            Replay {
+                collected: collector.collected(&settings),
+                shortfalls: collector.window.at_end(duration_s),
+                settings,
+                duration_s,
+            }
+        }
+        Recording::Samples(samples) => {
+            let mut steps: Vec<f64> = samples.windows(2).map(|w| w[1].t - w[0].t).collect();
+            steps.sort_by(f64::total_cmp);
+            if let Some(&median) = steps.get(steps.len() / 2) {
+                let hz = 1.0 / median;
+                if (hz / settings.window.grid_hz - 1.0).abs() > CSV_RATE_TOLERANCE {
+                    settings.window.grid_hz = hz;
+                }
+            }
+            let mut window = Window::new(settings.window.clone(), settings.bounds.joint_range);
+            for s in samples {
+                for (j, &q) in s.sample.joints.iter().enumerate() {
+                    window.joint_sample(j, q);
+                }
+                window.pose_sample();
+            }
+            let duration_s = match (samples.first(), samples.last()) {
+                (Some(a), Some(b)) => (b.t - a.t).max(0.0),
+                _ => 0.0,
+            };
+            let aligned: Vec<AlignedSample> = samples
+                .iter()
+                .map(|s| AlignedSample::of(s.t, &s.sample))
+                .collect();
+            Replay {
+                collected: Collected::from_samples(aligned, &settings),
+                shortfalls: window.at_end(duration_s),
+                settings,
+                duration_s,
+            }
+        }
+    }
+}
