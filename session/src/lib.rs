@@ -38,7 +38,7 @@ pub mod rules;
 pub mod validate;
 pub mod window;
 
-pub use rules::{Bounds, Settings, ValidationRules, WindowRules};
+pub use rules::{Bounds, SensorSpec, Settings, ValidationRules, WindowRules};
 
 /// Joints of the suit, declared once for the workspace (calib-core's model of the arm).
 pub const JOINTS: usize = calib_core::SUIT_JOINTS;
