@@ -11,6 +11,7 @@
 //! | module | stage |
 //! |---|---|
 //! | [`rules`] | what the data path reads: node ids, nominal table, bounds, window and validation rules |
+//! | [`stream`] | the streams a session takes in, declared once: source node, message, column |
 //! | [`ingest`] | frames → decoded messages → per-node streams; counts unknown/malformed frames |
 //! | [`align`] | per-node clock models, resampling onto one grid |
 //! | [`window`] | the collection window: coverage, sample counts, ready/failed and why |
@@ -35,6 +36,7 @@ pub mod parallel;
 pub mod pipeline;
 pub mod replay;
 pub mod rules;
+pub mod stream;
 pub mod validate;
 pub mod window;
 

@@ -68,6 +68,16 @@ pub enum Record<'a> {
     },
     /// A measured end-effector pose in [`BASE_FRAME`].
     EePose(&'a Transform),
+    /// An IMU's angular rate (rad/s): the stream's name (`exocal_session::stream::STREAMS`),
+    /// the low 16 bits of the node's clock (µs) and the vector in the sensor's frame.
+    Rate {
+        /// The stream's name, the sensor's frame.
+        stream: &'a str,
+        /// The low 16 bits of the node's clock at sampling (µs).
+        node_timestamp_lo_us: u32,
+        /// x, y, z (rad/s).
+        xyz: [f64; 3],
+    },
     /// The arm's frames ([`arm_transforms`]).
     Arm(&'a [Link]),
     /// A sample on the common grid, as fed to the calibration.
