@@ -2,7 +2,7 @@
 //! daemon's pipeline runs them, rendered by exocal-report.
 //! `cargo run -p exocald --release --example paper_report -- [out.html] [seconds] [seed]`.
 
-use calib_core::{DhTable, DriftEmOptions, LsOptions, Scenario, ScenarioConfig};
+use calib_core::{DhTable, DriftEmOptions, LsOptions, ScenarioConfig};
 use exocal_report::{html, Quality, ReportInput, TimedSample};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -13,14 +13,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
 
     let cfg = ScenarioConfig::paper();
     let k = (seconds / cfg.drift.dt).round() as usize;
-    let all: Vec<TimedSample> = Scenario::new(cfg, seed)
-        .take(k)
-        .enumerate()
-        .map(|(i, s)| TimedSample {
-            t: i as f64 * cfg.drift.dt,
-            sample: s.sample,
-        })
-        .collect();
+    let all: Vec<TimedSample> = TimedSample::simulated(cfg, seed, k);
     let (fit, held) = all.split_at(all.len() * 4 / 5);
     let nominal = DhTable::paper_nominal();
     let fit_samples: Vec<_> = fit.iter().map(|s| s.sample).collect();

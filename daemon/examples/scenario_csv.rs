@@ -4,7 +4,7 @@
 //! `cargo run --release -p exocald --example scenario_csv -- OUT.csv [--samples K] [--seed S]`
 //! (defaults: K = 6,000 samples at the scenario's 100 Hz, seed 1).
 
-use calib_core::{Scenario, ScenarioConfig};
+use calib_core::ScenarioConfig;
 use exocal_session::formats::csv_text;
 use exocal_session::outcome::TimedSample;
 
@@ -25,14 +25,7 @@ fn main() {
     };
     let k = value("--samples", 6_000) as usize;
     let cfg = ScenarioConfig::paper();
-    let samples: Vec<TimedSample> = Scenario::new(cfg, value("--seed", 1))
-        .take(k)
-        .enumerate()
-        .map(|(i, s)| TimedSample {
-            t: i as f64 * cfg.drift.dt,
-            sample: s.sample,
-        })
-        .collect();
+    let samples: Vec<TimedSample> = TimedSample::simulated(cfg, value("--seed", 1), k);
     std::fs::write(out, csv_text(&samples)).unwrap_or_else(|e| panic!("writing {out}: {e}"));
     eprintln!("{out}: {k} samples");
 }

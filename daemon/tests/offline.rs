@@ -284,14 +284,7 @@ fn bad_inputs_are_errors_naming_the_file_line_and_problem() {
 fn scenario_csv(path: &Path, seconds: f64) {
     let cfg = calib_core::ScenarioConfig::paper();
     let n = (seconds / cfg.drift.dt).round() as usize + 1;
-    let samples: Vec<_> = calib_core::Scenario::new(cfg, 5)
-        .take(n)
-        .enumerate()
-        .map(|(i, s)| exocal_report::TimedSample {
-            t: i as f64 * cfg.drift.dt,
-            sample: s.sample,
-        })
-        .collect();
+    let samples: Vec<_> = exocal_report::TimedSample::simulated(cfg, 5, n);
     std::fs::write(path, csv_text(&samples)).unwrap();
 }
 

@@ -848,19 +848,12 @@ fn ls_against_em(out: &mut String, em: &EmDetail) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use calib_core::{JointRanges, Scenario, ScenarioConfig};
+    use calib_core::{JointRanges, ScenarioConfig};
 
     #[test]
     fn a_session_without_a_calibration_reports_why_and_its_data() {
         let cfg = ScenarioConfig::paper();
-        let samples: Vec<TimedSample> = Scenario::new(cfg, 3)
-            .take(300)
-            .enumerate()
-            .map(|(i, s)| TimedSample {
-                t: i as f64 * cfg.drift.dt,
-                sample: s.sample,
-            })
-            .collect();
+        let samples: Vec<TimedSample> = TimedSample::simulated(cfg, 3, 300);
         let html = render_session(&SessionInput {
             title: "offline <short>".into(),
             source: "offline: short.csv (CSV)".into(),

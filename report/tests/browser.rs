@@ -10,7 +10,7 @@
 use std::path::PathBuf;
 use std::process::Command;
 
-use calib_core::{DhTable, DriftEmOptions, JointRanges, LsOptions, Scenario, ScenarioConfig};
+use calib_core::{DhTable, DriftEmOptions, JointRanges, LsOptions, ScenarioConfig};
 use exocal_report::html::{render, residuals, FIGURES};
 use exocal_report::{Quality, ReportInput, StreamQuality, TimedSample, VerdictSummary};
 
@@ -40,14 +40,7 @@ const SAMPLES: usize = 6000;
 /// table 3 cm and 2° off on every row, so the nominal error is large.
 fn input() -> ReportInput {
     let cfg = ScenarioConfig::paper();
-    let all: Vec<TimedSample> = Scenario::new(cfg, 11)
-        .take(SAMPLES)
-        .enumerate()
-        .map(|(i, s)| TimedSample {
-            t: i as f64 * cfg.drift.dt,
-            sample: s.sample,
-        })
-        .collect();
+    let all: Vec<TimedSample> = TimedSample::simulated(cfg, 11, SAMPLES);
     let (fit, held) = all.split_at(SAMPLES * 4 / 5);
     let mut nominal = DhTable::paper_nominal();
     for row in &mut nominal.rows {

@@ -212,7 +212,7 @@ pub fn csv_text(samples: &[TimedSample]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use calib_core::{Scenario, ScenarioConfig};
+    use calib_core::ScenarioConfig;
     use std::time::Duration;
 
     #[test]
@@ -264,14 +264,7 @@ mod tests {
     }
 
     fn samples(k: usize) -> Vec<TimedSample> {
-        Scenario::new(ScenarioConfig::paper(), 2)
-            .take(k)
-            .enumerate()
-            .map(|(i, s)| TimedSample {
-                t: i as f64 * 0.01,
-                sample: s.sample,
-            })
-            .collect()
+        TimedSample::simulated(ScenarioConfig::paper(), 2, k)
     }
 
     #[test]

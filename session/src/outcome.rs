@@ -3,7 +3,8 @@
 //! quality. The report renders these, the log records them; nothing here is computed.
 
 use calib_core::{
-    Consistency, DhTable, Discounted, DriftConfidence, DriftParams, JointDrift, Sample, TableError,
+    Consistency, DhTable, Discounted, DriftConfidence, DriftParams, JointDrift, Sample, Scenario,
+    ScenarioConfig, TableError,
 };
 
 use crate::{JOINTS, PARAMS};
@@ -15,6 +16,21 @@ pub struct TimedSample {
     pub t: f64,
     /// The joint angles and the measured end-effector pose.
     pub sample: Sample<JOINTS>,
+}
+
+impl TimedSample {
+    /// The first `k` samples of calib-core's simulated session `cfg` with `seed`, timed at its
+    /// sample period: a session for examples and tests without a suit.
+    pub fn simulated(cfg: ScenarioConfig<JOINTS>, seed: u64, k: usize) -> Vec<TimedSample> {
+        Scenario::new(cfg, seed)
+            .take(k)
+            .enumerate()
+            .map(|(i, s)| TimedSample {
+                t: i as f64 * cfg.drift.dt,
+                sample: s.sample,
+            })
+            .collect()
+    }
 }
 
 /// Least-squares step, as the report shows it.

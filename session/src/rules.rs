@@ -115,15 +115,6 @@ impl Settings {
     pub fn suit_default() -> Settings {
         let deg = f64::to_radians;
         let nominal = DhTable::paper_nominal();
-        let range = [
-            (-90.0, 90.0),
-            (-120.0, 30.0),
-            (-10.0, 100.0),
-            (0.0, 150.0),
-            (-20.0, 30.0),
-            (-30.0, 40.0),
-            (-90.0, 90.0),
-        ];
         let small = (-0.05, 0.05);
         Settings {
             joint_nodes: core::array::from_fn(|i| i as u8 + 1),
@@ -141,9 +132,7 @@ impl Settings {
                 d: [small; JOINTS],
                 alpha_deviation: deg(10.0),
                 offset_deviation: deg(15.0),
-                joint_range: JointRanges {
-                    limits: range.map(|(lo, hi)| (deg(lo), deg(hi))),
-                },
+                joint_range: JointRanges::paper(),
             },
             window: WindowRules {
                 min_duration_s: 60.0,

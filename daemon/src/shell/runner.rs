@@ -1059,9 +1059,10 @@ mod tests {
         c.calibration.window.stop_at_expected_error = Some((2.0, 6.0));
         let (result, before, after) = session(c, &dir, None).await;
         let summary = result.expect("the session pushes");
-        // The paper's scenario reaches ±2.0 mm well before its minute (±1.3 mm at 60 s).
+        // The paper's scenario is within ±2.0 mm, ±6.0 mrad at STOP_GUARD estimates in a row
+        // (5 s apart) before its minute (±1.3 mm at 60 s).
         assert!(
-            summary.aligned_samples < 5_000,
+            summary.aligned_samples < 6_000,
             "stopped after {} samples",
             summary.aligned_samples
         );
