@@ -512,6 +512,9 @@ impl<T: Transport> Running<'_, '_, T> {
                         if let Some(x) = e.expected {
                             self.collector.window.set_expected(x);
                         }
+                        if let Some(g) = e.guidance {
+                            self.collector.window.set_guidance(g);
+                        }
                     }
                 }
                 rx = self.bus.recv() => {
