@@ -90,6 +90,7 @@ async fn push_run(seed: u64, tally: &mut PushTally) {
         timeout_ms: 200,
         authenticate: true,
         keys,
+        state_dir: None,
     };
     let mut ignore = |_: bool, _: &exocal_bus::Frame, _: Duration| {};
     let report = push_tables(
@@ -173,6 +174,7 @@ async fn a_rogue_sender_on_vcan0_changes_no_table_and_never_makes_the_daemon_rep
         timeout_ms: 200,
         authenticate: true,
         keys: keys.clone(),
+        state_dir: None,
     };
     let wait = Duration::from_millis(500);
     let found = rogue::attacks(&mut daemon, &mut rogue_sock, &dir, &keys, &policy, wait).await;

@@ -44,6 +44,7 @@ async fn a_rogue_sender_changes_no_table_and_never_makes_the_daemon_report_new()
         timeout_ms: 50,
         authenticate: true,
         keys: keys.clone(),
+        state_dir: None,
     };
     let found = rogue::attacks(
         &mut daemon,

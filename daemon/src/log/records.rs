@@ -220,26 +220,32 @@ pub fn calibration_record(
                     .collect()
             }),
         reading_drift_rms_mrad: outcome.reading_drift_rms.iter().map(|r| r * 1e3).collect(),
-        push: push.map_or_else(Vec::new, |p| {
-            p.nodes
-                .iter()
-                .map(|n| proto::NodePush {
-                    node: n.node.clone(),
-                    new_crc: n.new_crc,
-                    held_crc: n.held_crc,
-                    holds: match n.holds {
-                        Holds::New => "new",
-                        Holds::Old => "old",
-                        Holds::Unknown => "unknown",
-                    }
-                    .to_string(),
-                    attempts: n.attempts,
-                    error: n.error.clone().unwrap_or_default(),
-                    authenticated: n.authenticated,
-                })
-                .collect()
-        }),
+        push: push.map_or_else(Vec::new, push_records),
     }
+}
+
+/// The push outcome as logged: per node, the CRC sent, what it holds, and the CRC it proved
+/// holding in an answer whose MAC verified (what `exocald nodes` compares with).
+pub fn push_records(p: &PushReport) -> Vec<proto::NodePush> {
+    p.nodes
+        .iter()
+        .map(|n| proto::NodePush {
+            node: n.node.clone(),
+            new_crc: n.new_crc,
+            held_crc: n.held_crc,
+            holds: match n.holds {
+                Holds::New => "new",
+                Holds::Old => "old",
+                Holds::Unknown => "unknown",
+            }
+            .to_string(),
+            attempts: n.attempts,
+            error: n.error.clone().unwrap_or_default(),
+            authenticated: n.authenticated,
+            verified_crc: n.verified_crc,
+            counter: n.counter,
+        })
+        .collect()
 }
 
 #[cfg(test)]

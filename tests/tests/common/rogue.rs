@@ -89,7 +89,7 @@ async fn send_and_listen<T: Transport>(
 /// The frames of a transfer of `t` to `node` in `session`, with `auth` = (counter, MAC) as a
 /// `CommitAuth` before the Commit, or none.
 fn transfer(node: NodeId, session: u8, t: &Table, auth: Option<(u32, u32)>) -> Vec<Frame> {
-    let mut cmds = vec![Command::Begin];
+    let mut cmds = vec![Command::Begin { nonce: 0x5eed }];
     cmds.extend(Field::ALL.map(|f| Command::Segment(f, t.raw(f))));
     if let Some((counter, mac)) = auth {
         cmds.push(Command::CommitAuth {
@@ -272,7 +272,11 @@ async fn forge<T: Transport>(
     }
     let mut replies = Vec::new();
     match cmd.cmd {
-        Command::Begin => replies.push(Reply::Freshness { counter: 7 }),
+        Command::Begin { .. } => {
+            *guess = guess.rotate_left(5) ^ 0x9e37_79b9;
+            replies.push(Reply::Freshness { counter: 7 });
+            replies.push(Reply::FreshnessMac { mac: *guess });
+        }
         Command::Readback { .. } => {
             replies.extend(Field::ALL.map(|f| Reply::Readback(f, table.raw(f))));
             *guess = guess.rotate_left(5) ^ 0x9e37_79b9;
