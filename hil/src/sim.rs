@@ -1311,18 +1311,17 @@ pub(crate) mod tests {
         assert!(out_of_order > 100, "{out_of_order}");
         let _ = std::fs::remove_dir_all(&dir);
     }
-    /// Drives `up` against `suit` from simulated time `t` until it has an outcome; returns the
-    /// outcome, every command sent, every reply seen and the time reached.
-    fn exchange(
-        suit: &mut Suit,
-        up: &mut exocal_dbc::transfer::Upload,
-        mut t: f64,
-    ) -> (
+    /// What [`exchange`] saw: the outcome, every command sent, every reply, the time reached.
+    type Exchanged = (
         Option<Result<u32, exocal_dbc::transfer::UploadError>>,
         Vec<TableCmd>,
         Vec<Reply>,
         f64,
-    ) {
+    );
+
+    /// Drives `up` against `suit` from simulated time `t` until it has an outcome; returns the
+    /// outcome, every command sent, every reply seen and the time reached.
+    fn exchange(suit: &mut Suit, up: &mut exocal_dbc::transfer::Upload, mut t: f64) -> Exchanged {
         let (mut sent, mut replies) = (Vec::new(), Vec::new());
         let end = t + 60.0;
         while up.outcome().is_none() && t < end {
@@ -1383,7 +1382,8 @@ pub(crate) mod tests {
         let keys = exocal_dbc::auth::KeySet::derived(34);
         let key = keys.node(node).unwrap().clone();
         let table = Table::from_si(0.0301, -1.5, 0.0299, 0.01, 1.2, 0.9).unwrap();
-        let damages: [(&str, fn(&Path, NodeId)); 3] = [
+        type Damage = fn(&Path, NodeId);
+        let damages: [(&str, Damage); 3] = [
             ("key slot unreadable", |d, n| {
                 std::fs::write(flash::key_path(d, n), [1u8, 2, 3]).unwrap()
             }),
