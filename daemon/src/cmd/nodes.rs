@@ -518,3 +518,58 @@ impl Listing {
         out
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Issue 34, item 2: the listing compares with what the push proved (`verified_crc`), not
+    /// with what it sent or claimed. A node whose push proved nothing (all its answers forged
+    /// or lost) is "not proved", even when it holds the sent table; a push that proved the old
+    /// table makes a node holding the sent one "differs".
+    #[test]
+    fn the_listing_compares_with_the_verified_crc_of_the_push_record() {
+        let sent = Table::from_si(0.03, -1.5, 0.03, 0.01, 1.2, 0.9).unwrap();
+        let old = Table::from_si(0.031, -1.5, 0.03, 0.01, 1.2, 0.9).unwrap();
+        let record =
+            |node: NodeId, holds: &str, verified: Option<u32>| exocal_log::proto::NodePush {
+                node: node.name().to_string(),
+                new_crc: sent.crc(),
+                holds: holds.to_string(),
+                verified_crc: verified,
+                ..Default::default()
+            };
+        let [j1, j2, j3] = [NodeId::JOINTS[0], NodeId::JOINTS[1], NodeId::JOINTS[2]];
+        let records = [
+            record(j1, "new", Some(sent.crc())),
+            record(j2, "unknown", None),
+            record(j3, "old", Some(old.crc())),
+        ];
+        let last = Some((PathBuf::from("s.mcap"), pushed(&records)));
+        let answers = [
+            (j1, Some(Answer::Holds(sent))),
+            (j2, Some(Answer::Holds(sent))),
+            (j3, Some(Answer::Holds(sent))),
+        ];
+        let listing = Listing::new("vcan0", &answers, &[true; 3], last);
+        let got: Vec<_> = listing
+            .nodes
+            .iter()
+            .map(|n| (n.last_pushed_crc, n.matches_last_push))
+            .collect();
+        assert_eq!(
+            got,
+            [
+                (Some(sent.crc()), Some(true)),
+                (None, None),
+                (Some(old.crc()), Some(false)),
+            ]
+        );
+        let text = listing.lines().join("\n");
+        assert!(text.contains("not proved by the push (unknown)"), "{text}");
+        assert!(
+            text.contains(&format!("differs (pushed {:#010x})", old.crc())),
+            "{text}"
+        );
+    }
+}
