@@ -29,8 +29,6 @@ use std::path::{Path, PathBuf};
 use exocal_dbc::auth::Key;
 use exocal_dbc::NodeId;
 
-use crate::exit::DaemonError;
-
 /// The file of the nodes' counters.
 pub const NODE_COUNTERS: &str = "node-counters";
 /// The file of the last accepted trigger counter.
@@ -56,15 +54,6 @@ impl fmt::Display for StateError {
 impl std::error::Error for StateError {
     fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
         Some(&self.source)
-    }
-}
-
-impl From<StateError> for DaemonError {
-    fn from(e: StateError) -> Self {
-        DaemonError::Io {
-            what: format!("{} {}", e.doing, e.path.display()),
-            source: e.source,
-        }
     }
 }
 
