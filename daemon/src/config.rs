@@ -106,6 +106,10 @@ pub struct PushPolicy {
     /// The keys (never from the file: `exocald` loads them from its systemd credential,
     /// [`crate::keys`], the demo derives them from its seed). Empty after parsing.
     pub keys: exocal_dbc::auth::KeySet,
+    /// The state directory (never from the file: `$STATE_DIRECTORY`, set by systemd's
+    /// `StateDirectory=`): the nodes' verified and signed freshness counters and the trigger
+    /// counter ([`crate::state`]). `None`: kept for the run only (tests, the demo).
+    pub state_dir: Option<PathBuf>,
 }
 
 impl PushPolicy {
@@ -793,6 +797,7 @@ impl Checker<'_> {
             timeout_ms: self.count_at_most("push.timeout_ms", p.timeout_ms, MAX_TIMEOUT_MS)?,
             authenticate: p.authenticate,
             keys: exocal_dbc::auth::KeySet::default(),
+            state_dir: None,
         };
         if push.backoff_initial_ms == 0 {
             return Err(self.err("push.backoff_initial_ms", "must be at least 1"));

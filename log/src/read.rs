@@ -2,7 +2,8 @@
 //!
 //! Contract: [`read_mcap_session`] returns a daemon session log's received raw frames
 //! ([`Topic::CanRx`]) in file order, as the bus delivered them (kernel receive time where there
-//! is one, else the host's), and the end of its collection window ([`Topic::Collection`]). It
+//! is one, else the host's), the end of its collection window ([`Topic::Collection`]) and the
+//! push outcome of its last [`Topic::Calibration`] record that has one (protobuf logs). It
 //! neither decodes the frames nor reorders them; bad input is a [`ReadError`] naming what is
 //! wrong, never a panic.
 
@@ -42,6 +43,9 @@ pub struct McapSession {
     /// time would not do: frames still queued in the receiver at the end carry earlier
     /// timestamps but were not used.)
     pub collection_frames: Option<u64>,
+    /// The push outcome per node, from the last `/calibration` record that carries one (empty
+    /// when nothing was pushed, or in a log written before the log was binary).
+    pub push: Vec<crate::proto::NodePush>,
 }
 
 const RX: &str = Topic::CanRx.name();
@@ -54,6 +58,7 @@ pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
     let mut frames = Vec::new();
     let mut collection_end = None;
     let mut collection_frames = None;
+    let mut push = Vec::new();
     let mut seen_channel = false;
     for (i, message) in stream.enumerate() {
         let m = message.map_err(|e| err(e.to_string()))?;
@@ -63,6 +68,16 @@ pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
             if collection_end.is_none() {
                 collection_end = Some(Duration::from_nanos(end.window_end_ns));
                 collection_frames = Some(end.frames);
+            }
+            continue;
+        }
+        if m.channel.topic == Topic::Calibration.name()
+            && m.channel.message_encoding == crate::MESSAGE_ENCODING
+        {
+            let c = <crate::proto::Calibration as prost::Message>::decode(&m.data[..])
+                .map_err(|e| err(format!("message {i} on {}: {e}", Topic::Calibration.name())))?;
+            if !c.push.is_empty() {
+                push = c.push;
             }
             continue;
         }
@@ -98,6 +113,7 @@ pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
         frames,
         collection_end,
         collection_frames,
+        push,
     })
 }
 

@@ -135,6 +135,22 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
             );
             eprintln!("exocald: configuration from {source}");
             require_interface(&config.interface)?;
+            if config.push.authenticate {
+                let nodes: Vec<NodeId> = config
+                    .calibration
+                    .joint_nodes
+                    .iter()
+                    .filter_map(|&n| NodeId::new(n))
+                    .collect();
+                match crate::keys::load_if_present(&nodes)? {
+                    Some(keys) => config.push.keys = keys,
+                    None => eprintln!(
+                        "exocald: no credential {}: the nodes' answers are not authenticated \
+                         (each line says so)",
+                        crate::keys::CREDENTIAL
+                    ),
+                }
+            }
             runtime()?.block_on(nodes_on_can(&config, &args))
         }
         #[cfg(feature = "demo")]
@@ -184,13 +200,15 @@ fn session_config(path: Option<&Path>, args: &SessionArgs) -> Result<Config, Dae
 }
 
 /// With `push.authenticate`, loads the keys from the `exocal-keys` credential into `config`
-/// (a key for every joint node, and the trigger key for `run`), or fails (exit 78) before the
-/// bus is touched; says on stderr (the journal) which way it is, never the keys.
+/// (a key for every joint node, and the trigger key for `run`) and takes the state directory
+/// (`$STATE_DIRECTORY`, [`crate::state`]), or fails (exit 78) before the bus is touched; says
+/// on stderr (the journal) which way it is, never the keys.
 pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError> {
     if !config.push.authenticate {
         eprintln!(
-            "exocald: WARNING: authentication is off ([push] authenticate = false): any sender on \
-             the bus can change a node's table{}",
+            "exocald: WARNING: authentication is off ([push] authenticate = false): nodes of \
+             protocol exocal-3 install no unauthenticated table, and any sender on the bus can \
+             forge their answers{}",
             if trigger { " or start a session" } else { "" }
         );
         return Ok(());
@@ -202,6 +220,13 @@ pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError
         .filter_map(|&n| NodeId::new(n))
         .collect();
     config.push.keys = crate::keys::load_credential(&nodes, trigger)?;
+    let Some(state) = crate::state::from_env() else {
+        return Err(DaemonError::Keys(crate::keys::KeyError::NoState));
+    };
+    if let Some(w) = crate::keys::credential_warning() {
+        eprintln!("exocald: {w}");
+    }
+    config.push.state_dir = Some(state);
     eprintln!(
         "exocald: table transfers{} are authenticated (AES-128-CMAC, freshness counters): keys \
          of {} joint node(s){} from the credential {}",
