@@ -88,7 +88,11 @@ fn offline_recalibration_agrees_with_the_live_session() {
     assert!(html.contains("Joint7") && html.contains("EndEffector"));
 
     // (a) The MCAP log, replayed offline up to its collection end: the same table, bit for bit.
-    let session = read_mcap_session(&std::fs::read(&live.log_path).unwrap()).unwrap();
+    let session = read_mcap_session(
+        std::fs::read(&live.log_path).unwrap().as_slice(),
+        exocal_log::read::admit_all,
+    )
+    .unwrap();
     let used = session
         .collection_frames
         .expect("the collection-done marker") as usize;
@@ -149,8 +153,9 @@ fn offline_recalibration_agrees_with_the_live_session() {
         &offline::recalibrate(
             &offline::read_input(
                 &live.log_path,
-                &std::fs::read(&live.log_path).unwrap(),
+                std::fs::File::open(&live.log_path).unwrap(),
                 Format::Mcap,
+                &config.calibration.window,
             )
             .unwrap()
             .0,

@@ -453,13 +453,15 @@ impl Ingest {
             .collect()
     }
 
-    /// Fits the clocks and resamples everything onto one grid at `hz` (host s since origin);
-    /// the receiver stalls found are in [`Aligned::stalls`].
+    /// Fits the clocks and resamples everything onto one grid at `hz` (host s since origin),
+    /// of at most `max_points` ([`crate::align::align`]); the receiver stalls found are in
+    /// [`Aligned::stalls`].
     pub fn align(
         &self,
         params: &AlignParams,
         hz: f64,
         max_gap: f64,
+        max_points: usize,
     ) -> (Aligned, Vec<ClockReport>) {
         let clocks: Vec<&[(f64, f64)]> = self
             .joints
@@ -490,7 +492,7 @@ impl Ingest {
             poses.len(),
             track,
         ));
-        let mut aligned = align::align(&joints, &poses, hz, max_gap);
+        let mut aligned = align::align(&joints, &poses, hz, max_gap, max_points);
         aligned.stalls = session.stalls;
         (aligned, reports)
     }
@@ -669,7 +671,7 @@ mod tests {
             ing.on_frame(&rx(*f, *t));
         }
         assert_eq!(ing.stats().poses, 500);
-        let (aligned, reports) = ing.align(&AlignParams::default(), 100.0, 0.05);
+        let (aligned, reports) = ing.align(&AlignParams::default(), 100.0, 0.05, usize::MAX);
         assert_eq!(reports.len(), 8);
         for (node, r) in reports.iter().enumerate() {
             assert_eq!(r.jumps, 0, "{r:?}");
@@ -748,7 +750,7 @@ mod tests {
             _ => 0.0,
         };
         let ing = ingest_session(late, None);
-        let (aligned, reports) = ing.align(&AlignParams::default(), 100.0, 0.05);
+        let (aligned, reports) = ing.align(&AlignParams::default(), 100.0, 0.05, usize::MAX);
         let stalls = StallReport::of(&aligned.stalls);
         assert_eq!(stalls.count, 1, "{:?}", aligned.stalls);
         assert!(stalls
@@ -769,7 +771,7 @@ mod tests {
     #[test]
     fn one_node_rebooting_is_its_own_jump_not_a_stall() {
         let ing = ingest_session(|_| 0.0, Some(3));
-        let (aligned, reports) = ing.align(&AlignParams::default(), 100.0, 0.05);
+        let (aligned, reports) = ing.align(&AlignParams::default(), 100.0, 0.05, usize::MAX);
         assert!(aligned.stalls.is_empty(), "{:?}", aligned.stalls);
         for r in &reports {
             assert_eq!(r.jumps, usize::from(r.node == "Joint3"), "{r:?}");

@@ -241,7 +241,8 @@ pub fn log_tables(path: &Path) -> Result<BTreeMap<NodeId, Table>, DaemonError> {
         what: format!("reading {}", path.display()),
         source,
     })?;
-    let (session, _) = crate::cmd::offline::read_session_log(path, &bytes)?;
+    let session =
+        crate::cmd::offline::read_session_log(path, &bytes[..], exocal_log::read::admit_all)?;
     Ok(pushed_tables(&session.frames))
 }
 
