@@ -41,7 +41,7 @@
 
 use calib_core::drift::{Discretisation, GaussMarkov};
 use calib_core::metrics::TableError;
-use calib_core::sweep::{Cell, Simulation};
+use calib_core::sweep::{Cell, Field, Simulation};
 use calib_core::{
     em_drift_vec, identify_ls, table_error, DhTable, DriftEmOptions, LsOptions, Rng, Sample, Scenario, ScenarioConfig,
     SeparationSlot, EXPECTED_ERROR_POSES, SUIT_PARAMS,
@@ -126,6 +126,7 @@ fn main() {
         sigma: arg("--sigma").unwrap_or(1.0),
         noise: (0.0, 0.0),
         seconds,
+        field: Field::PAPER,
     };
     let variants = [
         Variant::A,

@@ -16,7 +16,7 @@
 use std::time::Instant;
 
 use calib_core::metrics::TableError;
-use calib_core::sweep::{good_enough, Cell, GoodEnough, StopRule};
+use calib_core::sweep::{good_enough, Cell, Field, GoodEnough, StopRule};
 
 /// The fixed window the rule is compared with (s).
 const FIXED_S: f64 = 60.0;
@@ -85,6 +85,7 @@ fn main() {
                     sigma,
                     noise,
                     seconds: rule.max_s,
+                    field: Field::PAPER,
                 };
                 let t0 = Instant::now();
                 let runs: Vec<GoodEnough> = (1..=seeds).map(|seed| good_enough(&cell, seed, &rule, FIXED_S)).collect();

@@ -95,6 +95,37 @@ impl DriftParams {
     }
 }
 
+/// A rate bias integrated into a joint's angle error, as an IMU's gyro bias left after fusion
+/// gives it: `c_{k+1} = c_k + Δt·b_k`, `b_{k+1} = b_k + walk·√Δt·N(0, 1)`, `c_0 = 0` at the
+/// session's start, `b_0 ~ N(0, ramp²)`, independently per joint. The simulator draws it
+/// ([`crate::sim`]); [`crate::DriftEmOptions::rate_bias_spec`] takes the sensors' spec in the same
+/// terms.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RateBias {
+    /// Standard deviation of each joint's rate bias at the start (rad/s); alone, a ramp.
+    pub ramp: f64,
+    /// Intensity of the bias's random walk (rad/s/√s): it wanders by `walk·√t` in t seconds.
+    pub walk: f64,
+}
+
+impl RateBias {
+    /// No rate bias.
+    pub const NONE: RateBias = RateBias { ramp: 0.0, walk: 0.0 };
+
+    /// Whether there is any.
+    pub fn is_none(&self) -> bool {
+        self.ramp == 0.0 && self.walk == 0.0
+    }
+
+    /// The variances (rad²) of the coefficients of `s` and `s²` (`s` the fraction of a session
+    /// of `seconds`) that represent it: `(ramp·T)² + walk²·T³/3` and `walk²·T³/3` (the walk's
+    /// angle at the session's end, `walk²·T³/3`, shared by both terms).
+    pub fn intensities(&self, seconds: f64) -> [f64; 2] {
+        let walk = self.walk * self.walk * seconds * seconds * seconds / 3.0;
+        [self.ramp * self.ramp * seconds * seconds + walk, walk]
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -12,17 +12,18 @@
 //! | pose error (tool frame: position, rotation vector) | [`pose_error`] |
 //! | anatomical bounds (Table 2) and ranges (Table 3) | [`Bounds::paper`], [`check_bounds`], [`JointRanges::paper`] |
 //! | a calibration sample | [`Sample`] `{ joints: [f64; N], pose: Frame }` |
-//! | Gauss-Markov drift and the Section 4 simulator | [`GaussMarkov`], [`Scenario`] |
+//! | Gauss-Markov drift, rate bias, and the seeded session simulator (drift in the arm or the reading, reading noise, glitches, slips) | [`GaussMarkov`], [`RateBias`], [`Scenario`], [`ScenarioConfig`], [`DriftSite`], [`Outliers`], [`Slip`] |
 //! | least squares | [`identify_ls`]`::<N, P>(&start, &samples, &LsOptions) -> Result<LsResult, CalibError>` |
 //! | least squares with the per-sample work split by the caller (e.g. over cores) | [`identify_ls_with`], [`Linearise`], [`normal_equations`], [`GramAccumulator::merge`] |
 //! | least squares with base and tool frames (`P = 4N + 12`) | [`identify_ls_frames`] |
 //! | the paper's EM (eqs. 33–36) | [`paper_em()`] |
 //! | the drift's rough part out of the readings, before LS and the EM | [`separate()`], [`SeparationSlot`] |
-//! | our EM (Kalman + RTS smoother over the drift) | [`em_drift()`] |
+//! | our EM (Kalman + RTS smoother over the drift; drift model per joint, Student-t reference, REML drift, stated error, refusals: the contract is in [`drift_em`]) | [`em_drift()`], [`DriftEmResult::stated_error`], [`JointDrift`], [`Discounted`], [`Consistency`], [`Refusal`] |
+//! | what LS alone is worth when the EM gives no figure | [`ls_white_expected_error`] |
 //! | confidence intervals of its τ, σ per joint | [`drift_confidence()`], [`DriftConfidence`] |
 //! | objective y (eq. 10) and parameter errors | [`objective_y`], [`ParamErrors`] |
 //! | table error, expected table error, the Cramér-Rao bound | [`table_error`], [`DriftEmResult::expected_error`], [`cramer_rao()`] |
-//! | the accuracy sweep (std) | `sweep` |
+//! | the accuracy sweep and its field cells (std) | `sweep` |
 //!
 //! # Quick start
 //! ```
@@ -67,6 +68,7 @@ pub mod drift_conf;
 pub mod drift_em;
 pub mod error;
 pub mod frames;
+mod info;
 mod kalman;
 pub mod linalg;
 pub mod ls;
@@ -81,11 +83,14 @@ pub mod sim;
 #[cfg(any(test, feature = "std"))]
 pub mod sweep;
 
-pub use drift::{Discretisation, DriftParams, GaussMarkov};
+pub use drift::{Discretisation, DriftParams, GaussMarkov, RateBias};
 pub use drift_conf::{drift_confidence, DriftConfidence};
 #[cfg(any(test, feature = "std"))]
 pub use drift_em::em_drift_vec;
-pub use drift_em::{cramer_rao, em_drift, DriftEmOptions, DriftEmResult, DriftSlot, EXPECTED_ERROR_POSES};
+pub use drift_em::{
+    cramer_rao, discounted_samples, em_drift, Consistency, Discounted, DriftEmOptions, DriftEmResult, DriftModel, DriftSlot,
+    JointConsistency, JointDrift, Refusal, Trend, EXPECTED_ERROR_POSES, RATE_BIAS_TERMS,
+};
 pub use error::CalibError;
 pub use frames::{identify_ls_frames, LsFramesResult, Mounting, Param, FRAME_PARAMS};
 pub use linalg::{GramAccumulator, Observability, QrAccumulator, QrPanel, GRAM_MAX_CONDITION};
@@ -94,7 +99,8 @@ pub use ls::{
     LsOptions, LsResult, NullDirection, Sequential,
 };
 pub use metrics::{
-    expected_table_error, ls_expected_table_error, objective_y, objective_y_corrected, table_error, ParamErrors, TableError,
+    expected_table_error, ls_expected_table_error, ls_white_expected_error, objective_y, objective_y_corrected, table_error,
+    ParamErrors, TableError,
 };
 pub use model::{
     bound_violations, check_bounds, clamp_to_bounds, pose_error, BoundViolation, Bounds, DhRow, DhTable, Frame, JointRanges,
@@ -103,4 +109,4 @@ pub use model::{
 pub use paper_em::{paper_em, PaperEmForm, PaperEmOptions, PaperEmResult, MAX_EM_ITERATIONS};
 pub use reading::{separate, JointSeparation, SeparationSlot};
 pub use rng::Rng;
-pub use sim::{Motion, Scenario, ScenarioConfig, SimSample};
+pub use sim::{DriftSite, Motion, Outliers, Scenario, ScenarioConfig, SimSample, Slip};

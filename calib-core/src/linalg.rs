@@ -216,6 +216,19 @@ impl<const P: usize> GramAccumulator<P> {
         self.rows += other.rows;
     }
 
+    /// Subtracts a rank-deficient outer product from the accumulated problem: `HᵀH[p][q] −=
+    /// g(p, q)` (upper triangle), `Hᵀy[p] −= b(p)`, `yᵀy −= yy`: the Schur complement of
+    /// columns eliminated elsewhere (`g = ZᵀZ`, `b = Zᵀζ`, `yy = ζᵀζ`).
+    pub(crate) fn subtract_outer(&mut self, g: impl Fn(usize, usize) -> f64, b: impl Fn(usize) -> f64, yy: f64) {
+        for p in 0..P {
+            for q in p..P {
+                self.g[p][q] -= g(p, q);
+            }
+            self.b[p] -= b(p);
+        }
+        self.yy -= yy;
+    }
+
     /// `vᵀ (HᵀH) v`, from the upper triangle the accumulator keeps.
     pub fn quadratic_form(&self, v: &[f64; P]) -> f64 {
         let mut sum = 0.0;

@@ -128,6 +128,33 @@ pub fn ls_expected_table_error<'a, const N: usize, const P: usize>(
     }))
 }
 
+/// The expected table error (1σ, RMS over up to [`crate::EXPECTED_ERROR_POSES`] of the
+/// session's poses) of the least-squares table `table` on `samples` when its residuals are white:
+/// [`ls_expected_table_error`] with no drift and each pose component's noise variance taken as its
+/// residual variance at `table`. What LS alone is worth where the drift EM has no figure to give
+/// (it failed, or the session has no drift to speak of): honest for white residuals, optimistic
+/// by the drift's colour otherwise. `None` as for [`ls_expected_table_error`].
+pub fn ls_white_expected_error<const N: usize, const P: usize>(table: &DhTable<N>, samples: &[Sample<N>]) -> Option<TableError> {
+    let mut var = [0.0; 6];
+    for s in samples {
+        let e = pose_error(&table.fk(&s.joints), &s.pose);
+        for (v, x) in var.iter_mut().zip(e.iter()) {
+            *v += x * x;
+        }
+    }
+    let dof = samples.len().saturating_sub(P / 6 + 1).max(1) as f64;
+    let var = var.map(|v| v / dof);
+    let stride = samples.len().div_ceil(crate::EXPECTED_ERROR_POSES).max(1);
+    ls_expected_table_error::<N, P>(
+        table,
+        samples,
+        &[0.0; N],
+        &[0.0; N],
+        &var,
+        samples.iter().step_by(stride).map(|s| &s.joints),
+    )
+}
+
 fn rms(pos: f64, rot: f64, n: usize) -> TableError {
     if n == 0 {
         return TableError::default();

@@ -34,8 +34,9 @@ use crate::drift_em::{cramer_rao, em_drift_vec, DriftEmOptions, DriftEmResult};
 use crate::ls::{identify_ls, LsOptions, LsResult};
 use crate::metrics::{expected_table_error, ls_expected_table_error, table_error, TableError};
 use crate::model::{DhTable, ParamKind, Sample, SUIT_PARAMS};
+use crate::reading::{separate, SeparationSlot};
 use crate::rng::Rng;
-use crate::sim::{Scenario, ScenarioConfig};
+use crate::sim::{DriftSite, Motion, Outliers, RateBias, Scenario, ScenarioConfig, SimSample, Slip};
 
 /// Fresh poses every table error is averaged over.
 pub const FRESH_POSES: usize = 200;
@@ -48,12 +49,61 @@ pub const TABLE_SCALES: [f64; 2] = [0.2, 1.0];
 pub struct Cell {
     /// Drift correlation time τ (s).
     pub tau: f64,
-    /// Drift σ in the paper's convention (eq. 8).
+    /// Drift σ: in the paper's convention (eq. 8) for [`Field::PAPER`], else as
+    /// `field.discretisation` says (the stationary deviation in rad for `Exact`).
     pub sigma: f64,
     /// White pose noise: position (m) and rotation (rad) per axis.
     pub noise: (f64, f64),
-    /// Session length (s) at the paper's 100 Hz.
+    /// Session length (s).
     pub seconds: f64,
+    /// What a real suit adds to the paper's scenario ([`Field::PAPER`]: nothing).
+    pub field: Field,
+}
+
+/// The field conditions of a [`Cell`] beside its Gauss-Markov drift and pose noise (see
+/// [`crate::sim`]): sample rate, where the drift sits, rate bias, reading noise, glitches.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Field {
+    /// Sample period (s).
+    pub dt: f64,
+    /// How [`Cell::sigma`] is read.
+    pub discretisation: Discretisation,
+    /// Where the angle error acts.
+    pub site: DriftSite,
+    /// Rate bias integrated into the angle error.
+    pub bias: RateBias,
+    /// White noise on every reported angle (rad).
+    pub reading_noise: f64,
+    /// Glitches of the reference pose.
+    pub outliers: Outliers,
+    /// A sensor that slips during the session.
+    pub slip: Option<Slip>,
+}
+
+impl Field {
+    /// The paper's scenario: 100 Hz, σ in the paper's convention, the drift in the arm, nothing
+    /// else.
+    pub const PAPER: Field = Field {
+        dt: 0.01,
+        discretisation: Discretisation::Paper,
+        site: DriftSite::Arm,
+        bias: RateBias::NONE,
+        reading_noise: 0.0,
+        outliers: Outliers::NONE,
+        slip: None,
+    };
+
+    /// A real suit's sensors: 50 Hz, σ the stationary deviation (rad), the drift in the reading,
+    /// no rate bias, 0.2 mrad of reading noise, no glitches.
+    pub const SENSOR: Field = Field {
+        dt: 0.02,
+        discretisation: Discretisation::Exact,
+        site: DriftSite::Reading,
+        bias: RateBias::NONE,
+        reading_noise: 2e-4,
+        outliers: Outliers::NONE,
+        slip: None,
+    };
 }
 
 /// Table errors of one session.
@@ -67,6 +117,11 @@ pub struct Session {
     pub bound: TableError,
     /// What the EM itself reported (its bound at its own estimates).
     pub reported: TableError,
+    /// What the EM states ([`DriftEmResult::stated_error`]: the bound at its own estimates with
+    /// the model choice's and the consistency's share).
+    pub stated: TableError,
+    /// Whether the EM refused the session ([`DriftEmResult::refusals`]).
+    pub refused: bool,
     /// What LS is expected to reach under the true drift and noise
     /// ([`crate::metrics::ls_expected_table_error`]).
     pub ls_expected: TableError,
@@ -95,12 +150,14 @@ pub fn true_table(seed: u64) -> DhTable<7> {
 pub struct Simulation {
     /// The seed's true table ([`true_table`]).
     pub truth: DhTable<7>,
-    /// The cell's drift at the paper's 100 Hz.
+    /// The Gauss-Markov part of the cell's drift.
     pub drift: GaussMarkov,
     /// The cell's pose noise (m, rad).
     pub noise: (f64, f64),
     /// `cell.seconds` of the suit's motion.
     pub samples: Vec<Sample<7>>,
+    /// Per sample, whether its pose is a glitch.
+    pub glitched: Vec<bool>,
     /// [`FRESH_POSES`] poses of another motion.
     pub fresh: Vec<[f64; 7]>,
 }
@@ -109,31 +166,37 @@ impl Simulation {
     /// Simulates `cell` for `seed`. A longer session of the same cell and seed starts with the
     /// same samples: a prefix of it is the shorter session.
     pub fn new(cell: &Cell, seed: u64) -> Simulation {
+        let f = cell.field;
         let drift = GaussMarkov {
-            dt: 0.01,
+            dt: f.dt,
             tau: cell.tau,
             sigma: cell.sigma,
-            discretisation: Discretisation::Paper,
+            discretisation: f.discretisation,
         };
         let truth = true_table(seed);
         let cfg = ScenarioConfig {
             actual: truth,
             drift,
+            bias: f.bias,
+            site: f.site,
+            reading_noise: f.reading_noise,
             position_noise: cell.noise.0,
             rotation_noise: cell.noise.1,
+            outliers: f.outliers,
+            slip: f.slip,
             ..ScenarioConfig::paper()
         };
         let k = (cell.seconds / drift.dt).round() as usize;
+        let run: Vec<SimSample<7>> = Scenario::new(cfg, seed).take(k).collect();
+        // Fresh drift-free poses: the smooth motion of another seed, every 17th step.
+        let motion = Motion::random(&cfg.ranges, &mut Rng::new(seed ^ 0xF2E5_4000));
         Simulation {
             truth,
             drift,
             noise: cell.noise,
-            samples: Scenario::new(cfg, seed).take(k).map(|s| s.sample).collect(),
-            fresh: Scenario::new(cfg, seed ^ 0xF2E5_4000)
-                .step_by(17)
-                .take(FRESH_POSES)
-                .map(|s| s.sample.joints)
-                .collect(),
+            samples: run.iter().map(|s| s.sample).collect(),
+            glitched: run.iter().map(|s| s.outlier).collect(),
+            fresh: (0..FRESH_POSES).map(|i| motion.at((17 * i) as f64 * drift.dt)).collect(),
         }
     }
 
@@ -145,8 +208,30 @@ impl Simulation {
 
     /// LS from nominal on `samples`, then our EM from LS: the calibration the daemon runs.
     pub fn fit(&self, samples: &[Sample<7>]) -> Result<(LsResult<7, SUIT_PARAMS>, DriftEmResult<7>), crate::CalibError> {
+        self.fit_with(samples, &DriftEmOptions::new(self.drift.dt))
+    }
+
+    /// [`Simulation::fit`] with other EM options (e.g. [`DriftEmOptions::plain`], to measure
+    /// what a part of the model is worth).
+    pub fn fit_with(
+        &self,
+        samples: &[Sample<7>],
+        opts: &DriftEmOptions<7>,
+    ) -> Result<(LsResult<7, SUIT_PARAMS>, DriftEmResult<7>), crate::CalibError> {
+        // The daemon's step 0: each reading off the rough part of its drift (a no-op on smooth
+        // readings, e.g. the paper's cells).
+        let mut samples = samples.to_vec();
+        let mut slots = std::vec![SeparationSlot::default(); samples.len()];
+        separate(
+            &mut samples,
+            &DhTable::paper_nominal(),
+            self.drift.dt,
+            DriftEmOptions::<7>::new(self.drift.dt).initial_tau,
+            &mut slots,
+        );
+        let samples = &samples[..];
         let ls = identify_ls::<7, SUIT_PARAMS>(&DhTable::paper_nominal(), samples, &LsOptions::new())?;
-        let (em, _) = em_drift_vec::<7, SUIT_PARAMS>(&ls.table, samples, &DriftEmOptions::new(self.drift.dt))?;
+        let (em, _) = em_drift_vec::<7, SUIT_PARAMS>(&ls.table, samples, opts)?;
         Ok((ls, em))
     }
 
@@ -158,10 +243,20 @@ impl Simulation {
 
 /// Runs one session of `cell` for `seed`.
 pub fn session(cell: &Cell, seed: u64) -> Result<Session, crate::CalibError> {
+    session_with(cell, seed, |o| o)
+}
+
+/// [`session`] with the EM's options changed by `options` (from the defaults at the cell's Δt).
+pub fn session_with(
+    cell: &Cell,
+    seed: u64,
+    options: impl Fn(DriftEmOptions<7>) -> DriftEmOptions<7>,
+) -> Result<Session, crate::CalibError> {
     let sim = Simulation::new(cell, seed);
     let (truth, drift, samples, fresh) = (&sim.truth, sim.drift, &sim.samples, &sim.fresh);
-    let (ls, em) = sim.fit(samples)?;
-    let q = drift.process_variance();
+    let (ls, em) = sim.fit_with(samples, &options(DriftEmOptions::new(drift.dt)))?;
+    // No drift: the bound of white pose noise alone (a drift too small to matter).
+    let q = drift.process_variance().max(1e-30);
     let (pn, rn) = (cell.noise.0 * cell.noise.0, cell.noise.1 * cell.noise.1);
     let crb = cramer_rao::<7, SUIT_PARAMS>(truth, samples, [drift.phi(); 7], [q; 7], [pn, pn, pn, rn, rn, rn], 1e-14)?;
     Ok(Session {
@@ -169,6 +264,8 @@ pub fn session(cell: &Cell, seed: u64) -> Result<Session, crate::CalibError> {
         em: sim.table_error(&em.table),
         bound: expected_table_error::<7, SUIT_PARAMS>(truth, fresh, |u| crb.variance_along(u)),
         reported: em.expected_error,
+        stated: em.stated_error,
+        refused: !em.refusals.is_empty(),
         ls_expected: ls_expected_table_error::<7, SUIT_PARAMS>(
             &ls.table,
             samples,
@@ -296,6 +393,25 @@ pub fn good_enough(cell: &Cell, seed: u64, rule: &StopRule, fixed_s: f64) -> Goo
     GoodEnough { evaluations, fixed }
 }
 
+/// `√(Σ a² / Σ b²)` over sessions, per component (position, rotation): the ratio of two RMS
+/// errors, e.g. real ÷ stated (`|s| s.em`, `|s| s.stated`) or our table against LS's.
+pub fn pooled(sessions: &[Session], a: impl Fn(&Session) -> TableError, b: impl Fn(&Session) -> TableError) -> (f64, f64) {
+    let sum = |f: &dyn Fn(&Session) -> TableError| {
+        sessions.iter().fold((0.0, 0.0), |(p, r), x| {
+            let e = f(x);
+            (p + e.position_m * e.position_m, r + e.rotation_rad * e.rotation_rad)
+        })
+    };
+    let (ap, ar) = sum(&a);
+    let (bp, br) = sum(&b);
+    ((ap / bp).sqrt(), (ar / br).sqrt())
+}
+
+/// The field cell whose name contains `name` ([`field_grid`]).
+pub fn field_cell(name: &str) -> Option<Cell> {
+    field_grid().into_iter().find(|(n, _)| n.contains(name)).map(|(_, c)| c)
+}
+
 /// RMS over sessions of each figure (position, rotation), and the spread of EM / bound.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Summary {
@@ -369,12 +485,100 @@ pub fn grid() -> Vec<Cell> {
                         sigma,
                         noise,
                         seconds,
+                        field: Field::PAPER,
                     });
                 }
             }
         }
     }
     cells
+}
+
+/// The field cells (issue 30): a real suit's sensors ([`Field::SENSOR`]: 50 Hz, the drift in
+/// the reading, reading noise), 0.5 mm / 1 mrad pose noise, 30 s, τ = 1 s and σ = 7 mrad unless
+/// the cell's name says otherwise. Each with its name.
+pub fn field_grid() -> Vec<(&'static str, Cell)> {
+    let base = Cell {
+        tau: 1.0,
+        sigma: 7e-3,
+        noise: (5e-4, 1e-3),
+        seconds: 30.0,
+        field: Field::SENSOR,
+    };
+    let with = |f: Field| Cell { field: f, ..base };
+    let bias = |ramp: f64, walk: f64| {
+        with(Field {
+            bias: RateBias { ramp, walk },
+            ..Field::SENSOR
+        })
+    };
+    let glitch = |probability: f64| {
+        with(Field {
+            outliers: Outliers {
+                probability,
+                burst: 1,
+                position: 0.02,
+                rotation: 0.02,
+            },
+            ..Field::SENSOR
+        })
+    };
+    std::vec![
+        (
+            "the paper's Section 4 (100 Hz, drift in the arm, no noise, 20 s)",
+            Cell {
+                tau: 1.0,
+                sigma: 1.0,
+                noise: (0.0, 0.0),
+                seconds: 20.0,
+                field: Field::PAPER,
+            },
+        ),
+        (
+            "the paper's Section 4 with the drift in the reading (60 s)",
+            Cell {
+                tau: 1.0,
+                sigma: 1.0,
+                noise: (0.0, 0.0),
+                seconds: 60.0,
+                field: Field {
+                    site: DriftSite::Reading,
+                    ..Field::PAPER
+                },
+            },
+        ),
+        ("paper-like (τ 1 s, σ 7 mrad)", base),
+        (
+            "no pose noise",
+            Cell {
+                noise: (0.0, 0.0),
+                ..base
+            }
+        ),
+        ("15 s session", Cell { seconds: 15.0, ..base }),
+        ("fast drift τ 0.3 s", Cell { tau: 0.3, ..base }),
+        ("slow drift τ 3 s", Cell { tau: 3.0, ..base }),
+        ("slow drift τ 10 s", Cell { tau: 10.0, ..base }),
+        ("bias ramp 0.005 °/s", bias(0.005f64.to_radians(), 0.0)),
+        ("bias ramp 0.02 °/s", bias(0.02f64.to_radians(), 0.0)),
+        ("bias walk 2e-5 rad/s/√s", bias(0.0, 2e-5)),
+        ("bias walk 1e-4 rad/s/√s", bias(0.0, 1e-4)),
+        ("ramp 0.01 °/s + walk 5e-5", bias(0.01f64.to_radians(), 5e-5)),
+        ("glitches 1% (2 cm, 20 mrad)", glitch(0.01)),
+        ("glitches 5% (2 cm, 20 mrad)", glitch(0.05)),
+        ("no drift", Cell { sigma: 0.0, ..base }),
+        (
+            "a sensor slips 20 mrad mid-session (joint 2)",
+            with(Field {
+                slip: Some(Slip {
+                    joint: 1,
+                    time: 15.0,
+                    angle: 0.02,
+                }),
+                ..Field::SENSOR
+            }),
+        ),
+    ]
 }
 
 #[cfg(test)]
@@ -389,6 +593,7 @@ mod tests {
             sigma: 1.0,
             noise: (1e-3, 2e-3),
             seconds: 10.0,
+            field: Field::PAPER,
         };
         let s = session(&cell, 1).unwrap();
         assert!(s.bound.position_m > 0.0 && s.bound.rotation_rad > 0.0, "{s:?}");
@@ -407,6 +612,7 @@ mod tests {
                 sigma,
                 noise: (1e-3, 2e-3),
                 seconds: 20.0,
+                field: Field::PAPER,
             };
             let sessions: Vec<Session> = (1..=4).map(|seed| session(&cell, seed).unwrap()).collect();
             let s = Summary::of(&sessions);
@@ -438,6 +644,7 @@ mod tests {
             sigma: 1.0,
             noise: (1e-3, 2e-3),
             seconds: 10.0,
+            field: Field::PAPER,
         };
         let sessions: Vec<Session> = (1..=50).map(|seed| session(&cell, seed).unwrap()).collect();
         let s = Summary::of(&sessions);
@@ -479,6 +686,7 @@ mod tests {
             sigma: 1.0,
             noise: (1e-3, 2e-3),
             seconds: 0.0,
+            field: Field::PAPER,
         };
         let rule = |mm, mrad| StopRule {
             min_s: 4.0,
@@ -531,5 +739,203 @@ mod tests {
             ..StopRule::new(2.0, 6.0)
         };
         assert_eq!(odd.times(), [15.0, 20.0, 22.0]);
+    }
+}
+
+/// Issue 30: the stated accuracy holds on the field cells (a real suit's sensors: 50 Hz, the
+/// drift in the reading, 30 s). 8 seeds per cell (`cargo run -p calib-core --release --example
+/// field` has the whole table); each test fails without the part of the model it names.
+#[cfg(test)]
+mod field_tests {
+    use super::*;
+    use crate::drift_em::{DriftEmOptions, DriftModel, Refusal};
+
+    const SEEDS: u64 = 8;
+
+    fn sessions(name: &str, options: impl Fn(DriftEmOptions<7>) -> DriftEmOptions<7>) -> Vec<Session> {
+        let cell = field_cell(name).expect("a field cell");
+        (1..=SEEDS).map(|seed| session_with(&cell, seed, &options).unwrap()).collect()
+    }
+
+    fn accepted(s: &[Session]) -> Vec<Session> {
+        s.iter().filter(|s| !s.refused).copied().collect()
+    }
+
+    /// The reduced field sweep (issue 30's "done when"): on the paper-like, slow-drift, glitching
+    /// and rate-bias (with the sensors' spec) cells, real ÷ stated ≤ 1.25 and our table no worse
+    /// than LS's. Measured (8 seeds; position / rotation): real ÷ stated 0.89 / 1.03, 0.72 / 0.96,
+    /// 1.02 / 1.01, 0.77 / 0.89; ours ÷ LS 0.66 / 0.75, 0.86 / 0.96, 0.67 / 0.82, 0.49 / 0.55.
+    #[test]
+    fn reduced_field_sweep_the_stated_error_holds_and_beats_ls() {
+        for (name, spec) in [
+            ("paper-like", false),
+            ("slow drift τ 10 s", false),
+            ("glitches 5%", false),
+            ("bias ramp 0.02", true),
+        ] {
+            let cell = field_cell(name).unwrap();
+            let all = sessions(name, |o| {
+                if spec {
+                    DriftEmOptions {
+                        rate_bias_spec: cell.field.bias,
+                        ..o
+                    }
+                } else {
+                    o
+                }
+            });
+            let ok = accepted(&all);
+            assert_eq!(ok.len(), all.len(), "{name}: refused");
+            let (rp, rr) = pooled(&ok, |s| s.em, |s| s.stated);
+            let (lp, lr) = pooled(&ok, |s| s.em, |s| s.ls);
+            std::eprintln!("{name}: real / stated {rp:.2} / {rr:.2}, ours / LS {lp:.2} / {lr:.2}");
+            assert!(rp <= 1.25 && rr <= 1.25, "{name}: real / stated {rp:.2} / {rr:.2}");
+            assert!(lp <= 1.0 && lr <= 1.0, "{name}: ours / LS {lp:.2} / {lr:.2}");
+        }
+    }
+
+    /// Item 1, the drift model as IMUs have it: with a rate bias of 0.02 °/s per joint and the
+    /// sensors' spec, the rate-bias model states what it reaches; the Gauss-Markov model alone,
+    /// told the same spec, states too little by 1.67 / 1.82 (measured) and its table is no
+    /// better than LS's.
+    #[test]
+    fn a_rate_bias_is_modelled_and_its_stated_error_holds() {
+        let cell = field_cell("bias ramp 0.02").unwrap();
+        let with_spec = |o: DriftEmOptions<7>| DriftEmOptions {
+            rate_bias_spec: cell.field.bias,
+            ..o
+        };
+        let rich = sessions("bias ramp 0.02", with_spec);
+        let plain = sessions("bias ramp 0.02", |o| DriftEmOptions {
+            rate_bias: false,
+            ..with_spec(o)
+        });
+        let (rp, rr) = pooled(&rich, |s| s.em, |s| s.stated);
+        let (pp, pr) = pooled(&plain, |s| s.em, |s| s.stated);
+        std::eprintln!("real / stated: rate bias {rp:.2} / {rr:.2}, Gauss-Markov {pp:.2} / {pr:.2}");
+        assert!(rp <= 1.15 && rr <= 1.15, "rate bias: {rp:.2} / {rr:.2}");
+        assert!(pp > 1.4 && pr > 1.4, "Gauss-Markov alone: {pp:.2} / {pr:.2}");
+        // A rate bias large enough to see is found without a spec, on every joint.
+        let big = Cell {
+            field: Field {
+                bias: RateBias {
+                    ramp: 0.1f64.to_radians(),
+                    walk: 0.0,
+                },
+                ..Field::SENSOR
+            },
+            ..cell
+        };
+        let sim = Simulation::new(&big, 1);
+        let (_, em) = sim.fit(&sim.samples).unwrap();
+        assert!(
+            em.models.iter().all(|m| m.model == DriftModel::RateBias),
+            "{:?}",
+            em.models[0]
+        );
+    }
+
+    /// Item 2, a reference that glitches: 5% of the poses 2 cm / 20 mrad off. The heavy-tailed
+    /// model discounts exactly the glitched samples and the stated error holds; a Gaussian
+    /// reference takes the glitches for jumps of the joints and every session is refused; with
+    /// more glitches than `max_discounted_share` (10%) the session is refused for that.
+    #[test]
+    fn glitches_are_discounted_counted_and_too_many_refused() {
+        let cell = field_cell("glitches 5%").unwrap();
+        for seed in 1..=3 {
+            let sim = Simulation::new(&cell, seed);
+            let mut ws = std::vec![crate::DriftSlot::default(); sim.samples.len()];
+            let ls = identify_ls::<7, SUIT_PARAMS>(&DhTable::paper_nominal(), &sim.samples, &LsOptions::new()).unwrap();
+            let em =
+                crate::em_drift::<7, SUIT_PARAMS>(&ls.table, &sim.samples, &DriftEmOptions::new(sim.drift.dt), &mut ws).unwrap();
+            let discounted: Vec<usize> = crate::discounted_samples(&ws).collect();
+            let glitched: Vec<usize> = sim.glitched.iter().enumerate().filter(|(_, g)| **g).map(|(k, _)| k).collect();
+            assert_eq!(discounted, glitched, "seed {seed}");
+            assert_eq!(em.discounted.count, glitched.len());
+            assert!(em.refusals.is_empty(), "{:?}", em.refusals);
+        }
+        let gaussian = sessions("glitches 5%", |o| DriftEmOptions { robust: false, ..o });
+        assert!(
+            gaussian.iter().all(|s| s.refused),
+            "a Gaussian reference accepted a glitching session"
+        );
+        let many = Cell {
+            field: Field {
+                outliers: Outliers {
+                    probability: 0.15,
+                    ..cell.field.outliers
+                },
+                ..cell.field
+            },
+            ..cell
+        };
+        let sim = Simulation::new(&many, 1);
+        let (_, em) = sim.fit(&sim.samples).unwrap();
+        assert!(
+            matches!(em.refusals[0], Refusal::TooManyDiscounted { count, .. } if count > 150),
+            "{:?}",
+            em.refusals
+        );
+        std::eprintln!("{}", em.refusals[0]);
+    }
+
+    /// Item 4, a stated error that holds where the drift is slow (τ = 10 s over 30 s): the
+    /// restricted (REML) drift parameters count the θ offsets' uncertainty; maximum likelihood
+    /// fits τ and σ low and states too little (measured 1.58 / 1.85 against 0.72 / 0.96).
+    #[test]
+    fn with_slow_drift_the_restricted_drift_parameters_state_what_is_reached() {
+        let reml = sessions("slow drift τ 10 s", |o| o);
+        let ml = sessions("slow drift τ 10 s", |o| DriftEmOptions { restricted: false, ..o });
+        let (rp, rr) = pooled(&reml, |s| s.em, |s| s.stated);
+        let (mp, mr) = pooled(&ml, |s| s.em, |s| s.stated);
+        std::eprintln!("real / stated: REML {rp:.2} / {rr:.2}, ML {mp:.2} / {mr:.2}");
+        assert!(rp <= 1.15 && rr <= 1.15, "REML {rp:.2} / {rr:.2}");
+        assert!(mp > 1.3 && mr > 1.3, "ML {mp:.2} / {mr:.2}");
+    }
+
+    /// Item 4, the data contradicting the model: a joint sensor that slips 20 mrad mid-session
+    /// is refused, naming the joint and the sample.
+    #[test]
+    fn a_sensor_that_slips_is_refused_naming_the_joint() {
+        let cell = field_cell("slips").unwrap();
+        for seed in 1..=2 {
+            let sim = Simulation::new(&cell, seed);
+            let (_, em) = sim.fit(&sim.samples).unwrap();
+            let jump = em.refusals.iter().find_map(|r| match *r {
+                Refusal::Jump { joint, sample, .. } => Some((joint, sample)),
+                _ => None,
+            });
+            let (joint, sample) = jump.unwrap_or_else(|| panic!("not refused: {:?}", em.consistency));
+            assert_eq!(joint, 1);
+            assert!((sample as f64 * sim.drift.dt - 15.0).abs() < 0.1, "sample {sample}");
+            std::eprintln!("{}", em.refusals[0]);
+        }
+    }
+
+    /// Degenerate drift never leaves a session without an expected accuracy: no drift, no pose
+    /// noise, no reading noise at all (the EM's drift and noise go to their floors).
+    #[test]
+    fn a_session_without_drift_or_noise_has_an_expected_accuracy() {
+        let cell = Cell {
+            sigma: 0.0,
+            noise: (0.0, 0.0),
+            field: Field {
+                reading_noise: 0.0,
+                ..Field::SENSOR
+            },
+            ..field_cell("no drift").unwrap()
+        };
+        for seed in 1..=3 {
+            let sim = Simulation::new(&cell, seed);
+            let (ls, em) = sim.fit(&sim.samples).unwrap();
+            let e = em.stated_error;
+            assert!(
+                e.position_m.is_finite() && e.rotation_rad.is_finite() && e.position_m > 0.0,
+                "{e:?}"
+            );
+            assert!(sim.table_error(&em.table).position_m < 1e-6);
+            let white = crate::ls_white_expected_error::<7, SUIT_PARAMS>(&ls.table, &sim.samples).unwrap();
+            assert!(white.position_m.is_finite() && white.position_m < 1e-6, "{white:?}");
+        }
     }
 }

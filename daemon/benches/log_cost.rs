@@ -12,7 +12,7 @@ use std::time::Duration;
 
 use exocal_session::ingest::{Event, Ingest};
 use exocald::log::mcaplog::SessionLog;
-use exocald::log::records::{frame_record, Transform};
+use exocald::log::records::frame_record;
 use exocald::shell::tee::Recorder;
 
 const REPEATS: usize = 5;
@@ -45,20 +45,14 @@ fn pass(frames: &[exocal_bus::Received], log: bool, dir: &std::path::Path) -> (D
             // As the session's loop records each frame (runner.rs, `take_frame`).
             s.can_frame(false, &frame_record(&rx.frame, rx.timestamp))
                 .expect("write");
-            match event {
-                Event::Joint {
-                    joint, angle, rate, ..
-                } => s.joint_state(t, joint + 1, angle, rate).expect("write"),
-                Event::Pose(p) => s
-                    .ee_pose(
-                        t,
-                        &Transform {
-                            translation: p.position,
-                            rotation_wxyz: p.quat,
-                        },
-                    )
-                    .expect("write"),
-                _ => {}
+            if let Event::Sample {
+                stream,
+                node_timestamp_us,
+                reading,
+            } = event
+            {
+                s.sample(t, stream, node_timestamp_us, reading)
+                    .expect("write");
             }
             s.tick(t - t0).expect("flush");
         }

@@ -15,12 +15,12 @@
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-use calib_core::{DhRow, DhTable, JointRanges};
+use calib_core::{DhRow, DhTable, JointRanges, RateBias};
 use serde::Deserialize;
 use toml::de::{DeTable, DeValue};
 use toml_edit::{Array, DocumentMut, Item, Value};
 
-pub use exocal_session::{Bounds, Settings, ValidationRules, WindowRules, JOINTS};
+pub use exocal_session::{Bounds, SensorSpec, Settings, ValidationRules, WindowRules, JOINTS};
 
 /// The configuration shipped with the daemon (`daemon/exocald.toml`).
 pub const DEFAULT_TOML: &str = include_str!("../exocald.toml");
@@ -54,6 +54,9 @@ pub mod limits {
     pub const MAX_EXPECTED_POSITION_ERROR_MM: f64 = 1_000.0;
     /// Largest expected-accuracy limit on rotation, mrad.
     pub const MAX_EXPECTED_ROTATION_ERROR_MRAD: f64 = 1_000.0;
+    /// Largest rate bias (and rate-bias walk) of a sensor spec, °/s: a gyro after fusion that
+    /// drifts by a degree a second is no sensor to calibrate with.
+    pub const MAX_RATE_BIAS_DEG_S: f64 = 1.0;
     /// Longest cooldown between triggered sessions, s: a day.
     pub const MAX_COOLDOWN_S: f64 = 86_400.0;
 }
@@ -251,6 +254,14 @@ struct RawConfig {
     push: RawPush,
     live: Option<RawLive>,
     trigger: RawTrigger,
+    sensors: Option<RawSensors>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawSensors {
+    rate_bias_deg_s: f64,
+    rate_bias_walk_deg_s_per_sqrt_s: f64,
 }
 
 #[derive(Deserialize)]
@@ -485,6 +496,15 @@ impl Checker<'_> {
             Ok(x)
         } else {
             Err(self.err(key, format!("{x} is above the limit {max}")))
+        }
+    }
+
+    /// `0 <= x <= max`.
+    fn non_negative_at_most(&self, key: &str, x: f64, max: f64) -> Result<f64, ConfigError> {
+        match self.finite(key, x)? {
+            x if x < 0.0 => Err(self.err(key, format!("must be ≥ 0, got {x}"))),
+            x if x > max => Err(self.err(key, format!("{x} is above the limit {max}"))),
+            x => Ok(x),
         }
     }
 
@@ -805,6 +825,27 @@ impl Checker<'_> {
                 })?,
             },
         };
+        let sensors = match raw.sensors {
+            None => SensorSpec::default(),
+            Some(r) => SensorSpec {
+                rate_bias: RateBias {
+                    ramp: self
+                        .non_negative_at_most(
+                            "sensors.rate_bias_deg_s",
+                            r.rate_bias_deg_s,
+                            MAX_RATE_BIAS_DEG_S,
+                        )?
+                        .to_radians(),
+                    walk: self
+                        .non_negative_at_most(
+                            "sensors.rate_bias_walk_deg_s_per_sqrt_s",
+                            r.rate_bias_walk_deg_s_per_sqrt_s,
+                            MAX_RATE_BIAS_DEG_S,
+                        )?
+                        .to_radians(),
+                },
+            },
+        };
         let trigger = TriggerRules {
             cooldown_s: self.positive_at_most(
                 "trigger.cooldown_s",
@@ -821,6 +862,7 @@ impl Checker<'_> {
                 bounds,
                 window: session,
                 validation,
+                sensors,
             },
             output,
             push,
@@ -1000,6 +1042,15 @@ impl Config {
             "[trigger]\ncooldown_s = {}\n",
             num(self.trigger.cooldown_s)
         );
+        let rb = self.calibration.sensors.rate_bias;
+        if !rb.is_none() {
+            let _ = write!(
+                w,
+                "\n[sensors]\nrate_bias_deg_s = {}\nrate_bias_walk_deg_s_per_sqrt_s = {}\n",
+                num(deg(rb.ramp)),
+                num(deg(rb.walk))
+            );
+        }
         out
     }
 }
@@ -1007,6 +1058,54 @@ impl Config {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_shipped_file_is_the_session_crates_suit_default() {
+        // exocal_session::Settings::suit_default() states the shipped values for tests and
+        // examples that need a suit without a file: they must not drift apart.
+        let shipped = Config::default_config().calibration;
+        let code = Settings::suit_default();
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * a.abs().max(1.0);
+        for (a, b) in shipped.nominal.rows.iter().zip(&code.nominal.rows) {
+            assert!(close(a.a, b.a) && close(a.d, b.d), "{a:?} vs {b:?}");
+            assert!(close(a.alpha, b.alpha) && close(a.theta_offset, b.theta_offset));
+        }
+        let limits = |s: &Settings| s.bounds.joint_range.limits;
+        for (a, b) in limits(&shipped).iter().zip(&limits(&code)) {
+            assert!(close(a.0, b.0) && close(a.1, b.1), "{a:?} vs {b:?}");
+        }
+        assert!(close(
+            shipped.bounds.alpha_deviation,
+            code.bounds.alpha_deviation
+        ));
+        assert!(close(
+            shipped.bounds.offset_deviation,
+            code.bounds.offset_deviation
+        ));
+        assert_eq!(
+            (shipped.bounds.a, shipped.bounds.d, shipped.joint_nodes),
+            (code.bounds.a, code.bounds.d, code.joint_nodes)
+        );
+        assert_eq!(shipped.window, code.window);
+        assert_eq!(shipped.validation, code.validation);
+        assert_eq!(shipped.sensors, code.sensors);
+    }
+
+    #[test]
+    fn a_sensor_spec_is_optional_read_in_degrees_and_written_back() {
+        let with = format!(
+            "{DEFAULT_TOML}\n[sensors]\nrate_bias_deg_s = 0.02\nrate_bias_walk_deg_s_per_sqrt_s = 0.001\n"
+        );
+        let c = Config::parse(&with).unwrap();
+        let rb = c.calibration.sensors.rate_bias;
+        assert!((rb.ramp - 0.02f64.to_radians()).abs() < 1e-15, "{rb:?}");
+        assert!((rb.walk - 0.001f64.to_radians()).abs() < 1e-15);
+        assert_eq!(Config::parse(&c.to_toml()).unwrap(), c);
+        let bad = with.replace("rate_bias_deg_s = 0.02", "rate_bias_deg_s = -1");
+        let e = Config::parse(&bad).unwrap_err();
+        assert_eq!(e.key(), Some("sensors.rate_bias_deg_s"), "{e}");
+        assert!(e.line().is_some(), "{e}");
+    }
     use calib_core::ParamKind;
 
     #[test]

@@ -10,7 +10,8 @@
 //!   [`Record`] the log gets) and never fails the session: a slow client misses messages;
 //! - channels, with the log's schemas (`exocal-log`): `/joint_states` (all seven joints) and
 //!   `/tf` (the arm's frames on the current table, as the exported URDF names them) and
-//!   `/ee_pose` (the measured end-effector pose), each at most [`LIVE_HZ`] of log time;
+//!   `/ee_pose` (the measured end-effector pose) and `/ee_gyro` (the end effector's IMU rate),
+//!   each at most [`LIVE_HZ`] of log time;
 //!   `/progress` (coverage per joint, condition number), `/calibration` (the result, then the
 //!   push report) and `/events`, every message; `/robot_description` (`std_msgs/String`, JSON:
 //!   the URDF of the current table — nominal while collecting, calibrated once calibrated);
@@ -33,6 +34,17 @@ use crate::log::records::{arm_transforms, Record};
 /// Most messages per second of log time on the streaming channels (`/joint_states`, `/tf`,
 /// `/ee_pose`): plenty to watch an arm move, a few percent of what the bus carries.
 pub const LIVE_HZ: f64 = 30.0;
+/// Whether a streaming channel last sent at `last` may send at `log_ns` (at most [`LIVE_HZ`] of
+/// log time; a clock that stepped back sends at once); if so, `last` becomes `log_ns`.
+fn due(last: &mut Option<u64>, log_ns: u64) -> bool {
+    let period_ns = (1e9 / LIVE_HZ) as u64;
+    if last.is_some_and(|t| log_ns < t.saturating_add(period_ns) && log_ns >= t) {
+        return false;
+    }
+    *last = Some(log_ns);
+    true
+}
+
 /// The topic of the URDF.
 pub const ROBOT_DESCRIPTION: &str = "/robot_description";
 
@@ -41,6 +53,7 @@ struct Channels {
     joint_states: Arc<RawChannel>,
     tf: Arc<RawChannel>,
     ee_pose: Arc<RawChannel>,
+    ee_gyro: Arc<RawChannel>,
     progress: Arc<RawChannel>,
     calibration: Arc<RawChannel>,
     events: Arc<RawChannel>,
@@ -54,6 +67,8 @@ struct State {
     joints: [Option<(f64, f64)>; JOINTS],
     pose: Option<crate::log::records::Transform>,
     last_sent_ns: Option<u64>,
+    /// Log time of the last `/ee_gyro` message sent.
+    last_rate_ns: Option<u64>,
     /// The latest message of the latched channels, by topic.
     latched: Vec<(&'static str, Vec<u8>)>,
 }
@@ -172,6 +187,7 @@ impl LiveView {
                 joint_states: channel(&ctx, Topic::JointStates)?,
                 tf: channel(&ctx, Topic::Tf)?,
                 ee_pose: channel(&ctx, Topic::EePose)?,
+                ee_gyro: channel(&ctx, Topic::EeGyro)?,
                 progress: channel(&ctx, Topic::Progress)?,
                 calibration: channel(&ctx, Topic::Calibration)?,
                 events: channel(&ctx, Topic::Events)?,
@@ -195,6 +211,7 @@ impl LiveView {
             joints: [None; JOINTS],
             pose: None,
             last_sent_ns: None,
+            last_rate_ns: None,
             latched: Vec::new(),
         };
         state.latch(ROBOT_DESCRIPTION, robot_description(&table, &limits));
@@ -254,6 +271,18 @@ impl LiveView {
                 state.pose = Some(*pose);
                 self.stream(&mut state, log_ns);
             }
+            Record::Rate {
+                stream,
+                node_timestamp_lo_us,
+                xyz,
+            } => {
+                if !due(&mut state.last_rate_ns, log_ns) {
+                    return;
+                }
+                let bytes =
+                    mcaplog::angular_rate(stream, node_timestamp_lo_us, xyz).encode_to_vec();
+                c.ee_gyro.log_with_meta(&bytes, at);
+            }
             Record::Progress(p) => {
                 let bytes = mcaplog::progress(p).encode_to_vec();
                 c.progress.log_with_meta(&bytes, at);
@@ -278,11 +307,8 @@ impl LiveView {
 
     /// The streaming channels, at most [`LIVE_HZ`] of log time.
     fn stream(&self, state: &mut State, log_ns: u64) {
-        let period_ns = (1e9 / LIVE_HZ) as u64;
-        if state
-            .last_sent_ns
-            .is_some_and(|t| log_ns < t.saturating_add(period_ns) && log_ns >= t)
-        {
+        let mut last = state.last_sent_ns;
+        if !due(&mut last, log_ns) {
             return;
         }
         let Some(q) = state
@@ -293,7 +319,7 @@ impl LiveView {
         else {
             return;
         };
-        state.last_sent_ns = Some(log_ns);
+        state.last_sent_ns = last;
         let c = &self.shared.channels;
         let at = PartialMetadata::with_log_time(log_ns);
         let readings: Vec<(usize, f64, f64)> = state

@@ -23,6 +23,7 @@ struct Got {
     progress: usize,
     calibrations: Vec<proto::Calibration>,
     urdf: Vec<String>,
+    ee_gyro: Vec<proto::AngularRate>,
 }
 
 impl Got {
@@ -32,6 +33,7 @@ impl Got {
             && self.progress > 0
             && self.calibrations.iter().any(|c| !c.push.is_empty())
             && self.urdf.len() >= 2
+            && !self.ee_gyro.is_empty()
     }
 }
 
@@ -65,6 +67,7 @@ async fn watch(port: u16, started: std::sync::mpsc::Sender<()>) -> Got {
         "/progress",
         "/calibration",
         "/robot_description",
+        "/ee_gyro",
     ];
     let subscriptions: Vec<serde_json::Value> = wanted
         .iter()
@@ -79,12 +82,13 @@ async fn watch(port: u16, started: std::sync::mpsc::Sender<()>) -> Got {
         let next = tokio::time::timeout(Duration::from_secs(300), ws.next()).await;
         let Ok(Some(Ok(message))) = next else {
             panic!(
-                "stream ended: {} joint states, {} tf, {} progress, {} calibrations, {} URDFs",
+                "stream ended: {} joint states, {} tf, {} progress, {} calibrations, {} URDFs, {} gyro",
                 got.joint_states.len(),
                 got.tf,
                 got.progress,
                 got.calibrations.len(),
-                got.urdf.len()
+                got.urdf.len(),
+                got.ee_gyro.len()
             );
         };
         let Message::Binary(bytes) = message else {
@@ -111,6 +115,12 @@ async fn watch(port: u16, started: std::sync::mpsc::Sender<()>) -> Got {
             "/calibration" => got
                 .calibrations
                 .push(proto::Calibration::decode(payload).unwrap()),
+            "/ee_gyro" => {
+                // The end effector's IMU stream, declared once in exocal-session's STREAMS.
+                let r = proto::AngularRate::decode(payload).unwrap();
+                assert_eq!(r.frame_id, "EndEffector gyro");
+                got.ee_gyro.push(r);
+            }
             _ => {
                 let v: serde_json::Value = serde_json::from_slice(payload).unwrap();
                 got.urdf.push(v["data"].as_str().unwrap().to_string());

@@ -70,6 +70,8 @@ pub enum Topic {
     JointStates,
     /// Each assembled end-effector reference pose.
     EePose,
+    /// The end effector's IMU angular rate.
+    EeGyro,
     /// The arm's link frames.
     Tf,
     /// Samples on the common time grid, as fed to the calibration.
@@ -116,7 +118,7 @@ fn foxglove_schema<T: foxglove::Encode>(name: &'static str) -> Schema {
 
 impl Topic {
     /// Every topic, in channel order.
-    pub const ALL: [Topic; 10] = [
+    pub const ALL: [Topic; 11] = [
         Topic::CanRx,
         Topic::CanTx,
         Topic::JointStates,
@@ -127,6 +129,7 @@ impl Topic {
         Topic::Collection,
         Topic::Calibration,
         Topic::Events,
+        Topic::EeGyro,
     ];
 
     /// The topic name in the file.
@@ -136,6 +139,7 @@ impl Topic {
             Topic::CanTx => "/can/tx",
             Topic::JointStates => "/joint_states",
             Topic::EePose => "/ee_pose",
+            Topic::EeGyro => "/ee_gyro",
             Topic::Tf => "/tf",
             Topic::Aligned => "/aligned",
             Topic::Progress => "/progress",
@@ -156,6 +160,7 @@ impl Topic {
             Topic::CanRx | Topic::CanTx => "exocal.CanFrame",
             Topic::JointStates => "foxglove.JointStates",
             Topic::EePose => "foxglove.PoseInFrame",
+            Topic::EeGyro => "exocal.AngularRate",
             Topic::Tf => "foxglove.FrameTransforms",
             Topic::Aligned => "exocal.AlignedSample",
             Topic::Progress => "exocal.Progress",

@@ -226,7 +226,7 @@ fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
     );
     assert!(dom.contains("a test reason"));
     assert!(
-        dom.contains("expected table error (1σ, Cramér-Rao bound)"),
+        dom.contains("expected table error (1σ: the Cramér-Rao bound with the drift-model choice)"),
         "the expected accuracy is not stated"
     );
     assert!(!dom.contains("class=\"missing\""), "a plot was not drawn");

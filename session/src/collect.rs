@@ -18,7 +18,8 @@ use crate::outcome::{Quality, StreamQuality};
 use exocal_dbc::Received;
 
 use crate::align::{AlignParams, AlignedSample};
-use crate::ingest::{ClockReport, Event, FrameStats, Ingest, StallReport};
+use crate::ingest::{ClockReport, Event, FrameStats, Ingest, Reading, StallReport};
+use crate::stream::{Column, STREAMS};
 use crate::window::Window;
 use crate::Settings;
 
@@ -43,10 +44,17 @@ impl Collector {
     /// Takes one received frame (see the module docs); returns what ingest made of it.
     pub fn on_frame(&mut self, rx: &Received) -> Event {
         let event = self.ingest.on_frame(rx);
-        match &event {
-            Event::Joint { joint, angle, .. } => self.window.joint_sample(*joint, *angle),
-            Event::Pose(_) => self.window.pose_sample(),
-            _ => {}
+        if let Event::Sample {
+            stream, reading, ..
+        } = event
+        {
+            match (STREAMS[stream].column, reading) {
+                (Column::Angle(j), Reading::Angle { angle, .. }) => {
+                    self.window.joint_sample(j, angle)
+                }
+                (Column::Pose, _) => self.window.pose_sample(),
+                _ => {}
+            }
         }
         event
     }
@@ -62,10 +70,9 @@ impl Collector {
         let stalls = StallReport::of(&aligned.stalls);
         let quality = frame_quality(
             settings,
-            self.ingest.stats(),
+            &self.ingest,
             &clocks,
             stalls,
-            &self.ingest.stream_rates(),
             &aligned.samples,
             aligned.gaps,
         );
@@ -119,18 +126,18 @@ fn duration(samples: &[AlignedSample]) -> f64 {
     }
 }
 
-/// Data quality of a frame-level session: counters, per-node rate, loss and clock, alignment.
-/// `rates` is [`crate::ingest::Ingest::stream_rates`], in the order of `clocks` (joints, then
-/// the end effector).
+/// Data quality of a frame-level session: counters; per stream of [`STREAMS`] its samples,
+/// rate and loss, and for those aligned ([`Column::calibrates`]) their clock (`clocks`, by
+/// name); the alignment's gaps.
 fn frame_quality(
     settings: &Settings,
-    stats: &FrameStats,
+    ingest: &Ingest,
     clocks: &[ClockReport],
     stalls: StallReport,
-    rates: &[(Option<f64>, Option<f64>)],
     samples: &[AlignedSample],
     gaps: usize,
 ) -> Quality {
+    let stats = ingest.stats();
     let counters = [
         ("received", stats.received),
         ("decoded", stats.decoded),
@@ -143,18 +150,20 @@ fn frame_quality(
     .into_iter()
     .map(|(k, v)| (k.to_string(), v))
     .collect();
-    let streams = clocks
-        .iter()
-        .zip(rates.iter().chain(std::iter::repeat(&(None, None))))
-        .map(|(c, &(rate, loss))| StreamQuality {
-            name: c.node.clone(),
-            samples: c.samples,
-            rate_hz: rate.unwrap_or(0.0),
-            loss,
-            excluded: c.unmapped,
-            jumps: c.jumps,
-            skew_ppm: c.skew_ppm,
-            jitter_us: c.residual_rms_us,
+    let streams = (STREAMS.iter().enumerate())
+        .zip(ingest.stream_rates())
+        .map(|((i, s), (rate, loss))| {
+            let clock = clocks.iter().find(|c| c.node == s.name);
+            StreamQuality {
+                name: s.name.to_string(),
+                samples: ingest.stream_samples(i),
+                rate_hz: rate.unwrap_or(0.0),
+                loss,
+                excluded: clock.map_or(0, |c| c.unmapped),
+                jumps: clock.map_or(0, |c| c.jumps),
+                skew_ppm: clock.and_then(|c| c.skew_ppm),
+                jitter_us: clock.and_then(|c| c.residual_rms_us),
+            }
         })
         .collect();
     Quality {
@@ -224,7 +233,17 @@ mod tests {
                 frame: msg.to_frame::<Frame>().unwrap(),
                 timestamp: Duration::from_millis(10 * u64::from(k)),
             });
-            assert!(matches!(event, Event::Joint { joint: 2, .. }), "{event:?}");
+            assert!(
+                matches!(
+                    event,
+                    Event::Sample {
+                        stream: 2,
+                        reading: Reading::Angle { .. },
+                        ..
+                    }
+                ),
+                "{event:?}"
+            );
         }
         assert_eq!(c.ingest.stats().received, 3);
         assert_eq!(c.ingest.joint_samples(2), 3);

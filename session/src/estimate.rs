@@ -130,7 +130,7 @@ fn expected_estimate(collector: &Collector, settings: &Settings) -> Option<Estim
     let c = pipeline::ls_then_em(&settings.nominal, &samples, &ls_opts, &em_opts, false).ok()?;
     Some(Estimate {
         condition: c.ls.condition,
-        expected: c.em.ok().map(|em| Expected::from(em.expected_error)),
+        expected: c.stated.map(Expected::from),
     })
 }
 

@@ -28,10 +28,14 @@ use exocal_dbc::{DecodeError, Message, NodeId};
 use serde::Serialize;
 
 use crate::align::{self, AlignParams, Aligned, Pose, Stall, Unwrapper};
+use crate::stream::{angle, stream_of, Column, Source, POSE, STREAMS};
 use crate::JOINTS;
+use exocal_dbc::spec::Kind;
 
 /// Node clocks are 32-bit microsecond counters.
 pub const NODE_CLOCK_MODULUS: u64 = 1 << 32;
+/// IMU vectors carry the low 16 bits of their node's clock.
+pub const IMU_CLOCK_MODULUS: u64 = 1 << 16;
 
 /// `t` truncated to whole microseconds: the resolution of receive times in ingest.
 ///
@@ -95,20 +99,17 @@ impl FrameStats {
 /// What one frame was.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Event {
-    /// A joint angle (rad) of joint index `joint` (0-based).
-    Joint {
-        /// Joint index, 0-based.
-        joint: usize,
-        /// Node clock at sampling (µs, wrapping at 2^32).
+    /// A sample of stream `stream` (an index of [`STREAMS`]).
+    Sample {
+        /// The stream, an index of [`STREAMS`].
+        stream: usize,
+        /// Node clock at sampling (µs; the low 16 bits for IMU vectors).
         node_timestamp_us: u32,
-        /// Joint angle (rad); NaN when the node marked it invalid.
-        angle: f64,
-        /// Joint rate (rad/s).
-        rate: f64,
+        /// What was sampled.
+        reading: Reading,
     },
-    /// A complete end-effector pose.
-    Pose(exocal_dbc::pose::Pose),
-    /// Any other decoded message (heartbeats, IMU vectors, table replies, triggers, …).
+    /// Any other decoded message (heartbeats, IMU vectors no stream takes, table replies,
+    /// triggers, …).
     Message(Message),
     /// Not a frame of the DBC.
     Unknown(DecodeError),
@@ -118,41 +119,75 @@ pub enum Event {
     Partial,
 }
 
+/// One sample of a stream, as its message carried it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Reading {
+    /// A joint reading (rad; NaN when the node marked it invalid) and its rate (rad/s).
+    Angle {
+        /// Joint angle (rad).
+        angle: f64,
+        /// Joint rate (rad/s).
+        rate: f64,
+    },
+    /// A complete end-effector pose.
+    Pose(exocal_dbc::pose::Pose),
+    /// An angular rate vector (rad/s) in the sensor's frame.
+    Rate([f64; 3]),
+}
+
+/// One stream's samples in arrival order: node clock and host time, and its values
+/// ([`Column::width`] of them per sample, flat).
 #[derive(Debug, Clone)]
-struct Stream<T> {
+struct Series {
     unwrap: Unwrapper,
     /// `(node_s, host_s)` per sample, arrival order.
     clock: Vec<(f64, f64)>,
-    values: Vec<T>,
+    values: Vec<f64>,
+    width: usize,
 }
 
-impl<T> Stream<T> {
-    fn new() -> Self {
-        Stream {
-            unwrap: Unwrapper::new(NODE_CLOCK_MODULUS),
+impl Series {
+    fn new(column: Column, clock_modulus: u64) -> Self {
+        Series {
+            unwrap: Unwrapper::new(clock_modulus),
             clock: Vec::new(),
             values: Vec::new(),
+            width: column.width(),
         }
     }
 
-    fn push(&mut self, node_us: u32, host_s: f64, value: T) {
+    fn push(&mut self, node_us: u32, host_s: f64, value: &[f64]) {
+        debug_assert_eq!(value.len(), self.width);
         let node_s = self.unwrap.unwrap(u64::from(node_us)) as f64 * 1e-6;
         self.clock.push((node_s, host_s));
-        self.values.push(value);
+        self.values.extend_from_slice(value);
     }
-}
 
-impl<T: Copy> Stream<T> {
-    /// Samples mapped to host time through `track` (this stream's), sorted.
-    fn mapped(&self, track: &align::ClockTrack) -> Vec<(f64, T)> {
+    fn len(&self) -> usize {
+        self.clock.len()
+    }
+
+    fn value(&self, k: usize) -> &[f64] {
+        &self.values[k * self.width..(k + 1) * self.width]
+    }
+
+    /// Samples mapped to host time through `track` (this stream's), each read by `read`, sorted.
+    fn mapped<T>(&self, track: &align::ClockTrack, read: impl Fn(&[f64]) -> T) -> Vec<(f64, T)> {
         let mut out: Vec<(f64, T)> = track
             .map_all(&self.clock)
             .into_iter()
-            .zip(&self.values)
-            .filter_map(|(t, v)| t.map(|t| (t, *v)))
+            .enumerate()
+            .filter_map(|(k, t)| t.map(|t| (t, read(self.value(k)))))
             .collect();
         align::sort_stream(&mut out);
         out
+    }
+}
+
+fn pose_of(v: &[f64]) -> Pose {
+    Pose {
+        position: [v[0], v[1], v[2]],
+        orientation: [v[3], v[4], v[5], v[6]],
     }
 }
 
@@ -191,7 +226,7 @@ impl std::fmt::Display for StallReport {
 /// How one node's clock looked over the session.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ClockReport {
-    /// `Joint1`…`Joint7`, `EndEffector`.
+    /// The stream's name ([`STREAMS`]: `Joint1`…`Joint7`, `EndEffector`).
     pub node: String,
     /// Samples in the node's stream.
     pub samples: usize,
@@ -208,7 +243,7 @@ pub struct ClockReport {
 }
 
 fn clock_report(
-    node: NodeId,
+    name: &str,
     samples: usize,
     mapped: usize,
     track: &align::ClockTrack,
@@ -220,7 +255,7 @@ fn clock_report(
         .max_by_key(|s| s.end - s.start)
         .and_then(|s| s.fit);
     ClockReport {
-        node: node.name().to_string(),
+        node: name.to_string(),
         samples,
         unmapped: samples - mapped.min(samples),
         jumps: track.jumps(),
@@ -241,8 +276,8 @@ pub struct Ingest {
     origin: Option<Duration>,
     /// Joint index of each node id (1..=7 → 0..7), from the configuration.
     joint_of_node: [Option<usize>; 9],
-    joints: Vec<Stream<f64>>,
-    pose: Stream<Pose>,
+    /// One per [`STREAMS`] entry.
+    streams: Vec<Series>,
     assembler: PoseAssembler,
     stats: FrameStats,
     /// The last payload seen per standard identifier (for [`FrameStats::repeats`]).
@@ -258,11 +293,21 @@ impl Ingest {
                 *slot = Some(i);
             }
         }
+        let streams = STREAMS
+            .iter()
+            .map(|s| {
+                let modulus = match s.message {
+                    // IMU vectors carry the low 16 bits of the node clock.
+                    Kind::ImuGyro | Kind::ImuAccel | Kind::ImuMag => IMU_CLOCK_MODULUS,
+                    _ => NODE_CLOCK_MODULUS,
+                };
+                Series::new(s.column, modulus)
+            })
+            .collect();
         Ingest {
             origin: None,
             joint_of_node,
-            joints: (0..JOINTS).map(|_| Stream::new()).collect(),
-            pose: Stream::new(),
+            streams,
             assembler: PoseAssembler::new(),
             stats: FrameStats::default(),
             last_payload: std::collections::HashMap::new(),
@@ -319,28 +364,36 @@ impl Ingest {
                     // Carries nothing new; kept out of the streams (and the clock fit).
                     return Event::Message(message);
                 }
+                let Some(stream) = stream_of(Source::Joint(joint), Kind::JointState) else {
+                    return Event::Message(message);
+                };
                 self.stats.joint_frames[joint] += 1;
                 if js.angle.is_nan() {
                     self.stats.invalid_angles += 1;
                 } else {
-                    self.joints[joint].push(js.timestamp_us, host_s, js.angle);
+                    self.streams[stream].push(js.timestamp_us, host_s, &[js.angle]);
                 }
-                Event::Joint {
-                    joint,
+                Event::Sample {
+                    stream,
                     node_timestamp_us: js.timestamp_us,
-                    angle: js.angle,
-                    rate: js.rate,
+                    reading: Reading::Angle {
+                        angle: js.angle,
+                        rate: js.rate,
+                    },
                 }
             }
             Message::EePose(page) => match self.assembler.push(page) {
                 Some(Ok(p)) => {
                     self.stats.poses += 1;
-                    let pose = Pose {
-                        position: p.position,
-                        orientation: p.quat,
-                    };
-                    self.pose.push(p.timestamp_us, host_s, pose);
-                    Event::Pose(p)
+                    let stream = stream_of(Source::EndEffector, Kind::EePose).unwrap_or(POSE);
+                    let [x, y, z] = p.position;
+                    let [qw, qx, qy, qz] = p.quat;
+                    self.streams[stream].push(p.timestamp_us, host_s, &[x, y, z, qw, qx, qy, qz]);
+                    Event::Sample {
+                        stream,
+                        node_timestamp_us: p.timestamp_us,
+                        reading: Reading::Pose(p),
+                    }
                 }
                 Some(Err(_)) => {
                     self.stats.bad_poses += 1;
@@ -348,12 +401,35 @@ impl Ingest {
                 }
                 None => Event::Partial,
             },
+            Message::ImuGyro(v) if !repeated => {
+                let stream = self
+                    .source(v.node)
+                    .and_then(|source| stream_of(source, Kind::ImuGyro));
+                let Some(stream) = stream else {
+                    return Event::Message(message);
+                };
+                let ts = u32::from(v.timestamp_lo);
+                self.streams[stream].push(ts, host_s, &v.xyz);
+                Event::Sample {
+                    stream,
+                    node_timestamp_us: ts,
+                    reading: Reading::Rate(v.xyz),
+                }
+            }
             Message::Heartbeat(hb) => {
                 self.stats.heartbeats[usize::from(hb.node.raw()).min(8)] += 1;
                 Event::Message(message)
             }
             other => Event::Message(other),
         }
+    }
+
+    /// The role of `node` on the suit, if it has one.
+    fn source(&self, node: NodeId) -> Option<Source> {
+        if node == NodeId::END_EFFECTOR {
+            return Some(Source::EndEffector);
+        }
+        self.joint_of_node[usize::from(node.raw()).min(8)].map(Source::Joint)
     }
 
     /// Counts `frame` in [`FrameStats::repeats`] if it repeats its identifier's previous frame;
@@ -384,7 +460,16 @@ impl Ingest {
 
     /// Joint samples received for joint `joint` (valid angles).
     pub fn joint_samples(&self, joint: usize) -> usize {
-        self.joints.get(joint).map_or(0, |s| s.values.len())
+        if joint < JOINTS {
+            self.streams[angle(joint)].len()
+        } else {
+            0
+        }
+    }
+
+    /// Samples received on stream `stream` (an index of [`STREAMS`]).
+    pub fn stream_samples(&self, stream: usize) -> usize {
+        self.streams.get(stream).map_or(0, Series::len)
     }
 
     /// Up to `n` arm configurations spread evenly over the session so far: at each of `n`
@@ -393,14 +478,12 @@ impl Ingest {
     /// figures that depend on where the arm went and not on when, such as the condition number
     /// of the identification problem. Empty until every joint has reported.
     pub fn joint_snapshot(&self, n: usize) -> Vec<[f64; JOINTS]> {
-        let span = self
-            .joints
-            .iter()
-            .try_fold((f64::MIN, f64::MIN), |(lo, hi), s| {
-                let first = s.clock.first()?.1;
-                let last = s.clock.last()?.1;
-                Some((lo.max(first), hi.max(last)))
-            });
+        let joints = &self.streams[angle(0)..angle(0) + JOINTS];
+        let span = joints.iter().try_fold((f64::MIN, f64::MIN), |(lo, hi), s| {
+            let first = s.clock.first()?.1;
+            let last = s.clock.last()?.1;
+            Some((lo.max(first), hi.max(last)))
+        });
         let Some((start, end)) = span.filter(|(lo, hi)| lo <= hi) else {
             return Vec::new();
         };
@@ -413,10 +496,10 @@ impl Ingest {
                     start + (end - start) * i as f64 / (n - 1) as f64
                 };
                 std::array::from_fn(|j| {
-                    let s = &self.joints[j];
+                    let s = &joints[j];
                     // Arrival order: host times ascend (a stepped clock only blurs the pick).
                     let k = s.clock.partition_point(|c| c.1 <= t).max(1);
-                    s.values[k - 1]
+                    s.value(k - 1)[0]
                 })
             })
             .collect()
@@ -424,12 +507,12 @@ impl Ingest {
 
     /// Poses received.
     pub fn pose_samples(&self) -> usize {
-        self.pose.values.len()
+        self.streams[POSE].len()
     }
 
-    /// Receive-side rate of each stream (joints 1–7, then the end-effector pose): the mean rate
-    /// (Hz) over the stream's span, and the estimated fraction lost (1 − samples / (span /
-    /// median interval + 1), at least 0), both `None` with fewer than 3 samples.
+    /// Receive-side rate of each stream of [`STREAMS`], in its order: the mean rate (Hz) over
+    /// the stream's span, and the estimated fraction lost (1 − samples / (span / median
+    /// interval + 1), at least 0), both `None` with fewer than 3 samples.
     pub fn stream_rates(&self) -> Vec<(Option<f64>, Option<f64>)> {
         let host = |clock: &[(f64, f64)]| -> (Option<f64>, Option<f64>) {
             let n = clock.len();
@@ -446,16 +529,13 @@ impl Ingest {
             let loss = (median > 0.0).then(|| (1.0 - n as f64 / (span / median + 1.0)).max(0.0));
             (rate, loss)
         };
-        self.joints
-            .iter()
-            .map(|s| host(&s.clock))
-            .chain(std::iter::once(host(&self.pose.clock)))
-            .collect()
+        self.streams.iter().map(|s| host(&s.clock)).collect()
     }
 
-    /// Fits the clocks and resamples everything onto one grid at `hz` (host s since origin),
-    /// of at most `max_points` ([`crate::align::align`]); the receiver stalls found are in
-    /// [`Aligned::stalls`].
+    /// Fits the clocks of the streams that calibrate ([`Column::calibrates`]) and resamples
+    /// them onto one grid at `hz` (host s since origin), of at most `max_points`
+    /// ([`crate::align::align`]); the receiver stalls found are in [`Aligned::stalls`]. The
+    /// clock reports are theirs, in [`STREAMS`] order.
     pub fn align(
         &self,
         params: &AlignParams,
@@ -463,35 +543,32 @@ impl Ingest {
         max_gap: f64,
         max_points: usize,
     ) -> (Aligned, Vec<ClockReport>) {
-        let clocks: Vec<&[(f64, f64)]> = self
-            .joints
+        let calibrating: Vec<usize> = (0..STREAMS.len())
+            .filter(|&i| STREAMS[i].column.calibrates())
+            .collect();
+        let clocks: Vec<&[(f64, f64)]> = calibrating
             .iter()
-            .map(|s| s.clock.as_slice())
-            .chain(std::iter::once(self.pose.clock.as_slice()))
+            .map(|&i| self.streams[i].clock.as_slice())
             .collect();
         let session = align::track_clocks(&clocks, params);
-        let mut reports = Vec::with_capacity(JOINTS + 1);
+        let mut reports = Vec::with_capacity(calibrating.len());
         let mut joints: [Vec<(f64, f64)>; JOINTS] = Default::default();
-        for (i, (stream, out)) in self.joints.iter().zip(joints.iter_mut()).enumerate() {
-            let track = &session.tracks[i];
-            let mapped = stream.mapped(track);
-            let node = self
-                .joint_of_node
-                .iter()
-                .position(|&j| j == Some(i))
-                .and_then(|id| NodeId::new(id as u8))
-                .unwrap_or(NodeId::JOINTS[i]);
-            reports.push(clock_report(node, stream.values.len(), mapped.len(), track));
-            *out = mapped;
+        let mut poses = Vec::new();
+        for (&i, track) in calibrating.iter().zip(&session.tracks) {
+            let series = &self.streams[i];
+            let mapped = match STREAMS[i].column {
+                Column::Angle(j) => {
+                    joints[j] = series.mapped(track, |v| v[0]);
+                    joints[j].len()
+                }
+                Column::Pose => {
+                    poses = series.mapped(track, pose_of);
+                    poses.len()
+                }
+                Column::Rate => 0,
+            };
+            reports.push(clock_report(STREAMS[i].name, series.len(), mapped, track));
         }
-        let track = &session.tracks[JOINTS];
-        let poses = self.pose.mapped(track);
-        reports.push(clock_report(
-            NodeId::END_EFFECTOR,
-            self.pose.values.len(),
-            poses.len(),
-            track,
-        ));
         let mut aligned = align::align(&joints, &poses, hz, max_gap, max_points);
         aligned.stalls = session.stalls;
         (aligned, reports)
@@ -521,6 +598,39 @@ mod tests {
         })
         .to_frame()
         .unwrap()
+    }
+
+    #[test]
+    fn the_end_effectors_gyro_is_a_stream_and_a_joints_is_not() {
+        // STREAMS takes the end effector's IMU rate, not a joint node's: the table decides.
+        let mut ing = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
+        let gyro = |node: NodeId, lo: u16, z: f64| {
+            Message::ImuGyro(exocal_dbc::ImuVector {
+                node,
+                xyz: [0.0, 0.5, z],
+                timestamp_lo: lo,
+            })
+            .to_frame::<Frame>()
+            .unwrap()
+        };
+        let ee = crate::stream::stream_of(Source::EndEffector, Kind::ImuGyro).unwrap();
+        for k in 0..5u16 {
+            let e = ing.on_frame(&rx(
+                gyro(NodeId::END_EFFECTOR, k * 10_000, f64::from(k)),
+                0.01 * f64::from(k),
+            ));
+            assert!(
+                matches!(e, Event::Sample { stream, reading: Reading::Rate([_, _, z]), .. } if stream == ee && z == f64::from(k)),
+                "{e:?}"
+            );
+        }
+        assert_eq!(ing.stream_samples(ee), 5);
+        let e = ing.on_frame(&rx(gyro(NodeId::new(3).unwrap(), 7, 1.0), 0.1));
+        assert!(matches!(e, Event::Message(Message::ImuGyro(_))), "{e:?}");
+        // Its rate is measured like every stream's; it is not aligned (no clock report).
+        assert!(ing.stream_rates()[ee].0.is_some());
+        let (_, clocks) = ing.align(&AlignParams::default(), 100.0, 0.05, usize::MAX);
+        assert!(clocks.iter().all(|c| c.node != STREAMS[ee].name));
     }
 
     #[test]
@@ -560,7 +670,14 @@ mod tests {
     fn frames_are_counted_and_never_fatal() {
         let mut ing = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
         let e = ing.on_frame(&rx(joint_frame(3, 1000, 0.5), 0.0));
-        assert!(matches!(e, Event::Joint { joint: 2, .. }));
+        assert!(matches!(
+            e,
+            Event::Sample {
+                stream: 2,
+                reading: Reading::Angle { .. },
+                ..
+            }
+        ));
         // Unknown identifier, wrong DLC on a known identifier, extended id, NaN angle.
         let unknown = Frame::new(embedded_can_id(0x7ff), &[0; 8]).unwrap();
         assert!(matches!(ing.on_frame(&rx(unknown, 0.1)), Event::Unknown(_)));
@@ -620,7 +737,14 @@ mod tests {
     fn a_wiring_permutation_maps_nodes_to_joints() {
         let mut ing = Ingest::new([7, 6, 5, 4, 3, 2, 1]);
         let e = ing.on_frame(&rx(joint_frame(7, 10, 0.25), 0.0));
-        assert!(matches!(e, Event::Joint { joint: 0, .. }));
+        assert!(matches!(
+            e,
+            Event::Sample {
+                stream: 0,
+                reading: Reading::Angle { .. },
+                ..
+            }
+        ));
     }
 
     /// Seven joints at 100 Hz and poses at 50 Hz, each node with its own clock offset and

@@ -11,6 +11,7 @@
 //! | module | stage |
 //! |---|---|
 //! | [`rules`] | what the data path reads: node ids, nominal table, bounds, window and validation rules |
+//! | [`stream`] | the streams a session takes in, declared once: source node, message, column |
 //! | [`ingest`] | frames → decoded messages → per-node streams; counts unknown/malformed frames |
 //! | [`align`] | per-node clock models, resampling onto one grid |
 //! | [`window`] | the collection window: coverage, sample counts, ready/failed and why |
@@ -35,10 +36,11 @@ pub mod parallel;
 pub mod pipeline;
 pub mod replay;
 pub mod rules;
+pub mod stream;
 pub mod validate;
 pub mod window;
 
-pub use rules::{Bounds, Settings, ValidationRules, WindowRules};
+pub use rules::{Bounds, SensorSpec, Settings, ValidationRules, WindowRules};
 
 /// Joints of the suit, declared once for the workspace (calib-core's model of the arm).
 pub const JOINTS: usize = calib_core::SUIT_JOINTS;

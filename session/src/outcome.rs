@@ -2,7 +2,9 @@
 //! time, the LS and EM steps in detail, the strongest correlations and the session's data
 //! quality. The report renders these, the log records them; nothing here is computed.
 
-use calib_core::{DhTable, DriftConfidence, DriftParams, Sample, TableError};
+use calib_core::{
+    Consistency, DhTable, Discounted, DriftConfidence, DriftParams, JointDrift, Sample, TableError,
+};
 
 use crate::{JOINTS, PARAMS};
 
@@ -51,6 +53,18 @@ pub struct EmDetail {
     pub std_errors: [f64; PARAMS],
     /// Expected table error (1σ) under that bound, over the session's poses.
     pub expected_error: TableError,
+    /// The expected table error to state and validate with (1σ): the bound with the
+    /// uncertainty of the drift-model choice (calib-core's `stated_error`).
+    pub stated_error: TableError,
+    /// Per joint, the drift model (the paper's Gauss-Markov, or with a rate bias) and why.
+    pub models: [JointDrift; JOINTS],
+    /// The reference samples discounted as glitches: how many, runs of sample indices, ν.
+    pub discounted: Discounted,
+    /// How well the data follow the fitted model, per joint and per pose component.
+    pub consistency: Consistency<JOINTS>,
+    /// Where the data contradict the model (a sensor that jumped, too many glitches, a drift
+    /// grossly off its model): each refuses the session.
+    pub refusals: Vec<calib_core::Refusal>,
     /// What the LS table alone is expected to reach (1σ) under the drift and noise the EM
     /// fitted, over the same poses (calib-core's `ls_expected_table_error`); `None` when its
     /// normal equations were too ill-conditioned to say, or it was not asked for.
@@ -58,7 +72,8 @@ pub struct EmDetail {
     /// RMS FK difference between the LS and the EM table over the same poses (`None` when not
     /// asked for).
     pub ls_em_difference: Option<TableError>,
-    /// Smoothed drift (rad) per fitted sample.
+    /// Smoothed angle error (rad) per fitted sample: the Gauss-Markov drift plus, where the
+    /// model has one, the integrated rate bias.
     pub drift_series: Vec<[f64; JOINTS]>,
 }
 
@@ -82,6 +97,11 @@ pub struct Calibration {
     pub em: Result<EmDetail, calib_core::CalibError>,
     /// The resulting table: the EM's, or the LS's when the EM failed.
     pub calibrated: DhTable<JOINTS>,
+    /// The expected table error (1σ) of `calibrated` to state: the EM's stated error, or where
+    /// the EM failed, what LS alone is worth with white residuals (calib-core's
+    /// `ls_white_expected_error`): a session always has one unless LS's normal equations are
+    /// too ill-conditioned to say.
+    pub stated: Option<TableError>,
     /// Strongest parameter correlations at the calibrated table, strongest first.
     pub correlations: Vec<Correlation>,
 }

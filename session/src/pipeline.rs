@@ -27,15 +27,15 @@ use crate::outcome::{Calibration, Correlation, EmDetail, LsDetail, TimedSample};
 use crate::parallel::Parallel;
 use calib_core::drift_conf::Z_95;
 use calib_core::{
-    drift_confidence, em_drift, identify_ls_with, ls_expected_table_error, separate, table_error,
-    DhTable, DriftEmOptions, DriftSlot, InputChecks, LsOptions, Sample, SeparationSlot,
-    EXPECTED_ERROR_POSES,
+    drift_confidence, em_drift, identify_ls_with, ls_expected_table_error, ls_white_expected_error,
+    separate, table_error, DhTable, DriftEmOptions, DriftSlot, InputChecks, JointDrift, LsOptions,
+    Sample, SeparationSlot, EXPECTED_ERROR_POSES,
 };
 use nalgebra::{DMatrix, SMatrix};
 use serde::Serialize;
 
 use crate::align::AlignedSample;
-use crate::validate::{split_holdout, validate, HeldOut, Verdict};
+use crate::validate::{split_holdout, validate, HeldOut, Refusal, Verdict};
 use crate::{Settings, JOINTS};
 
 /// D-H parameters of the suit (`4 × JOINTS`).
@@ -91,6 +91,19 @@ pub struct EmSummary {
     /// `drift_confidence`; a joint whose τ the session cannot pin down has `[0, ∞]`); `None`
     /// when they were not computed.
     pub drift_95: Option<[DriftInterval; JOINTS]>,
+    /// Per joint, the drift model and why (its line: `Gauss-Markov (2ΔlnL 3.1 ≤ 17.4)`).
+    #[serde(serialize_with = "display_each")]
+    pub models: [JointDrift; JOINTS],
+    /// Reference samples discounted as glitches (weight below calib-core's `DISCOUNT_WEIGHT`).
+    pub discounted: usize,
+    /// Where: the first and last time (s since the session's start) of each run of discounted
+    /// samples, in time order (the first [`calib_core::drift_em::MAX_DISCOUNTED_RUNS`]).
+    pub discounted_s: Vec<[f64; 2]>,
+    /// The reference's fitted Student-t degrees of freedom (∞: taken as Gaussian).
+    pub reference_dof: f64,
+    /// Per joint, the long-run variance of its normalised drift innovations (1 when its drift
+    /// follows the model).
+    pub consistency: [f64; JOINTS],
     /// Log-likelihood at the first iterate (NaN if none).
     pub log_likelihood_first: f64,
     /// Log-likelihood at the last iterate (NaN if none); it never decreases.
@@ -184,6 +197,14 @@ impl Outcome {
             }),
         }
     }
+}
+
+/// Every item serialised as its line.
+fn display_each<T: std::fmt::Display, S: serde::Serializer>(
+    items: &[T],
+    s: S,
+) -> Result<S::Ok, S::Error> {
+    s.collect_seq(items.iter().map(ToString::to_string))
 }
 
 /// An optional error serialised as its line (or null).
@@ -315,9 +336,20 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
         Ok(r) => {
             let tau = r.drift.map(|d| d.tau);
             let sigma = r.drift.map(|d| d.paper_sigma);
+            let at = |k: usize| all.get(k).map_or(f64::NAN, |s| s.t);
             let summary = EmSummary {
                 iterations: r.iterations,
                 converged: r.converged,
+                models: r.models,
+                discounted: r.discounted.count,
+                discounted_s: r
+                    .discounted
+                    .runs
+                    .iter()
+                    .map(|&(a, b)| [at(a), at(b)])
+                    .collect(),
+                reference_dof: r.discounted.dof,
+                consistency: r.consistency.joints.map(|c| c.long_run),
                 tau,
                 sigma_paper: sigma,
                 sigma_stationary: r.drift.map(|d| d.stationary_sigma),
@@ -330,12 +362,24 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
         Err(e) => (None, Some(*e), [0.0; JOINTS], [0.0; JOINTS]),
     };
     let table = detail.calibrated;
-    let expected = detail.em.as_ref().ok().map(|em| em.expected_error);
+    let expected = detail.stated;
     let heldout = HeldOut {
         table: &judged,
         samples: &held,
     };
-    let verdict = validate(&table, ls.condition, expected, heldout, settings);
+    let mut verdict = validate(&table, ls.condition, expected, heldout, settings);
+    if let Ok(em) = &detail.em {
+        let at = |k: usize| all.get(k).map(|s| s.t);
+        verdict
+            .reasons
+            .extend(em.refusals.iter().map(|&why| Refusal::Model {
+                why,
+                at_s: match why {
+                    calib_core::Refusal::Jump { sample, .. } => at(sample),
+                    _ => None,
+                },
+            }));
+    }
     let outcome = Outcome {
         fit_samples: fit.len(),
         heldout_samples: held.len(),
@@ -372,7 +416,7 @@ pub fn separate_readings(samples: &mut [Sample<JOINTS>], settings: &Settings) ->
 }
 
 /// The LS and EM options the daemon calibrates with: input checks against the configured
-/// joint ranges, the EM step `1 / session.grid_hz`.
+/// joint ranges, the EM step `1 / window.grid_hz`, the sensors' rate-bias spec.
 pub fn options(settings: &Settings) -> (LsOptions<JOINTS>, DriftEmOptions<JOINTS>) {
     let checks = InputChecks::new(Some(settings.bounds.joint_range));
     let ls_opts = LsOptions {
@@ -381,6 +425,7 @@ pub fn options(settings: &Settings) -> (LsOptions<JOINTS>, DriftEmOptions<JOINTS
     };
     let em_opts = DriftEmOptions {
         checks,
+        rate_bias_spec: settings.sensors.rate_bias,
         ..DriftEmOptions::new(1.0 / settings.window.grid_hz)
     };
     (ls_opts, em_opts)
@@ -412,7 +457,13 @@ pub fn ls_then_em(
     let mut workspace = vec![DriftSlot::default(); fit.len()];
     let em = em_drift::<JOINTS, PARAMS>(&ls.table, fit, em_opts, &mut workspace).map(|r| {
         let slots = &workspace[..fit.len()];
-        let drift_series = slots.iter().map(DriftSlot::drift).collect();
+        let k = fit.len();
+        let drift_series = (slots.iter().enumerate())
+            .map(|(i, slot)| {
+                let (drift, trend) = (slot.drift(), r.rate_bias_at(i, k));
+                std::array::from_fn(|j| drift[j] + trend[j])
+            })
+            .collect();
         // The session's poses the EM's expected error is averaged over, for the LS figures.
         let stride = fit.len().div_ceil(EXPECTED_ERROR_POSES).max(1);
         let poses = || fit.iter().step_by(stride).map(|s| &s.joints);
@@ -428,6 +479,11 @@ pub fn ls_then_em(
             drift_confidence: detail.then(|| drift_confidence(&r, slots).ok()).flatten(),
             std_errors: std::array::from_fn(|p| r.std_errors[p / JOINTS][p % JOINTS]),
             expected_error: r.expected_error,
+            stated_error: r.stated_error,
+            models: r.models,
+            discounted: r.discounted.clone(),
+            consistency: r.consistency,
+            refusals: r.refusals.to_vec(),
             ls_expected_error: detail
                 .then(|| {
                     ls_expected_table_error::<JOINTS, PARAMS>(
@@ -444,12 +500,19 @@ pub fn ls_then_em(
             drift_series,
         }
     });
-    let calibrated = em.as_ref().map_or(ls.table, |em| em.table);
+    let (calibrated, stated) = match &em {
+        Ok(em) => (em.table, Some(em.stated_error)),
+        Err(_) => (
+            ls.table,
+            ls_white_expected_error::<JOINTS, PARAMS>(&ls.table, fit),
+        ),
+    };
     let correlations = strongest_correlations(&calibrated, fit, TOP_CORRELATIONS);
     Ok(Calibration {
         ls,
         em,
         calibrated,
+        stated,
         correlations,
     })
 }
@@ -513,7 +576,7 @@ pub fn strongest_correlations(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::validate::Refusal;
+    use crate::validate::Expected;
     use calib_core::{identify_ls, Scenario, ScenarioConfig, SUIT_PARAMS};
 
     /// Aligned samples from calib-core's Section 4 scenario (Table 4 arm, drift, noise).
@@ -673,6 +736,47 @@ mod tests {
         let (ls_opts, em_opts) = options(&settings());
         let quick = ls_then_em(&settings().nominal, &fit, &ls_opts, &em_opts, false).unwrap();
         assert!(quick.em.unwrap().drift_confidence.is_none());
+    }
+
+    #[test]
+    fn a_session_without_drift_has_a_stated_accuracy_and_is_pushed() {
+        // Issue 30: degenerate drift (none at all, a little pose noise) never leaves a session
+        // without an expected accuracy; the table is accepted on it.
+        let mut cfg = ScenarioConfig::paper();
+        cfg.drift.sigma = 0.0;
+        cfg.position_noise = 2e-4;
+        cfg.rotation_noise = 5e-4;
+        let c = super::run(&scenario_of(cfg, 30.0, 6), &settings()).unwrap();
+        let v = &c.outcome.verdict;
+        assert!(v.accepted(), "{:?}", v.reasons);
+        let e = v.expected.expect("an expected accuracy");
+        assert!(e.position_mm > 0.0 && e.position_mm < 3.0, "{e}");
+        assert_eq!(c.detail.stated.map(Expected::from), Some(e));
+    }
+
+    #[test]
+    fn a_glitching_reference_is_discounted_counted_and_timed() {
+        // Issue 30: 2 % of the poses jump by centimetres; the EM discounts them, the summary
+        // counts them and says when.
+        let mut cfg = ScenarioConfig::paper();
+        cfg.outliers = calib_core::Outliers {
+            probability: 0.02,
+            burst: 1,
+            position: 0.03,
+            rotation: 0.03,
+        };
+        let samples = scenario_of(cfg, 30.0, 5);
+        let c = super::run(&samples, &settings()).unwrap();
+        let em = c.outcome.em.as_ref().expect("the EM ran");
+        assert!(em.discounted > 20, "{} discounted", em.discounted);
+        assert!(!em.discounted_s.is_empty());
+        for &[a, b] in &em.discounted_s {
+            assert!(
+                0.0 <= a && a <= b && b <= samples.last().unwrap().t,
+                "{a} {b}"
+            );
+        }
+        assert_eq!(em.models.len(), JOINTS);
     }
 
     #[test]

@@ -9,7 +9,7 @@
 
 use std::fmt;
 
-use calib_core::{DhTable, JointRanges, ParamKind};
+use calib_core::{DhTable, JointRanges, ParamKind, RateBias};
 
 use crate::JOINTS;
 
@@ -265,6 +265,17 @@ pub struct ValidationRules {
     pub max_expected_rotation_error_mrad: f64,
 }
 
+/// What the suit's angle sensors are known to do beyond the paper's model (the configuration's
+/// optional `[sensors]`): a rate bias left after fusion, from the sensors' spec. The drift EM
+/// then keeps a rate bias in every joint's model whatever one session's data say: a small
+/// ramp over half a minute is too weak for the data alone to choose, yet shifts the joint
+/// offsets by millimetres (calib-core's README, issue 30's field sweep).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct SensorSpec {
+    /// The rate bias (none by default).
+    pub rate_bias: RateBias,
+}
+
 /// Everything the data path reads: the suit and the session's rules.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Settings {
@@ -278,6 +289,8 @@ pub struct Settings {
     pub window: WindowRules,
     /// What a calibration must satisfy to be pushed.
     pub validation: ValidationRules,
+    /// What the sensors are known to do beyond the paper's model.
+    pub sensors: SensorSpec,
 }
 
 impl Settings {
@@ -331,6 +344,7 @@ impl Settings {
                 max_expected_position_error_mm: 3.0,
                 max_expected_rotation_error_mrad: 10.0,
             },
+            sensors: SensorSpec::default(),
         }
     }
 }

@@ -102,7 +102,8 @@ pub enum Refusal {
         /// The largest allowed.
         max: f64,
     },
-    /// The calibration produced no expected accuracy.
+    /// The calibration produced no expected accuracy (the EM failed and LS's normal equations
+    /// were too ill-conditioned to give one).
     NoExpectedAccuracy,
     /// The expected table error in position is above the limit.
     ExpectedPosition {
@@ -122,6 +123,14 @@ pub enum Refusal {
     TooFewHeldOut {
         /// Held-out samples.
         have: usize,
+    },
+    /// The data contradict the drift EM's model (calib-core's reason: a joint's sensor that
+    /// jumped, too many reference glitches, a drift grossly off its model).
+    Model {
+        /// calib-core's reason, naming the joint or the share.
+        why: calib_core::Refusal,
+        /// When it happened (s since the session's start), where there is a moment.
+        at_s: Option<f64>,
     },
     /// On the held-out slice the judged table is significantly worse than nominal.
     WorseThanNominal {
@@ -146,7 +155,7 @@ impl fmt::Display for Refusal {
                 "condition number {condition:.3e} above {max:.3e}: the motion did not excite every parameter"
             ),
             Refusal::NoExpectedAccuracy => {
-                f.write_str("no expected accuracy: the drift EM did not produce one")
+                f.write_str("no expected accuracy: neither the drift EM nor least squares could state one")
             }
             Refusal::ExpectedPosition { mm, max } => write!(
                 f,
@@ -156,6 +165,11 @@ impl fmt::Display for Refusal {
                 f,
                 "expected table error ±{mrad:.2} mrad (1σ) above the {max} mrad allowed: more varied motion or a longer session would lower it"
             ),
+            Refusal::Model { why, at_s: None } => write!(f, "{why}"),
+            Refusal::Model {
+                why,
+                at_s: Some(t),
+            } => write!(f, "{why} ({t:.2} s into the session)"),
             Refusal::TooFewHeldOut { have } => write!(
                 f,
                 "only {have} held-out samples, at least {MIN_HELDOUT} needed"
@@ -482,7 +496,7 @@ mod tests {
         assert_eq!(v.reasons, [Refusal::NoExpectedAccuracy]);
         assert_eq!(
             v.reasons[0].to_string(),
-            "no expected accuracy: the drift EM did not produce one"
+            "no expected accuracy: neither the drift EM nor least squares could state one"
         );
         let coarse = TableError {
             position_m: 4e-3,

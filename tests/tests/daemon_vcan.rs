@@ -402,11 +402,12 @@ fn frame_of(v: &serde_json::Value) -> (u32, Vec<u8>) {
     (id, data)
 }
 
-const TOPICS: [&str; 9] = [
+const TOPICS: [&str; 10] = [
     "/can/rx",
     "/can/tx",
     "/joint_states",
     "/ee_pose",
+    "/ee_gyro",
     "/tf",
     "/aligned",
     "/progress",

@@ -269,6 +269,8 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
                         "aligned samples:",
                         "expected table error:",
                         "drift joint",
+                        "drift model joint",
+                        "reference glitches discounted:",
                         "held-out mean pose error:",
                         "push Joint",
                     ]
@@ -276,8 +278,8 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
                     .any(|p| l.starts_with(p))
                 })
                 .collect();
-            if kept.len() != 17 {
-                bail!("the demo's summary lacks its aligned/expected/drift/held-out/push lines:\n{out}");
+            if kept.len() != 25 {
+                bail!("the demo's summary lacks its aligned/expected/drift/model/glitch/held-out/push lines:\n{out}");
             }
             Ok(fenced(&kept))
         }

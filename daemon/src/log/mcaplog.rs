@@ -23,6 +23,7 @@
 //! | `/can/rx`, `/can/tx` | `exocal.CanFrame` | every raw frame received / sent: id, flags, DLC, data, kernel and host timestamps |
 //! | `/joint_states` | `foxglove.JointStates` | each decoded joint reading (`jointN`: position, velocity), as the exported URDF names the joints |
 //! | `/ee_pose` | `foxglove.PoseInFrame` | each assembled end-effector reference pose, frame `base_link` |
+//! | `/ee_gyro` | `exocal.AngularRate` | the end effector's IMU rate (a stream of `exocal_session::stream::STREAMS`) |
 //! | `/tf` | `foxglove.FrameTransforms` | the arm's frames on the calibrated table (`base_link → link1 … link7 → tool0`, the URDF's): Foxglove's 3D panel draws the arm |
 //! | `/aligned` | `exocal.AlignedSample` | samples on the common time grid, as fed to the calibration |
 //! | `/progress` | `exocal.Progress` | collection progress: coverage per joint, samples, condition number |
@@ -106,6 +107,18 @@ fn quat(q: [f64; 4]) -> fox::Quaternion {
 /// The name of joint `joint` (1-based), as the exported URDF names it.
 pub fn joint_name(joint: usize) -> String {
     format!("joint{joint}")
+}
+
+/// `exocal.AngularRate` of one IMU rate sample.
+pub fn angular_rate(stream: &str, node_timestamp_lo_us: u32, xyz: [f64; 3]) -> proto::AngularRate {
+    let [x, y, z] = xyz;
+    proto::AngularRate {
+        frame_id: stream.to_string(),
+        x,
+        y,
+        z,
+        node_timestamp_lo_us,
+    }
 }
 
 /// `foxglove.JointStates` of one joint reading.
@@ -338,6 +351,15 @@ impl<W: Write + Seek> SessionLog<W> {
                 &joint_states(log_ns, &[(joint, angle, rate)]),
             ),
             Record::EePose(pose) => self.write(Topic::EePose, log_ns, &pose_in_frame(log_ns, pose)),
+            Record::Rate {
+                stream,
+                node_timestamp_lo_us,
+                xyz,
+            } => self.write(
+                Topic::EeGyro,
+                log_ns,
+                &angular_rate(stream, node_timestamp_lo_us, xyz),
+            ),
             Record::Arm(links) => self.write(Topic::Tf, log_ns, &frame_transforms(log_ns, links)),
             Record::Aligned(s) => self.write(Topic::Aligned, log_ns, &aligned_sample(s)),
             Record::Progress(p) => self.write(Topic::Progress, log_ns, &progress(p)),
@@ -465,6 +487,14 @@ mod tests {
                 rate: -0.1,
             };
             log.write_record(ns, &joint).unwrap();
+            if k % 10 == 0 {
+                let gyro = Record::Rate {
+                    stream: "EndEffector gyro",
+                    node_timestamp_lo_us: (k * 10_000 % 65_536) as u32,
+                    xyz: [0.1, -0.2, 0.3],
+                };
+                log.write_record(ns, &gyro).unwrap();
+            }
             if k % 5 == 0 {
                 let p = Transform {
                     translation: [0.3, 0.1, 0.0],
@@ -523,6 +553,7 @@ mod tests {
             ("/can/tx", 1),
             ("/joint_states", 250),
             ("/ee_pose", 50),
+            ("/ee_gyro", 25),
             ("/tf", 50),
             ("/aligned", 50),
             ("/progress", 1),
@@ -538,6 +569,7 @@ mod tests {
             Topic::CanRx | Topic::CanTx => drop(proto::CanFrame::decode(data).unwrap()),
             Topic::JointStates => drop(fox::JointStates::decode(data).unwrap()),
             Topic::EePose => drop(fox::PoseInFrame::decode(data).unwrap()),
+            Topic::EeGyro => drop(proto::AngularRate::decode(data).unwrap()),
             Topic::Tf => drop(fox::FrameTransforms::decode(data).unwrap()),
             Topic::Aligned => drop(proto::AlignedSample::decode(data).unwrap()),
             Topic::Progress => drop(proto::Progress::decode(data).unwrap()),

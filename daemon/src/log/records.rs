@@ -68,6 +68,16 @@ pub enum Record<'a> {
     },
     /// A measured end-effector pose in [`BASE_FRAME`].
     EePose(&'a Transform),
+    /// An IMU's angular rate (rad/s): the stream's name (`exocal_session::stream::STREAMS`),
+    /// the low 16 bits of the node's clock (µs) and the vector in the sensor's frame.
+    Rate {
+        /// The stream's name, the sensor's frame.
+        stream: &'a str,
+        /// The low 16 bits of the node's clock at sampling (µs).
+        node_timestamp_lo_us: u32,
+        /// x, y, z (rad/s).
+        xyz: [f64; 3],
+    },
     /// The arm's frames ([`arm_transforms`]).
     Arm(&'a [Link]),
     /// A sample on the common grid, as fed to the calibration.
@@ -220,6 +230,17 @@ pub fn calibration_record(
                     .collect()
             }),
         reading_drift_rms_mrad: outcome.reading_drift_rms.iter().map(|r| r * 1e3).collect(),
+        drift_model: outcome.em.as_ref().map_or_else(Vec::new, |em| {
+            em.models.iter().map(ToString::to_string).collect()
+        }),
+        discounted: outcome.em.as_ref().map_or(0, |em| em.discounted as u64),
+        discounted_s: outcome.em.as_ref().map_or_else(Vec::new, |em| {
+            em.discounted_s.iter().flatten().copied().collect()
+        }),
+        drift_consistency: outcome
+            .em
+            .as_ref()
+            .map_or_else(Vec::new, |em| em.consistency.to_vec()),
         push: push.map_or_else(Vec::new, |p| {
             p.nodes
                 .iter()
@@ -253,6 +274,79 @@ mod tests {
             Translation3::new(t.translation[0], t.translation[1], t.translation[2]),
             UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z)),
         )
+    }
+
+    #[test]
+    fn the_calibration_record_and_the_report_carry_what_the_pipeline_found() {
+        use calib_core::{Outliers, Scenario, ScenarioConfig};
+        use exocal_session::align::AlignedSample;
+        use exocal_session::Settings;
+        // A 30 s paper session with 2 % reference glitches, the drift in the reading.
+        let mut cfg = ScenarioConfig::paper();
+        cfg.outliers = Outliers {
+            probability: 0.02,
+            burst: 1,
+            position: 0.03,
+            rotation: 0.03,
+        };
+        let samples: Vec<AlignedSample> = Scenario::new(cfg, 5)
+            .take(3000)
+            .enumerate()
+            .map(|(i, s)| {
+                let q = s.sample.joints;
+                let read = calib_core::Sample {
+                    joints: std::array::from_fn(|j| q[j] - s.drift[j]),
+                    pose: s.sample.pose,
+                };
+                AlignedSample::of(i as f64 * cfg.drift.dt, &read)
+            })
+            .collect();
+        let mut settings = Settings::suit_default();
+        settings.window.min_samples = 500;
+        let c = exocal_session::pipeline::run(&samples, &settings).unwrap();
+        let record = calibration_record(&c.outcome, &[], 0, 0, None);
+        let em = c.outcome.em.as_ref().unwrap();
+        // The rough drift taken out of the readings, in mrad.
+        let rms = c.outcome.reading_drift_rms.map(|r| r * 1e3);
+        assert!(rms.iter().all(|&r| r > 0.0), "{rms:?}");
+        assert_eq!(record.reading_drift_rms_mrad, rms.to_vec());
+        // Each joint's drift with its interval, its model and why.
+        let drift = em.drift_95.unwrap();
+        assert_eq!(record.drift.len(), JOINTS);
+        assert_eq!(record.drift[2].tau_high_s, drift[2].tau_95_s[1]);
+        assert_eq!(record.drift_model.len(), JOINTS);
+        assert!(
+            record.drift_model[0].starts_with("Gauss-Markov"),
+            "{:?}",
+            record.drift_model
+        );
+        // The glitches discounted, counted and timed.
+        assert!(record.discounted > 20, "{}", record.discounted);
+        assert_eq!(record.discounted, em.discounted as u64);
+        assert_eq!(record.discounted_s.len(), 2 * em.discounted_s.len());
+        assert_eq!(record.drift_consistency.len(), JOINTS);
+        // The report shows them too.
+        let html = exocal_report::html::render(&crate::shell::html_report::report_input(
+            "t".into(),
+            "s".into(),
+            &settings,
+            &c,
+            exocal_session::outcome::Quality::default(),
+        ));
+        let [lo, hi] = drift[0].tau_95_s;
+        assert!(
+            html.contains(&format!("<td>{lo:.3}–{hi:.3}</td>")),
+            "τ interval"
+        );
+        assert!(html.contains("model (and why)"), "no model column");
+        assert!(
+            html.contains(&format!(
+                "{} of {} samples",
+                em.discounted,
+                c.outcome.fit_samples + c.outcome.heldout_samples
+            )),
+            "no glitch count"
+        );
     }
 
     #[test]

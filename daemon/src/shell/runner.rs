@@ -31,7 +31,7 @@ use crate::config::Config;
 use crate::exit::DaemonError;
 use crate::live::LiveView;
 use crate::log::mcaplog::{CollectionEnd, Counts, Level, LogError, SessionLog};
-use crate::log::records::{self, Transform};
+use crate::log::records;
 use crate::push::{push_tables, PushObserver, PushReport};
 use crate::shell::notify::{Notifier, Reporter};
 use crate::shell::tee::Recorder;
@@ -234,18 +234,12 @@ impl Io<'_> {
         self.frame(false, &rx.frame, rx.timestamp);
         let t = ns(rx.timestamp);
         match collector.on_frame(rx) {
-            Event::Joint {
-                joint, angle, rate, ..
+            Event::Sample {
+                stream,
+                node_timestamp_us,
+                reading,
             } => {
-                let r = self.log.joint_state(t, joint + 1, angle, rate);
-                self.check(r);
-            }
-            Event::Pose(p) => {
-                let pose = Transform {
-                    translation: p.position,
-                    rotation_wxyz: p.quat,
-                };
-                let r = self.log.ee_pose(t, &pose);
+                let r = self.log.sample(t, stream, node_timestamp_us, reading);
                 self.check(r);
             }
             Event::Unknown(e) | Event::Malformed(e) => {

@@ -46,10 +46,16 @@ pub fn print_summary(summary: &SessionSummary) {
                 mrad.join(" ")
             );
         }
-        if let Some(drift) = o.em.as_ref().and_then(|em| em.drift_95) {
-            for (j, d) in drift.iter().enumerate() {
-                println!("drift joint {}: {d} (95%)", j + 1);
+        if let Some(em) = &o.em {
+            if let Some(drift) = em.drift_95 {
+                for (j, d) in drift.iter().enumerate() {
+                    println!("drift joint {}: {d} (95%)", j + 1);
+                }
             }
+            for (j, m) in em.models.iter().enumerate() {
+                println!("drift model joint {}: {m}", j + 1);
+            }
+            println!("{}", discounted_line(em));
         }
         println!(
             "held-out mean pose error: nominal {:.4e}, calibrated {:.4e} ({:.1}% better); condition number {:.3e}",
@@ -102,4 +108,35 @@ pub fn finish(result: Result<SessionSummary, SessionError>) -> Result<(), Daemon
             Err(error)
         }
     }
+}
+
+/// The reference samples the EM discounted as glitches, and when: `reference glitches
+/// discounted: none`, or `… 12 samples at 3.10–3.14 s, 17.20 s`.
+pub fn discounted_line(em: &exocal_session::pipeline::EmSummary) -> String {
+    if em.discounted == 0 {
+        return "reference glitches discounted: none".to_string();
+    }
+    let at: Vec<String> = em
+        .discounted_s
+        .iter()
+        .map(|&[a, b]| {
+            if a == b {
+                format!("{a:.2} s")
+            } else {
+                format!("{a:.2}–{b:.2} s")
+            }
+        })
+        .collect();
+    let more = if at.len() < em.discounted
+        && em.discounted_s.len() >= calib_core::drift_em::MAX_DISCOUNTED_RUNS
+    {
+        ", …"
+    } else {
+        ""
+    };
+    format!(
+        "reference glitches discounted: {} sample(s) at {}{more}",
+        em.discounted,
+        at.join(", ")
+    )
 }

@@ -12,6 +12,8 @@ use crate::live::LiveView;
 use crate::log::mcaplog::{Counts, LogError, SessionLog};
 use crate::log::records::{Link, Record, Transform};
 use exocal_session::align::AlignedSample;
+use exocal_session::ingest::Reading;
+use exocal_session::stream::{Column, STREAMS};
 use exocal_session::window::Progress;
 
 /// The session's observers: its log, and the live view when enabled. The methods are the
@@ -40,6 +42,35 @@ impl<'a, W: Write + std::io::Seek> Recorder<'a, W> {
         self.record(frame.host_ns, Record::Frame { sent, frame })
     }
 
+    /// Records a sample of stream `stream` (an index of `exocal_session::stream::STREAMS`) as
+    /// its column is recorded: a joint reading on `/joint_states`, a pose on `/ee_pose`, a
+    /// rate on `/ee_gyro`.
+    pub fn sample(
+        &mut self,
+        log_ns: u64,
+        stream: usize,
+        node_timestamp_us: u32,
+        reading: Reading,
+    ) -> Result<(), LogError> {
+        let Some(s) = STREAMS.get(stream) else {
+            return Ok(());
+        };
+        match (s.column, reading) {
+            (Column::Angle(joint), Reading::Angle { angle, rate }) => {
+                self.joint_state(log_ns, joint + 1, angle, rate)
+            }
+            (Column::Pose, Reading::Pose(p)) => {
+                let pose = Transform {
+                    translation: p.position,
+                    rotation_wxyz: p.quat,
+                };
+                self.ee_pose(log_ns, &pose)
+            }
+            (Column::Rate, Reading::Rate(xyz)) => self.rate(log_ns, s.name, node_timestamp_us, xyz),
+            _ => Ok(()),
+        }
+    }
+
     /// Records joint `joint`'s (1-based) reading: angle (rad) and rate (rad/s).
     pub fn joint_state(
         &mut self,
@@ -54,6 +85,22 @@ impl<'a, W: Write + std::io::Seek> Recorder<'a, W> {
     /// Records a measured end-effector pose.
     pub fn ee_pose(&mut self, log_ns: u64, pose: &Transform) -> Result<(), LogError> {
         self.record(log_ns, Record::EePose(pose))
+    }
+
+    /// Records an IMU's angular rate on stream `stream` (see [`Record::Rate`]).
+    pub fn rate(
+        &mut self,
+        log_ns: u64,
+        stream: &str,
+        node_timestamp_lo_us: u32,
+        xyz: [f64; 3],
+    ) -> Result<(), LogError> {
+        let record = Record::Rate {
+            stream,
+            node_timestamp_lo_us,
+            xyz,
+        };
+        self.record(log_ns, record)
     }
 
     /// Records the arm's frames ([`crate::log::records::arm_transforms`]).
