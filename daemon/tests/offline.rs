@@ -258,7 +258,7 @@ fn bad_inputs_are_errors_naming_the_file_line_and_problem() {
             "binary.bin",
             vec![0xff, 0xfe, 0x00, 0x01],
             Some(Format::Csv),
-            "binary.bin: not UTF-8 text",
+            "binary.bin: CSV samples, line 1: not UTF-8 text (byte 1 of the line)",
         ),
         (
             "what.txt",

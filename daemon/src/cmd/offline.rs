@@ -140,12 +140,12 @@ fn each_line(
             buf.pop();
         } else if got > MAX_LINE_BYTES {
             return Err(bad(format!(
-                "longer than {MAX_LINE_BYTES} bytes: is it a {kind}?"
+                "longer than {MAX_LINE_BYTES} bytes, more than any line of this format"
             )));
         }
         let line = std::str::from_utf8(&buf).map_err(|e| {
             bad(format!(
-                "not UTF-8 text (byte {} of the line): is it a {kind}?",
+                "not UTF-8 text (byte {} of the line)",
                 e.valid_up_to() + 1
             ))
         })?;
