@@ -30,9 +30,7 @@ use crate::{WindowRules, JOINTS};
 
 /// Bins of a joint's range.
 pub const COVERAGE_BINS: usize = 36;
-/// How much shorter than `min_duration_s` a recording may be and still count as that long
-/// ([`Window::at_end`]).
-pub const DURATION_SLACK_S: f64 = 1.0;
+pub use crate::rules::DURATION_SLACK_S;
 /// Samples needed in a bin to count it as visited.
 pub const BIN_MIN_SAMPLES: u32 = 3;
 /// Smallest relative gain of the expected table error (0..1) the progress line advises motion

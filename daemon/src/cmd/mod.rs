@@ -339,6 +339,9 @@ async fn nodes_on_can(config: &Config, args: &NodesArgs) -> Result<(), DaemonErr
 }
 
 /// `exocald recover IN OUT`: the complete file, and one line saying what was kept.
+/// `exocald recover IN OUT`: the recovered log is written to a temporary file beside OUT and
+/// renamed to OUT once complete and synced, so a failed recovery leaves no OUT (nor a
+/// half-written one, nor the temporary file).
 fn recover_log(args: &RecoverArgs) -> Result<(), DaemonError> {
     let io = |what: String| move |source| DaemonError::Io { what, source };
     let same = match (args.input.canonicalize(), args.output.canonicalize()) {
@@ -351,26 +354,51 @@ fn recover_log(args: &RecoverArgs) -> Result<(), DaemonError> {
             args.output.display()
         )));
     }
-    let bytes =
-        std::fs::read(&args.input).map_err(io(format!("reading {}", args.input.display())))?;
-    let file = std::fs::File::create(&args.output)
-        .map_err(io(format!("creating {}", args.output.display())))?;
-    let out = std::io::BufWriter::new(file);
-    let (recovery, out) = crate::log::recover::recover(&bytes, out, Some(mcap::Compression::Zstd))
+    let input = std::fs::File::open(&args.input)
+        .map_err(io(format!("reading {}", args.input.display())))?;
+    let name = args
+        .output
+        .file_name()
+        .map_or_else(|| "recovered".into(), |n| n.to_string_lossy().into_owned());
+    let temp = args
+        .output
+        .with_file_name(format!(".{name}.{}.partial", std::process::id()));
+    let written = (|| {
+        let file =
+            std::fs::File::create(&temp).map_err(io(format!("creating {}", temp.display())))?;
+        let (recovery, out) = crate::log::recover::recover(
+            std::io::BufReader::new(input),
+            std::io::BufWriter::new(file),
+            Some(mcap::Compression::Zstd),
+        )
         .map_err(|e| match e {
             crate::log::recover::RecoverError::NotMcap => {
                 DaemonError::Input(format!("{}: {e}", args.input.display()))
             }
             crate::log::recover::RecoverError::Write(e) => DaemonError::Log {
-                what: format!("writing {}", args.output.display()),
+                what: format!("writing {}", temp.display()),
                 source: crate::log::mcaplog::LogError::Mcap(e),
             },
         })?;
-    out.into_inner()
-        .map_err(|e| e.into_error())
-        .and_then(|f| f.sync_all())
-        .map_err(io(format!("writing {}", args.output.display())))?;
-    println!("{}: {recovery}", args.input.display());
+        out.into_inner()
+            .map_err(|e| e.into_error())
+            .and_then(|f| f.sync_all())
+            .map_err(io(format!("writing {}", temp.display())))?;
+        std::fs::rename(&temp, &args.output).map_err(io(format!(
+            "renaming {} to {}",
+            temp.display(),
+            args.output.display()
+        )))?;
+        Ok(recovery)
+    })();
+    let recovery = match written {
+        Ok(r) => r,
+        Err(e) => {
+            let _ = std::fs::remove_file(&temp);
+            return Err(e);
+        }
+    };
+    println!("{}: recovered {recovery}", args.input.display());
     println!(
         "wrote {}: {} messages, with summary, indexes and footer",
         args.output.display(),

@@ -248,7 +248,8 @@ pub fn log_push(path: &Path) -> Result<BTreeMap<NodeId, LastPush>, DaemonError> 
         what: format!("reading {}", path.display()),
         source,
     })?;
-    let (session, _) = crate::cmd::offline::read_session_log(path, &bytes)?;
+    let session =
+        crate::cmd::offline::read_session_log(path, &bytes[..], exocal_log::read::admit_all)?;
     Ok(pushed(&session.push))
 }
 
