@@ -42,6 +42,15 @@ fn main() {
     let only = arg("--only");
     let without = arg("--without").unwrap_or_default();
     let spec = std::env::args().any(|a| a == "--spec");
+    // `--prior RAMP_DEG_S,WALK`: the same spec told in every cell, whatever it simulates (a
+    // default the daemon could ship for sensors whose spec nobody configured).
+    let prior = arg("--prior").map(|v| {
+        let (r, w) = v.split_once(',').expect("--prior RAMP_DEG_S,WALK_RAD_S_SQRT_S");
+        calib_core::RateBias {
+            ramp: r.parse::<f64>().expect("ramp °/s").to_radians(),
+            walk: w.parse().expect("walk rad/s/√s"),
+        }
+    });
     println!("| cell | real ÷ stated (pos / rot) | our table vs LS | vs the bound | real (mm / mrad) | stated | refused |");
     println!("|---|---|---|---|---|---|---|");
     let t0 = Instant::now();
@@ -54,13 +63,13 @@ fn main() {
         for seed in 1..=seeds {
             match session_with(&cell, seed, |o| {
                 let o = variant(o, &without);
-                if spec {
-                    DriftEmOptions {
+                match (spec, prior) {
+                    (true, _) => DriftEmOptions {
                         rate_bias_spec: cell.field.bias,
                         ..o
-                    }
-                } else {
-                    o
+                    },
+                    (false, Some(p)) => DriftEmOptions { rate_bias_spec: p, ..o },
+                    (false, None) => o,
                 }
             }) {
                 Ok(s) => sessions.push(s),

@@ -57,17 +57,24 @@ pub enum Command {
     ///
     /// Plays the paper's simulation scenario (Table 4 "actual" arm, drifting joint angles),
     /// calibrates, pushes to the emulated nodes and writes the session's MCAP log.
+    /// Exit status: 0 pushed and every emulated node persisted the table; 64 a bad option value
+    /// (e.g. --speed 0); 65 calibration refused by validation (nothing pushed); 66 the session
+    /// never had enough motion; 69 a node did not take the table, or its flash disagrees; 74
+    /// I/O error; 78 bad configuration.
     #[cfg(feature = "demo")]
     Demo(DemoArgs),
-    /// Check a configuration file: print what was understood, or the error (exit 78).
+    /// Check a configuration file: print what was understood, or the error.
+    ///
+    /// Exit status: 0 the file is valid (or the default was printed); 74 it cannot be read;
+    /// 78 it is invalid (the key and the reason named).
     CheckConfig(CheckConfigArgs),
     /// Recalibrate from a recorded session (MCAP log, candump log or CSV samples), no bus.
     ///
     /// Frames are replayed through the daemon's own ingest, alignment and calibration (an MCAP
     /// log up to the end of its collection window), so the same data gives the live run's
     /// table. Writes the HTML report and, for a validated table, the requested exports.
-    /// Exit status: 0 validated; 65 refused by validation, or the input does not parse;
-    /// 66 the recording misses the session rules (duration, excitation, samples); 74 I/O
+    /// Exit status: 0 validated; 64 options that do not go together (--export-candump of CSV
+    /// samples); 65 refused by validation, or the input does not parse; 66 the recording misses the session rules (duration, excitation, samples); 74 I/O
     /// error; 78 bad configuration.
     Offline(OfflineArgs),
     /// Rewrite a session log cut short (kill -9, power loss) as a complete, indexed MCAP.
@@ -164,7 +171,7 @@ pub struct DemoArgs {
     /// At most this many simulated seconds per real second (the paper's 60 s scenario takes at
     /// least 60/speed s). The run is on simulated time: the speed and the machine's load never
     /// change the result; the same seed and configuration give the same table every run.
-    #[arg(long, default_value_t = 10.0)]
+    #[arg(long, default_value_t = 10.0, allow_negative_numbers = true, value_parser = positive)]
     pub speed: f64,
     /// Folder for the session's MCAP log and report, and the emulated nodes' flash (DIR/flash).
     #[arg(long, short = 'o', value_name = "DIR", default_value = "exocal-demo")]
@@ -174,6 +181,16 @@ pub struct DemoArgs {
     /// connect to ws://127.0.0.1:8765 and watch the arm, the progress and the result.
     #[arg(long)]
     pub live: bool,
+}
+
+/// A finite number above zero (`--speed`): a negative one reaches this parser, which names it.
+#[cfg(feature = "demo")]
+fn positive(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        Ok(v) => Err(format!("{v} is not a speed: it must be finite and above 0")),
+        Err(e) => Err(format!("`{text}` is not a number: {e}")),
+    }
 }
 
 /// Options of `check-config`.
@@ -310,5 +327,56 @@ mod tests {
         let cal = cmd.find_subcommand_mut("calibrate").unwrap();
         let cal_help = cal.render_long_help().to_string();
         assert!(cal_help.contains("78 bad configuration"), "{cal_help}");
+    }
+
+    /// Every subcommand's `--help` lists its exit statuses (issue 33), each of them a status
+    /// `exit::code` defines; 64 is everyone's (a wrong command line).
+    #[test]
+    fn every_subcommand_lists_its_exit_statuses() {
+        use crate::exit::code;
+        let known = [
+            code::OK,
+            code::USAGE,
+            code::DATAERR,
+            code::NOINPUT,
+            code::UNAVAILABLE,
+            code::SOFTWARE,
+            code::IOERR,
+            code::TEMPFAIL,
+            code::CONFIG,
+        ];
+        let mut cli = Cli::command();
+        for sub in cli.get_subcommands_mut() {
+            let name = sub.get_name().to_string();
+            let help = sub.render_long_help().to_string();
+            let at = help
+                .find("Exit status:")
+                .unwrap_or_else(|| panic!("{name} --help lists no exit status:\n{help}"));
+            // The paragraph that lists them; the options' help follows a blank line.
+            let para = help[at..].split("\n\n").next().unwrap_or_default();
+            let statuses: Vec<u8> = para
+                .split(|c: char| !c.is_ascii_digit())
+                .filter_map(|w| w.parse().ok())
+                .filter(|n| *n == 0 || *n >= 64)
+                .collect();
+            assert!(statuses.contains(&0), "{name}: {statuses:?}");
+            for s in &statuses {
+                assert!(
+                    known.contains(s),
+                    "{name}: exit status {s} is not in exit::code"
+                );
+            }
+        }
+    }
+
+    #[cfg(feature = "demo")]
+    #[test]
+    fn a_negative_speed_reaches_the_parser_and_is_named() {
+        let e = Cli::try_parse_from(["exocald", "demo", "--speed", "-1"]).unwrap_err();
+        let shown = e.to_string();
+        assert!(shown.contains("-1 is not a speed"), "{shown}");
+        assert!(Cli::try_parse_from(["exocald", "demo", "--speed", "0"]).is_err());
+        let ok = Cli::try_parse_from(["exocald", "demo", "--speed", "2.5"]).unwrap();
+        assert!(matches!(ok.command, Command::Demo(DemoArgs { speed, .. }) if speed == 2.5));
     }
 }

@@ -153,6 +153,35 @@ fn missing_keys_exit_78_and_authentication_off_is_said() {
     let (code, _, err) = exocald(&["--config", off.to_str().unwrap(), "calibrate", "-i", "lo"]);
     assert!(err.contains("authentication is off"), "{err}");
     assert_eq!(code, 69, "{err}");
+    // `lo` is no CAN socket: the error says why (a kernel without CAN, or not a CAN link),
+    // never only "Address family not supported by protocol (os error 97)".
+    assert!(
+        err.contains("modprobe can-raw") || err.contains("`lo` is not a CAN interface"),
+        "{err}"
+    );
+}
+
+/// `nodes --json` with no bus: exit 69, and stdout is one JSON object naming the interface
+/// (issue 33: it printed nothing).
+#[test]
+fn nodes_json_without_a_bus_prints_a_json_error() {
+    let (code, out, err) = exocald(&["nodes", "--json", "-i", "vcan93"]);
+    assert_eq!(code, 69, "{err}");
+    let v: serde_json::Value = serde_json::from_str(&out).expect("JSON on stdout");
+    assert_eq!(v["exit"], 69, "{out}");
+    assert!(v["error"].as_str().unwrap().contains("vcan93"), "{out}");
+    // Without --json, stdout stays empty (the error is on stderr).
+    let (code, out, err) = exocald(&["nodes", "-i", "vcan93"]);
+    assert_eq!((code, out.as_str()), (69, ""), "{err}");
+}
+
+/// `demo --speed -1` reaches the value parser (64, naming the value), not clap's
+/// "unexpected argument".
+#[test]
+fn a_negative_speed_is_a_usage_error_naming_it() {
+    let (code, _, err) = exocald(&["demo", "--speed", "-1"]);
+    assert_eq!(code, 64, "{err}");
+    assert!(err.contains("-1 is not a speed"), "{err}");
 }
 
 #[test]

@@ -211,19 +211,54 @@ impl Progress {
         s
     }
 
-    /// What to move: the joint whose motion would most reduce the expected table error, when
-    /// that is at least [`GUIDANCE_MIN_GAIN`] of it (`move joint 7: ±3.10 → ±2.20 mm
-    /// expected`, or `move joint 7: −29% expected error` before the error is estimated).
-    pub fn advice(&self) -> Option<String> {
-        let g = self.guidance?;
-        let (j, r) = g
+    /// The line for a terminal's progress bar: at most [`SHORT_LINE_MAX`] characters, so that
+    /// it fits 80 columns beside the bar (`12 s cov 80 ✓ 61 ✓ ✓ 75 ✓/80 ±1.3 mm j7→1.1`): the
+    /// elapsed time, each joint's coverage (✓ once it has the required), the expected error
+    /// and the joint to move.
+    pub fn short(&self, required: f64) -> String {
+        let need = (required * 100.0).round();
+        let cov: Vec<String> = self
+            .coverage
+            .iter()
+            .map(|c| {
+                let pc = (c * 100.0).floor();
+                if pc >= need {
+                    "✓".into()
+                } else {
+                    format!("{pc:.0}")
+                }
+            })
+            .collect();
+        let mut s = format!("{:.0} s cov {}/{need:.0}", self.elapsed_s, cov.join(" "));
+        if let Some(e) = self.expected {
+            s.push_str(&format!(" ±{:.1} mm", e.position_mm));
+        }
+        if let Some((j, r)) = self.best_move() {
+            match self.expected {
+                Some(e) => s.push_str(&format!(" j{}→{:.1}", j + 1, e.position_mm * r)),
+                None => s.push_str(&format!(" move j{} −{:.0}%", j + 1, (1.0 - r) * 100.0)),
+            }
+        }
+        s
+    }
+
+    /// The joint whose motion would most reduce the expected table error and the error after
+    /// it as a fraction of now's, when that gains at least [`GUIDANCE_MIN_GAIN`].
+    fn best_move(&self) -> Option<(usize, f64)> {
+        let (j, r) = self
+            .guidance?
             .iter()
             .copied()
             .enumerate()
             .min_by(|a, b| a.1.total_cmp(&b.1))?;
-        if r.is_nan() || r > 1.0 - GUIDANCE_MIN_GAIN {
-            return None;
-        }
+        (!r.is_nan() && r <= 1.0 - GUIDANCE_MIN_GAIN).then_some((j, r))
+    }
+
+    /// What to move: the joint whose motion would most reduce the expected table error, when
+    /// that is at least [`GUIDANCE_MIN_GAIN`] of it (`move joint 7: ±3.10 → ±2.20 mm
+    /// expected`, or `move joint 7: −29% expected error` before the error is estimated).
+    pub fn advice(&self) -> Option<String> {
+        let (j, r) = self.best_move()?;
         Some(match self.expected {
             Some(e) => format!(
                 "move joint {}: ±{:.2} → ±{:.2} mm expected",
@@ -239,6 +274,10 @@ impl Progress {
         })
     }
 }
+
+/// The longest [`Progress::short`] line (characters): 80 columns less a progress bar's
+/// `calibrating [============] ` (27).
+pub const SHORT_LINE_MAX: usize = 53;
 
 /// The collection window of one calibration session.
 #[derive(Debug, Clone)]
@@ -416,6 +455,34 @@ mod tests {
 
     fn range() -> (f64, f64) {
         (-1.0, 2.6)
+    }
+
+    /// Issue 33: on an 80-column terminal the bar's line keeps every joint's coverage, the
+    /// expected error and the joint to move, at its widest.
+    #[test]
+    fn the_short_line_fits_beside_the_bar_at_its_widest() {
+        let widest = Progress {
+            elapsed_s: 359.6,
+            samples: 999_999,
+            coverage: [0.995; JOINTS],
+            condition_number: Some(1.234e5),
+            expected: Some(Expected {
+                position_mm: 99.99,
+                rotation_mrad: 999.9,
+            }),
+            guidance: Some([0.99, 0.99, 0.99, 0.99, 0.99, 0.99, 0.949]),
+            readiness: 0.5,
+        };
+        let line = widest.short(1.0);
+        assert_eq!(line, "360 s cov 99 99 99 99 99 99 99/100 ±100.0 mm j7→94.9");
+        assert!(line.chars().count() <= SHORT_LINE_MAX, "{line}");
+        let early = Progress {
+            coverage: [0.95, 0.2, 0.8, 0.8, 0.8, 0.8, 0.8],
+            expected: None,
+            guidance: Some([1.0, 0.7, 1.0, 1.0, 1.0, 1.0, 1.0]),
+            ..widest
+        };
+        assert_eq!(early.short(0.8), "360 s cov ✓ 20 ✓ ✓ ✓ ✓ ✓/80 move j2 −30%");
     }
 
     #[test]

@@ -78,10 +78,45 @@ pub fn require_interface(name: &str) -> Result<(), DaemonError> {
         };
         return Err(DaemonError::Interface {
             name: name.to_string(),
-            reason: hint,
+            reason: with_kernel_hint(hint, kernel_has_can()),
         });
     }
     Ok(())
+}
+
+/// Whether this kernel has SocketCAN loaded: the `can` module creates `/proc/net/can`.
+fn kernel_has_can() -> bool {
+    Path::new("/proc/net/can").exists()
+}
+
+/// `reason`, and on a kernel without CAN, what to load.
+fn with_kernel_hint(reason: String, has_can: bool) -> String {
+    if has_can {
+        reason
+    } else {
+        format!(
+            "{reason}; this kernel has no SocketCAN loaded (no /proc/net/can): `modprobe can-raw` \
+             (and `modprobe vcan` for a bench interface), or a kernel built with CONFIG_CAN"
+        )
+    }
+}
+
+/// Why `name` cannot be opened as a CAN socket, with what to do: the kernel lacks CAN, or the
+/// interface is not a CAN one (its link type), else the system's error.
+fn open_failure(name: &str, error: &dyn std::fmt::Display, has_can: bool) -> String {
+    if !has_can {
+        return with_kernel_hint(format!("{error}"), false);
+    }
+    // ARPHRD_CAN: the link type of every CAN interface, vcan included.
+    const ARPHRD_CAN: &str = "280";
+    match std::fs::read_to_string(Path::new("/sys/class/net").join(name).join("type")) {
+        Ok(t) if t.trim() != ARPHRD_CAN => format!(
+            "{error}; `{name}` is not a CAN interface (link type {}, CAN is {ARPHRD_CAN}): pass \
+             one with --interface (`ip -details link show type can`, or `type vcan`, lists them)",
+            t.trim()
+        ),
+        _ => format!("{error}"),
+    }
 }
 
 /// Runs the parsed command line.
@@ -122,30 +157,16 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
         }
         Command::Recover(args) => recover_log(&args),
         Command::Nodes(args) => {
-            let (mut config, source) =
-                resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
-            apply_overrides(
-                &mut config,
-                &SessionArgs {
-                    interface: args.interface.clone(),
-                    output: args.output.clone(),
-                    dry_run: true,
-                },
-            );
-            eprintln!("exocald: configuration from {source}");
-            require_interface(&config.interface)?;
-            if config.push.authenticate {
-                let nodes = config.joint_node_ids();
-                match crate::keys::load_if_present(&nodes)? {
-                    Some(keys) => config.push.keys = keys,
-                    None => eprintln!(
-                        "exocald: no credential {}: the nodes' answers are not authenticated \
-                         (each line says so)",
-                        crate::keys::CREDENTIAL
-                    ),
+            let result = nodes(cli.config.as_deref(), &args);
+            match &result {
+                // The listing (printed) names the missing nodes; any other failure leaves
+                // stdout empty, so a script gets it as JSON there too.
+                Err(e) if args.json && !matches!(e, DaemonError::NoAnswer(_)) => {
+                    println!("{}", error_json(e));
                 }
+                _ => {}
             }
-            runtime()?.block_on(nodes_on_can(&config, &args))
+            result
         }
         #[cfg(feature = "demo")]
         Command::Demo(args) => {
@@ -183,6 +204,38 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
             }
         }
     }
+}
+
+/// `exocald nodes`: the configuration, the keys if provisioned, then the listing.
+fn nodes(config_path: Option<&Path>, args: &NodesArgs) -> Result<(), DaemonError> {
+    let (mut config, source) = resolve_config(config_path, Path::new(SYSTEM_CONFIG))?;
+    apply_overrides(
+        &mut config,
+        &SessionArgs {
+            interface: args.interface.clone(),
+            output: args.output.clone(),
+            dry_run: true,
+        },
+    );
+    eprintln!("exocald: configuration from {source}");
+    require_interface(&config.interface)?;
+    if config.push.authenticate {
+        let nodes = config.joint_node_ids();
+        match crate::keys::load_if_present(&nodes)? {
+            Some(keys) => config.push.keys = keys,
+            None => eprintln!(
+                "exocald: no credential {}: the nodes' answers are not authenticated \
+                 (each line says so)",
+                crate::keys::CREDENTIAL
+            ),
+        }
+    }
+    runtime()?.block_on(nodes_on_can(&config, args))
+}
+
+/// A failure as one JSON object, `{"error": "...", "exit": N}`, for `--json` callers.
+fn error_json(e: &DaemonError) -> String {
+    serde_json::json!({ "error": e.to_string(), "exit": e.exit_code() }).to_string()
 }
 
 fn session_config(path: Option<&Path>, args: &SessionArgs) -> Result<Config, DaemonError> {
@@ -246,7 +299,7 @@ fn runtime() -> Result<tokio::runtime::Runtime, DaemonError> {
 fn open_can(config: &Config) -> Result<SocketCan, DaemonError> {
     SocketCan::open(&config.interface).map_err(|e| DaemonError::Interface {
         name: config.interface.clone(),
-        reason: e.to_string(),
+        reason: open_failure(&config.interface, &e, kernel_has_can()),
     })
 }
 
@@ -445,6 +498,25 @@ mod tests {
         );
         assert!(require_interface("../etc").is_err());
         assert!(require_interface("lo").is_ok());
+    }
+
+    /// Issue 33: on a kernel without CAN, or an interface that is not CAN, the error says what
+    /// to do instead of a bare "Address family not supported by protocol (os error 97)".
+    #[test]
+    fn a_kernel_or_interface_without_can_gets_a_hint() {
+        let bare = std::io::Error::from_raw_os_error(97);
+        let no_can = open_failure("can0", &bare, false);
+        assert!(
+            no_can.contains("os error 97") && no_can.contains("modprobe can-raw"),
+            "{no_can}"
+        );
+        let not_can = open_failure("lo", &bare, true);
+        assert!(
+            not_can.contains("`lo` is not a CAN interface (link type 772"),
+            "{not_can}"
+        );
+        let e = require_interface("can93").unwrap_err().to_string();
+        assert_eq!(e.contains("modprobe"), !kernel_has_can(), "{e}");
     }
 
     #[test]

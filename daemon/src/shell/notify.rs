@@ -127,11 +127,14 @@ impl Reporter {
             Reporter::Systemd { last_line: None }
         } else if std::io::stderr().is_terminal() {
             let bar = ProgressBar::new(1000);
+            // `calibrating [============] ` is 27 columns: the message
+            // (`Progress::short`) has the other 53 of an 80-column terminal.
             bar.set_style(
-                ProgressStyle::with_template("{spinner} [{bar:30}] {percent:>3}% {wide_msg}")
+                ProgressStyle::with_template("{prefix:11} [{bar:12}] {wide_msg}")
                     .unwrap_or_else(|_| ProgressStyle::default_bar())
                     .progress_chars("=> "),
             );
+            bar.set_prefix("collecting");
             Reporter::Bar(bar)
         } else {
             Reporter::Plain { last_line: None }
@@ -153,7 +156,7 @@ impl Reporter {
         match self {
             Reporter::Bar(bar) => {
                 bar.set_position((progress.readiness * 1000.0).round() as u64);
-                bar.set_message(line);
+                bar.set_message(progress.short(required));
             }
             Reporter::Systemd { last_line } => {
                 notifier.status(&line);
@@ -166,6 +169,18 @@ impl Reporter {
                     eprintln!("exocald: {line}");
                 }
             }
+        }
+    }
+
+    /// The session moved on to `phase` (`calibrating`, `pushing`): the bar says so in place of
+    /// `collecting`, with `detail` beside it; otherwise `phase: detail` is printed.
+    pub fn phase(&self, phase: &str, detail: &str) {
+        match self {
+            Reporter::Bar(bar) => {
+                bar.set_prefix(phase.to_string());
+                bar.set_message(detail.to_string());
+            }
+            _ => eprintln!("exocald: {phase}: {detail}"),
         }
     }
 

@@ -670,7 +670,7 @@ impl<T: Transport> Running<'_, '_, T> {
         self.io.notifier.status("calibrating");
         self.io
             .reporter
-            .message("calibrating (least squares, then EM)");
+            .phase("calibrating", "least squares, then EM");
         let (calibration, source) = self.report_titles("calibration");
         let (session, _) = self.report_titles("session");
         let (input, cfg) = (collected.clone(), self.config.clone());
@@ -745,7 +745,7 @@ impl<T: Transport> Running<'_, '_, T> {
             .ok_or(DaemonError::Interrupted)?;
         let tables = node_tables(outcome, self.config).map_err(DaemonError::Unpushable)?;
         self.io.notifier.status("pushing tables");
-        self.io.reporter.message("pushing the tables to the nodes");
+        self.io.reporter.phase("pushing", "the tables to the nodes");
         let first_session = (ns(start) / 1_000_000 % 251) as u8;
         let report = push_tables(
             self.bus,
