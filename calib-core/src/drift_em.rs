@@ -163,6 +163,10 @@ const MAX_REWEIGHTS: usize = 4;
 /// within ±5% of 1).
 const GAUSSIAN_DOF: f64 = 100.0;
 
+/// The most objectives one fit records ([`DriftEmResult::objectives`]): finer strides, prior
+/// refits and re-linearisations together; later ones are merged into the last.
+pub const MAX_OBJECTIVES: usize = 16;
+
 /// Degrees of freedom of the robust filter that gives the reference's first weights.
 const DOF_START: f64 = 4.0;
 
@@ -506,9 +510,13 @@ pub struct DriftEmResult<const N: usize> {
     pub measurement_variance: [f64; 6],
     /// Per joint `σ·√(2τ/T)`: how well a static θ offset can be told from the drift (rad).
     pub separability: [f64; N],
-    /// Log-likelihood of the iterated samples (every `stride`-th, at the final stride) at every
-    /// accepted iterate of the last linearisation. It never decreases.
+    /// Log-likelihood of the iterated samples at every accepted iterate, every objective's in
+    /// turn: the objective changes when the iteration moves to finer samples, refits the rate
+    /// bias's prior or re-linearises ([`Self::objectives`] says where). Within one objective it
+    /// never decreases; across two the values are not comparable.
     pub log_likelihood: heapless::Vec<f64, MAX_EM_ITERATIONS>,
+    /// Where in [`Self::log_likelihood`] each objective after the first starts (ascending).
+    pub objectives: heapless::Vec<usize, MAX_OBJECTIVES>,
     /// Log-likelihood of all samples at the final table and drift parameters (linearised at
     /// the iterated geometry and the smoothed drift).
     pub final_log_likelihood: f64,
@@ -550,6 +558,12 @@ pub struct DriftEmResult<const N: usize> {
 }
 
 impl<const N: usize> DriftEmResult<N> {
+    /// The log-likelihoods of the final objective (the last part of [`Self::log_likelihood`]):
+    /// never decreasing.
+    pub fn last_objective(&self) -> &[f64] {
+        &self.log_likelihood[self.objectives.last().copied().unwrap_or(0)..]
+    }
+
     /// The integrated rate bias of every joint at sample `k` of the session's `samples` (rad):
     /// the slow part of the angle error beside [`DriftSlot::drift`].
     pub fn rate_bias_at(&self, k: usize, samples: usize) -> [f64; N] {
@@ -913,6 +927,8 @@ struct Iteration<'a, const N: usize, const P: usize> {
     floor_prior: TrendPrior,
     z: Iterate<N, P>,
     history: heapless::Vec<f64, MAX_EM_ITERATIONS>,
+    /// Where in `history` each objective after the first starts.
+    objectives: heapless::Vec<usize, MAX_OBJECTIVES>,
     iterations: usize,
     information_passes: usize,
     converged: bool,
@@ -971,13 +987,27 @@ impl<const N: usize, const P: usize> Iteration<'_, N, P> {
         Ok((ll, st, gx, gt))
     }
 
+    /// The objective changes (finer samples, the rate bias's prior refitted, a new
+    /// linearisation): the likelihoods recorded from here on are comparable only with each other.
+    fn new_objective(&mut self) {
+        let at = self.history.len();
+        if at > 0 && self.objectives.last() != Some(&at) {
+            let _ = self.objectives.push(at);
+        }
+    }
+
+    /// The likelihoods of the last objective (see [`DriftEmResult::objectives`]).
+    fn last_objective(&self) -> &[f64] {
+        &self.history[self.objectives.last().copied().unwrap_or(0)..]
+    }
+
     /// ECME maps, accelerated, from the iterate until converged or out of maps (steps 2–4).
     /// `best` is the last accepted iterate (its likelihood known); `z` the next candidate,
     /// accepted when the filter pass that starts its map finds its likelihood no lower.
     fn run(&mut self, ws: &mut [DriftSlot<N>]) -> Result<(), CalibError> {
         let opts = *self.opts;
         let floor = self.floor();
-        self.history.clear();
+        self.new_objective();
         self.converged = false;
         let mut z = self.z;
         let mut best: Option<(f64, Iterate<N, P>)> = None;
@@ -1017,7 +1047,7 @@ impl<const N: usize, const P: usize> Iteration<'_, N, P> {
                 if self.prior != before {
                     // Another objective (the rate bias's prior is part of it).
                     best = None;
-                    self.history.clear();
+                    self.new_objective();
                 }
                 let (dx, t) = info.step();
                 z = z.with_static(core::array::from_fn(|p| z.x[p] + dx[p]), t);
@@ -1077,7 +1107,7 @@ impl<const N: usize, const P: usize> Iteration<'_, N, P> {
                         self.linearise(ws, false);
                         best = None;
                         pre = None;
-                        self.history.clear();
+                        self.new_objective();
                         continue;
                     }
                     if self.fitting && !checked && since > 0 {
@@ -1383,6 +1413,7 @@ pub fn em_drift<const N: usize, const P: usize>(
         floor_prior,
         z: Iterate::new([0.0; P], [[0.0; M]; N], &par0),
         history: heapless::Vec::new(),
+        objectives: heapless::Vec::new(),
         iterations: 0,
         information_passes: 0,
         converged: false,
@@ -1453,7 +1484,7 @@ pub fn em_drift<const N: usize, const P: usize>(
     }
     let converged = it.converged;
     if !converged && opts.require_convergence {
-        let h = &it.history;
+        let h = it.last_objective();
         let last = h.last().copied().unwrap_or(0.0);
         let prev = h.iter().rev().nth(1).copied().unwrap_or(last);
         return Err(CalibError::NotConverged {
@@ -1691,6 +1722,7 @@ fn finish<const N: usize, const P: usize>(
         measurement_variance: par.r,
         separability: core::array::from_fn(|j| drift[j].stationary_sigma * libm::sqrt(2.0 * drift[j].tau / t_total)),
         log_likelihood: it.history,
+        objectives: it.objectives,
         final_log_likelihood: final_ll,
         stride,
         iterations: it.iterations,
@@ -1795,7 +1827,7 @@ mod tests {
             ..DriftEmOptions::new(0.01)
         };
         let (r, drift) = em_drift_vec::<7, 28>(&ls.table, &samples, &opts).unwrap();
-        for w in r.log_likelihood.windows(2) {
+        for w in r.last_objective().windows(2) {
             assert!(w[1] >= w[0] - 1e-9 * w[0].abs(), "{} -> {}", w[0], w[1]);
         }
         let y_ls = objective_y(&ls.table, &samples);

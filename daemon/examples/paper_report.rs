@@ -42,6 +42,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             ..Quality::default()
         },
         verdict: None,
+        push: None,
     };
     let started = std::time::Instant::now();
     std::fs::write(out, html::render(&input))?;

@@ -292,7 +292,7 @@ impl LiveView {
                 let bytes = cal.encode_to_vec();
                 c.calibration.log_with_meta(&bytes, at);
                 state.latch(Topic::Calibration.name(), bytes);
-                self.calibrated(&mut state, cal);
+                self.calibrated(&mut state, cal, at);
             }
             Record::Event { level, message } => {
                 let bytes = mcaplog::log_message(log_ns, level, message).encode_to_vec();
@@ -344,8 +344,9 @@ impl LiveView {
         }
     }
 
-    /// A calibrated table: the arm is drawn on it from now on.
-    fn calibrated(&self, state: &mut State, cal: &proto::Calibration) {
+    /// A calibrated table: the arm is drawn on it from now on; its URDF is stamped `at` the
+    /// calibration record's log time (session time, as every other message).
+    fn calibrated(&self, state: &mut State, cal: &proto::Calibration, at: PartialMetadata) {
         let rows = cal.after.iter().map(|r| calib_core::DhRow {
             a: r.a,
             alpha: r.alpha,
@@ -360,7 +361,10 @@ impl LiveView {
         }
         state.table = table;
         let bytes = robot_description(&table, &state.limits);
-        self.shared.channels.robot_description.log(&bytes);
+        self.shared
+            .channels
+            .robot_description
+            .log_with_meta(&bytes, at);
         state.latch(ROBOT_DESCRIPTION, bytes);
     }
 }

@@ -22,7 +22,11 @@ struct Got {
     tf: usize,
     progress: usize,
     calibrations: Vec<proto::Calibration>,
+    /// Log time of each calibration message.
+    calibration_ns: Vec<u64>,
     urdf: Vec<String>,
+    /// Log time of each URDF.
+    urdf_ns: Vec<u64>,
     ee_gyro: Vec<proto::AngularRate>,
 }
 
@@ -97,6 +101,7 @@ async fn watch(port: u16, started: std::sync::mpsc::Sender<()>) -> Got {
         // messageData: opcode 1, subscription id (u32 LE), log time (u64 LE), payload.
         assert_eq!(bytes[0], 1, "a messageData frame");
         let subscription = u32::from_le_bytes(bytes[1..5].try_into().unwrap()) as usize;
+        let log_ns = u64::from_le_bytes(bytes[5..13].try_into().unwrap());
         let payload = &bytes[13..];
         match wanted[subscription] {
             "/joint_states" => got
@@ -112,9 +117,11 @@ async fn watch(port: u16, started: std::sync::mpsc::Sender<()>) -> Got {
                 assert_eq!(p.coverage.len(), 7);
                 got.progress += 1;
             }
-            "/calibration" => got
-                .calibrations
-                .push(proto::Calibration::decode(payload).unwrap()),
+            "/calibration" => {
+                got.calibrations
+                    .push(proto::Calibration::decode(payload).unwrap());
+                got.calibration_ns.push(log_ns);
+            }
             "/ee_gyro" => {
                 // The end effector's IMU stream, declared once in exocal-session's STREAMS.
                 let r = proto::AngularRate::decode(payload).unwrap();
@@ -124,6 +131,7 @@ async fn watch(port: u16, started: std::sync::mpsc::Sender<()>) -> Got {
             _ => {
                 let v: serde_json::Value = serde_json::from_slice(payload).unwrap();
                 got.urdf.push(v["data"].as_str().unwrap().to_string());
+                got.urdf_ns.push(log_ns);
             }
         }
     }
@@ -188,6 +196,56 @@ fn a_foxglove_client_watches_the_demo_and_gets_the_calibration() {
     assert!(got.urdf[0].contains("<robot name=\"exocal_suit\">"));
     assert_ne!(got.urdf[0], *got.urdf.last().unwrap());
     assert!(got.urdf.last().unwrap().contains("joint7"));
+    // The calibrated URDF is stamped in session time, with its calibration record (issue 33:
+    // it was stamped with wall time).
+    let urdf_ns = *got.urdf_ns.last().unwrap();
+    assert!(
+        got.calibration_ns.contains(&urdf_ns),
+        "URDF at {urdf_ns}, calibrations at {:?}",
+        got.calibration_ns
+    );
     drop(live);
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Which WebSocket subprotocols the live view accepts (README, "The live view"): the Foxglove
+/// SDK's `foxglove.sdk.v1` and `foxglove.sdk.v1.1`; a client offering only the older
+/// `foxglove.websocket.v1` gets HTTP 400 (the SDK has no setting for it).
+#[test]
+fn the_live_view_speaks_the_sdks_subprotocols_and_refuses_the_old_one() {
+    let dir = std::env::temp_dir().join(format!("exocald-live-proto-{}", std::process::id()));
+    let mut config = demo_config(Config::default_config(), &dir, 1.0);
+    config.live.enabled = true;
+    let live = LiveView::start("127.0.0.1:0".parse().unwrap(), &config).unwrap();
+    let port = live.port();
+    let answer = |offer: &'static str| {
+        tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap()
+            .block_on(async move {
+                let mut request = format!("ws://127.0.0.1:{port}")
+                    .into_client_request()
+                    .unwrap();
+                request
+                    .headers_mut()
+                    .insert("sec-websocket-protocol", offer.parse().unwrap());
+                match tokio_tungstenite::connect_async(request).await {
+                    Ok((_, response)) => {
+                        let chosen = response.headers()["sec-websocket-protocol"].clone();
+                        Ok(chosen.to_str().unwrap().to_string())
+                    }
+                    Err(tokio_tungstenite::tungstenite::Error::Http(r)) => Err(r.status().as_u16()),
+                    Err(e) => panic!("{offer}: {e}"),
+                }
+            })
+    };
+    assert_eq!(answer("foxglove.sdk.v1"), Ok("foxglove.sdk.v1".to_string()));
+    assert_eq!(
+        answer("foxglove.sdk.v1.1"),
+        Ok("foxglove.sdk.v1.1".to_string())
+    );
+    assert_eq!(answer("foxglove.websocket.v1"), Err(400));
+    drop(live);
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -6,6 +6,7 @@
 //! frame-level inputs, the CSV reader for sample files).
 
 use calib_core::DhTable;
+pub use exocal_log::proto::NodePush;
 pub use exocal_session::outcome::{
     Calibration, Correlation, EmDetail, LsDetail, Quality, StreamQuality, TimedSample,
 };
@@ -42,6 +43,9 @@ pub struct ReportInput {
     pub quality: Quality,
     /// The validation verdict, if the caller validated the table.
     pub verdict: Option<VerdictSummary>,
+    /// The push's outcome per node (the log's `/calibration` push records), once the table
+    /// was pushed; `None` before the push, in a dry run and offline.
+    pub push: Option<Vec<NodePush>>,
 }
 
 /// A session that ended without a calibration — too short, too little motion, too few samples —

@@ -19,6 +19,6 @@ pub mod input;
 pub mod plot;
 
 pub use input::{
-    Calibration, Correlation, EmDetail, LsDetail, Quality, ReportInput, SessionInput,
+    Calibration, Correlation, EmDetail, LsDetail, NodePush, Quality, ReportInput, SessionInput,
     StreamQuality, TimedSample, VerdictSummary, JOINTS, PARAMS,
 };

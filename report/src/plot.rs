@@ -187,6 +187,47 @@ pub fn axis_labels(range: &Range<f64>, desc: &str) -> (TickLabels, String) {
     (Box::new(move |v: &f64| f(&(v - offset))), desc)
 }
 
+/// Text for HTML: `&`, `<`, `>` and `"` escaped.
+pub fn esc(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
+/// How a legend entry's swatch looks: a line, or a filled area (bars, a shaded span).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Swatch {
+    /// A line of the series' colour.
+    Line,
+    /// A filled box of the series' colour.
+    Area,
+}
+
+/// A chart's legend as HTML, placed after its SVG: beside the data, never over it (issue 33).
+/// Entries repeat across stacked panels; each is listed once.
+pub fn legend(entries: &[(String, RGBColor, Swatch)]) -> String {
+    let mut seen: Vec<&(String, RGBColor, Swatch)> = Vec::new();
+    let mut out = String::from("<div class=\"legend\">");
+    for e in entries {
+        if seen.contains(&e) {
+            continue;
+        }
+        seen.push(e);
+        let (name, RGBColor(r, g, b), swatch) = e;
+        let class = match swatch {
+            Swatch::Line => "line",
+            Swatch::Area => "area",
+        };
+        out.push_str(&format!(
+            "<span class=\"key\"><i class=\"{class}\" style=\"background:#{r:02x}{g:02x}{b:02x}\"></i>{}</span>",
+            esc(name)
+        ));
+    }
+    out.push_str("</div>");
+    out
+}
+
 /// Labels per axis plotters draws at most (its default for both axes).
 pub const AXIS_LABELS: usize = 10;
 
@@ -243,16 +284,9 @@ fn draw_panel(area: &DrawingArea<SVGBackend<'_>, Shift>, panel: &Panel) -> Resul
         chart
             .draw_series(std::iter::once(Rectangle::new(
                 [(from, ys.start), (xs.end, ys.end)],
-                RGBColor(255, 200, 80).mix(0.15).filled(),
+                HELD_OUT_SHADE.mix(0.15).filled(),
             )))
-            .map_err(|x| e(&x))?
-            .label("held out")
-            .legend(|(x, y)| {
-                Rectangle::new(
-                    [(x, y - 5), (x + 18, y + 5)],
-                    RGBColor(255, 200, 80).mix(0.4).filled(),
-                )
-            });
+            .map_err(|x| e(&x))?;
     }
     for s in &panel.series {
         let colour = s.colour;
@@ -262,27 +296,18 @@ fn draw_panel(area: &DrawingArea<SVGBackend<'_>, Shift>, panel: &Panel) -> Resul
             .collect();
         chart
             .draw_series(LineSeries::new(pts.iter().copied(), colour.stroke_width(2)))
-            .map_err(|x| e(&x))?
-            .label(s.name.as_str())
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(3))
-            });
+            .map_err(|x| e(&x))?;
         if s.markers {
             chart
                 .draw_series(pts.iter().map(|&p| Circle::new(p, 3, colour.filled())))
                 .map_err(|x| e(&x))?;
         }
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .label_font((FONT, 13))
-        .background_style(WHITE.mix(0.85))
-        .border_style(RGBColor(190, 190, 190))
-        .draw()
-        .map_err(|x| e(&x))?;
     Ok(())
 }
+
+/// The colour of the held-out span's shading, and of its legend swatch.
+const HELD_OUT_SHADE: RGBColor = RGBColor(255, 200, 80);
 
 /// Panels stacked vertically in one SVG of `width` × `panel_height · panels`.
 pub fn line_panels(panels: &[Panel], width: u32, panel_height: u32) -> Result<String, PlotError> {
@@ -301,6 +326,18 @@ pub fn line_panels(panels: &[Panel], width: u32, panel_height: u32) -> Result<St
         }
         root.present().map_err(|x| err(name, x))?;
     }
+    let mut keys: Vec<(String, RGBColor, Swatch)> = Vec::new();
+    for p in panels {
+        keys.extend(
+            p.series
+                .iter()
+                .map(|s| (s.name.clone(), s.colour, Swatch::Line)),
+        );
+        if p.shade_from.is_some() {
+            keys.push(("held out".into(), HELD_OUT_SHADE, Swatch::Area));
+        }
+    }
+    svg.push_str(&legend(&keys));
     Ok(svg)
 }
 
@@ -453,11 +490,7 @@ pub fn histogram(
                             )
                         }),
                 )
-                .map_err(|x| err(title, x))?
-                .label(s.name.as_str())
-                .legend(move |(x, y)| {
-                    Rectangle::new([(x, y - 5), (x + 18, y + 5)], colour.mix(0.6).filled())
-                });
+                .map_err(|x| err(title, x))?;
             // The outline of the bins, as a step line.
             let steps: Vec<(f64, f64)> = c[..bins]
                 .iter()
@@ -479,16 +512,13 @@ pub fn histogram(
                 )))
                 .map_err(|x| err(title, x))?;
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .label_font((FONT, 13))
-            .background_style(WHITE.mix(0.85))
-            .border_style(RGBColor(190, 190, 190))
-            .draw()
-            .map_err(|x| err(title, x))?;
         root.present().map_err(|x| err(title, x))?;
     }
+    let keys: Vec<_> = series
+        .iter()
+        .map(|s| (s.name.clone(), s.colour, Swatch::Area))
+        .collect();
+    svg.push_str(&legend(&keys));
     Ok((svg, b))
 }
 
@@ -560,22 +590,21 @@ pub fn bars(
                     [(100.0 * r, 0.0), (100.0 * r, n as f64)],
                     ACTUAL.stroke_width(2),
                 ))
-                .map_err(|x| err(title, x))?
-                .label("required")
-                .legend(|(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 18, y)], ACTUAL.stroke_width(2))
-                });
-            chart
-                .configure_series_labels()
-                .position(SeriesLabelPosition::LowerRight)
-                .label_font((FONT, 13))
-                .background_style(WHITE.mix(0.85))
-                .border_style(RGBColor(190, 190, 190))
-                .draw()
                 .map_err(|x| err(title, x))?;
         }
         root.present().map_err(|x| err(title, x))?;
     }
+    let mut keys = vec![
+        ("enough".to_string(), RGBColor(44, 160, 44), Swatch::Area),
+        ("not enough".to_string(), NOMINAL, Swatch::Area),
+    ];
+    if required.is_some() {
+        keys.push(("required".into(), ACTUAL, Swatch::Line));
+    } else {
+        keys.truncate(1);
+        keys[0].0 = "visited".into();
+    }
+    svg.push_str(&legend(&keys));
     Ok(svg)
 }
 

@@ -93,6 +93,7 @@ fn input() -> ReportInput {
             accepted: false,
             reasons: vec!["a test reason".into()],
         }),
+        push: None,
     }
 }
 
@@ -182,16 +183,25 @@ fn polyline_points(fig: &str) -> usize {
         .sum()
 }
 
-#[test]
-fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
+/// A script run at load: every legend (`div.legend`, HTML after its chart) is marked
+/// `data-overlap="1"` if the browser lays it out over its chart's SVG, else `"0"`.
+const LAYOUT_CHECK: &str = "<script>for (const l of document.querySelectorAll('div.legend')) {\
+  const svg = l.previousElementSibling; const a = l.getBoundingClientRect();\
+  const b = svg.getBoundingClientRect();\
+  const over = a.left < b.right && b.left < a.right && a.top < b.bottom && b.top < a.bottom;\
+  l.setAttribute('data-overlap', over ? '1' : '0'); }</script>";
+
+/// `html` (with [`LAYOUT_CHECK`]) as headless Chromium's DOM after loading it.
+fn dump_dom(dir: &std::path::Path, name: &str, html: &str) -> String {
     let browser = chromium();
-    let input = input();
-    let html = render(&input);
-    let dir = std::env::temp_dir().join(format!("exocal-report-browser-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let page = dir.join("report.html");
-    std::fs::write(&page, &html).unwrap();
-    let profile = dir.join("profile");
+    std::fs::create_dir_all(dir).unwrap();
+    let page = dir.join(format!("{name}.html"));
+    std::fs::write(
+        &page,
+        html.replace("</body>", &format!("{LAYOUT_CHECK}</body>")),
+    )
+    .unwrap();
+    let profile = dir.join(format!("profile-{name}"));
     let out = Command::new(&browser)
         .args([
             "--headless",
@@ -212,7 +222,79 @@ fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
         "chromium failed: {}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let dom = String::from_utf8(out.stdout).unwrap();
+    String::from_utf8(out.stdout).unwrap()
+}
+
+/// Issue 33: a pushed table's report says so and lists every node's outcome; a node left on
+/// its old table is named in the banner and marked in the table.
+#[test]
+fn the_report_shows_the_push_per_node() {
+    let mut input = input();
+    input.verdict = Some(VerdictSummary {
+        accepted: true,
+        reasons: Vec::new(),
+    });
+    let row = |n: u32, holds: &str| exocal_report::NodePush {
+        node: format!("Joint{n}"),
+        new_crc: 0x1234_5678 + n,
+        held_crc: Some(if holds == "new" {
+            0x1234_5678 + n
+        } else {
+            0xdead_beef
+        }),
+        holds: holds.into(),
+        attempts: 1,
+        error: if holds == "new" {
+            String::new()
+        } else {
+            "CRC mismatch".into()
+        },
+        authenticated: true,
+        verified_crc: None,
+        counter: None,
+    };
+    let dir = std::env::temp_dir().join(format!("exocal-report-push-{}", std::process::id()));
+    input.push = Some((1..=7).map(|n| row(n, "new")).collect());
+    let dom = dump_dom(&dir, "all-new", &render(&input));
+    assert!(
+        dom.contains("Validated and pushed: every node (7) holds"),
+        "banner"
+    );
+    assert!(dom.contains("<h2 id=\"push\">Push</h2>"), "no push section");
+    let push = &dom[dom.find("id=\"push\"").unwrap()..];
+    let push = &push[..push.find("</table>").unwrap()];
+    assert_eq!(push.matches("<td>Joint").count(), 7, "{push}");
+    assert!(dom.contains("<code>0x1234567f</code>"), "Joint7's CRC");
+    input.push = Some(
+        (1..=7)
+            .map(|n| row(n, if n == 3 { "old" } else { "new" }))
+            .collect(),
+    );
+    let dom = dump_dom(&dir, "one-old", &render(&input));
+    assert!(
+        dom.contains("the push did not complete: Joint3 holds the old table"),
+        "banner"
+    );
+    assert!(
+        dom.contains("<tr class=\"bad\"><td>Joint3</td><td>old</td>"),
+        "Joint3's row"
+    );
+    input.push = None;
+    let dom = dump_dom(&dir, "not-yet", &render(&input));
+    assert!(
+        dom.contains("the push's outcome is added here after it"),
+        "banner"
+    );
+    assert!(!dom.contains("id=\"push\""));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
+    let input = input();
+    let html = render(&input);
+    let dir = std::env::temp_dir().join(format!("exocal-report-browser-{}", std::process::id()));
+    let dom = dump_dom(&dir, "report", &html);
     assert!(
         dom.contains("browser test &lt;&amp;&gt; report"),
         "title not escaped/rendered"
@@ -223,6 +305,15 @@ fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
         "the expected accuracy is not stated"
     );
     assert!(!dom.contains("class=\"missing\""), "a plot was not drawn");
+    // Legends sit after their charts, never over the data (issue 33): none inside an SVG (its
+    // box would be plotters' grey-bordered rectangle), and the browser lays none over a chart.
+    assert!(!dom.contains("#BEBEBE"), "a legend box inside a chart");
+    assert_eq!(
+        dom.matches("data-overlap=\"0\"").count(),
+        dom.matches("<div class=\"legend\"").count(),
+        "a legend laid out over its chart"
+    );
+    assert!(dom.matches("<div class=\"legend\"").count() >= FIGURES.len());
     for id in FIGURES {
         let fig = figure(&dom, id);
         assert!(fig.contains("<svg"), "{id}: no <svg> in the browser's DOM");
@@ -258,7 +349,15 @@ fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
         println!("{id}: axes {axes:?}");
     }
     // The log-likelihood of a minute of samples is large: the case the labels must tell apart.
-    let ll = &input.calibration.em.as_ref().unwrap().log_likelihood;
+    let em = input.calibration.em.as_ref().unwrap();
+    let ll = &em.log_likelihood;
+    // Every iteration of every objective has its marker (issue 33: 6 of 14 were shown).
+    assert_eq!(
+        figure(&dom, "fig-likelihood").matches("<circle").count(),
+        ll.len(),
+        "objectives start at {:?}",
+        em.objectives
+    );
     assert!(ll.iter().all(|l| l.abs() > 1e4), "{ll:?}");
     // The histograms' bins reach the largest error of both series (nominal is far off here).
     let held = residuals(&input.nominal, &input.held_out);

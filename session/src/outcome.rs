@@ -59,8 +59,11 @@ pub struct EmDetail {
     pub iterations: usize,
     /// Whether the EM met its tolerance (otherwise it hit its iteration limit).
     pub converged: bool,
-    /// Log-likelihood at the start of every iteration, then at the final parameters.
+    /// Log-likelihood at every accepted iterate, objective after objective (calib-core's
+    /// `DriftEmResult::log_likelihood`): never decreasing within one objective.
     pub log_likelihood: Vec<f64>,
+    /// Where in `log_likelihood` each objective after the first starts.
+    pub objectives: Vec<usize>,
     /// τ and σ per joint.
     pub drift: [DriftParams; JOINTS],
     /// Their standard errors (calib-core's `drift_confidence`), when asked for.
@@ -91,6 +94,13 @@ pub struct EmDetail {
     /// Smoothed angle error (rad) per fitted sample: the Gauss-Markov drift plus, where the
     /// model has one, the integrated rate bias.
     pub drift_series: Vec<[f64; JOINTS]>,
+}
+
+impl EmDetail {
+    /// The log-likelihoods of the final objective: never decreasing.
+    pub fn last_objective(&self) -> &[f64] {
+        &self.log_likelihood[self.objectives.last().copied().unwrap_or(0)..]
+    }
 }
 
 /// One entry of the strongest-correlations list.

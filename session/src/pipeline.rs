@@ -104,9 +104,10 @@ pub struct EmSummary {
     /// Per joint, the long-run variance of its normalised drift innovations (1 when its drift
     /// follows the model).
     pub consistency: [f64; JOINTS],
-    /// Log-likelihood at the first iterate (NaN if none).
+    /// Log-likelihood at the first iterate of the EM's final objective (NaN if none).
     pub log_likelihood_first: f64,
-    /// Log-likelihood at the last iterate (NaN if none); it never decreases.
+    /// Log-likelihood at the last iterate (NaN if none); within one objective it never
+    /// decreases.
     pub log_likelihood_last: f64,
 }
 
@@ -354,8 +355,8 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
                 sigma_paper: sigma,
                 sigma_stationary: r.drift.map(|d| d.stationary_sigma),
                 drift_95: r.drift_confidence.map(|c| c.map(|c| DriftInterval::of(&c))),
-                log_likelihood_first: r.log_likelihood.first().copied().unwrap_or(f64::NAN),
-                log_likelihood_last: r.log_likelihood.last().copied().unwrap_or(f64::NAN),
+                log_likelihood_first: r.last_objective().first().copied().unwrap_or(f64::NAN),
+                log_likelihood_last: r.last_objective().last().copied().unwrap_or(f64::NAN),
             };
             (Some(summary), None, tau, sigma)
         }
@@ -474,6 +475,7 @@ pub fn ls_then_em(
             iterations: r.iterations,
             converged: r.converged,
             log_likelihood: r.log_likelihood.to_vec(),
+            objectives: r.objectives.to_vec(),
             drift: r.drift,
             // Only fails for slots of another session: these are this one's.
             drift_confidence: detail.then(|| drift_confidence(&r, slots).ok()).flatten(),

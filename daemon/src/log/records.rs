@@ -338,6 +338,7 @@ mod tests {
             &settings,
             &c,
             exocal_session::outcome::Quality::default(),
+            None,
         ));
         let [lo, hi] = drift[0].tau_95_s;
         assert!(

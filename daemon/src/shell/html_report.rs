@@ -31,6 +31,7 @@ pub fn report_input(
     settings: &Settings,
     calibrated: &Calibrated,
     quality: Quality,
+    push: Option<Vec<exocal_report::NodePush>>,
 ) -> ReportInput {
     let verdict = &calibrated.outcome.verdict;
     ReportInput {
@@ -46,6 +47,7 @@ pub fn report_input(
             accepted: verdict.accepted(),
             reasons: verdict.reasons.iter().map(ToString::to_string).collect(),
         }),
+        push,
     }
 }
 
@@ -60,7 +62,9 @@ pub fn render(
 ) -> String {
     let quality = collected.quality.clone();
     match calibrated {
-        Ok(c) => exocal_report::html::render(&report_input(title, source, settings, c, quality)),
+        Ok(c) => {
+            exocal_report::html::render(&report_input(title, source, settings, c, quality, None))
+        }
         Err(why) => {
             let input = session_input(title, source, &collected.samples, why.to_vec(), quality);
             exocal_report::html::render_session(&input)

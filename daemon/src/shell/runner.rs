@@ -38,6 +38,7 @@ use crate::shell::tee::Recorder;
 use exocal_session::collect::{Collected, Collector};
 use exocal_session::estimate::{Estimate, EstimateJob};
 use exocal_session::ingest::{ClockReport, Event, FrameStats, StallReport};
+use exocal_session::outcome::Quality;
 use exocal_session::pipeline::{self, Calibrated, Outcome};
 use exocal_session::window::{Phase, Shortfall};
 
@@ -439,7 +440,7 @@ impl<T: Transport> Running<'_, '_, T> {
         self.log_result(&collected, &calibrated);
         let accepted = calibrated.outcome.verdict.accepted();
         let reasons = calibrated.outcome.verdict.reasons.clone();
-        self.summary.outcome = Some(calibrated.outcome);
+        self.summary.outcome = Some(calibrated.outcome.clone());
         if !accepted {
             return Err(DaemonError::Validation(reasons));
         }
@@ -453,12 +454,17 @@ impl<T: Transport> Running<'_, '_, T> {
         if futures_ready(&mut shutdown) {
             return Err(DaemonError::Interrupted);
         }
-        self.push(start).await?;
-        self.summary.latency = Some(Latency {
-            real: window_closed.0.elapsed(),
-            session: self.clock.monotonic().saturating_sub(window_closed.1),
-            simulated: matches!(self.clock, Clock::Simulated(_)),
-        });
+        let pushed = self.push(start).await;
+        if pushed.is_ok() {
+            self.summary.latency = Some(Latency {
+                real: window_closed.0.elapsed(),
+                session: self.clock.monotonic().saturating_sub(window_closed.1),
+                simulated: matches!(self.clock, Clock::Simulated(_)),
+            });
+        }
+        self.report_push(calibrated, collected.quality.clone())
+            .await;
+        pushed?;
         Ok(())
     }
 
@@ -825,6 +831,35 @@ impl<T: Transport> Running<'_, '_, T> {
         self.write_report(&html, "session report");
         self.summary.collected(&collected);
         Ok(())
+    }
+
+    /// Step 5: once pushed (completely or not), the report again, with the push's outcome per
+    /// node. Rendered off the loop like the first; a shutdown meanwhile waits for it (the push
+    /// is done: its outcome belongs in the report), and a report that cannot be rendered or
+    /// written leaves the first one in place.
+    async fn report_push(&mut self, calibrated: Calibrated, quality: Quality) {
+        let Some(push) = self.summary.push.as_ref().map(records::push_records) else {
+            return;
+        };
+        let (title, source) = self.report_titles("calibration");
+        let settings = self.config.calibration.clone();
+        let never = std::future::pending::<()>();
+        tokio::pin!(never);
+        let html = self
+            .off_loop("push report", never, move || {
+                exocal_report::html::render(&crate::shell::html_report::report_input(
+                    title,
+                    source,
+                    &settings,
+                    &calibrated,
+                    quality,
+                    Some(push),
+                ))
+            })
+            .await;
+        if let Ok(html) = html {
+            self.write_report(&html, "calibration report, with the push");
+        }
     }
 
     /// The report's title and source line for a live session.

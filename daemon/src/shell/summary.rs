@@ -64,6 +64,18 @@ pub fn print_summary(summary: &SessionSummary) {
             v.improvement * 100.0,
             v.condition_number
         );
+        let removed = if v.nominal.mean_position_m > 0.0 {
+            (1.0 - v.candidate.mean_position_m / v.nominal.mean_position_m) * 100.0
+        } else {
+            0.0
+        };
+        println!(
+            "held-out mean position error: {:.2} → {:.2} mm ({removed:.0}% removed), rotation {:.1} → {:.1} mrad (the report's cards)",
+            v.nominal.mean_position_m * 1e3,
+            v.candidate.mean_position_m * 1e3,
+            v.nominal.mean_rotation_rad * 1e3,
+            v.candidate.mean_rotation_rad * 1e3
+        );
         for reason in &v.reasons {
             println!("refused: {reason}");
         }
