@@ -86,6 +86,19 @@ fn offline_recalibration_agrees_with_the_live_session() {
         "a figure was not drawn"
     );
     assert!(html.contains("Joint7") && html.contains("EndEffector"));
+    // After the push the report has its outcome per node (issue 33), as the summary has it.
+    if accepted {
+        let push = live.push.as_ref().expect("a validated table is pushed");
+        let all_new = push.complete();
+        assert_eq!(
+            html.contains("Validated and pushed: every node (7) holds"),
+            all_new
+        );
+        assert!(html.contains("<h2 id=\"push\">Push</h2>"));
+        for n in &push.nodes {
+            assert!(html.contains(&format!("<td><code>{:#010x}</code></td>", n.new_crc)));
+        }
+    }
 
     // (a) The MCAP log, replayed offline up to its collection end: the same table, bit for bit.
     let session = read_mcap_session(

@@ -546,34 +546,8 @@ pub fn render(input: &ReportInput) -> String {
     let c = &input.calibration;
     let mut out = String::with_capacity(1 << 20);
     page_head(&mut out, &input.title, &input.source);
-    let pushed_new = |p: &[NodePush]| p.iter().all(|n| n.holds == "new");
     match (&input.verdict, &input.push) {
-        (Some(v), Some(push)) if v.accepted && pushed_new(push) => {
-            let _ = writeln!(
-                out,
-                "<div class=\"verdict ok\">Validated and pushed: every node ({}) holds the \
-                 calibrated table, its CRC read back (<a href=\"#push\">push</a>).</div>",
-                push.len()
-            );
-        }
-        (Some(v), Some(push)) if v.accepted => {
-            let short: Vec<String> = push
-                .iter()
-                .filter(|n| n.holds != "new")
-                .map(|n| format!("{} holds the {} table", esc(&n.node), esc(&n.holds)))
-                .collect();
-            let _ = writeln!(
-                out,
-                "<div class=\"verdict bad\">Validated, but the push did not complete: {} \
-                 (<a href=\"#push\">push</a>).</div>",
-                short.join("; ")
-            );
-        }
-        (Some(v), None) if v.accepted => out.push_str(
-            "<div class=\"verdict ok\">Validated: the calibrated table may be pushed (not \
-             pushed when this report was written: the push's outcome is added here after it; \
-             a dry run and an offline run push nothing).</div>\n",
-        ),
+        (Some(v), push) if v.accepted => push_banner(&mut out, push.as_deref()),
         (Some(v), _) => {
             out.push_str("<div class=\"verdict bad\">Refused: the table is not pushed.<ul>");
             for r in &v.reasons {
@@ -765,8 +739,9 @@ pub fn render(input: &ReportInput) -> String {
     parameter_table(&mut out, &input.nominal, c);
     out.push_str("<h3>Strongest correlations</h3>\n");
     correlation_table(&mut out, c);
-    if let Some(push) = &input.push {
-        push_table(&mut out, push);
+    match &input.push {
+        Some(push) => push_table(&mut out, push),
+        None => out.push_str(PUSH_MARK),
     }
 
     out.push_str("<h2>Data quality</h2>\n");
@@ -798,6 +773,64 @@ pub fn render(input: &ReportInput) -> String {
     );
     out.push_str("</main></body></html>\n");
     out
+}
+
+/// Marks where [`with_push`] puts the push's outcome in a report rendered before the push.
+const PUSH_MARK: &str = "<!-- exocal: the push's outcome -->\n";
+
+/// The banner of a validated table: pushed (every node holds it), pushed in part (naming the
+/// nodes that do not), or not yet pushed.
+fn push_banner(out: &mut String, push: Option<&[NodePush]>) {
+    out.push_str("<div class=\"verdict");
+    match push {
+        Some(push) if push.iter().all(|n| n.holds == "new") => {
+            let _ = write!(
+                out,
+                " ok\">Validated and pushed: every node ({}) holds the calibrated table, its CRC \
+                 read back (<a href=\"#push\">push</a>).",
+                push.len()
+            );
+        }
+        Some(push) => {
+            let short: Vec<String> = push
+                .iter()
+                .filter(|n| n.holds != "new")
+                .map(|n| format!("{} holds the {} table", esc(&n.node), esc(&n.holds)))
+                .collect();
+            let _ = write!(
+                out,
+                " bad\">Validated, but the push did not complete: {} (<a href=\"#push\">push</a>).",
+                short.join("; ")
+            );
+        }
+        None => out.push_str(
+            " ok\">Validated: the calibrated table may be pushed (not pushed when this report was \
+             written: the push's outcome is added here after it; a dry run and an offline run \
+             push nothing).",
+        ),
+    }
+    out.push_str("</div>\n");
+}
+
+/// `html`, a validated table's report rendered before the push ([`render`] without
+/// `push`), with the push's outcome: its banner replaced and the push table added. Nothing is
+/// re-rendered (the plots stay as they are), so this is cheap on a slow controller. `None`
+/// when `html` is not such a report.
+pub fn with_push(html: &str, push: &[NodePush]) -> Option<String> {
+    let mut before = String::new();
+    push_banner(&mut before, None);
+    let at = html.find(&before)?;
+    let mark = html.find(PUSH_MARK)?;
+    let mut after = String::new();
+    push_banner(&mut after, Some(push));
+    let mut table = String::new();
+    push_table(&mut table, push);
+    Some(format!(
+        "{}{after}{}{table}{}",
+        &html[..at],
+        &html[at + before.len()..mark],
+        &html[mark + PUSH_MARK.len()..]
+    ))
 }
 
 /// The push's outcome per node: which table it holds (new, old, unknown), the CRC sent and the

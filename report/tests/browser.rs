@@ -254,6 +254,17 @@ fn the_report_shows_the_push_per_node() {
         counter: None,
     };
     let dir = std::env::temp_dir().join(format!("exocal-report-push-{}", std::process::id()));
+    // The daemon writes the report before the push and adds the outcome after it, without
+    // rendering again: the same document as a render with the outcome.
+    let before = render(&input);
+    for holds in ["new", "old"] {
+        let push: Vec<_> = (1..=7)
+            .map(|n| row(n, if n == 3 { holds } else { "new" }))
+            .collect();
+        input.push = Some(push.clone());
+        assert!(exocal_report::html::with_push(&before, &push) == Some(render(&input)));
+    }
+    assert_eq!(exocal_report::html::with_push(&render(&input), &[]), None);
     input.push = Some((1..=7).map(|n| row(n, "new")).collect());
     let dom = dump_dom(&dir, "all-new", &render(&input));
     assert!(

@@ -38,7 +38,6 @@ use crate::shell::tee::Recorder;
 use exocal_session::collect::{Collected, Collector};
 use exocal_session::estimate::{Estimate, EstimateJob};
 use exocal_session::ingest::{ClockReport, Event, FrameStats, StallReport};
-use exocal_session::outcome::Quality;
 use exocal_session::pipeline::{self, Calibrated, Outcome};
 use exocal_session::window::{Phase, Shortfall};
 
@@ -374,6 +373,7 @@ pub async fn run_session_with<T: Transport>(
         origin: Duration::ZERO,
         tick,
         summary: SessionSummary::new(log_path),
+        report: None,
     };
     tokio::pin!(shutdown);
     let result = running.run(dry_run, start, shutdown).await;
@@ -419,6 +419,8 @@ struct Running<'a, 'io, T> {
     origin: Duration,
     tick: tokio::time::Interval,
     summary: SessionSummary,
+    /// The calibration report as written before the push, for [`Running::report_push`].
+    report: Option<String>,
 }
 
 impl<T: Transport> Running<'_, '_, T> {
@@ -440,7 +442,7 @@ impl<T: Transport> Running<'_, '_, T> {
         self.log_result(&collected, &calibrated);
         let accepted = calibrated.outcome.verdict.accepted();
         let reasons = calibrated.outcome.verdict.reasons.clone();
-        self.summary.outcome = Some(calibrated.outcome.clone());
+        self.summary.outcome = Some(calibrated.outcome);
         if !accepted {
             return Err(DaemonError::Validation(reasons));
         }
@@ -462,8 +464,7 @@ impl<T: Transport> Running<'_, '_, T> {
                 simulated: matches!(self.clock, Clock::Simulated(_)),
             });
         }
-        self.report_push(calibrated, collected.quality.clone())
-            .await;
+        self.report_push();
         pushed?;
         Ok(())
     }
@@ -701,6 +702,7 @@ impl<T: Transport> Running<'_, '_, T> {
         // The samples would not calibrate: the report says why, as for a session that ran out
         // of time.
         self.write_report(&html, "calibration report");
+        self.report = Some(html);
         Ok(calibrated?)
     }
 
@@ -833,31 +835,18 @@ impl<T: Transport> Running<'_, '_, T> {
         Ok(())
     }
 
-    /// Step 5: once pushed (completely or not), the report again, with the push's outcome per
-    /// node. Rendered off the loop like the first; a shutdown meanwhile waits for it (the push
-    /// is done: its outcome belongs in the report), and a report that cannot be rendered or
-    /// written leaves the first one in place.
-    async fn report_push(&mut self, calibrated: Calibrated, quality: Quality) {
+    /// Step 5: once pushed (completely or not), the report with the push's outcome per node:
+    /// the report written before the push, its banner replaced and the push table added
+    /// (`exocal_report::html::with_push`: string work, no plot re-rendered, so it costs the
+    /// slowest controller nothing). A report that cannot be written leaves the first in place.
+    fn report_push(&mut self) {
         let Some(push) = self.summary.push.as_ref().map(records::push_records) else {
             return;
         };
-        let (title, source) = self.report_titles("calibration");
-        let settings = self.config.calibration.clone();
-        let never = std::future::pending::<()>();
-        tokio::pin!(never);
-        let html = self
-            .off_loop("push report", never, move || {
-                exocal_report::html::render(&crate::shell::html_report::report_input(
-                    title,
-                    source,
-                    &settings,
-                    &calibrated,
-                    quality,
-                    Some(push),
-                ))
-            })
-            .await;
-        if let Ok(html) = html {
+        let Some(html) = self.report.take() else {
+            return;
+        };
+        if let Some(html) = exocal_report::html::with_push(&html, &push) {
             self.write_report(&html, "calibration report, with the push");
         }
     }
