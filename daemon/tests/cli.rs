@@ -23,6 +23,27 @@ fn temp(name: &str, text: &str) -> std::path::PathBuf {
     p
 }
 
+/// daemon/README.md quotes the error of `retries` misspelt in the shipped file: its line number
+/// is the shipped file's (issue 33: it had drifted).
+#[test]
+fn the_readmes_misspelt_key_example_names_the_right_line() {
+    let readme = include_str!("../README.md");
+    let quoted: usize = readme
+        .split("\"exocald.toml:")
+        .nth(1)
+        .and_then(|r| r.split(':').next())
+        .and_then(|n| n.parse().ok())
+        .expect("the README quotes `exocald.toml:LINE: key ...`");
+    let misspelt = exocald::config::DEFAULT_TOML.replace("retries = ", "retrys = ");
+    let path = temp("misspelt.toml", &misspelt);
+    let (code, _, err) = exocald(&["--config", path.to_str().unwrap(), "check-config"]);
+    assert_eq!(code, 78, "{err}");
+    assert!(
+        err.contains(&format!("misspelt.toml:{quoted}: key `push.retrys`")),
+        "README says line {quoted}: {err}"
+    );
+}
+
 #[test]
 fn a_bad_config_exits_78_naming_the_key_and_line() {
     let text = exocald::config::DEFAULT_TOML.replace("retries = 3", "retries = 3\nretrys = 4");

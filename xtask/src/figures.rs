@@ -272,13 +272,14 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
                         "drift model joint",
                         "reference glitches discounted:",
                         "held-out mean pose error:",
+                        "held-out mean position error:",
                         "push Joint",
                     ]
                     .iter()
                     .any(|p| l.starts_with(p))
                 })
                 .collect();
-            if kept.len() != 25 {
+            if kept.len() != 26 {
                 bail!("the demo's summary lacks its aligned/expected/drift/model/glitch/held-out/push lines:\n{out}");
             }
             Ok(fenced(&kept))
