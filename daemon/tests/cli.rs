@@ -230,3 +230,33 @@ fn the_default_config_prints_and_checks() {
         exocald::config::Config::parse(exocald::config::DEFAULT_TOML).unwrap()
     );
 }
+
+/// Issue 30: without the sensors' spec the summary says what the expected table error leaves
+/// out (a rate bias too small for the session to show); with `[sensors]` it does not.
+#[test]
+fn the_summary_says_when_the_sensors_rate_bias_is_not_configured() {
+    let dir = std::env::temp_dir().join(format!("exocald-cli-sensors-{}", std::process::id()));
+    let with = format!(
+        "{}\n[sensors]\nrate_bias_deg_s = 0.005\nrate_bias_walk_deg_s_per_sqrt_s = 0.0001\n",
+        exocald::config::DEFAULT_TOML
+    );
+    let with = temp("sensors.toml", &with);
+    for (config, said) in [(None, true), (Some(with), false)] {
+        let mut args: Vec<String> = Vec::new();
+        if let Some(c) = &config {
+            args.extend(["--config".into(), c.display().to_string()]);
+        }
+        let out_dir = dir.join(if said { "without" } else { "with" });
+        args.extend(["demo", "--speed", "1000000", "-o"].map(String::from));
+        args.push(out_dir.display().to_string());
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let (code, out, err) = exocald(&args);
+        assert_eq!(code, 0, "{err}");
+        assert_eq!(
+            out.contains("sensors' rate bias: not configured ([sensors])"),
+            said,
+            "{out}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

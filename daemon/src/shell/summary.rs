@@ -55,6 +55,15 @@ pub fn print_summary(summary: &SessionSummary) {
             for (j, m) in em.models.iter().enumerate() {
                 println!("drift model joint {}: {m}", j + 1);
             }
+            if !em.models.iter().any(|m| m.by_spec) {
+                // Issue 30: a rate bias too small for the session to show still moves the
+                // table; only the sensors' spec puts it in the stated error.
+                println!(
+                    "sensors' rate bias: not configured ([sensors]): the expected table error \
+                     leaves out a rate bias smaller than this session can show (see \
+                     calib-core/README.md, the field sweep); set it from the IMUs' spec"
+                );
+            }
             println!("{}", discounted_line(em));
         }
         println!(
