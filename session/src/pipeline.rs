@@ -21,7 +21,9 @@
 //!
 //! The EM models the drift at a constant step `1 / session.grid_hz`; grid points dropped as
 //! gaps are skipped, so a gap shortens the step sequence slightly (gaps are rare and short: a
-//! session with many is refused earlier for lack of samples).
+//! session with many is refused earlier for lack of samples). A drift step the EM calls a jump
+//! right after a gap is judged at the gap's length ([`jump_beyond_gap`]): the drift moved for
+//! that long.
 
 use crate::outcome::{Calibration, Correlation, EmDetail, LsDetail, TimedSample};
 use crate::parallel::Parallel;
@@ -304,6 +306,37 @@ fn rows_of(table: &DhTable<JOINTS>, tau: [f64; JOINTS], sigma: [f64; JOINTS]) ->
     })
 }
 
+/// Grid points before a drift step where a gap can still show in it: the smoothed drift
+/// spreads a gap's step over the samples after it (measured: up to 7 at 100 Hz).
+pub const GAP_REACH: usize = 10;
+
+/// Whether calib-core's jump of `sigma` (a normalised drift innovation, at sample `k` of
+/// samples at `times`) is one still, once a gap before it is counted. The EM steps the drift
+/// one grid step `dt` from sample to sample; across a gap of `m` steps (grid points dropped by
+/// alignment: a stalled node, frames lost) the drift of time constant `tau` moves as in `m`
+/// steps, its variance `(1 − φ^{2m}) / (1 − φ²)` times one step's (φ = e^{−dt/τ}): a 0.2 s gap
+/// at τ = 1.2 s is 4.2σ of a step, often "6σ" on one of seven joints. Judged at that variance,
+/// the step is a jump only beyond `max_jump` still.
+pub fn jump_beyond_gap(
+    times: &[f64],
+    k: usize,
+    sigma: f64,
+    dt: f64,
+    tau: f64,
+    max_jump: f64,
+) -> bool {
+    let steps = (k.saturating_sub(GAP_REACH - 1)..=k)
+        .filter(|&i| i > 0 && i < times.len())
+        .map(|i| ((times[i] - times[i - 1]) / dt).round().max(1.0))
+        .fold(1.0f64, f64::max);
+    if steps <= 1.0 || !(tau > 0.0) {
+        return true;
+    }
+    let phi2 = (-2.0 * dt / tau).exp();
+    let ratio = (1.0 - phi2.powf(steps)) / (1.0 - phi2);
+    sigma / ratio.sqrt() > max_jump
+}
+
 /// Runs the pipeline on `samples` (time-ordered, on the grid; see the module docs).
 pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated, CalibrateError> {
     let need = settings.window.min_samples;
@@ -371,15 +404,30 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
     let mut verdict = validate(&table, ls.condition, expected, heldout, settings);
     if let Ok(em) = &detail.em {
         let at = |k: usize| all.get(k).map(|s| s.t);
-        verdict
-            .reasons
-            .extend(em.refusals.iter().map(|&why| Refusal::Model {
-                why,
-                at_s: match why {
-                    calib_core::Refusal::Jump { sample, .. } => at(sample),
-                    _ => None,
-                },
-            }));
+        let times: Vec<f64> = all.iter().map(|s| s.t).collect();
+        let dt = 1.0 / settings.window.grid_hz;
+        verdict.reasons.extend(
+            em.refusals
+                .iter()
+                .filter(|why| match **why {
+                    calib_core::Refusal::Jump {
+                        joint,
+                        sample,
+                        sigma,
+                    } => {
+                        let tau = em.drift[joint].tau;
+                        jump_beyond_gap(&times, sample, sigma, dt, tau, em_opts.max_jump)
+                    }
+                    _ => true,
+                })
+                .map(|&why| Refusal::Model {
+                    why,
+                    at_s: match why {
+                        calib_core::Refusal::Jump { sample, .. } => at(sample),
+                        _ => None,
+                    },
+                }),
+        );
     }
     let outcome = Outcome {
         fit_samples: fit.len(),
@@ -618,6 +666,70 @@ mod tests {
                 AlignedSample::of(i as f64 * cfg.drift.dt, &read)
             })
             .collect()
+    }
+
+    /// A drift step across a gap is judged at the gap's length: 7σ of one step after 21
+    /// dropped grid points (τ 1.2 s) is 1.7σ of that span, no jump; without a gap, or 30σ, it is.
+    #[test]
+    fn a_jump_after_a_gap_is_judged_over_the_gap() {
+        let dt = 0.01;
+        let mut times: Vec<f64> = (0..100).map(|k| k as f64 * dt).collect();
+        for t in &mut times[50..] {
+            *t += 0.21;
+        }
+        assert!(!jump_beyond_gap(&times, 50, 7.0, dt, 1.2, 6.0));
+        assert!(!jump_beyond_gap(&times, 59, 7.0, dt, 1.2, 6.0));
+        assert!(
+            jump_beyond_gap(&times, 60, 7.0, dt, 1.2, 6.0),
+            "past the gap's reach"
+        );
+        assert!(jump_beyond_gap(&times, 30, 7.0, dt, 1.2, 6.0), "no gap");
+        assert!(
+            jump_beyond_gap(&times, 50, 30.0, dt, 1.2, 6.0),
+            "a slip across a gap"
+        );
+    }
+
+    /// End to end: a session whose alignment dropped grid points (a node starved for 0.2 s,
+    /// eight times) is not refused as a sensor that jumped; calib-core's EM, stepping over the
+    /// gaps as over one grid step, does call some of them jumps.
+    #[test]
+    fn gaps_in_the_session_are_not_sensors_that_jumped() {
+        let cfg = ScenarioConfig::paper();
+        let all = drift_in_the_reading(cfg, 40.0, 11);
+        let samples: Vec<AlignedSample> = all
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| !(1..=8).any(|g| (g * 400..g * 400 + 21).contains(k)))
+            .map(|(_, s)| s.clone())
+            .collect();
+        let out = super::run(&samples, &settings()).unwrap();
+        let jumps = |r: &[calib_core::Refusal]| {
+            r.iter()
+                .filter(|w| matches!(w, calib_core::Refusal::Jump { .. }))
+                .count()
+        };
+        let raw = jumps(&out.detail.em.as_ref().unwrap().refusals);
+        assert!(
+            raw > 0,
+            "no jump at the gaps to judge: the test tests nothing"
+        );
+        let judged: Vec<_> = out
+            .outcome
+            .verdict
+            .reasons
+            .iter()
+            .filter(|r| {
+                matches!(
+                    r,
+                    Refusal::Model {
+                        why: calib_core::Refusal::Jump { .. },
+                        ..
+                    }
+                )
+            })
+            .collect();
+        assert!(judged.is_empty(), "{judged:?}");
     }
 
     #[test]
