@@ -329,7 +329,7 @@ pub fn jump_beyond_gap(
         .filter(|&i| i > 0 && i < times.len())
         .map(|i| ((times[i] - times[i - 1]) / dt).round().max(1.0))
         .fold(1.0f64, f64::max);
-    if steps <= 1.0 || !(tau > 0.0) {
+    if steps <= 1.0 || tau.is_nan() || tau <= 0.0 {
         return true;
     }
     let phi2 = (-2.0 * dt / tau).exp();
@@ -701,7 +701,7 @@ mod tests {
             .iter()
             .enumerate()
             .filter(|(k, _)| !(1..=8).any(|g| (g * 400..g * 400 + 21).contains(k)))
-            .map(|(_, s)| s.clone())
+            .map(|(_, s)| *s)
             .collect();
         let out = super::run(&samples, &settings()).unwrap();
         let jumps = |r: &[calib_core::Refusal]| {
