@@ -293,10 +293,12 @@ impl KeySet {
             let slot = if name == "Trigger" {
                 &mut keys.trigger
             } else {
-                let node = NodeId::JOINTS
+                let node = NodeId::ALL
                     .into_iter()
                     .find(|n| n.name() == name)
-                    .ok_or(err("unknown name: expected Joint1 … Joint7 or Trigger"))?;
+                    .ok_or(err(
+                        "unknown name: expected Joint1 … Joint7, EndEffector or Trigger",
+                    ))?;
                 &mut keys.nodes[usize::from(node.raw() - 1)]
             };
             if slot.replace(key).is_some() {
@@ -314,7 +316,7 @@ impl KeySet {
         master[8..].copy_from_slice(b"exocal-d");
         let master = Key(master);
         let mut keys = KeySet::default();
-        for node in NodeId::JOINTS {
+        for node in NodeId::ALL {
             keys.nodes[usize::from(node.raw() - 1)] = Some(master.derive(&[node.raw()]));
         }
         keys.trigger = Some(master.derive(b"Trigger"));

@@ -26,6 +26,7 @@
 use crate::flash::{self, FlashImage, NodeFlash};
 use crate::motion::{Chain, Motion};
 use crate::scenario::{Scenario, TransferBehaviour};
+use crate::stream::{self, Signer};
 use crate::HilError;
 use calib_core::{DhTable, Discretisation, GaussMarkov, Rng};
 use exocal_bus::embedded_can::{ExtendedId, Frame as _, StandardId};
@@ -152,6 +153,8 @@ struct Node {
     history: [Option<(f64, Vector3<f64>)>; 2],
     up: bool,
     boot_count: u32,
+    /// The stream signer, for a node holding a key (`crate::stream`).
+    stream: Option<Signer>,
     transfer: NodeTransfer,
     flash: NodeFlash,
     behaviour: TransferBehaviour,
@@ -303,6 +306,7 @@ impl Suit {
                 history: [None; 2],
                 up: true,
                 boot_count,
+                stream: stream::signer(id, key.as_ref()),
                 transfer: node_transfer(id, image, key),
                 flash: NodeFlash::new(flash_dir, id, boot_count),
                 behaviour: scenario.faults.transfer_behaviour(id.raw()),
@@ -519,6 +523,8 @@ impl Suit {
                     let _ = flash::write(&self.flash_dir, n.id, &FlashImage { boot_count, ..i });
                 }
                 let key = flash::read_key(&self.flash_dir, n.id).ok().flatten();
+                // RAM is gone: the stream signer starts over, without the collection's nonce.
+                n.stream = stream::signer(n.id, key.as_ref());
                 n.transfer = node_transfer(n.id, image, key);
                 n.flash = NodeFlash::new(&self.flash_dir, n.id, n.boot_count);
                 n.schedules = schedules(scenario, n, t);
@@ -682,15 +688,26 @@ impl Suit {
                 })]
             }
         };
+        let local_us = self.nodes[n].local_us(t);
         for m in messages {
             match m.to_frame::<Frame>() {
                 Ok(f) => {
                     self.nodes[n].last_frame = Some(f);
                     self.emit(t + TX_LATENCY_S, f);
+                    let full = self.nodes[n]
+                        .stream
+                        .as_mut()
+                        .and_then(|s| s.sign(&f, local_us));
+                    if let Some(digest) = full {
+                        self.emit(t + TX_LATENCY_S, digest);
+                    }
                 }
                 // A value the DBC cannot carry: the firmware drops the sample and counts it.
                 Err(_) => self.nodes[n].tx_errors += 1,
             }
+        }
+        if let Some(digest) = self.nodes[n].stream.as_mut().and_then(|s| s.due(local_us)) {
+            self.emit(t + TX_LATENCY_S, digest);
         }
     }
 
@@ -776,6 +793,15 @@ impl Suit {
         if frame.is_extended() {
             return;
         }
+        if let Ok(Message::StreamNonce(nonce)) = exocal_dbc::decode_frame(frame) {
+            for node in self.nodes.iter_mut().filter(|n| n.up) {
+                let local_us = node.local_us(t_s);
+                if let Some(s) = node.stream.as_mut() {
+                    s.set_nonce(nonce, local_us);
+                }
+            }
+            return;
+        }
         // A table command addresses a joint node: index n of `self.nodes`.
         let n = match spec::lookup(frame.raw_id() as u16) {
             Some((family, Some(node))) if family.kind == spec::Kind::TableCmd => node.joint_index(),
@@ -799,7 +825,7 @@ impl Suit {
         };
         self.stats.commands += 1;
         let node = &mut self.nodes[n];
-        let local = ((t_s - node.clock.boot_s).max(0.0) * 1e6) as u64;
+        let local = node.local_us(t_s);
         let replies: Vec<TableReply> = match node.behaviour {
             TransferBehaviour::Silent => Vec::new(),
             TransferBehaviour::Nack => vec![TableReply {
@@ -838,6 +864,13 @@ impl Suit {
                 .expect("replies are always encodable");
             self.emit(t_s + REPLY_LATENCY_S + i as f64 * 20e-6, frame);
         }
+    }
+}
+
+impl Node {
+    /// Microseconds since the node booted (its firmware's monotonic time).
+    fn local_us(&self, t_s: f64) -> u64 {
+        ((t_s - self.clock.boot_s).max(0.0) * 1e6) as u64
     }
 }
 

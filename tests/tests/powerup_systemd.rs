@@ -593,7 +593,7 @@ fn the_push_was_authenticated_with_the_credential_and_no_key_leaked() {
         run.journal.contains("table transfers are authenticated")
             && run
                 .journal
-                .contains("provisioned the key slots of 7 joint node(s)"),
+                .contains("provisioned the key slots of 8 node(s)"),
         "the journal does not say the transfers were authenticated"
     );
     let push = boot_push();

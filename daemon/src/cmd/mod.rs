@@ -200,11 +200,13 @@ pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError
         .joint_nodes
         .iter()
         .filter_map(|&n| NodeId::new(n))
+        // The end effector signs its stream (session::verify) with a key of its own.
+        .chain([NodeId::END_EFFECTOR])
         .collect();
     config.push.keys = crate::keys::load_credential(&nodes, trigger)?;
     eprintln!(
-        "exocald: table transfers{} are authenticated (AES-128-CMAC, freshness counters): keys \
-         of {} joint node(s){} from the credential {}",
+        "exocald: table transfers{} and sensor streams are authenticated (AES-128-CMAC, \
+         freshness counters, stream digests): keys of {} node(s){} from the credential {}",
         if trigger { " and triggers" } else { "" },
         nodes.len(),
         if trigger { " and the trigger key" } else { "" },
