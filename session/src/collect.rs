@@ -19,6 +19,7 @@ use exocal_dbc::Received;
 use crate::align::{AlignParams, AlignedSample};
 use crate::ingest::{ClockReport, Event, FrameStats, Ingest, Reading, StallReport};
 use crate::stream::{Column, STREAMS};
+use crate::verify::{Dropped, StreamGate};
 use crate::window::Window;
 use crate::Settings;
 
@@ -29,6 +30,9 @@ pub struct Collector {
     pub ingest: Ingest,
     /// The collection window: coverage, sample counts, ready/failed.
     pub window: Window,
+    /// The stream gate, when the sensor streams are authenticated: frames reach
+    /// [`Collector::on_frame`] only through it ([`Collector::take`]).
+    pub gate: Option<StreamGate>,
 }
 
 impl Collector {
@@ -37,7 +41,36 @@ impl Collector {
         Collector {
             ingest: Ingest::new(settings.joint_nodes),
             window: Window::new(settings.window.clone(), settings.bounds.joint_range),
+            gate: None,
         }
+    }
+
+    /// Takes one received frame through the stream gate, if there is one: `each` sees every
+    /// frame ingest takes now with its [`Event`]; returns the spans the gate dropped.
+    pub fn take(&mut self, rx: &Received, mut each: impl FnMut(&Received, Event)) -> Vec<Dropped> {
+        let Some(gate) = self.gate.as_mut() else {
+            let event = self.on_frame(rx);
+            each(rx, event);
+            return Vec::new();
+        };
+        let mut pass = Vec::new();
+        let dropped = gate.on_frame(rx, &mut pass);
+        for r in &pass {
+            let event = self.on_frame(r);
+            each(r, event);
+        }
+        dropped
+    }
+
+    /// The shortfall the stream gate adds when the window fails: `None` when nothing was
+    /// dropped.
+    pub fn unverified(&self) -> Option<crate::window::Shortfall> {
+        let s = self.gate.as_ref()?.stats();
+        (s.dropped_spans > 0).then_some(crate::window::Shortfall::Unverified {
+            spans: s.dropped_spans,
+            frames: s.dropped_frames,
+            seconds: s.dropped_s,
+        })
     }
 
     /// Takes one received frame (see the module docs); returns what ingest made of it.

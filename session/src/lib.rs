@@ -38,6 +38,7 @@ pub mod replay;
 pub mod rules;
 pub mod stream;
 pub mod validate;
+pub mod verify;
 pub mod window;
 
 pub use rules::{Bounds, SensorSpec, Settings, ValidationRules, WindowRules};

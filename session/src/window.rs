@@ -124,6 +124,16 @@ pub enum Shortfall {
         /// Samples required.
         need: usize,
     },
+    /// Spans of the sensor streams failed authentication and were dropped
+    /// ([`crate::verify`]): the window counted verified samples only.
+    Unverified {
+        /// Spans dropped.
+        spans: u64,
+        /// Frames they held.
+        frames: u64,
+        /// Seconds of stream they held.
+        seconds: f64,
+    },
 }
 
 impl fmt::Display for Shortfall {
@@ -153,6 +163,15 @@ impl fmt::Display for Shortfall {
                     "{have} samples from the scarcest stream, {need} required"
                 )
             }
+            Shortfall::Unverified {
+                spans,
+                frames,
+                seconds,
+            } => write!(
+                f,
+                "the verified data fall short: {spans} spans of the sensor streams ({frames} \
+                 frames, {seconds:.1} s) failed authentication and were dropped"
+            ),
         }
     }
 }

@@ -1,0 +1,333 @@
+//! The stream gate: a node's data frames reach ingest only once the digest that covers them
+//! verifies ([`exocal_dbc::stream_auth`]).
+//!
+//! Contract:
+//! - [`StreamGate::on_frame`] takes every received frame in arrival order and hands on, in
+//!   order, the frames ingest may take now: frames the digests do not cover (heartbeats,
+//!   transfer replies, digests, unknown identifiers) at once; a node's data frames when its
+//!   digest covering them verifies, all of them together;
+//! - a span that does not verify — bad MAC, a count mismatch, a node without a key, no digest
+//!   within [`DIGEST_TIMEOUT`] of its first frame, more than [`PENDING_FRAMES`] frames held —
+//!   is dropped and counted in [`GateStats`] (spans, frames, seconds of the node's stream);
+//!   a surplus of frames over a digest's count is counted as a second sender on that node's
+//!   identifiers;
+//! - memory is bounded: at most [`PENDING_FRAMES`] frames held per node;
+//! - time is the frames' receive time; no clock is read.
+
+use std::collections::VecDeque;
+
+use embedded_can::Frame as _;
+use std::time::Duration;
+
+use exocal_dbc::auth::KeySet;
+use exocal_dbc::spec;
+use exocal_dbc::stream_auth::{covered, stream_key, Reject, Verifier};
+use exocal_dbc::{Message, NodeId, Received, StreamNonce};
+use serde::Serialize;
+
+/// Most frames held per node waiting for their digest (a digest covers at most 255; a node
+/// streams ~70 per 100 ms).
+pub const PENDING_FRAMES: usize = 512;
+/// A node's held frames are dropped when no digest came this long after the first of them
+/// (three digest periods).
+pub const DIGEST_TIMEOUT: Duration = Duration::from_millis(300);
+
+/// What the gate passed and dropped.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct GateStats {
+    /// Spans whose digest verified.
+    pub verified_spans: u64,
+    /// Frames those spans held.
+    pub verified_frames: u64,
+    /// Spans dropped (any reason).
+    pub dropped_spans: u64,
+    /// Frames those spans held.
+    pub dropped_frames: u64,
+    /// Seconds of stream those spans held (receive time, first to last frame, summed).
+    pub dropped_s: f64,
+    /// Dropped for a MAC that does not verify.
+    pub bad_mac: u64,
+    /// Dropped for fewer frames than the digest covers.
+    pub deficit: u64,
+    /// Dropped for no digest in time, a full buffer, or a node without a key.
+    pub no_digest: u64,
+    /// Digests ignored as replays (old sequence numbers).
+    pub stale: u64,
+    /// Per node (index = node id), spans with more frames than the digest covers: a second
+    /// sender on that node's identifiers.
+    pub second_sender: [u64; 9],
+}
+
+impl GateStats {
+    /// The nodes on whose identifiers a second sender was seen, with the count of spans.
+    pub fn second_senders(&self) -> impl Iterator<Item = (NodeId, u64)> + '_ {
+        NodeId::ALL
+            .into_iter()
+            .map(|n| (n, self.second_sender[usize::from(n.raw())]))
+            .filter(|&(_, c)| c > 0)
+    }
+}
+
+/// Why a span was dropped (what [`StreamGate::on_frame`] reports per dropped span).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Dropped {
+    /// The node whose identifiers the frames came on.
+    pub node: NodeId,
+    /// Frames dropped.
+    pub frames: usize,
+    /// The digest's verdict; `None` for no digest in time (or no key, or a full buffer).
+    pub reject: Option<Reject>,
+}
+
+impl std::fmt::Display for Dropped {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{}: {} frames dropped unverified: ",
+            self.node, self.frames
+        )?;
+        match self.reject {
+            Some(Reject::Surplus { received, covered }) => write!(
+                f,
+                "a second sender on {}'s identifiers ({received} frames for a digest covering {covered})",
+                self.node
+            ),
+            Some(r) => write!(f, "{r}"),
+            None => f.write_str("no digest covered them"),
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+struct NodeGate {
+    verifier: Option<Verifier>,
+    held: VecDeque<Received>,
+}
+
+/// The gate of one collection (see the module docs).
+#[derive(Debug, Clone)]
+pub struct StreamGate {
+    nodes: Vec<NodeGate>,
+    stats: GateStats,
+}
+
+impl StreamGate {
+    /// The gate for the collection with `nonce`, verifying each node with its key in `keys`
+    /// (a node without one has its data frames dropped).
+    pub fn new(keys: &KeySet, nonce: StreamNonce) -> StreamGate {
+        StreamGate {
+            nodes: NodeId::ALL
+                .into_iter()
+                .map(|n| NodeGate {
+                    verifier: keys.node(n).map(|k| Verifier::new(n, stream_key(k), nonce)),
+                    held: VecDeque::new(),
+                })
+                .collect(),
+            stats: GateStats::default(),
+        }
+    }
+
+    /// What was passed and dropped so far.
+    pub fn stats(&self) -> &GateStats {
+        &self.stats
+    }
+
+    /// Takes one received frame; appends to `pass` the frames ingest takes now, and returns
+    /// the spans dropped on the way (see the module docs).
+    pub fn on_frame(&mut self, rx: &Received, pass: &mut Vec<Received>) -> Vec<Dropped> {
+        let mut dropped = Vec::new();
+        for i in 0..self.nodes.len() {
+            let stale = self.nodes[i]
+                .held
+                .front()
+                .is_some_and(|f| rx.timestamp.saturating_sub(f.timestamp) > DIGEST_TIMEOUT);
+            if stale {
+                dropped.push(self.drop_held(i, None));
+            }
+        }
+        let id = rx.frame.raw_id();
+        let family = u16::try_from(id)
+            .ok()
+            .filter(|_| !rx.frame.is_extended())
+            .and_then(spec::lookup);
+        match family {
+            Some((f, Some(node))) if covered(f.kind) => {
+                let i = usize::from(node.raw() - 1);
+                if self.nodes[i].held.len() >= PENDING_FRAMES {
+                    dropped.push(self.drop_held(i, None));
+                }
+                self.nodes[i].held.push_back(rx.clone());
+            }
+            Some((f, Some(node))) if f.kind == spec::Kind::StreamDigest => {
+                if let Ok(Message::StreamDigest(d)) = exocal_dbc::decode_frame(&rx.frame) {
+                    let i = usize::from(node.raw() - 1);
+                    let gate = &mut self.nodes[i];
+                    let verdict = match gate.verifier.as_mut() {
+                        Some(v) => v.check(
+                            &d,
+                            gate.held
+                                .iter()
+                                .map(|r| (r.frame.raw_id() as u16, r.frame.data())),
+                        ),
+                        None => Err(Reject::BadMac),
+                    };
+                    match verdict {
+                        Ok(()) => {
+                            self.stats.verified_spans += 1;
+                            self.stats.verified_frames += gate.held.len() as u64;
+                            pass.extend(gate.held.drain(..));
+                        }
+                        Err(Reject::Stale) => self.stats.stale += 1,
+                        Err(r) if gate.verifier.is_none() => {
+                            let _ = r;
+                            dropped.push(self.drop_held(i, None));
+                        }
+                        Err(r) => dropped.push(self.drop_held(i, Some(r))),
+                    }
+                }
+                pass.push(rx.clone());
+            }
+            _ => pass.push(rx.clone()),
+        }
+        dropped.retain(|d| d.frames > 0);
+        dropped
+    }
+
+    fn drop_held(&mut self, i: usize, reject: Option<Reject>) -> Dropped {
+        let held = &mut self.nodes[i].held;
+        let node = NodeId::ALL[i];
+        let frames = held.len();
+        if frames > 0 {
+            let s = &mut self.stats;
+            s.dropped_spans += 1;
+            s.dropped_frames += frames as u64;
+            let (first, last) = (held[0].timestamp, held[frames - 1].timestamp);
+            s.dropped_s += last.saturating_sub(first).as_secs_f64();
+            match reject {
+                Some(Reject::Surplus { .. }) => s.second_sender[usize::from(node.raw())] += 1,
+                Some(Reject::Deficit { .. }) => s.deficit += 1,
+                Some(Reject::BadMac) => s.bad_mac += 1,
+                Some(Reject::Stale) | None => s.no_digest += 1,
+            }
+        }
+        held.clear();
+        Dropped {
+            node,
+            frames,
+            reject,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use exocal_dbc::stream_auth::Signer;
+    use exocal_dbc::{Frame, JointState};
+
+    const NONCE: StreamNonce = StreamNonce { nonce: 77 };
+
+    fn joint(angle: f64, t_ms: u64) -> Received {
+        let frame: Frame = Message::JointState(JointState {
+            node: NodeId::JOINTS[2],
+            timestamp_us: t_ms as u32 * 1000,
+            angle,
+            rate: 0.0,
+        })
+        .to_frame()
+        .unwrap();
+        Received {
+            frame,
+            timestamp: Duration::from_millis(t_ms),
+        }
+    }
+
+    fn setup() -> (StreamGate, Signer) {
+        let keys = KeySet::derived(3);
+        let node = NodeId::JOINTS[2];
+        let mut s = Signer::new(node, stream_key(keys.node(node).unwrap()), 0);
+        s.set_nonce(NONCE, 0);
+        (StreamGate::new(&keys, NONCE), s)
+    }
+
+    fn digest(s: &mut Signer, t_ms: u64) -> Received {
+        Received {
+            frame: Message::StreamDigest(s.digest(0)).to_frame().unwrap(),
+            timestamp: Duration::from_millis(t_ms),
+        }
+    }
+
+    /// Sends ten genuine frames (signed) plus `rogue` (unsigned) frames, then the digest.
+    fn span(
+        g: &mut StreamGate,
+        s: &mut Signer,
+        t0: u64,
+        rogue: usize,
+    ) -> (Vec<Received>, Vec<Dropped>) {
+        let mut pass = Vec::new();
+        let mut dropped = Vec::new();
+        for k in 0..10 {
+            let rx = joint(0.1 * k as f64, t0 + k);
+            s.add(rx.frame.raw_id() as u16, rx.frame.data(), 0);
+            dropped.extend(g.on_frame(&rx, &mut pass));
+            assert!(pass.is_empty(), "held until the digest");
+            if k < rogue as u64 {
+                dropped.extend(g.on_frame(&joint(1.0, t0 + k), &mut pass));
+            }
+        }
+        dropped.extend(g.on_frame(&digest(s, t0 + 10), &mut pass));
+        (pass, dropped)
+    }
+
+    #[test]
+    fn verified_spans_pass_in_order_and_a_rogue_sender_is_dropped_and_named() {
+        let (mut g, mut s) = setup();
+        let (pass, dropped) = span(&mut g, &mut s, 0, 0);
+        assert!(dropped.is_empty());
+        assert_eq!(pass.len(), 11); // ten frames and the digest
+        assert!(pass.windows(2).all(|w| w[0].timestamp <= w[1].timestamp));
+        let (pass, dropped) = span(&mut g, &mut s, 100, 2);
+        assert_eq!(pass.len(), 1, "only the digest");
+        assert_eq!(dropped.len(), 1);
+        assert!(dropped[0].to_string().contains("a second sender on Joint3"));
+        let st = g.stats();
+        assert_eq!((st.verified_spans, st.verified_frames), (1, 10));
+        assert_eq!((st.dropped_spans, st.dropped_frames), (1, 12));
+        assert_eq!(
+            st.second_senders().collect::<Vec<_>>(),
+            [(NodeId::JOINTS[2], 1)]
+        );
+        // The stream resumes.
+        let (pass, _) = span(&mut g, &mut s, 200, 0);
+        assert_eq!(pass.len(), 11);
+    }
+
+    #[test]
+    fn frames_without_a_digest_are_dropped_after_the_timeout_and_memory_is_bounded() {
+        let (mut g, _) = setup();
+        let mut pass = Vec::new();
+        let mut dropped = 0;
+        for t in 0..2000 {
+            dropped += g
+                .on_frame(&joint(0.0, t), &mut pass)
+                .iter()
+                .map(|d| d.frames)
+                .sum::<usize>();
+            assert!(g.nodes[2].held.len() <= PENDING_FRAMES);
+        }
+        assert!(pass.is_empty());
+        assert!(dropped >= 1600, "{dropped}");
+        assert!(g.stats().no_digest > 0);
+    }
+
+    #[test]
+    fn a_node_without_a_key_is_never_passed() {
+        let mut keys = KeySet::derived(3);
+        keys.set_node(NodeId::JOINTS[2], None);
+        let mut g = StreamGate::new(&keys, NONCE);
+        let (_, mut s) = setup();
+        let (pass, dropped) = span(&mut g, &mut s, 0, 0);
+        assert_eq!(pass.len(), 1);
+        assert_eq!(dropped[0].frames, 10);
+    }
+}
