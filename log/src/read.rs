@@ -29,7 +29,7 @@ impl fmt::Display for ReadError {
 impl std::error::Error for ReadError {}
 
 /// A daemon session log, as the offline replay needs it.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct McapSession {
     /// Received raw frames (topic [`Topic::CanRx`]), in file order.
     pub frames: Vec<Received>,
@@ -42,6 +42,8 @@ pub struct McapSession {
     /// time would not do: frames still queued in the receiver at the end carry earlier
     /// timestamps but were not used.)
     pub collection_frames: Option<u64>,
+    /// The stream gate's record of the collection (`None`: streams taken unverified).
+    pub stream: Option<crate::proto::StreamVerification>,
 }
 
 const RX: &str = Topic::CanRx.name();
@@ -54,6 +56,7 @@ pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
     let mut frames = Vec::new();
     let mut collection_end = None;
     let mut collection_frames = None;
+    let mut gate = None;
     let mut seen_channel = false;
     for (i, message) in stream.enumerate() {
         let m = message.map_err(|e| err(e.to_string()))?;
@@ -63,6 +66,7 @@ pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
             if collection_end.is_none() {
                 collection_end = Some(Duration::from_nanos(end.window_end_ns));
                 collection_frames = Some(end.frames);
+                gate = end.stream;
             }
             continue;
         }
@@ -98,6 +102,7 @@ pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
         frames,
         collection_end,
         collection_frames,
+        stream: gate,
     })
 }
 
@@ -215,6 +220,7 @@ mod tests {
             malformed: 0,
             invalid_angles: 0,
             dropped: 0,
+            stream: None,
         };
         let body = end.encode_to_vec();
         let s = read_mcap_session(&session_log(5, Some((3, &body)))).unwrap();

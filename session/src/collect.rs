@@ -33,6 +33,8 @@ pub struct Collector {
     /// The stream gate, when the sensor streams are authenticated: frames reach
     /// [`Collector::on_frame`] only through it ([`Collector::take`]).
     pub gate: Option<StreamGate>,
+    /// Frames taken through [`Collector::take`] (the received frames, before the gate).
+    pub taken: u64,
 }
 
 impl Collector {
@@ -42,12 +44,14 @@ impl Collector {
             ingest: Ingest::new(settings.joint_nodes),
             window: Window::new(settings.window.clone(), settings.bounds.joint_range),
             gate: None,
+            taken: 0,
         }
     }
 
     /// Takes one received frame through the stream gate, if there is one: `each` sees every
     /// frame ingest takes now with its [`Event`]; returns the spans the gate dropped.
     pub fn take(&mut self, rx: &Received, mut each: impl FnMut(&Received, Event)) -> Vec<Dropped> {
+        self.taken += 1;
         let Some(gate) = self.gate.as_mut() else {
             let event = self.on_frame(rx);
             each(rx, event);

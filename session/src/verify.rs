@@ -11,7 +11,12 @@
 //!   is dropped and counted in [`GateStats`] (spans, frames, seconds of the node's stream);
 //!   a surplus of frames over a digest's count is counted as a second sender on that node's
 //!   identifiers;
-//! - memory is bounded: at most [`PENDING_FRAMES`] frames held per node;
+//! - memory is bounded: at most [`PENDING_FRAMES`] frames held per node, at most
+//!   [`MAX_REJECT_RUNS`] recorded verdicts;
+//! - the gate is deterministic given the frames and each digest's verdict: it records the
+//!   digests that did not verify ([`StreamGate::rejects`], runs per node, which the log keeps),
+//!   and [`StreamGate::replaying`] re-applies them to the logged frames without keys, so an
+//!   offline replay takes exactly the frames the live session took;
 //! - time is the frames' receive time; no clock is read.
 
 use std::collections::VecDeque;
@@ -31,6 +36,24 @@ pub const PENDING_FRAMES: usize = 512;
 /// A node's held frames are dropped when no digest came this long after the first of them
 /// (three digest periods).
 pub const DIGEST_TIMEOUT: Duration = Duration::from_millis(300);
+
+/// Most runs of rejected digests recorded (a run: consecutive digests of one node).
+pub const MAX_REJECT_RUNS: usize = 4096;
+
+/// Consecutive digests of one node that did not verify: the `first`..`first + count` digests
+/// (0-based, in arrival order) it sent in the collection.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct RejectRun {
+    /// The node id.
+    pub node: u8,
+    /// Ordinal of the first digest.
+    pub first: u64,
+    /// Digests in the run.
+    pub count: u64,
+    /// Replayed (stale) digests, which leave the held frames held; else the frames were
+    /// dropped.
+    pub stale: bool,
+}
 
 /// What the gate passed and dropped.
 #[derive(Debug, Clone, Default, PartialEq, Serialize)]
@@ -56,6 +79,9 @@ pub struct GateStats {
     /// Per node (index = node id), spans with more frames than the digest covers: a second
     /// sender on that node's identifiers.
     pub second_sender: [u64; 9],
+    /// More rejected digests than [`MAX_REJECT_RUNS`] runs: the record is incomplete (an
+    /// offline replay then differs).
+    pub rejects_truncated: bool,
 }
 
 impl GateStats {
@@ -109,6 +135,11 @@ struct NodeGate {
 pub struct StreamGate {
     nodes: Vec<NodeGate>,
     stats: GateStats,
+    /// Digests seen per node (index = node id − 1).
+    ordinals: [u64; 8],
+    /// The verdicts recorded so far (live), or to re-apply (replay).
+    rejects: Vec<RejectRun>,
+    replaying: bool,
 }
 
 impl StreamGate {
@@ -124,6 +155,81 @@ impl StreamGate {
                 })
                 .collect(),
             stats: GateStats::default(),
+            ordinals: [0; 8],
+            rejects: Vec::new(),
+            replaying: false,
+        }
+    }
+
+    /// The gate of an offline replay: the digests in `rejects` did not verify live, every
+    /// other did (see the module docs).
+    pub fn replaying(rejects: &[RejectRun]) -> StreamGate {
+        let mut g = StreamGate::new(&KeySet::default(), StreamNonce { nonce: 0 });
+        g.rejects = rejects.iter().take(MAX_REJECT_RUNS).copied().collect();
+        g.replaying = true;
+        g
+    }
+
+    /// The digests that did not verify, as runs per node.
+    pub fn rejects(&self) -> &[RejectRun] {
+        &self.rejects
+    }
+
+    /// The verdict on `node`'s digest `d` over its held frames: checked with its key live,
+    /// looked up when replaying.
+    fn verdict(&mut self, i: usize, d: &exocal_dbc::StreamDigest) -> Result<(), Reject> {
+        let ordinal = self.ordinals[i];
+        self.ordinals[i] += 1;
+        let gate = &mut self.nodes[i];
+        if self.replaying {
+            let node = (i + 1) as u8;
+            let run = self
+                .rejects
+                .iter()
+                .find(|r| r.node == node && (r.first..r.first + r.count).contains(&ordinal));
+            let held = gate.held.len() as u32;
+            return match run {
+                None => Ok(()),
+                Some(r) if r.stale => Err(Reject::Stale),
+                Some(_) if held > u32::from(d.count) => Err(Reject::Surplus {
+                    received: held,
+                    covered: d.count,
+                }),
+                Some(_) if held < u32::from(d.count) => Err(Reject::Deficit {
+                    received: held,
+                    covered: d.count,
+                }),
+                Some(_) => Err(Reject::BadMac),
+            };
+        }
+        let verdict = match gate.verifier.as_mut() {
+            Some(v) => v.check(
+                d,
+                gate.held
+                    .iter()
+                    .map(|r| (r.frame.raw_id() as u16, r.frame.data())),
+            ),
+            None => Err(Reject::BadMac),
+        };
+        if verdict.is_err() {
+            self.record(i, ordinal, verdict == Err(Reject::Stale));
+        }
+        verdict
+    }
+
+    fn record(&mut self, i: usize, ordinal: u64, stale: bool) {
+        let node = (i + 1) as u8;
+        let full = self.rejects.len() >= MAX_REJECT_RUNS;
+        let last = self.rejects.iter_mut().rev().find(|r| r.node == node);
+        match last {
+            Some(r) if r.stale == stale && r.first + r.count == ordinal => r.count += 1,
+            _ if full => self.stats.rejects_truncated = true,
+            _ => self.rejects.push(RejectRun {
+                node,
+                first: ordinal,
+                count: 1,
+                stale,
+            }),
         }
     }
 
@@ -161,16 +267,8 @@ impl StreamGate {
             Some((f, Some(node))) if f.kind == spec::Kind::StreamDigest => {
                 if let Ok(Message::StreamDigest(d)) = exocal_dbc::decode_frame(&rx.frame) {
                     let i = usize::from(node.raw() - 1);
+                    let verdict = self.verdict(i, &d);
                     let gate = &mut self.nodes[i];
-                    let verdict = match gate.verifier.as_mut() {
-                        Some(v) => v.check(
-                            &d,
-                            gate.held
-                                .iter()
-                                .map(|r| (r.frame.raw_id() as u16, r.frame.data())),
-                        ),
-                        None => Err(Reject::BadMac),
-                    };
                     match verdict {
                         Ok(()) => {
                             self.stats.verified_spans += 1;
@@ -178,8 +276,7 @@ impl StreamGate {
                             pass.extend(gate.held.drain(..));
                         }
                         Err(Reject::Stale) => self.stats.stale += 1,
-                        Err(r) if gate.verifier.is_none() => {
-                            let _ = r;
+                        Err(_) if gate.verifier.is_none() && !self.replaying => {
                             dropped.push(self.drop_held(i, None));
                         }
                         Err(r) => dropped.push(self.drop_held(i, Some(r))),
@@ -318,6 +415,38 @@ mod tests {
         assert!(pass.is_empty());
         assert!(dropped >= 1600, "{dropped}");
         assert!(g.stats().no_digest > 0);
+    }
+
+    #[test]
+    fn a_replay_with_the_recorded_verdicts_passes_exactly_what_the_live_gate_passed() {
+        let (mut g, mut s) = setup();
+        let mut input = Vec::new();
+        let mut live = Vec::new();
+        for (k, rogue) in [0, 3, 0, 1, 1, 0].into_iter().enumerate() {
+            let t0 = 100 * k as u64;
+            for i in 0..10 {
+                let rx = joint(0.1 * i as f64, t0 + i);
+                s.add(rx.frame.raw_id() as u16, rx.frame.data(), 0);
+                input.push(rx);
+                if i < rogue {
+                    input.push(joint(1.0, t0 + i));
+                }
+            }
+            input.push(digest(&mut s, t0 + 10));
+        }
+        for rx in &input {
+            g.on_frame(rx, &mut live);
+        }
+        assert_eq!(g.stats().dropped_spans, 3);
+        let runs = g.rejects().to_vec();
+        assert_eq!(runs.len(), 2, "{runs:?}"); // span 1, spans 3-4
+        let mut r = StreamGate::replaying(&runs);
+        let mut replayed = Vec::new();
+        for rx in &input {
+            r.on_frame(rx, &mut replayed);
+        }
+        assert_eq!(replayed, live);
+        assert_eq!(r.stats().dropped_frames, g.stats().dropped_frames);
     }
 
     #[test]

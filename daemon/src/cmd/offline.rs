@@ -37,7 +37,8 @@ use exocal_log::read::{read_mcap_session, McapSession};
 use exocal_session::collect::Collected;
 use exocal_session::formats::{self, ReadError};
 use exocal_session::pipeline::{self, Calibrated};
-use exocal_session::replay::{replay, Recording};
+use exocal_session::replay::{replay, replay_gated, Recording};
+use exocal_session::verify::{RejectRun, StreamGate};
 use exocal_session::Settings;
 
 pub use crate::cli::Format;
@@ -109,6 +110,17 @@ pub fn read_input(
     bytes: &[u8],
     format: Format,
 ) -> Result<(Recording, Option<Recovery>), DaemonError> {
+    read_input_gated(path, bytes, format).map(|(r, recovery, _)| (r, recovery))
+}
+
+/// [`read_input`], with the live session's stream gate to re-apply when the log has one (an
+/// MCAP log of a session whose sensor streams were authenticated): the replay then takes
+/// exactly the frames the live session took ([`exocal_session::verify`]).
+pub fn read_input_gated(
+    path: &Path,
+    bytes: &[u8],
+    format: Format,
+) -> Result<(Recording, Option<Recovery>, Option<StreamGate>), DaemonError> {
     let bad = |e: ReadError| DaemonError::Input(format!("{}: {e}", path.display()));
     let text = || {
         std::str::from_utf8(bytes).map_err(|e| {
@@ -135,14 +147,29 @@ pub fn read_input(
                 }
                 frames.truncate(n);
             }
-            Ok((Recording::Frames(frames), recovery))
+            let gate = session.stream.map(|s| {
+                let runs: Vec<RejectRun> = s
+                    .rejects
+                    .iter()
+                    .map(|r| RejectRun {
+                        node: u8::try_from(r.node).unwrap_or(u8::MAX),
+                        first: r.first,
+                        count: r.count,
+                        stale: r.stale,
+                    })
+                    .collect();
+                StreamGate::replaying(&runs)
+            });
+            Ok((Recording::Frames(frames), recovery, gate))
         }
         Format::Candump => Ok((
             Recording::Frames(formats::parse_candump(text()?).map_err(bad)?),
             None,
+            None,
         )),
         Format::Csv => Ok((
             Recording::Samples(formats::parse_csv(text()?).map_err(bad)?),
+            None,
             None,
         )),
     }
@@ -223,7 +250,7 @@ pub fn run(
         Some(f) => f,
         None => detect_format(path, &bytes)?,
     };
-    let (input, recovery) = read_input(path, &bytes, format)?;
+    let (input, recovery, gate) = read_input_gated(path, &bytes, format)?;
     if let Some(r) = &recovery {
         eprintln!(
             "exocald: warning: {} was cut short (no summary or footer: the daemon was killed or \
@@ -253,7 +280,7 @@ pub fn run(
             path.display()
         );
     }
-    let replayed = replay(&input, &config.calibration);
+    let replayed = replay_gated(&input, &config.calibration, gate);
     let report_path = opts
         .report
         .clone()

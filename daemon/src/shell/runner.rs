@@ -35,10 +35,12 @@ use crate::log::records;
 use crate::push::{push_tables, PushObserver, PushReport};
 use crate::shell::notify::{Notifier, Reporter};
 use crate::shell::tee::Recorder;
+use exocal_dbc::stream_auth;
 use exocal_session::collect::{Collected, Collector};
 use exocal_session::estimate::{Estimate, EstimateJob};
 use exocal_session::ingest::{ClockReport, Event, FrameStats, StallReport};
 use exocal_session::pipeline::{self, Calibrated, Outcome};
+use exocal_session::verify::{GateStats, StreamGate};
 use exocal_session::window::{Phase, Shortfall};
 
 /// Real time between two turns of the housekeeping tick.
@@ -78,6 +80,9 @@ pub struct SessionSummary {
     pub push: Option<PushReport>,
     /// The HTML calibration report, once written (next to the log for a live session).
     pub report_path: Option<PathBuf>,
+    /// Stream verification: spans verified and dropped; `None` when the streams were not
+    /// authenticated (`[push] authenticate = false`, or an offline replay).
+    pub stream: Option<GateStats>,
     /// What the user waited after the collection window, when every node's table was verified.
     pub latency: Option<Latency>,
 }
@@ -126,6 +131,7 @@ impl SessionSummary {
             push: None,
             report_path: None,
             latency: None,
+            stream: None,
         }
     }
 
@@ -229,11 +235,29 @@ impl Io<'_> {
         self.check(r);
     }
 
-    /// Logs one received frame and feeds it to the collection.
+    /// Logs one received frame and feeds it to the collection through the stream gate (the
+    /// frames it passes now; a warning for each of the first spans it drops).
     fn take_frame(&mut self, rx: &Received, collector: &mut Collector) {
         self.frame(false, &rx.frame, rx.timestamp);
-        let t = ns(rx.timestamp);
-        match collector.on_frame(rx) {
+        let mut events = Vec::new();
+        let dropped = collector.take(rx, |rx, event| events.push((rx.timestamp, event)));
+        for (at, event) in events {
+            self.take_event(at, event, collector);
+        }
+        for d in dropped {
+            let spans = collector
+                .gate
+                .as_ref()
+                .map_or(0, |g| g.stats().dropped_spans);
+            if spans <= 10 {
+                self.event(rx.timestamp, Level::Warning, &format!("stream span {d}"));
+            }
+        }
+    }
+
+    fn take_event(&mut self, at: Duration, event: Event, collector: &Collector) {
+        let t = ns(at);
+        match event {
             Event::Sample {
                 stream,
                 node_timestamp_us,
@@ -246,14 +270,14 @@ impl Io<'_> {
                 // The first few are worth a line each; the counters carry the rest.
                 let s = collector.ingest.stats();
                 if s.unknown + s.malformed <= 10 {
-                    self.event(rx.timestamp, Level::Warning, &format!("bad frame: {e}"));
+                    self.event(at, Level::Warning, &format!("bad frame: {e}"));
                 }
             }
             Event::Message(exocal_dbc::Message::Trigger(t))
                 if t.command == exocal_dbc::TriggerCommand::StartCalibration =>
             {
                 self.event(
-                    rx.timestamp,
+                    at,
                     Level::Warning,
                     "trigger ignored (CAN Trigger frame): a session is running",
                 );
@@ -471,6 +495,7 @@ impl<T: Transport> Running<'_, '_, T> {
         // The window is timed on the clock's monotonic reading: a step of the host's wall clock
         // (NTP at boot) neither stretches nor cuts it.
         let started = self.clock.monotonic();
+        self.authenticate_streams().await?;
         let required = self.config.calibration.window.excitation_required;
         let mut estimate_job: Option<tokio::task::JoinHandle<Option<Estimate>>> = None;
         let mut last_estimate_s = 0.0;
@@ -495,7 +520,8 @@ impl<T: Transport> Running<'_, '_, T> {
                     match session.phase(elapsed) {
                         Phase::Collecting => {}
                         Phase::Ready => break,
-                        Phase::Failed(why) => {
+                        Phase::Failed(mut why) => {
+                            why.extend(self.collector.unverified());
                             if let Some(job) = estimate_job.take() {
                                 job.abort();
                             }
@@ -528,13 +554,23 @@ impl<T: Transport> Running<'_, '_, T> {
         let now = self.clock.now();
         // The record `exocald offline` honours: a replay of this log calibrates on the first
         // `frames` frames of /can/rx, as this session did.
+        // With the stream gate, the frames received (as logged), not those ingest took yet.
         let end = CollectionEnd {
-            frames: s.received,
+            frames: if self.collector.gate.is_some() {
+                self.collector.taken
+            } else {
+                s.received
+            },
             window_end_ns: ns(now),
             unknown: s.unknown,
             malformed: s.malformed,
             invalid_angles: s.invalid_angles,
             dropped: self.bus.dropped(),
+            stream: self
+                .collector
+                .gate
+                .as_ref()
+                .map(records::stream_verification),
         };
         let r = self.io.log.collection_end(&end);
         self.io.check(r);
@@ -546,6 +582,37 @@ impl<T: Transport> Running<'_, '_, T> {
                 s.received, s.unknown, s.malformed, s.invalid_angles, end.dropped
             ),
         );
+        if let Some(g) = self.collector.gate.as_ref().map(|g| g.stats().clone()) {
+            self.io.event(
+                now,
+                Level::Info,
+                &format!(
+                    "stream verification: {} spans verified ({} frames); {} spans dropped \
+                     unverified ({} frames, {:.1} s: {} bad MAC, {} frames lost, {} without a \
+                     digest); {} replayed digests ignored",
+                    g.verified_spans,
+                    g.verified_frames,
+                    g.dropped_spans,
+                    g.dropped_frames,
+                    g.dropped_s,
+                    g.bad_mac,
+                    g.deficit,
+                    g.no_digest,
+                    g.stale
+                ),
+            );
+            for (node, spans) in g.second_senders() {
+                self.io.event(
+                    now,
+                    Level::Warning,
+                    &format!(
+                        "a second sender on {node}'s identifiers: {spans} spans held more \
+                         frames than its digests cover (dropped)"
+                    ),
+                );
+            }
+            self.summary.stream = Some(g);
+        }
         for (node, repeats) in s.babbling() {
             self.io.event(
                 now,
@@ -553,6 +620,41 @@ impl<T: Transport> Running<'_, '_, T> {
                 &format!("{node} is babbling: {repeats} frames repeated verbatim"),
             );
         }
+        Ok(())
+    }
+
+    /// Opens the collection's stream authentication: a fresh nonce to every node
+    /// (`StreamNonce`) and the gate that holds each node's frames until its digest verifies.
+    /// With `[push] authenticate = false` the streams are taken unverified, with a warning.
+    async fn authenticate_streams(&mut self) -> Result<(), DaemonError> {
+        let now = self.clock.now();
+        let keys = &self.config.push.keys;
+        let key = NodeId::ALL.into_iter().find_map(|n| keys.node(n));
+        let (true, Some(key)) = (self.config.push.authenticate, key) else {
+            self.io.event(
+                now,
+                Level::Warning,
+                "sensor streams are not authenticated ([push] authenticate = false): any sender \
+                 on the bus can steer the calibration",
+            );
+            return Ok(());
+        };
+        let nonce = stream_auth::session_nonce(key, now.as_micros() as u64);
+        let frame: Frame = exocal_dbc::Message::StreamNonce(nonce)
+            .to_frame()
+            .map_err(|e| DaemonError::Internal {
+                what: "encoding the stream nonce".into(),
+                source: e.to_string().into(),
+            })?;
+        self.bus
+            .send(&frame)
+            .await
+            .map_err(|source| DaemonError::Bus {
+                what: "sending the stream nonce".into(),
+                source,
+            })?;
+        self.io.frame(true, &frame, now);
+        self.collector.gate = Some(StreamGate::new(keys, nonce));
         Ok(())
     }
 
@@ -1148,5 +1250,130 @@ mod tests {
             assert_eq!(c.jumps, want, "{c:?}");
         }
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// One authenticated session (the hil's nodes hold the keys the daemon has) against the
+    /// paper hil, with a rogue on the bus when `rogue`: during bursts (100 frames of every
+    /// 400 it sees) it sends a biased copy of each Joint3 angle (+0.03 rad) and each pose's
+    /// position page (x + 2 cm). Returns the session's summary and the table it pushed.
+    async fn authenticated_session(
+        name: &str,
+        rogue: bool,
+    ) -> (SessionSummary, Vec<exocal_session::pipeline::NodeRow>) {
+        use exocal_dbc::{JointState, Message, PosePage};
+        use exocal_session::pipeline::NodeRow;
+        let dir = temp_dir(name);
+        let flash = dir.join("flash");
+        std::fs::create_dir_all(&flash).unwrap();
+        let keys = exocal_dbc::auth::KeySet::derived(21);
+        exocal_hil::flash::provision(&flash, &keys).unwrap();
+        let mut config = config(&dir);
+        config.push.authenticate = true;
+        config.push.keys = keys;
+        let mut scenario = Scenario::paper();
+        scenario.duration_s = 400.0;
+        let mut hil = Hil::new(scenario, &flash).unwrap();
+        let clock = SimClock::new(1.0).unwrap();
+        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+        let mut hil_end = bus.attach();
+        let mut daemon_end = bus.attach();
+        let mut rogue_end = bus.attach();
+        let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await });
+        let rogue_task = tokio::spawn(async move {
+            let mut seen = 0u64;
+            if !rogue {
+                return;
+            }
+            while let Ok(rx) = rogue_end.recv().await {
+                seen += 1;
+                if seen % 400 >= 100 {
+                    continue;
+                }
+                let biased = match exocal_dbc::decode_frame(&rx.frame) {
+                    Ok(Message::JointState(j)) if j.node == NodeId::JOINTS[2] => {
+                        Message::JointState(JointState {
+                            angle: j.angle + 0.03,
+                            ..j
+                        })
+                    }
+                    Ok(Message::EePose(mut p)) => match p.page {
+                        PosePage::TimePosX { timestamp_us, x } => {
+                            p.page = PosePage::TimePosX {
+                                timestamp_us,
+                                x: x + 0.02,
+                            };
+                            Message::EePose(p)
+                        }
+                        _ => continue,
+                    },
+                    _ => continue,
+                };
+                let _ = rogue_end.send(&biased.to_frame::<Frame>().unwrap()).await;
+            }
+        });
+        let mut notifier = Notifier::disabled();
+        let mut reporter = Reporter::Plain { last_line: None };
+        let (_stop, shutdown) = Shutdown::manual();
+        let result = run_session(
+            &mut daemon_end,
+            &clock.bus_clock(),
+            &config,
+            false,
+            shutdown.wait(),
+            &mut notifier,
+            &mut reporter,
+        )
+        .await;
+        hil_task.abort();
+        rogue_task.abort();
+        let summary = result.unwrap_or_else(|e| panic!("{name}: {}", e.error));
+        let pushed = NodeId::JOINTS
+            .iter()
+            .map(|&n| exocal_hil::flash::read(&flash, n).unwrap().unwrap().table)
+            .map(|t| {
+                let [a, alpha, d, theta_offset, tau, sigma] = t.to_si();
+                NodeRow {
+                    a,
+                    alpha,
+                    d,
+                    theta_offset,
+                    tau,
+                    sigma,
+                }
+            })
+            .collect();
+        (summary, pushed)
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_rogue_injecting_biased_frames_changes_no_pushed_table() {
+        let (clean, clean_table) = authenticated_session("stream-clean", false).await;
+        let (attacked, attacked_table) = authenticated_session("stream-rogue", true).await;
+        let g = attacked.stream.clone().expect("streams verified");
+        // Every span a rogue frame landed in was dropped, and the rogue was named.
+        assert!(g.dropped_spans > 0 && g.dropped_frames > 0, "{g:?}");
+        let named: Vec<NodeId> = g.second_senders().map(|(n, _)| n).collect();
+        assert_eq!(named, [NodeId::JOINTS[2], NodeId::END_EFFECTOR], "{g:?}");
+        let c = clean.stream.clone().expect("streams verified");
+        assert_eq!(c.second_senders().count(), 0, "{c:?}");
+        assert!(attacked.push.as_ref().is_some_and(|p| p.complete()));
+        // The pushed table is the clean session's, to within the run-to-run spread of a
+        // session on a subset of the same data (µm and µrad), far from the bias's reach
+        // (a 2 cm pose bias moves link lengths by cm).
+        for (j, (a, b)) in clean_table.iter().zip(&attacked_table).enumerate() {
+            let (dl, dr) = (
+                (a.a - b.a).abs().max((a.d - b.d).abs()),
+                (a.alpha - b.alpha)
+                    .abs()
+                    .max((a.theta_offset - b.theta_offset).abs()),
+            );
+            eprintln!(
+                "joint {}: |Δ| {:.3} mm, {:.3} mrad",
+                j + 1,
+                dl * 1e3,
+                dr * 1e3
+            );
+            assert!(dl < 1e-3 && dr < 1e-3, "joint {}: {dl} m, {dr} rad", j + 1);
+        }
     }
 }
