@@ -262,7 +262,7 @@ impl StreamGate {
                 if self.nodes[i].held.len() >= PENDING_FRAMES {
                     dropped.push(self.drop_held(i, None));
                 }
-                self.nodes[i].held.push_back(rx.clone());
+                self.nodes[i].held.push_back(*rx);
             }
             Some((f, Some(node))) if f.kind == spec::Kind::StreamDigest => {
                 if let Ok(Message::StreamDigest(d)) = exocal_dbc::decode_frame(&rx.frame) {
@@ -282,9 +282,9 @@ impl StreamGate {
                         Err(r) => dropped.push(self.drop_held(i, Some(r))),
                     }
                 }
-                pass.push(rx.clone());
+                pass.push(*rx);
             }
-            _ => pass.push(rx.clone()),
+            _ => pass.push(*rx),
         }
         dropped.retain(|d| d.frames > 0);
         dropped

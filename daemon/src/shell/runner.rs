@@ -522,6 +522,8 @@ impl<T: Transport> Running<'_, '_, T> {
                         Phase::Ready => break,
                         Phase::Failed(mut why) => {
                             why.extend(self.collector.unverified());
+                            self.summary.stream =
+                                self.collector.gate.as_ref().map(|g| g.stats().clone());
                             if let Some(job) = estimate_job.take() {
                                 job.abort();
                             }
@@ -1253,26 +1255,35 @@ mod tests {
     }
 
     /// One authenticated session (the hil's nodes hold the keys the daemon has) against the
-    /// paper hil, with a rogue on the bus when `rogue`: during bursts (100 frames of every
-    /// 400 it sees) it sends a biased copy of each Joint3 angle (+0.03 rad) and each pose's
-    /// position page (x + 2 cm). Returns the session's summary and the table it pushed.
+    /// paper hil, with a rogue on the bus when `rogue`: during bursts (~0.3 s every 10 s) it
+    /// sends a biased copy of each Joint3 angle (+0.03 rad) and each pose's position page
+    /// (x + 2 cm). Returns the result, and the joint nodes' flash tables before and after.
     async fn authenticated_session(
         name: &str,
         rogue: bool,
-    ) -> (SessionSummary, Vec<exocal_session::pipeline::NodeRow>) {
+    ) -> (Result<SessionSummary, SessionError>, Vec<Table>, Vec<Table>) {
         use exocal_dbc::{JointState, Message, PosePage};
-        use exocal_session::pipeline::NodeRow;
         let dir = temp_dir(name);
         let flash = dir.join("flash");
         std::fs::create_dir_all(&flash).unwrap();
         let keys = exocal_dbc::auth::KeySet::derived(21);
         exocal_hil::flash::provision(&flash, &keys).unwrap();
-        let mut config = config(&dir);
+        // The demo's window (the fixed minute): a 15-s session is refused on this suit.
+        let mut config = Config::default_config();
+        config.output.directory = dir.clone();
+        config.push.timeout_ms = 400;
         config.push.authenticate = true;
         config.push.keys = keys;
         let mut scenario = Scenario::paper();
         scenario.duration_s = 400.0;
         let mut hil = Hil::new(scenario, &flash).unwrap();
+        let tables = |flash: &std::path::Path| -> Vec<Table> {
+            NodeId::JOINTS
+                .iter()
+                .map(|&n| exocal_hil::flash::read(flash, n).unwrap().unwrap().table)
+                .collect()
+        };
+        let before = tables(&flash);
         let clock = SimClock::new(1.0).unwrap();
         let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
         let mut hil_end = bus.attach();
@@ -1286,7 +1297,8 @@ mod tests {
             }
             while let Ok(rx) = rogue_end.recv().await {
                 seen += 1;
-                if seen % 400 >= 100 {
+                // Bursts of ~0.3 s every 10 s (the suit sends ~3,500 frames/s).
+                if seen % 35_000 >= 1_000 {
                     continue;
                 }
                 let biased = match exocal_dbc::decode_frame(&rx.frame) {
@@ -1326,54 +1338,58 @@ mod tests {
         .await;
         hil_task.abort();
         rogue_task.abort();
-        let summary = result.unwrap_or_else(|e| panic!("{name}: {}", e.error));
-        let pushed = NodeId::JOINTS
-            .iter()
-            .map(|&n| exocal_hil::flash::read(&flash, n).unwrap().unwrap().table)
-            .map(|t| {
-                let [a, alpha, d, theta_offset, tau, sigma] = t.to_si();
-                NodeRow {
-                    a,
-                    alpha,
-                    d,
-                    theta_offset,
-                    tau,
-                    sigma,
-                }
-            })
-            .collect();
-        (summary, pushed)
+        (result, before, tables(&flash))
     }
 
+    /// A rogue injecting biased JointState and EePose frames during an authenticated session
+    /// steers nothing: every span its frames land in is dropped, the rogue is named as a second
+    /// sender on Joint3's and the end effector's identifiers, and no table computed from its
+    /// frames reaches a node. On this suit the gaps the dropped spans leave make the drift-step
+    /// check refuse the session (docs/reliability.md, "Not done"): the nodes keep their
+    /// tables; a pushed table would have to be the clean session's (to 1 mm / 1 mrad).
     #[tokio::test(start_paused = true)]
     async fn a_rogue_injecting_biased_frames_changes_no_pushed_table() {
-        let (clean, clean_table) = authenticated_session("stream-clean", false).await;
-        let (attacked, attacked_table) = authenticated_session("stream-rogue", true).await;
-        let g = attacked.stream.clone().expect("streams verified");
-        // Every span a rogue frame landed in was dropped, and the rogue was named.
+        let (clean, _, clean_tables) = authenticated_session("stream-clean", false).await;
+        let clean = clean.unwrap_or_else(|e| panic!("clean session: {}", e.error));
+        let c = clean.stream.clone().expect("streams verified");
+        assert_eq!(
+            (c.dropped_spans, c.second_senders().count()),
+            (0, 0),
+            "{c:?}"
+        );
+        assert!(clean.push.as_ref().is_some_and(|p| p.complete()));
+
+        let (attacked, before, after) = authenticated_session("stream-rogue", true).await;
+        let summary = match &attacked {
+            Ok(s) => s.clone(),
+            Err(e) => e.summary.clone().expect("a summary"),
+        };
+        let g = summary.stream.clone().expect("streams verified");
         assert!(g.dropped_spans > 0 && g.dropped_frames > 0, "{g:?}");
         let named: Vec<NodeId> = g.second_senders().map(|(n, _)| n).collect();
         assert_eq!(named, [NodeId::JOINTS[2], NodeId::END_EFFECTOR], "{g:?}");
-        let c = clean.stream.clone().expect("streams verified");
-        assert_eq!(c.second_senders().count(), 0, "{c:?}");
-        assert!(attacked.push.as_ref().is_some_and(|p| p.complete()));
-        // The pushed table is the clean session's, to within the run-to-run spread of a
-        // session on a subset of the same data (µm and µrad), far from the bias's reach
-        // (a 2 cm pose bias moves link lengths by cm).
-        for (j, (a, b)) in clean_table.iter().zip(&attacked_table).enumerate() {
-            let (dl, dr) = (
-                (a.a - b.a).abs().max((a.d - b.d).abs()),
-                (a.alpha - b.alpha)
-                    .abs()
-                    .max((a.theta_offset - b.theta_offset).abs()),
-            );
-            eprintln!(
-                "joint {}: |Δ| {:.3} mm, {:.3} mrad",
-                j + 1,
-                dl * 1e3,
-                dr * 1e3
-            );
-            assert!(dl < 1e-3 && dr < 1e-3, "joint {}: {dl} m, {dr} rad", j + 1);
+        match attacked {
+            Ok(s) => {
+                assert!(s.push.as_ref().is_some_and(|p| p.complete()));
+                for (j, (a, b)) in clean_tables.iter().zip(&after).enumerate() {
+                    let (a, b) = (a.to_si(), b.to_si());
+                    let dl = (a[0] - b[0]).abs().max((a[2] - b[2]).abs());
+                    let dr = (a[1] - b[1]).abs().max((a[3] - b[3]).abs());
+                    assert!(dl < 1e-3 && dr < 1e-3, "joint {}: {dl} m, {dr} rad", j + 1);
+                }
+            }
+            Err(e) => {
+                assert!(
+                    matches!(
+                        e.error,
+                        DaemonError::Validation(_) | DaemonError::Session(_)
+                    ),
+                    "{}",
+                    e.error
+                );
+                assert!(e.summary.and_then(|s| s.push).is_none(), "nothing pushed");
+                assert_eq!(after, before, "the nodes keep their tables");
+            }
         }
     }
 }
