@@ -20,7 +20,7 @@
 //!   agree to [`exocal_session::replay::CSV_RATE_TOLERANCE`]);
 //! - the recording is judged by the live session's rules (`[session]`: `min_duration_s`, give or
 //!   take [`exocal_session::window::DURATION_SLACK_S`], every joint's excitation, `min_samples`): one the live daemon
-//!   would not have calibrated is not calibrated here either ([`replay`] names what it misses);
+//!   would not have calibrated is not calibrated here either ([`exocal_session::replay::replay`] names what it misses);
 //! - the outcome is judged as live: [`DaemonError::Validation`] (65) if validation refuses,
 //!   [`DaemonError::Session`] (66) if the session rules are not met,
 //!   [`DaemonError::Calibration`] (66) if the samples do not calibrate; unreadable input is
@@ -37,7 +37,7 @@ use exocal_log::read::{read_mcap_session, McapSession};
 use exocal_session::collect::Collected;
 use exocal_session::formats::{self, ReadError};
 use exocal_session::pipeline::{self, Calibrated};
-use exocal_session::replay::{replay, replay_gated, Recording};
+use exocal_session::replay::{replay_gated, Recording};
 use exocal_session::verify::{RejectRun, StreamGate};
 use exocal_session::Settings;
 
@@ -186,11 +186,16 @@ pub struct Recalibration {
     pub calibrated: Calibrated,
 }
 
-/// Runs the pipeline on `input` (see the module docs): [`replay`], then, if the recording meets
+/// Runs the pipeline on `input` behind `gate` (see the module docs and [`read_input_gated`]):
+/// [`replay_gated`], then, if the recording meets
 /// the session rules, the calibration; [`DaemonError::Session`] naming every rule it misses
 /// otherwise.
-pub fn recalibrate(input: &Recording, config: &Config) -> Result<Recalibration, DaemonError> {
-    let r = replay(input, &config.calibration);
+pub fn recalibrate(
+    input: &Recording,
+    gate: Option<StreamGate>,
+    config: &Config,
+) -> Result<Recalibration, DaemonError> {
+    let r = replay_gated(input, &config.calibration, gate);
     if !r.shortfalls.is_empty() {
         return Err(DaemonError::Session(r.shortfalls));
     }
@@ -280,6 +285,7 @@ pub fn run(
             path.display()
         );
     }
+    let export_gate = gate.clone();
     let replayed = replay_gated(&input, &config.calibration, gate);
     let report_path = opts
         .report
@@ -325,7 +331,16 @@ pub fn run(
         }
     };
     if let (Recording::Frames(frames), Some(out)) = (&input, &opts.export_candump) {
-        let text = formats::candump_text(frames, &config.interface);
+        // Behind the stream gate, the frames it passed, in the order ingest took them: a
+        // candump replay (ungated) then takes exactly what the calibration used.
+        let passed = export_gate.map(|mut g| {
+            let mut pass = Vec::new();
+            for rx in frames {
+                g.on_frame(rx, &mut pass);
+            }
+            pass
+        });
+        let text = formats::candump_text(passed.as_deref().unwrap_or(frames), &config.interface);
         write_file(out, "candump log", text.as_bytes())?;
     }
     let accepted = calibrated.outcome.verdict.accepted();
