@@ -190,7 +190,7 @@ pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError
     if !config.push.authenticate {
         eprintln!(
             "exocald: WARNING: authentication is off ([push] authenticate = false): any sender on \
-             the bus can change a node's table{}",
+             the bus can change a node's table or steer the calibration through the sensor streams{}",
             if trigger { " or start a session" } else { "" }
         );
         return Ok(());

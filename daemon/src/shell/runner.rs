@@ -632,11 +632,12 @@ impl<T: Transport> Running<'_, '_, T> {
         let now = self.clock.now();
         let keys = &self.config.push.keys;
         let key = NodeId::ALL.into_iter().find_map(|n| keys.node(n));
-        let (true, Some(key)) = (self.config.push.authenticate, key) else {
+        let on = self.config.push.authenticate && self.config.verify_streams;
+        let (true, Some(key)) = (on, key) else {
             self.io.event(
                 now,
                 Level::Warning,
-                "sensor streams are not authenticated ([push] authenticate = false): any sender \
+                "sensor streams are not authenticated ([push] authenticate = false, or no keys): any sender \
                  on the bus can steer the calibration",
             );
             return Ok(());
