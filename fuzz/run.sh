@@ -13,7 +13,7 @@ secs="${1:-60}"
 shift || true
 targets=("$@")
 if [ ${#targets[@]} -eq 0 ]; then
-  targets=(decode transfer config scenario logs)
+  targets=(decode transfer config scenario offline_mcap offline_candump offline_csv recover)
 fi
 mkdir -p logs
 status=0

@@ -21,6 +21,7 @@
 //! | our EM (Kalman + RTS smoother over the drift; drift model per joint, Student-t reference, REML drift, stated error, refusals: the contract is in [`drift_em`]) | [`em_drift()`], [`DriftEmResult::stated_error`], [`JointDrift`], [`Discounted`], [`Consistency`], [`Refusal`] |
 //! | what LS alone is worth when the EM gives no figure | [`ls_white_expected_error`] |
 //! | confidence intervals of its τ, σ per joint | [`drift_confidence()`], [`DriftConfidence`] |
+//! | which joint's motion would most reduce the expected table error (guidance while collecting) | [`guidance()`], [`Guidance`] |
 //! | objective y (eq. 10) and parameter errors | [`objective_y`], [`ParamErrors`] |
 //! | table error, expected table error, the Cramér-Rao bound | [`table_error`], [`DriftEmResult::expected_error`], [`cramer_rao()`] |
 //! | the accuracy sweep and its field cells (std) | `sweep` |
@@ -68,6 +69,7 @@ pub mod drift_conf;
 pub mod drift_em;
 pub mod error;
 pub mod frames;
+pub mod guidance;
 mod info;
 mod kalman;
 pub mod linalg;
@@ -93,6 +95,7 @@ pub use drift_em::{
 };
 pub use error::CalibError;
 pub use frames::{identify_ls_frames, LsFramesResult, Mounting, Param, FRAME_PARAMS};
+pub use guidance::{guidance, Guidance, GUIDANCE_CONFIGS, GUIDANCE_POSES, PRIOR_SD};
 pub use linalg::{GramAccumulator, Observability, QrAccumulator, QrPanel, GRAM_MAX_CONDITION};
 pub use ls::{
     identify_ls, identify_ls_with, normal_equations, validate_samples, BoundsOutcome, BoundsPolicy, InputChecks, Linearise,

@@ -24,7 +24,7 @@
 //! whole prefix (the daemon pushes one fitted on the part it does not hold out).
 //!
 //! `std` only (it allocates); `cargo run -p calib-core --release --example sweep` prints the
-//! whole grid, `--example good_enough` the stop rule across it, and reduced forms run in the
+//! whole grid, `--example stop_rule` the stop rule across it, and reduced forms run in the
 //! tests.
 
 use std::vec::Vec;

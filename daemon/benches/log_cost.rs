@@ -80,7 +80,7 @@ fn main() {
         .find(|a| !a.starts_with('-'))
         .expect("usage: log_cost SESSION.mcap");
     let bytes = std::fs::read(&path).expect("read the log");
-    let frames = exocal_log::read::read_mcap_session(&bytes)
+    let frames = exocal_log::read::read_mcap_session(bytes.as_slice(), exocal_log::read::admit_all)
         .expect("an exocald log")
         .frames;
     let dir = std::env::temp_dir().join(format!("exocal-log-cost-{}", std::process::id()));

@@ -59,6 +59,7 @@ async fn measure(authenticate: bool, runs: u32) -> (f64, f64, f64) {
         timeout_ms: 50,
         authenticate,
         keys,
+        state_dir: None,
     };
     let (mut times, mut sent, mut replies) = (Vec::new(), 0u64, 0u64);
     for run in 0..runs {

@@ -29,9 +29,19 @@ pub const DEFAULT_TOML: &str = include_str!("../exocald.toml");
 /// setting, and some would exhaust memory or overflow arithmetic downstream (`grid_hz = 1e12`
 /// asked an offline run for 480 TB). `check-config` rejects them, naming the key and its line.
 pub mod limits {
-    /// Longest collection window, s: a day (the ingest benchmark's endless session fits; a suit
-    /// collects a minute or two).
-    pub const MAX_DURATION_S: f64 = 86_400.0;
+    /// Longest collection window, s: what fits the unit's `MemoryMax=256M` with half of it to
+    /// spare. A session's peak RSS grows linearly with its length (frames, streams and grid
+    /// kept until the calibration): measured with `exocald demo --speed 1000000`, 29.8 MiB at
+    /// 60 s, 104 MiB at 300 s, 282 MiB at 900 s (docs/reliability.md, "Memory budget"), about
+    /// 15 MiB + 0.30 MiB per second of session at `grid_hz = 100`; 360 s is ~125 MiB. A suit
+    /// collects a minute or two.
+    pub const MAX_DURATION_S: f64 = 360.0;
+    /// The unit's memory limit (`systemd/exocald.service`), named in the refusals above.
+    pub const MEMORY_MAX: &str = "MemoryMax=256M";
+    /// Most points of the alignment grid (`grid_hz × max_duration_s`): the grid at 100 Hz over
+    /// [`MAX_DURATION_S`], the figure the memory budget was measured at; a faster grid
+    /// shortens the longest window accordingly.
+    pub const MAX_GRID_POINTS: f64 = 100.0 * MAX_DURATION_S;
     /// Fastest resampling grid, Hz: a 1 Mbit/s bus carries at most about 1 kHz per node.
     pub const MAX_GRID_HZ: f64 = 1_000.0;
     /// Longest tolerated hole in a stream, s.
@@ -106,6 +116,10 @@ pub struct PushPolicy {
     /// The keys (never from the file: `exocald` loads them from its systemd credential,
     /// [`crate::keys`], the demo derives them from its seed). Empty after parsing.
     pub keys: exocal_dbc::auth::KeySet,
+    /// The state directory (never from the file: `$STATE_DIRECTORY`, set by systemd's
+    /// `StateDirectory=`): the nodes' verified and signed freshness counters and the trigger
+    /// counter ([`crate::state`]). `None`: kept for the run only (tests, the demo).
+    pub state_dir: Option<PathBuf>,
 }
 
 impl PushPolicy {
@@ -673,11 +687,7 @@ impl Checker<'_> {
                 s.min_duration_s,
                 MAX_DURATION_S,
             )?,
-            max_duration_s: self.positive_at_most(
-                "session.max_duration_s",
-                s.max_duration_s,
-                MAX_DURATION_S,
-            )?,
+            max_duration_s: self.positive("session.max_duration_s", s.max_duration_s)?,
             excitation_required: self.fraction(
                 "session.excitation_required",
                 s.excitation_required,
@@ -702,6 +712,30 @@ impl Checker<'_> {
                 )),
             },
         };
+        if session.max_duration_s > MAX_DURATION_S {
+            return Err(self.err(
+                "session.max_duration_s",
+                format!(
+                    "{} s is above the limit {MAX_DURATION_S} s: a session's memory grows with \
+                     its length (about 0.3 MiB a second), and a longer one would not fit the \
+                     unit's {MEMORY_MAX} with margin",
+                    session.max_duration_s
+                ),
+            ));
+        }
+        if session.grid_hz * session.max_duration_s > MAX_GRID_POINTS {
+            return Err(self.err(
+                "session.max_duration_s",
+                format!(
+                    "{} s at session.grid_hz = {} Hz is {:.0} grid points, above the limit \
+                     {MAX_GRID_POINTS:.0}: a session that long would not fit the unit's \
+                     {MEMORY_MAX} with margin; shorten it or slow the grid",
+                    session.max_duration_s,
+                    session.grid_hz,
+                    session.grid_hz * session.max_duration_s
+                ),
+            ));
+        }
         if session.max_duration_s < session.min_duration_s {
             return Err(self.err(
                 "session.max_duration_s",
@@ -798,6 +832,7 @@ impl Checker<'_> {
             timeout_ms: self.count_at_most("push.timeout_ms", p.timeout_ms, MAX_TIMEOUT_MS)?,
             authenticate: p.authenticate,
             keys: exocal_dbc::auth::KeySet::default(),
+            state_dir: None,
         };
         if push.backoff_initial_ms == 0 {
             return Err(self.err("push.backoff_initial_ms", "must be at least 1"));
@@ -1454,6 +1489,47 @@ mod tests {
         );
     }
 
+    /// A window longer than the memory budget allows (issue 34, item 6: 1,800 s peaked at
+    /// 511 MiB under `MemoryMax=256M`) is refused, naming the key, the limit and why; so is one
+    /// within it whose faster grid holds more points than the budget was measured at.
+    #[test]
+    fn a_session_longer_than_the_memory_budget_is_refused() {
+        let text = edited("max_duration_s = 180.0", "max_duration_s = 1800.0");
+        let (key, line, message) = invalid(&text);
+        assert_eq!(key, "session.max_duration_s");
+        assert_eq!(line, Some(line_containing(&text, "max_duration_s =")));
+        assert!(
+            message.contains("1800 s is above the limit 360 s")
+                && message.contains("MemoryMax=256M"),
+            "{message}"
+        );
+        let text = edited("grid_hz = 100.0", "grid_hz = 500.0");
+        let (key, _, message) = invalid(&text);
+        assert_eq!(key, "session.max_duration_s");
+        assert!(
+            message.contains(
+                "180 s at session.grid_hz = 500 Hz is 90000 grid points, above the limit 36000"
+            ),
+            "{message}"
+        );
+        // At the limit, and a faster grid over a shorter window, are accepted.
+        let at = edited("max_duration_s = 180.0", "max_duration_s = 360.0");
+        assert_eq!(
+            Config::parse(&at)
+                .unwrap()
+                .calibration
+                .window
+                .max_duration_s,
+            360.0
+        );
+        let fast = edited_in(
+            &edited("grid_hz = 100.0", "grid_hz = 500.0"),
+            "max_duration_s = 180.0",
+            "max_duration_s = 72.0",
+        );
+        assert!(Config::parse(&fast).is_ok());
+    }
+
     /// Every numeric key has an upper bound: just past it, the key is named with its line.
     #[test]
     fn every_numeric_key_has_an_upper_bound() {
@@ -1465,7 +1541,7 @@ mod tests {
             ),
             (
                 "max_duration_s = 180.0",
-                "max_duration_s = 86401.0",
+                "max_duration_s = 361.0",
                 "session.max_duration_s",
             ),
             ("grid_hz = 100.0", "grid_hz = 1e12", "session.grid_hz"),
@@ -1565,8 +1641,11 @@ mod tests {
                 "{to}"
             );
         }
-        // At the limits themselves the file is valid.
+        // At the limits themselves the file is valid (the fastest grid over a window short
+        // enough for the memory budget).
         let at = edited("grid_hz = 100.0", "grid_hz = 1000.0");
+        let at = at.replace("max_duration_s = 180.0", "max_duration_s = 36.0");
+        let at = at.replace("min_duration_s = 60.0", "min_duration_s = 30.0");
         let at = at.replace("retries = 3", "retries = 100");
         let at = at.replace("timeout_ms = 500", "timeout_ms = 60000");
         assert!(Config::parse(&at).is_ok());

@@ -185,6 +185,15 @@ impl std::error::Error for DaemonError {
     }
 }
 
+impl From<crate::state::StateError> for DaemonError {
+    fn from(e: crate::state::StateError) -> Self {
+        DaemonError::Io {
+            what: format!("{} {}", e.doing, e.path.display()),
+            source: e.source,
+        }
+    }
+}
+
 impl From<ConfigError> for DaemonError {
     fn from(e: ConfigError) -> Self {
         DaemonError::Config(e)

@@ -9,10 +9,16 @@
 //!   `exocald run` needs it; anything missing is a [`KeyError`] naming what and where, which
 //!   `exocald` maps to exit 78 at start-up, before it touches the bus;
 //! - a key never appears in an error, a log line or the session report ([`KeySet`]'s `Debug`
-//!   names nodes, not keys).
+//!   names nodes, not keys); a key file with an all-zero key or one key for two names is
+//!   refused ([`KeySet::parse`]); keys are zeroised when dropped
+//!   ([`exocal_dbc::auth::Key`]), and the shipped units set `LimitCORE=0` (no core dump holds
+//!   them);
+//! - outside systemd (no `$INVOCATION_ID`: a credentials directory made by hand), a key file
+//!   that group or others may read or write is loaded with a warning ([`permission_warning`]);
+//!   under systemd the credential is the service's own, whatever the source file's mode.
 
 use std::fmt;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use exocal_dbc::auth::{KeyFileError, KeySet};
 use exocal_dbc::NodeId;
@@ -55,6 +61,9 @@ pub enum KeyError {
         /// The node (`Joint1` … `Joint7`) or `Trigger` it has no key for.
         name: &'static str,
     },
+    /// No state directory (`$STATE_DIRECTORY` unset): the counters that refuse replays would
+    /// not survive the run.
+    NoState,
 }
 
 impl fmt::Display for KeyError {
@@ -83,6 +92,12 @@ impl fmt::Display for KeyError {
                 f,
                 "the key file {} has no key for {name}; {HOW}",
                 path.display()
+            ),
+            KeyError::NoState => f.write_str(
+                "no state directory: $STATE_DIRECTORY is not set, and authenticated transfers \
+                 keep the nodes' freshness counters and the trigger counter there between runs; \
+                 run under the shipped unit (StateDirectory=exocald), or set STATE_DIRECTORY to \
+                 a directory only exocald may write",
             ),
         }
     }
@@ -132,11 +147,47 @@ pub fn load(dir: Option<PathBuf>, nodes: &[NodeId], trigger: bool) -> Result<Key
 
 /// [`load`] from `$CREDENTIALS_DIRECTORY`.
 pub fn load_credential(nodes: &[NodeId], trigger: bool) -> Result<KeySet, KeyError> {
-    load(
-        std::env::var_os("CREDENTIALS_DIRECTORY").map(PathBuf::from),
-        nodes,
-        trigger,
-    )
+    load(credentials_dir(), nodes, trigger)
+}
+
+fn credentials_dir() -> Option<PathBuf> {
+    std::env::var_os("CREDENTIALS_DIRECTORY").map(PathBuf::from)
+}
+
+/// The keys from `$CREDENTIALS_DIRECTORY` if the credential is there (`None` if it is not:
+/// a command that can do without, like `exocald nodes`, then reads unauthenticated).
+pub fn load_if_present(nodes: &[NodeId]) -> Result<Option<KeySet>, KeyError> {
+    match load_credential(nodes, false) {
+        Ok(keys) => Ok(Some(keys)),
+        Err(KeyError::Missing { .. }) => Ok(None),
+        Err(e) => Err(e),
+    }
+}
+
+/// A warning for a key file in `dir` (the credentials directory) that group or others may
+/// read or write, when not `under_systemd` (whose credentials are the service's own); `None`
+/// when the file is private, absent, or systemd passed it.
+pub fn permission_warning(dir: Option<&Path>, under_systemd: bool) -> Option<String> {
+    use std::os::unix::fs::PermissionsExt;
+    if under_systemd {
+        return None;
+    }
+    let path = dir?.join(CREDENTIAL);
+    let mode = std::fs::metadata(&path).ok()?.permissions().mode() & 0o777;
+    (mode & 0o077 != 0).then(|| {
+        format!(
+            "WARNING: the key file {} has mode {mode:04o}: other users may read the node keys \
+             (chmod 600 it, or pass it as a systemd credential)",
+            path.display()
+        )
+    })
+}
+
+/// [`permission_warning`] for `$CREDENTIALS_DIRECTORY`, outside systemd when `$INVOCATION_ID`
+/// is unset.
+pub fn credential_warning() -> Option<String> {
+    let under_systemd = std::env::var_os("INVOCATION_ID").is_some();
+    permission_warning(credentials_dir().as_deref(), under_systemd)
 }
 
 #[cfg(test)]
@@ -155,13 +206,15 @@ mod tests {
         d
     }
 
+    /// A distinct key per name: `K` with its last digit the node's id (`f` for the trigger).
     fn all(trigger: bool) -> String {
+        let key = |last: char| format!("{}{last}", &K[..31]);
         let mut t: String = NodeId::JOINTS
             .iter()
-            .map(|n| format!("{} {K}\n", n.name()))
+            .map(|n| format!("{} {}\n", n.name(), key(char::from(b'0' + n.raw()))))
             .collect();
         if trigger {
-            t.push_str(&format!("Trigger {K}\n"));
+            t.push_str(&format!("Trigger {}\n", key('f')));
         }
         t
     }
@@ -199,5 +252,49 @@ mod tests {
         for d in [d, d2, d3, d4] {
             let _ = std::fs::remove_dir_all(&d);
         }
+    }
+
+    /// Issue 34, item 8: a shared or all-zero key is refused, naming the line and not the key.
+    #[test]
+    fn a_shared_or_all_zero_key_is_refused() {
+        let shared = all(true).replace(
+            &format!("Joint5 {}5", &K[..31]),
+            &format!("Joint5 {}3", &K[..31]),
+        );
+        let d = dir("shared", Some(&shared));
+        let e = load(Some(d.clone()), &NodeId::JOINTS, true)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("line 5") && e.contains("same key") && !e.contains(&K[..20]),
+            "{e}"
+        );
+        let zero = all(true).replace(&format!("{}2", &K[..31]), &"0".repeat(32));
+        let d2 = dir("zero", Some(&zero));
+        let e = load(Some(d2.clone()), &NodeId::JOINTS, true)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("line 2") && e.contains("all-zero"), "{e}");
+        for d in [d, d2] {
+            let _ = std::fs::remove_dir_all(&d);
+        }
+    }
+
+    /// Issue 34, item 8: outside systemd, a key file others may read is said; a private one,
+    /// or one systemd passed, is not.
+    #[test]
+    fn a_key_file_readable_by_others_is_warned_about_outside_systemd() {
+        use std::os::unix::fs::PermissionsExt;
+        let d = dir("mode", Some(&all(true)));
+        let file = d.join(CREDENTIAL);
+        std::fs::set_permissions(&file, std::fs::Permissions::from_mode(0o644)).unwrap();
+        let w = permission_warning(Some(&d), false).expect("a warning");
+        assert!(w.contains("0644") && w.contains("exocal-keys"), "{w}");
+        assert!(!w.contains(&K[..20]), "{w}");
+        assert_eq!(permission_warning(Some(&d), true), None);
+        std::fs::set_permissions(&file, std::fs::Permissions::from_mode(0o600)).unwrap();
+        assert_eq!(permission_warning(Some(&d), false), None);
+        assert_eq!(permission_warning(None, false), None);
+        let _ = std::fs::remove_dir_all(&d);
     }
 }

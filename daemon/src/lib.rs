@@ -16,6 +16,7 @@
 //! | [`shell::runner`] | one session on any transport: collect, align, calibrate, validate, push, log |
 //! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
 //! | [`keys`] | the node and trigger keys, from the systemd credential `exocal-keys` |
+//! | [`state`] | the state directory: the nodes' proved and signed freshness counters, the trigger counter (fsynced) |
 //! | [`shell::notify`] | progress bar / systemd `STATUS=` / plain lines; READY and WATCHDOG |
 //! | [`shell::shutdown`] | SIGTERM/SIGINT as a flag a session waits on |
 //! | [`shell::summary`] | a session's summary as printed on stdout |
@@ -41,3 +42,4 @@ pub mod live;
 pub mod log;
 pub mod push;
 pub mod shell;
+pub mod state;

@@ -9,6 +9,19 @@
 //!   must carry the node's MAC. **`New` is reported only on such an answer**, so forged ACK or
 //!   readback frames can make a push fail but never report `New`; a node without a key in
 //!   `push.keys` is not pushed to (`Unknown`, "no key");
+//! - the node's counter reaches the push only in an answer to Begin whose MAC verifies over the
+//!   upload's nonce (protocol `exocal-3`), so nobody without the key can make it sign a
+//!   `CommitAuth` for a counter far ahead of the node's. With a state directory
+//!   (`push.state_dir`, [`crate::state`]) the push also accepts a node's counter only between
+//!   the last one it proved and the highest one signed for it ([`NodeCounters::window`]): a
+//!   counter that went back or jumped is refused before anything is signed (the node's report
+//!   says which, and it is not retried); a counter is recorded (fsynced) before the
+//!   `CommitAuth` that signs it goes out, and is not sent if it cannot be; a state file that does
+//!   not read pushes nothing;
+//! - the report carries, per node, the CRC the node proved holding in an answer whose MAC
+//!   verified once no Commit of the push could still land (`verified_crc`: the signed readback,
+//!   the fence's, or the Begin of a job that never sent a Commit) and its proved counter: what
+//!   the log records and `exocald nodes` compares with;
 //! - a failed upload is retried up to `push.retries` times, each in a fresh transfer session,
 //!   after an exponential backoff ([`crate::config::PushPolicy::backoff_ms`]);
 //! - the node-side state machine installs a table only whole, at a Commit whose CRC matches, so
@@ -34,7 +47,7 @@
 use std::time::Duration;
 
 use exocal_bus::{Clock, Frame, Received, Transport};
-use exocal_dbc::auth::Key;
+use exocal_dbc::auth::{self, Key};
 use exocal_dbc::message::{CmdCode, Command, Reply, TableCmd};
 use exocal_dbc::table::Table;
 use exocal_dbc::transfer::{RetryPolicy, Upload, UploadError};
@@ -42,6 +55,7 @@ use exocal_dbc::{Message, NodeId};
 use serde::Serialize;
 
 use crate::config::PushPolicy;
+use crate::state::NodeCounters;
 
 /// Which table a node holds after the push.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -72,6 +86,11 @@ pub struct NodeReport {
     pub attempts: u32,
     /// Whether the transfer was authenticated (CommitAuth, signed readback).
     pub authenticated: bool,
+    /// The CRC of the table the node proved holding at the end, in an answer whose MAC
+    /// verified over our nonce (`None`: nothing proved, or unauthenticated).
+    pub verified_crc: Option<u32>,
+    /// The node's freshness counter from its last answer whose MAC verified.
+    pub counter: Option<u32>,
     /// The last failure, if the node does not hold the new table.
     pub error: Option<String>,
 }
@@ -144,6 +163,11 @@ struct Job {
     /// What an authenticated readback after the fence proved: `Some(true)` the node holds the
     /// new table, `Some(false)` another one.
     verified: Option<bool>,
+    /// The CRC the node proved holding (an answer whose MAC verified) once no Commit of this
+    /// push could still land.
+    verified_crc: Option<u32>,
+    /// The node's counter from its last answer to Begin whose MAC verified (within its window).
+    counter: Option<u32>,
     done: bool,
     ok: bool,
 }
@@ -183,6 +207,19 @@ pub async fn push_tables<T: Transport>(
     let fence_sends = retry
         .max_attempts
         .saturating_mul(policy.retries.saturating_add(1));
+    // The nodes' counters, when the push keeps them (authenticated, with a state directory).
+    let mut state: Option<(&std::path::Path, NodeCounters)> = None;
+    let mut state_error = None;
+    if let (true, Some(dir)) = (policy.authenticate, policy.state_dir.as_deref()) {
+        match NodeCounters::load(dir) {
+            Ok(c) => state = Some((dir, c)),
+            Err(e) => {
+                state_error = Some(format!(
+                    "the state directory does not read ({e}): not pushed"
+                ))
+            }
+        }
+    }
     let mut jobs: Vec<Job> = tables
         .iter()
         .map(|&(node, table)| {
@@ -191,8 +228,14 @@ pub async fn push_tables<T: Transport>(
                 .node(node)
                 .filter(|_| policy.authenticate)
                 .cloned();
-            // Authenticated without a key: nothing is sent to this node.
-            let keyless = policy.authenticate && key.is_none();
+            // Authenticated without a key, or without readable counters: nothing is sent.
+            let refused = match (&key, &state_error) {
+                (_, Some(e)) => Some(e.clone()),
+                (None, None) if policy.authenticate => {
+                    Some(format!("no key for {node}: not pushed"))
+                }
+                _ => None,
+            };
             Job {
                 node,
                 table,
@@ -200,16 +243,20 @@ pub async fn push_tables<T: Transport>(
                 upload: None,
                 attempts: 0,
                 next_start_us: 0,
-                last_error: keyless.then(|| format!("no key for {node}: not pushed")),
+                done: refused.is_some(),
+                last_error: refused,
                 held_crc: None,
                 commit_sent: false,
                 fence: None,
                 verified: None,
-                done: keyless,
+                verified_crc: None,
+                counter: None,
                 ok: false,
             }
         })
         .collect();
+    // Counters proved but not yet saved (those signed are saved before their CommitAuth).
+    let mut unsaved = false;
     while jobs.iter().any(|j| !j.done) {
         // Frames are stamped with the bus clock; deadlines run on its monotonic reading, so a
         // step of the host's wall clock neither stalls nor hurries a push.
@@ -224,7 +271,12 @@ pub async fn push_tables<T: Transport>(
                 job.attempts += 1;
                 job.upload = Some(match &job.key {
                     Some(key) => {
-                        Upload::authenticated(job.node, session, job.table, retry, key.clone())
+                        let up =
+                            Upload::authenticated(job.node, session, job.table, retry, key.clone());
+                        match state.as_ref().and_then(|(_, c)| c.window(job.node, key)) {
+                            Some((low, high)) => up.with_counter_window(low, high),
+                            None => up,
+                        }
                     }
                     None => Upload::new(job.node, session, job.table, retry),
                 });
@@ -233,37 +285,80 @@ pub async fn push_tables<T: Transport>(
             let Some(up) = job.upload.as_mut() else {
                 continue;
             };
+            let mut refused = None;
             if let Some(cmd) = up.poll(now_us) {
-                job.commit_sent |= matches!(cmd.cmd, Command::Commit { .. });
-                send(bus, &cmd, now, observer).await?;
-            }
-            if let Some(result) = up.outcome() {
-                job.held_crc = up.held_crc().or(job.held_crc);
-                job.upload = None;
-                match result {
-                    Ok(_) => {
-                        job.done = true;
-                        job.ok = true;
-                        job.last_error = None;
-                    }
-                    Err(e) => {
-                        job.last_error = Some(e.to_string());
-                        if job.attempts > policy.retries {
-                            if job.commit_sent {
-                                job.fence = Some(Fence {
-                                    session,
-                                    next_send_us: now_us + retry.timeout_us,
-                                    sends: 0,
-                                    answer: None,
-                                    verify: None,
-                                });
-                                session = session.wrapping_add(1);
-                            } else {
-                                job.done = true;
+                if let (Command::CommitAuth { .. }, Some((dir, counters)), Some(key)) =
+                    (cmd.cmd, state.as_mut(), &job.key)
+                {
+                    // Recorded before it goes out: after a power loss from here on, the node's
+                    // counter may be this one, and must not look like a jump.
+                    let proved = up
+                        .verified_counter()
+                        .is_some_and(|v| counters.verified(job.node, key, v));
+                    let signed = up
+                        .signed_counter()
+                        .is_some_and(|c| counters.signed(job.node, key, c));
+                    if proved || signed || unsaved {
+                        match counters.save(dir) {
+                            Ok(()) => unsaved = false,
+                            Err(e) => {
+                                refused = Some(format!(
+                                    "not signed: the counter could not be recorded ({e})"
+                                ))
                             }
-                        } else {
-                            job.next_start_us = now_us + policy.backoff_ms(job.attempts) * 1000;
                         }
+                    }
+                }
+                if refused.is_none() {
+                    job.commit_sent |= matches!(cmd.cmd, Command::Commit { .. });
+                    send(bus, &cmd, now, observer).await?;
+                }
+            }
+            let result = match refused {
+                Some(e) => Some(Err((e, true))),
+                None => up.outcome().map(|r| {
+                    r.map_err(|e| (e.to_string(), matches!(e, UploadError::Counter { .. })))
+                }),
+            };
+            let Some(result) = result else {
+                continue;
+            };
+            job.held_crc = up.held_crc().or(job.held_crc);
+            let counter_refused = matches!(result, Err((_, true)));
+            if let (Some(v), false) = (up.verified_counter(), counter_refused) {
+                job.counter = Some(v);
+                if let (Some((_, counters)), Some(key)) = (state.as_mut(), &job.key) {
+                    unsaved |= counters.verified(job.node, key, v);
+                }
+            }
+            if !job.commit_sent || result.is_ok() {
+                // No Commit of this push can land after this answer.
+                job.verified_crc = up.verified_crc().or(job.verified_crc);
+            }
+            job.upload = None;
+            match result {
+                Ok(_) => {
+                    job.done = true;
+                    job.ok = true;
+                    job.last_error = None;
+                }
+                Err((e, last)) => {
+                    job.last_error = Some(e);
+                    if job.attempts > policy.retries || last {
+                        if job.commit_sent {
+                            job.fence = Some(Fence {
+                                session,
+                                next_send_us: now_us + retry.timeout_us,
+                                sends: 0,
+                                answer: None,
+                                verify: None,
+                            });
+                            session = session.wrapping_add(1);
+                        } else {
+                            job.done = true;
+                        }
+                    } else {
+                        job.next_start_us = now_us + policy.backoff_ms(job.attempts) * 1000;
                     }
                 }
             }
@@ -278,6 +373,17 @@ pub async fn push_tables<T: Transport>(
             Ok(Ok(rx)) => on_received(&rx, &mut jobs, observer),
             Ok(Err(e)) => return Err(e),
             Err(_) => {}
+        }
+    }
+    if let (Some((dir, counters)), true) = (&state, unsaved) {
+        if let Err(e) = counters.save(dir) {
+            for j in jobs.iter_mut().filter(|j| j.key.is_some()) {
+                let note = format!("the state directory was not updated ({e})");
+                j.last_error = Some(match j.last_error.take() {
+                    Some(prev) => format!("{prev}; {note}"),
+                    None => note,
+                });
+            }
         }
     }
     Ok(PushReport {
@@ -315,6 +421,8 @@ async fn fence_step<T: Transport>(
                 Ok(crc) => Some(crc),
                 _ => verify.held_crc().or(fence.answer),
             };
+            // The fence discarded every staging first: nothing can land after this answer.
+            job.verified_crc = verify.verified_crc().or(job.verified_crc);
             job.done = true;
         }
     } else if let Some(answer) = fence.answer {
@@ -349,7 +457,13 @@ async fn fence_step<T: Transport>(
         } else {
             fence.sends += 1;
             fence.next_send_us = now_us + retry.timeout_us;
-            let begin = fence_cmd(job.node, fence.session, Command::Begin);
+            // A keyed node signs its answer over the nonce; the fence takes only the CRC (its
+            // signed readback follows).
+            let nonce = job
+                .key
+                .as_ref()
+                .map_or(0, |k| auth::nonce(k, job.node, fence.session, now_us));
+            let begin = fence_cmd(job.node, fence.session, Command::Begin { nonce });
             send(bus, &begin, now, observer).await?;
         }
     }
@@ -391,6 +505,8 @@ fn report(j: &Job, authenticated: bool) -> NodeReport {
         holds,
         attempts: j.attempts,
         authenticated,
+        verified_crc: j.verified_crc,
+        counter: j.counter,
         error,
     }
 }
@@ -452,9 +568,14 @@ mod tests {
     use exocal_dbc::transfer::{NodeTransfer, StorageError, TableStorage};
     use std::sync::{Arc, Mutex};
 
+    /// A node's storage: its table, and its counter (kept apart).
     #[derive(Default, Clone)]
-    struct Flash(Arc<Mutex<Option<Table>>>);
+    struct Flash(Arc<Mutex<Option<Table>>>, Arc<Mutex<u32>>);
     impl TableStorage for Flash {
+        fn store_counter(&mut self, counter: u32) -> Result<(), StorageError> {
+            *self.1.lock().unwrap() = counter;
+            Ok(())
+        }
         fn store(&mut self, t: &Table, _counter: u32) -> Result<(), StorageError> {
             *self.0.lock().unwrap() = Some(*t);
             Ok(())
@@ -465,10 +586,11 @@ mod tests {
         KeySet::derived(9)
     }
 
-    /// A node booted holding what `flash` holds and its key from [`keys`].
+    /// A node booted holding what `flash` holds, its counter and its key from [`keys`].
     fn keyed(node: NodeId, flash: &Flash) -> NodeTransfer {
         let held = *flash.0.lock().unwrap();
-        NodeTransfer::new(node, held).with_key(keys().node(node).unwrap().clone(), 0)
+        let counter = *flash.1.lock().unwrap();
+        NodeTransfer::new(node, held).with_key(keys().node(node).unwrap().clone(), counter)
     }
 
     fn table(k: f64) -> Table {
@@ -541,6 +663,7 @@ mod tests {
             timeout_ms: 20,
             authenticate: true,
             keys: keys(),
+            state_dir: None,
         }
     }
 
@@ -727,7 +850,11 @@ mod tests {
                     let mut replies = Vec::new();
                     let held_crc = table(4.0).crc();
                     match cmd.cmd {
-                        Command::Begin => replies.push(Reply::Freshness { counter: 3 }),
+                        Command::Begin { .. } => {
+                            guess = guess.wrapping_mul(0x9e37_79b9).wrapping_add(7);
+                            replies.push(Reply::Freshness { counter: 3 });
+                            replies.push(Reply::FreshnessMac { mac: guess });
+                        }
                         Command::Readback { .. } => {
                             for f in exocal_dbc::Field::ALL {
                                 replies.push(Reply::Readback(f, table(4.0).raw(f)));
@@ -807,5 +934,147 @@ mod tests {
             p.authenticate && p.keys.is_empty(),
             "keys never come from the file"
         );
+    }
+
+    fn state_dir(name: &str) -> std::path::PathBuf {
+        let d = std::env::temp_dir().join(format!("exocald-push-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        d
+    }
+
+    /// Issue 34, item 1: with a state directory, a node whose authenticated counter went back
+    /// below the last one proved, or jumped above the highest one signed, is refused before
+    /// anything is signed (no `CommitAuth` on the bus, not retried, the table stays); within
+    /// its window the push goes on and records what the node proved and what was signed.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_counter_that_went_back_or_jumped_is_refused_before_signing() {
+        let node = NodeId::JOINTS[1];
+        let key = keys().node(node).unwrap().clone();
+        for (record, want) in [
+            ((10, 11), Err("is above 11")),
+            ((60, 60), Err("is below 60")),
+            ((49, 50), Ok(())),
+        ] {
+            let dir = state_dir(&format!("window-{}", record.0));
+            let mut counters = NodeCounters::default();
+            counters.verified(node, &key, record.0);
+            counters.signed(node, &key, record.1);
+            counters.save(&dir).unwrap();
+            let bus = InProcessBus::new();
+            let flash = Flash::default();
+            *flash.0.lock().unwrap() = Some(table(0.0));
+            *flash.1.lock().unwrap() = 50;
+            let nodes = spawn_nodes(&bus, vec![(node, flash.clone())], |_| false, vec![]);
+            let mut ep = bus.attach();
+            let policy = PushPolicy {
+                state_dir: Some(dir.clone()),
+                ..policy()
+            };
+            let mut auths = 0;
+            let mut sink = |tx: bool, f: &Frame, _: Duration| {
+                if let (true, Ok(Message::TableCmd(c))) = (tx, exocal_dbc::decode_frame(f)) {
+                    auths += usize::from(c.cmd.code() == CmdCode::CommitAuth);
+                }
+            };
+            let report = push_tables(
+                &mut ep,
+                &Clock::Wall,
+                &[(node, table(5.0))],
+                &policy,
+                1,
+                &mut sink,
+            )
+            .await
+            .unwrap();
+            nodes.abort();
+            let r = &report.nodes[0];
+            let after = NodeCounters::load(&dir)
+                .unwrap()
+                .record(node, &key)
+                .unwrap();
+            match want {
+                Err(said) => {
+                    assert_eq!((r.holds, r.attempts, auths), (Holds::Old, 1, 0), "{r:?}");
+                    assert!(r.error.as_deref().unwrap().contains(said), "{r:?}");
+                    assert_eq!(*flash.0.lock().unwrap(), Some(table(0.0)));
+                    assert_eq!(r.verified_crc, Some(table(0.0).crc()), "{r:?}");
+                    assert_eq!((after.verified, after.signed), record, "nothing recorded");
+                }
+                Ok(()) => {
+                    assert_eq!(r.holds, Holds::New, "{r:?}");
+                    assert_eq!(
+                        (r.verified_crc, r.counter),
+                        (Some(table(5.0).crc()), Some(50))
+                    );
+                    assert_eq!((after.verified, after.signed), (50, 51));
+                    assert_eq!(*flash.1.lock().unwrap(), 51);
+                }
+            }
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+    }
+
+    /// The counter a `CommitAuth` signs is in the state file before the frame is on the bus;
+    /// a state file that does not read pushes nothing.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn the_signed_counter_is_recorded_before_its_commit_auth_goes_out() {
+        let node = NodeId::JOINTS[4];
+        let key = keys().node(node).unwrap().clone();
+        let dir = state_dir("before");
+        let bus = InProcessBus::new();
+        let flash = Flash::default();
+        *flash.1.lock().unwrap() = 7;
+        let nodes = spawn_nodes(&bus, vec![(node, flash.clone())], |_| false, vec![]);
+        let mut ep = bus.attach();
+        let policy = PushPolicy {
+            state_dir: Some(dir.clone()),
+            ..policy()
+        };
+        let mut on_the_bus = Vec::new();
+        let mut sink = |tx: bool, f: &Frame, _: Duration| {
+            if let (true, Ok(Message::TableCmd(c))) = (tx, exocal_dbc::decode_frame(f)) {
+                if c.cmd.code() == CmdCode::CommitAuth {
+                    on_the_bus.push(NodeCounters::load(&dir).unwrap().record(node, &key));
+                }
+            }
+        };
+        let report = push_tables(
+            &mut ep,
+            &Clock::Wall,
+            &[(node, table(2.0))],
+            &policy,
+            1,
+            &mut sink,
+        )
+        .await
+        .unwrap();
+        assert_eq!(report.nodes[0].holds, Holds::New);
+        assert!(!on_the_bus.is_empty());
+        for r in on_the_bus {
+            let r = r.expect("recorded");
+            assert_eq!((r.verified, r.signed), (7, 8));
+        }
+        // A damaged state file: nothing is sent at all.
+        std::fs::write(dir.join(crate::state::NODE_COUNTERS), "Joint5 what\n").unwrap();
+        let mut sent = 0;
+        let mut sink = |tx: bool, _: &Frame, _: Duration| sent += usize::from(tx);
+        let report = push_tables(
+            &mut ep,
+            &Clock::Wall,
+            &[(node, table(3.0))],
+            &policy,
+            9,
+            &mut sink,
+        )
+        .await
+        .unwrap();
+        nodes.abort();
+        let r = &report.nodes[0];
+        assert_eq!((r.holds, r.attempts, sent), (Holds::Unknown, 0, 0), "{r:?}");
+        assert!(
+            r.error.as_deref().unwrap().contains("node-counters"),
+            "{r:?}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -74,6 +74,7 @@ async fn one_run(seed: u64, tally: &mut PushTally) {
         timeout_ms: (SPEED * 20.0) as u64,
         authenticate: true,
         keys,
+        state_dir: None,
     };
     let mut ignore = |_: bool, _: &exocal_bus::Frame, _: Duration| {};
     let report = push_tables(

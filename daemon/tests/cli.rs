@@ -18,6 +18,7 @@ fn temp(name: &str, text: &str) -> std::path::PathBuf {
     let dir = std::env::temp_dir().join(format!("exocald-cli-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let p = dir.join(name);
+    std::fs::create_dir_all(p.parent().unwrap()).unwrap();
     std::fs::write(&p, text).unwrap();
     p
 }
@@ -118,6 +119,35 @@ fn missing_keys_exit_78_and_authentication_off_is_said() {
     assert_eq!(out.status.code(), Some(78), "{err}");
     assert!(err.contains("no key for Joint2"), "{err}");
     assert!(!err.contains("000102"), "a key in the message: {err}");
+    // Every key, but no state directory (issue 34): 78, naming it; with one, on to the socket.
+    let all: String = (1..=7)
+        .map(|n| format!("Joint{n} 000102030405060708090a0b0c0d0e{n:02x}\n"))
+        .collect();
+    let full = temp("full/exocal-keys", &all);
+    let state = full.parent().unwrap().join("state");
+    for with_state in [false, true] {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_exocald"));
+        cmd.args([
+            "--config",
+            shipped.to_str().unwrap(),
+            "calibrate",
+            "-i",
+            "lo",
+        ])
+        .env("CREDENTIALS_DIRECTORY", full.parent().unwrap())
+        .env_remove("STATE_DIRECTORY");
+        if with_state {
+            cmd.env("STATE_DIRECTORY", &state);
+        }
+        let out = cmd.output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        if with_state {
+            assert_eq!(out.status.code(), Some(69), "{err}");
+        } else {
+            assert_eq!(out.status.code(), Some(78), "{err}");
+            assert!(err.contains("STATE_DIRECTORY"), "{err}");
+        }
+    }
     let off = exocald::config::DEFAULT_TOML.replace("authenticate = true", "authenticate = false");
     let off = temp("off.toml", &off);
     let (code, _, err) = exocald(&["--config", off.to_str().unwrap(), "calibrate", "-i", "lo"]);

@@ -75,7 +75,7 @@ fn the_mcap_reader_reads_the_frames_the_daemon_logged() {
         }
     }
     log.finish().unwrap();
-    let session = read_mcap_session(buf.get_ref()).unwrap();
+    let session = read_mcap_session(buf.get_ref().as_slice(), exocal_log::read::admit_all).unwrap();
     assert_eq!(
         session.collection_end.unwrap().as_nanos() as u64,
         1_700_000_000_000_000_000 + 200 * 1_234_567

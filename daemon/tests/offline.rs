@@ -88,7 +88,11 @@ fn offline_recalibration_agrees_with_the_live_session() {
     assert!(html.contains("Joint7") && html.contains("EndEffector"));
 
     // (a) The MCAP log, replayed offline up to its collection end: the same table, bit for bit.
-    let session = read_mcap_session(&std::fs::read(&live.log_path).unwrap()).unwrap();
+    let session = read_mcap_session(
+        std::fs::read(&live.log_path).unwrap().as_slice(),
+        exocal_log::read::admit_all,
+    )
+    .unwrap();
     let used = session
         .collection_frames
         .expect("the collection-done marker") as usize;
@@ -150,8 +154,9 @@ fn offline_recalibration_agrees_with_the_live_session() {
     // (c) The aligned samples as CSV bypass alignment and give the same table to rounding.
     let (recording, _, gate) = offline::read_input_gated(
         &live.log_path,
-        &std::fs::read(&live.log_path).unwrap(),
+        std::fs::File::open(&live.log_path).unwrap(),
         Format::Mcap,
+        &config.calibration.window,
     )
     .unwrap();
     let samples: Vec<_> = exocal_session::pipeline::timed(
@@ -253,7 +258,7 @@ fn bad_inputs_are_errors_naming_the_file_line_and_problem() {
             "binary.bin",
             vec![0xff, 0xfe, 0x00, 0x01],
             Some(Format::Csv),
-            "binary.bin: not UTF-8 text",
+            "binary.bin: CSV samples, line 1: not UTF-8 text (byte 1 of the line)",
         ),
         (
             "what.txt",

@@ -8,17 +8,25 @@
 //!
 //!   | MAC | tag | fields |
 //!   |---|---|---|
+//!   | [`freshness_mac`] | `F` | node id, session, the Begin's nonce (u32), counter (u32), held CRC-32 (u32) |
 //!   | [`commit_mac`] | `C` | node id, session, counter (u32), the 24 table bytes, CRC-32 (u32) |
 //!   | [`readback_mac`] | `R` | node id, nonce (u32), held CRC-32 (u32), the 24 table bytes |
 //!   | [`trigger_mac`] | `T` | command, counter (u32) |
 //!   | [`nonce`] | `N` | node id, session, time (u64, µs) |
+//!   | [`Key::id`] | `I` | (nothing) |
 //!
 //!   so no MAC of one kind verifies as another;
 //! - a frame carries the low 16 bits of a counter; the receiver stored the last counter it
 //!   accepted and takes the smallest value above it with those low bits ([`next_counter`]): a
 //!   sender may skip at most 65,535 values, a replay or a stale sender never verifies;
-//! - [`verify_commit`], [`verify_readback`] and [`verify_trigger`] compare in constant time;
-//! - a [`Key`] never shows in `Debug` output, and has no `Display`.
+//! - the counter a controller signs above comes to it authenticated: a node answers Begin with
+//!   its counter and a [`freshness_mac`] over the controller's nonce, so nobody without the key
+//!   can make a controller sign for a counter far ahead of the node's (and keep that
+//!   `CommitAuth` for a later replay);
+//! - [`verify_freshness`], [`verify_commit`], [`verify_readback`] and [`verify_trigger`]
+//!   compare in constant time;
+//! - a [`Key`] never shows in `Debug` output, has no `Display`, and is zeroised when dropped
+//!   ([`zeroize`]); a [`KeySet`] refuses an all-zero key and a key given twice.
 //!
 //! Time is an argument here as everywhere in this crate: [`nonce`] is a MAC of the time the
 //! caller passes, so it is unpredictable without the key and never repeats for one node and
@@ -26,6 +34,7 @@
 
 use aes::Aes128;
 use cmac::{Cmac, Mac};
+use zeroize::{Zeroize, ZeroizeOnDrop};
 
 use crate::message::{Trigger, TriggerCommand};
 use crate::table::Table;
@@ -34,9 +43,24 @@ use crate::NodeId;
 /// Length of a key, bytes (AES-128).
 pub const KEY_LEN: usize = 16;
 
-/// An AES-128 key. `Debug` prints `Key(..)`: a key never reaches a log by accident.
+/// An AES-128 key. `Debug` prints `Key(..)`: a key never reaches a log by accident; its bytes
+/// are overwritten with zeros when it is dropped (a core dump or a freed page keeps no copy).
 #[derive(Clone, PartialEq, Eq)]
 pub struct Key([u8; KEY_LEN]);
+
+impl Drop for Key {
+    fn drop(&mut self) {
+        self.0.zeroize();
+    }
+}
+
+impl Zeroize for Key {
+    fn zeroize(&mut self) {
+        self.0.zeroize();
+    }
+}
+
+impl ZeroizeOnDrop for Key {}
 
 impl core::fmt::Debug for Key {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
@@ -61,11 +85,23 @@ impl Key {
         if text.len() != 2 * KEY_LEN {
             return None;
         }
-        let mut out = [0u8; KEY_LEN];
-        for (byte, pair) in out.iter_mut().zip(text.chunks_exact(2)) {
+        // Built in place: a key half parsed is zeroised when dropped, like a whole one.
+        let mut key = Key([0u8; KEY_LEN]);
+        for (byte, pair) in key.0.iter_mut().zip(text.chunks_exact(2)) {
             *byte = (hex_digit(pair[0])? << 4) | hex_digit(pair[1])?;
         }
-        Some(Key(out))
+        Some(key)
+    }
+
+    /// Whether every byte is zero (a placeholder, never a key).
+    pub fn is_zero(&self) -> bool {
+        self.0.iter().all(|&b| b == 0)
+    }
+
+    /// A 32-bit identifier of this key (a MAC of `I`): to tell, in stored state, which key a
+    /// record was made with, without storing the key.
+    pub fn id(&self) -> u32 {
+        truncated(cmac(self, &[b"I"]))
     }
 
     /// A key derived from this one for `label` (the full 16-byte CMAC of `K`, `label`): to make
@@ -107,6 +143,57 @@ fn truncated(mac: Cmac<Aes128>) -> u32 {
 
 fn verify(mac: Cmac<Aes128>, got: u32) -> bool {
     mac.verify_truncated_left(&got.to_be_bytes()).is_ok()
+}
+
+fn freshness_input(
+    key: &Key,
+    node: NodeId,
+    session: u8,
+    nonce: u32,
+    counter: u32,
+    held_crc: u32,
+) -> Cmac<Aes128> {
+    cmac(
+        key,
+        &[
+            b"F",
+            &[node.raw(), session],
+            &nonce.to_le_bytes(),
+            &counter.to_le_bytes(),
+            &held_crc.to_le_bytes(),
+        ],
+    )
+}
+
+/// The MAC of a keyed node's answer to `Begin(nonce)` in `session`: it stores freshness
+/// `counter` and holds the table whose CRC is `held_crc`.
+pub fn freshness_mac(
+    key: &Key,
+    node: NodeId,
+    session: u8,
+    nonce: u32,
+    counter: u32,
+    held_crc: u32,
+) -> u32 {
+    truncated(freshness_input(
+        key, node, session, nonce, counter, held_crc,
+    ))
+}
+
+/// Whether `mac` is [`freshness_mac`] of these values (constant time).
+pub fn verify_freshness(
+    key: &Key,
+    node: NodeId,
+    session: u8,
+    nonce: u32,
+    counter: u32,
+    held_crc: u32,
+    mac: u32,
+) -> bool {
+    verify(
+        freshness_input(key, node, session, nonce, counter, held_crc),
+        mac,
+    )
 }
 
 fn commit_input(key: &Key, node: NodeId, session: u8, counter: u32, table: &Table) -> Cmac<Aes128> {
@@ -253,7 +340,9 @@ impl std::error::Error for KeyFileError {}
 ///
 /// Key file (the `exocal-keys` credential): one `NAME HEX` pair per line, NAME a DBC node name
 /// (`Joint1` … `Joint7`) or `Trigger`, HEX 32 hexadecimal digits; blank lines and lines
-/// starting with `#` are ignored. Errors name the line, never its content.
+/// starting with `#` are ignored. Every key must be its own: an all-zero key and a key given
+/// for two names are refused (one stolen node would give away the other; zeros are a
+/// placeholder left in a template). Errors name the line, never its content.
 #[derive(Clone, Default, PartialEq, Eq)]
 pub struct KeySet {
     nodes: [Option<Key>; 8],
@@ -291,7 +380,7 @@ impl KeySet {
             };
             let key = Key::from_hex(hex).ok_or(err("the key is not 32 hexadecimal digits"))?;
             let slot = if name == "Trigger" {
-                &mut keys.trigger
+                None
             } else {
                 let node = NodeId::ALL
                     .into_iter()
@@ -299,10 +388,32 @@ impl KeySet {
                     .ok_or(err(
                         "unknown name: expected Joint1 … Joint7, EndEffector or Trigger",
                     ))?;
-                &mut keys.nodes[usize::from(node.raw() - 1)]
+                Some(usize::from(node.raw() - 1))
             };
-            if slot.replace(key).is_some() {
+            let held = match slot {
+                None => &keys.trigger,
+                Some(i) => &keys.nodes[i],
+            };
+            if held.is_some() {
                 return Err(err("this name has a key on an earlier line"));
+            }
+            if key.is_zero() {
+                return Err(err("an all-zero key is a placeholder, not a key"));
+            }
+            if keys
+                .nodes
+                .iter()
+                .chain([&keys.trigger])
+                .flatten()
+                .any(|k| k == &key)
+            {
+                return Err(err(
+                    "the same key as an earlier line: every node and the trigger need their own",
+                ));
+            }
+            match slot {
+                None => keys.trigger = Some(key),
+                Some(i) => keys.nodes[i] = Some(key),
             }
         }
         Ok(keys)
@@ -396,6 +507,19 @@ mod tests {
         ] {
             assert!(!bad);
         }
+        let fm = freshness_mac(key, n, 5, 0xabcd, 100, t.crc());
+        assert!(verify_freshness(key, n, 5, 0xabcd, 100, t.crc(), fm));
+        for bad in [
+            verify_freshness(other, n, 5, 0xabcd, 100, t.crc(), fm),
+            verify_freshness(key, NodeId::JOINTS[1], 5, 0xabcd, 100, t.crc(), fm),
+            verify_freshness(key, n, 6, 0xabcd, 100, t.crc(), fm),
+            verify_freshness(key, n, 5, 0xabce, 100, t.crc(), fm),
+            verify_freshness(key, n, 5, 0xabcd, 60_100, t.crc(), fm),
+            verify_freshness(key, n, 5, 0xabcd, 100, t.crc() ^ 1, fm),
+        ] {
+            assert!(!bad);
+        }
+        assert_ne!(key.id(), other.id());
         let rb = readback_mac(key, n, 77, t.crc(), &t.to_bytes());
         assert!(verify_readback(key, n, 77, t.crc(), &t.to_bytes(), rb));
         assert!(!verify_readback(key, n, 78, t.crc(), &t.to_bytes(), rb));
@@ -459,6 +583,16 @@ mod tests {
                 "Joint1 000102030405060708090a0b0c0d0e0f\nJoint1 000102030405060708090a0b0c0d0e0f",
                 2,
             ),
+            // Issue 34: an all-zero key, and one key for two names (a node and the trigger).
+            ("Joint2 00000000000000000000000000000000", 1),
+            (
+                "Joint1 000102030405060708090a0b0c0d0e0f\n# x\nJoint2 000102030405060708090A0B0C0D0E0F",
+                3,
+            ),
+            (
+                "Trigger 000102030405060708090a0b0c0d0e0f\nJoint7 000102030405060708090a0b0c0d0e0f",
+                2,
+            ),
         ] {
             let e = KeySet::parse(bad).unwrap_err();
             assert_eq!(e.line, line, "{bad}: {e}");
@@ -469,5 +603,17 @@ mod tests {
         assert_ne!(d, KeySet::derived(2025));
         assert_ne!(d.node(NodeId::JOINTS[0]), d.node(NodeId::JOINTS[1]));
         assert!(!d.is_empty() && KeySet::default().is_empty());
+    }
+
+    /// A key is zeroised when dropped (and on demand): the type says so, and zeroising works.
+    #[test]
+    fn keys_are_zeroised() {
+        fn zeroised_on_drop<T: ZeroizeOnDrop>() {}
+        zeroised_on_drop::<Key>();
+        let mut k = Key::from_hex("ffeeddccbbaa99887766554433221100").unwrap();
+        assert!(!k.is_zero());
+        k.zeroize();
+        assert!(k.is_zero());
+        assert_eq!(k.bytes(), &[0u8; KEY_LEN]);
     }
 }

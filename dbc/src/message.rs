@@ -196,8 +196,12 @@ impl CmdCode {
 /// Controller → node command (`TableCmd_<node>`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Command {
-    /// Open a transfer of six segments.
-    Begin,
+    /// Open a transfer of six segments; a keyed node answers with its counter and a MAC over
+    /// `nonce` ([`Reply::Freshness`], [`Reply::FreshnessMac`]).
+    Begin {
+        /// Chosen by the controller, covered by the node's [`Reply::FreshnessMac`].
+        nonce: u32,
+    },
     /// One table field, raw units (see [`crate::Table`]).
     Segment(Field, i64),
     /// Install the staged table if its CRC-32 equals `crc` (and, on a node holding a key, the
@@ -227,7 +231,7 @@ impl Command {
     /// The code used to name this command in replies.
     pub fn code(&self) -> CmdCode {
         match *self {
-            Command::Begin => CmdCode::Begin,
+            Command::Begin { .. } => CmdCode::Begin,
             Command::Segment(f, _) => CmdCode::Segment(f),
             Command::Commit { .. } => CmdCode::Commit,
             Command::CommitAuth { .. } => CmdCode::CommitAuth,
@@ -276,11 +280,14 @@ pub enum NackReason {
     /// A `CommitAuth` whose MAC verifies for a counter at or below the one the node stored: a
     /// replay or a stale sender.
     StaleCounter = table_reply::nack_reason::STALE_COUNTER,
+    /// A node without a key (never provisioned, or its key or counter unreadable) installs
+    /// nothing: it refuses every transfer until it is provisioned.
+    NoKey = table_reply::nack_reason::NO_KEY,
 }
 
 impl NackReason {
     /// Every reason.
-    pub const ALL: [NackReason; 11] = {
+    pub const ALL: [NackReason; 12] = {
         use NackReason::*;
         [
             BadSession,
@@ -294,6 +301,7 @@ impl NackReason {
             NoTable,
             BadMac,
             StaleCounter,
+            NoKey,
         ]
     };
 
@@ -324,10 +332,17 @@ pub enum Reply {
     /// One field of the held table, raw units.
     Readback(Field, i64),
     /// The freshness counter the node stored with its table (a keyed node's answer to Begin,
-    /// before its ACK).
+    /// before [`Reply::FreshnessMac`] and the ACK).
     Freshness {
         /// The stored counter; a CommitAuth must carry a higher one.
         counter: u32,
+    },
+    /// The MAC of a keyed node's answer to Begin: over node, session, the Begin's nonce, the
+    /// counter and the held CRC ([`crate::auth::freshness_mac`]), so the counter the controller
+    /// signs above cannot be forged.
+    FreshnessMac {
+        /// The truncated AES-128-CMAC.
+        mac: u32,
     },
     /// The MAC of a keyed node's readback (after the six fields, before the ACK): over node,
     /// nonce, held CRC and table ([`crate::auth::readback_mac`]).
@@ -522,7 +537,9 @@ pub fn decode(id: u16, data: &[u8]) -> Result<Message, DecodeError> {
             use table_cmd::*;
             let value = raw(&CMD) as u8;
             let cmd = match CmdCode::from_code(value).ok_or(DecodeError::BadMux { id, value })? {
-                CmdCode::Begin => Command::Begin,
+                CmdCode::Begin => Command::Begin {
+                    nonce: raw(&BEGIN_NONCE) as u32,
+                },
                 CmdCode::Segment(f) => Command::Segment(f, raw(f.segment())),
                 CmdCode::Commit => Command::Commit {
                     crc: raw(&TABLE_CRC) as u32,
@@ -561,6 +578,9 @@ pub fn decode(id: u16, data: &[u8]) -> Result<Message, DecodeError> {
                 },
                 reply::READBACK_MAC => Reply::ReadbackMac {
                     mac: raw(&RB_MAC) as u32,
+                },
+                reply::FRESHNESS_MAC => Reply::FreshnessMac {
+                    mac: raw(&FRESH_MAC) as u32,
                 },
                 value @ reply::READBACK_A..=reply::READBACK_SIGMA => {
                     let f = Field::from_seq(value - reply::READBACK_A)
@@ -705,7 +725,10 @@ impl Message {
                 CMD.encode_raw(d, i64::from(m.cmd.code().code()))?;
                 SESSION.encode_raw(d, i64::from(m.session))?;
                 match m.cmd {
-                    Command::Begin => SEGMENT_COUNT.encode_raw(d, Field::ALL.len() as i64)?,
+                    Command::Begin { nonce } => {
+                        SEGMENT_COUNT.encode_raw(d, Field::ALL.len() as i64)?;
+                        BEGIN_NONCE.encode_raw(d, i64::from(nonce))?;
+                    }
                     Command::Segment(f, raw) => f.segment().encode_raw(d, raw)?,
                     Command::Commit { crc } => TABLE_CRC.encode_raw(d, i64::from(crc))?,
                     Command::CommitAuth { counter_lo, mac } => {
@@ -746,6 +769,10 @@ impl Message {
                     Reply::ReadbackMac { mac } => {
                         RB_MAC.encode_raw(d, i64::from(mac))?;
                         reply::READBACK_MAC
+                    }
+                    Reply::FreshnessMac { mac } => {
+                        FRESH_MAC.encode_raw(d, i64::from(mac))?;
+                        reply::FRESHNESS_MAC
                     }
                 };
                 REPLY.encode_raw(d, i64::from(switch))?;
@@ -842,7 +869,7 @@ mod tests {
                 .prop_map(|(y, z)| PosePage::QuatYZ { y, z }),
         ];
         let command = prop_oneof![
-            Just(Command::Begin),
+            any::<u32>().prop_map(|nonce| Command::Begin { nonce }),
             field_raw().prop_map(|(f, r)| Command::Segment(f, r)),
             any::<u32>().prop_map(|crc| Command::Commit { crc }),
             (any::<u16>(), any::<u32>())
@@ -860,6 +887,7 @@ mod tests {
             field_raw().prop_map(|(f, r)| Reply::Readback(f, r)),
             any::<u32>().prop_map(|counter| Reply::Freshness { counter }),
             any::<u32>().prop_map(|mac| Reply::ReadbackMac { mac }),
+            any::<u32>().prop_map(|mac| Reply::FreshnessMac { mac }),
         ];
         let states = NodeState::ALL;
         prop_oneof![

@@ -85,7 +85,9 @@ fn signals(m: &Message) -> Vec<(&'static str, f64)> {
                 ("Session", f64::from(c.session)),
             ];
             match c.cmd {
-                Command::Begin => v.push(("SegmentCount", 6.0)),
+                Command::Begin { nonce } => {
+                    v.extend([("SegmentCount", 6.0), ("BeginNonce", f64::from(nonce))])
+                }
                 Command::Segment(f, raw) => v.push((SEG[f as usize], raw as f64 * 1e-6)),
                 Command::Commit { crc } => v.push(("TableCrc", f64::from(crc))),
                 Command::CommitAuth { counter_lo, mac } => v.extend([
@@ -123,6 +125,9 @@ fn signals(m: &Message) -> Vec<(&'static str, f64)> {
                     v.extend([("Reply", 2.0), ("NodeCounter", f64::from(counter))])
                 }
                 Reply::ReadbackMac { mac } => v.extend([("Reply", 3.0), ("RbMac", f64::from(mac))]),
+                Reply::FreshnessMac { mac } => {
+                    v.extend([("Reply", 4.0), ("FreshMac", f64::from(mac))])
+                }
             }
             v
         }
@@ -218,7 +223,9 @@ fn corpus() -> Vec<Message> {
                     lo + 1,
                 ][k];
                 let cmds = [
-                    Command::Begin,
+                    Command::Begin {
+                        nonce: ts.rotate_left(7),
+                    },
                     Command::Segment(f, raw),
                     Command::Commit { crc: ts },
                     Command::CommitAuth {
@@ -237,6 +244,7 @@ fn corpus() -> Vec<Message> {
                     NackReason::NoTable,
                     NackReason::BadMac,
                     NackReason::StaleCounter,
+                    NackReason::NoKey,
                 ];
                 for reply in [
                     Reply::Ack {
@@ -246,11 +254,12 @@ fn corpus() -> Vec<Message> {
                     Reply::Nack {
                         cmd: CmdCode::Commit,
                         held_crc: !ts,
-                        reason: reasons[k % 5],
+                        reason: reasons[k % reasons.len()],
                     },
                     Reply::Readback(f, raw),
                     Reply::Freshness { counter: ts },
                     Reply::ReadbackMac { mac: !ts },
+                    Reply::FreshnessMac { mac: ts ^ 0xa5a5 },
                 ] {
                     out.push(Message::TableReply(TableReply {
                         node,

@@ -20,12 +20,21 @@
 //! blank sector would).
 //!
 //! The key slot is `node<N>.key`: the node's 16-byte AES-128 key, raw, mode 0600, written by
-//! provisioning ([`provision`], `exocal-hil --keys`), never over CAN. A node without one accepts
-//! unauthenticated tables (protocol version 1).
+//! provisioning ([`provision`], `exocal-hil --keys`), never over CAN.
+//!
+//! The counter record is `node<N>.ctr`, kept apart from the table image so that a corrupt or
+//! lost image never takes the freshness counter back (a recorded transfer would then install
+//! again): magic `EXOC`, version 1, node id, two spare bytes, the counter (u32), CRC-32 of bytes
+//! 0..12 — 16 bytes, written (fsync, rename) before the table image at every commit
+//! ([`NodeFlash`]'s [`TableStorage::store_counter`]), created by [`provision`]. A node boots
+//! with its key only if it reads both its key slot and its counter record, its counter the
+//! higher of the record and the image's ([`Provisioning::boot`]); a node that has either but
+//! cannot read both boots without a key and installs nothing until it is provisioned again (fail
+//! closed), and so does a node that was never provisioned.
 
 use exocal_dbc::auth::{Key, KeySet, KEY_LEN};
 use exocal_dbc::table::crc32;
-use exocal_dbc::transfer::{StorageError, TableStorage};
+use exocal_dbc::transfer::{NodeTransfer, StorageError, TableStorage};
 use exocal_dbc::{NodeId, Table};
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -36,6 +45,9 @@ const VERSION: u8 = 2;
 pub const FILE_LEN: usize = 44;
 /// Size of a format-1 flash file.
 const V1_LEN: usize = 40;
+const COUNTER_MAGIC: &[u8; 4] = b"EXOC";
+/// Size of a counter record.
+pub const COUNTER_LEN: usize = 16;
 
 /// The content of a flash file.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -44,8 +56,8 @@ pub struct FlashImage {
     pub boot_count: u32,
     /// Installed table.
     pub table: Table,
-    /// The freshness counter the table was committed with (0 for an unauthenticated commit
-    /// or a format-1 image).
+    /// The freshness counter the table was committed with (0 for a factory table or a
+    /// format-1 image).
     pub counter: u32,
 }
 
@@ -163,17 +175,108 @@ pub fn write_key(dir: &Path, node: NodeId, key: &Key) -> std::io::Result<()> {
     std::fs::rename(&tmp, &p)
 }
 
-/// Provisions the key slot of every joint node `keys` has a key for (a factory step: the
-/// nodes read their slots at boot); returns the nodes provisioned.
+/// Provisions the key slot and the counter record of every joint node `keys` has a key for (a
+/// factory step: the nodes read both at boot); returns the nodes provisioned. The counter
+/// record is never lowered: it keeps the highest of what it held and the table image's counter
+/// that still read (after losing both, give the node a new key: an old `CommitAuth` made with
+/// the old one would otherwise verify again).
 pub fn provision(dir: &Path, keys: &KeySet) -> std::io::Result<Vec<NodeId>> {
     let mut done = Vec::new();
     for node in NodeId::ALL {
         if let Some(key) = keys.node(node) {
             write_key(dir, node, key)?;
+            let record = read_counter(dir, node).ok().flatten().unwrap_or(0);
+            let image = read(dir, node).ok().flatten().map_or(0, |i| i.counter);
+            write_counter(dir, node, record.max(image))?;
             done.push(node);
         }
     }
     Ok(done)
+}
+
+/// The counter record path of `node` in `dir`.
+pub fn counter_path(dir: &Path, node: NodeId) -> PathBuf {
+    dir.join(format!("node{}.ctr", node.raw()))
+}
+
+/// Reads a node's counter record: `Ok(None)` if there is none.
+pub fn read_counter(dir: &Path, node: NodeId) -> Result<Option<u32>, FlashError> {
+    let p = counter_path(dir, node);
+    let b = match std::fs::read(&p) {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(FlashError::Io(p, e)),
+    };
+    let corrupt = |why| Err(FlashError::Corrupt(p.clone(), why));
+    if b.len() != COUNTER_LEN {
+        return corrupt("wrong length");
+    }
+    if &b[..4] != COUNTER_MAGIC || b[4] != 1 {
+        return corrupt("bad magic or version");
+    }
+    if b[5] != node.raw() {
+        return corrupt("written by another node");
+    }
+    if le32(&b[12..]) != crc32(&b[..12]) {
+        return corrupt("CRC mismatch");
+    }
+    Ok(Some(le32(&b[8..12])))
+}
+
+/// Writes a node's counter record atomically (temporary file, fsync, rename).
+pub fn write_counter(dir: &Path, node: NodeId, counter: u32) -> std::io::Result<()> {
+    let mut out = [0u8; COUNTER_LEN];
+    out[..4].copy_from_slice(COUNTER_MAGIC);
+    out[4] = 1;
+    out[5] = node.raw();
+    out[8..12].copy_from_slice(&counter.to_le_bytes());
+    let crc = crc32(&out[..12]);
+    out[12..].copy_from_slice(&crc.to_le_bytes());
+    std::fs::create_dir_all(dir)?;
+    let p = counter_path(dir, node);
+    let tmp = p.with_extension("ctr.tmp");
+    let mut f = std::fs::File::create(&tmp)?;
+    f.write_all(&out)?;
+    f.sync_all()?;
+    std::fs::rename(&tmp, &p)
+}
+
+/// What a node finds at boot besides its table: its key slot and its counter record.
+#[derive(Debug)]
+pub struct Provisioning {
+    /// The key slot (`Ok(None)`: empty).
+    pub key: Result<Option<Key>, FlashError>,
+    /// The counter record (`Ok(None)`: none).
+    pub counter: Result<Option<u32>, FlashError>,
+}
+
+impl Provisioning {
+    /// Reads `node`'s key slot and counter record in `dir`.
+    pub fn read(dir: &Path, node: NodeId) -> Provisioning {
+        Provisioning {
+            key: read_key(dir, node),
+            counter: read_counter(dir, node),
+        }
+    }
+
+    /// Whether the node was ever provisioned (it has a key slot or a counter record, readable
+    /// or not).
+    pub fn provisioned(&self) -> bool {
+        !matches!((&self.key, &self.counter), (Ok(None), Ok(None)))
+    }
+
+    /// The node's transfer state machine as it boots holding `image`: keyed with the higher of
+    /// the record's and the image's counter if the key slot and the counter record both read,
+    /// else without a key (it installs nothing: fail closed).
+    pub fn boot(self, node: NodeId, image: Option<&FlashImage>) -> NodeTransfer {
+        let transfer = NodeTransfer::new(node, image.map(|i| i.table));
+        match (self.key, self.counter) {
+            (Ok(Some(key)), Ok(Some(counter))) => {
+                transfer.with_key(key, counter.max(image.map_or(0, |i| i.counter)))
+            }
+            _ => transfer,
+        }
+    }
 }
 
 /// Writes a node's flash file atomically.
@@ -210,6 +313,13 @@ impl NodeFlash {
 }
 
 impl TableStorage for NodeFlash {
+    fn store_counter(&mut self, counter: u32) -> Result<(), StorageError> {
+        if self.fail_writes {
+            return Err(StorageError);
+        }
+        write_counter(&self.dir, self.node, counter).map_err(|_| StorageError)
+    }
+
     fn store(&mut self, table: &Table, counter: u32) -> Result<(), StorageError> {
         if self.fail_writes {
             return Err(StorageError);
@@ -339,6 +449,49 @@ mod tests {
             read_key(&d, NodeId::JOINTS[1]),
             Err(FlashError::Corrupt(..))
         ));
+        let _ = std::fs::remove_dir_all(&d);
+    }
+    /// The counter record reads back, detects corruption, and provisioning creates it without
+    /// ever lowering it (the table image's counter counts too).
+    #[test]
+    fn counter_records_round_trip_and_provisioning_never_lowers_them() {
+        let d = dir("ctr");
+        let node = NodeId::JOINTS[3];
+        assert_eq!(read_counter(&d, node).unwrap(), None);
+        write_counter(&d, node, 0x0102_0304).unwrap();
+        assert_eq!(read_counter(&d, node).unwrap(), Some(0x0102_0304));
+        let mut b = std::fs::read(counter_path(&d, node)).unwrap();
+        b[8] ^= 1;
+        std::fs::write(counter_path(&d, node), &b).unwrap();
+        assert!(matches!(
+            read_counter(&d, node),
+            Err(FlashError::Corrupt(_, "CRC mismatch"))
+        ));
+        let keys = KeySet::derived(12);
+        write_counter(&d, node, 40).unwrap();
+        let t = Table::from_si(0.04, 1.0, 0.0, 0.5, 1.0, 1.0).unwrap();
+        let image = |counter| FlashImage {
+            boot_count: 1,
+            table: t,
+            counter,
+        };
+        write(&d, node, &image(55)).unwrap();
+        provision(&d, &keys).unwrap();
+        assert_eq!(read_counter(&d, node).unwrap(), Some(55));
+        write(&d, node, &image(3)).unwrap();
+        provision(&d, &keys).unwrap();
+        assert_eq!(read_counter(&d, node).unwrap(), Some(55));
+        assert_eq!(read_counter(&d, NodeId::JOINTS[0]).unwrap(), Some(0));
+        // A provisioned node boots keyed with the higher counter; without its record, keyless.
+        let booted = Provisioning::read(&d, node).boot(node, Some(&image(3)));
+        assert!(booted.is_keyed());
+        assert_eq!(booted.counter(), 55);
+        std::fs::remove_file(counter_path(&d, node)).unwrap();
+        let p = Provisioning::read(&d, node);
+        assert!(p.provisioned());
+        assert!(!p.boot(node, Some(&image(3))).is_keyed());
+        let fresh = Provisioning::read(&d.join("none"), node);
+        assert!(!fresh.provisioned());
         let _ = std::fs::remove_dir_all(&d);
     }
 }

@@ -116,9 +116,10 @@ impl std::fmt::Display for RunReport {
         writeln!(
             f,
             "faults: lost {}, duplicated {}, delayed {}, malformed {}, babbled {}, NaN {}, reboots {}; \
-             table commands {}, replies {}, refused as unauthenticated {}, corrupt flash {}",
+             table commands {}, replies {}, refused as unauthenticated {}, corrupt flash {}, \
+             boots without a readable key or counter (installing nothing) {}",
             s.lost, s.duplicated, s.delayed, s.malformed, s.babbled, s.nans, s.reboots, s.commands, s.replies,
-            s.refused_unauthenticated, s.flash_corrupt
+            s.refused_unauthenticated, s.flash_corrupt, s.locked
         )?;
         for node in NodeId::ALL {
             let c = s.samples[usize::from(node.raw())];
@@ -289,14 +290,27 @@ mod tests {
         d
     }
 
-    /// Pushes `table` to `node` from a controller endpoint while the hil runs; returns the
-    /// upload outcome and every frame the controller saw.
+    /// The keys the tests provision their nodes with.
+    fn keys() -> exocal_dbc::auth::KeySet {
+        exocal_dbc::auth::KeySet::derived(5)
+    }
+
+    /// An authenticated upload of `table` to `node` (keys from [`keys`]).
+    fn upload(node: NodeId, session: u8, table: Table) -> Upload {
+        let key = keys().node(node).unwrap().clone();
+        Upload::authenticated(node, session, table, policy(), key)
+    }
+
+    /// Pushes `table` to `node` from a controller endpoint while the hil runs (nodes
+    /// provisioned with [`keys`]); returns the upload outcome and every frame the controller
+    /// saw.
     async fn push(
         scenario: Scenario,
         dir: &Path,
         node: NodeId,
         table: Table,
     ) -> (Option<Result<u32, UploadError>>, Vec<Message>, RunReport) {
+        flash::provision(dir, &keys()).unwrap();
         let mut hil = Hil::new(scenario, dir).unwrap();
         // Slow enough that a loaded CI machine keeps up (timeouts are in simulated time).
         let clock = SimClock::new(10.0).unwrap();
@@ -304,7 +318,7 @@ mod tests {
         let mut hil_end = bus.attach();
         let mut ctrl: Endpoint = bus.attach();
         let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await.unwrap() });
-        let mut up = Upload::new(node, 42, table, policy());
+        let mut up = upload(node, 42, table);
         let mut seen = Vec::new();
         // Let the nodes run for a simulated second before pushing.
         while clock.now_s() < 1.0 {
@@ -446,7 +460,7 @@ mod tests {
     #[tokio::test(start_paused = true)]
     async fn keyed_nodes_take_only_authenticated_tables() {
         let dir = temp_dir("keyed");
-        let keys = exocal_dbc::auth::KeySet::derived(5);
+        let keys = keys();
         flash::provision(&dir, &keys).unwrap();
         let mut s = Scenario::paper();
         s.duration_s = 30.0;
@@ -596,6 +610,7 @@ mod tests {
     #[tokio::test(start_paused = true)]
     async fn after_the_motion_the_nodes_take_a_push_and_answer_until_stopped() {
         let dir = temp_dir("linger-push");
+        flash::provision(&dir, &keys()).unwrap();
         let mut s = Scenario::paper();
         s.duration_s = 2.0;
         let mut hil = Hil::new(s, &dir).unwrap();
@@ -618,7 +633,7 @@ mod tests {
         let at_motion_end = motion_rx.await.unwrap();
         drain(&mut ctrl);
         let node = NodeId::JOINTS[3];
-        let mut up = Upload::new(node, 7, new_table(), policy());
+        let mut up = upload(node, 7, new_table());
         let mut seen = Vec::new();
         drive(&mut up, &mut ctrl, &clock, &mut seen).await;
         assert_eq!(up.outcome(), Some(Ok(new_table().crc())));

@@ -152,7 +152,7 @@ fn provision_keys(file: Option<&Path>, flash_dir: &Path) -> anyhow::Result<Strin
             .count();
         return Ok(format!(
             "no key file given: {keyed} of 7 joint nodes hold a key from earlier provisioning; \
-             the others accept unauthenticated tables"
+             the others install no table until they are provisioned"
         ));
     };
     let text = std::fs::read_to_string(&path)

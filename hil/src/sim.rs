@@ -32,7 +32,6 @@ use calib_core::{DhTable, Discretisation, GaussMarkov, Rng};
 use exocal_bus::embedded_can::{ExtendedId, Frame as _, StandardId};
 use exocal_bus::fault::{Fate, Faults};
 use exocal_bus::Frame;
-use exocal_dbc::auth::Key;
 use exocal_dbc::message::{
     Command, Heartbeat, ImuVector, JointState, Message, NackReason, NodeState, Reply, TableCmd,
     TableReply,
@@ -115,6 +114,9 @@ pub struct Stats {
     pub flash_corrupt: u64,
     /// Commands a keyed node refused as unauthenticated (NACK `BadMac` or `StaleCounter`).
     pub refused_unauthenticated: u64,
+    /// Boots of a provisioned node that could not read its key slot or its counter record: it
+    /// booted without a key, installing nothing until provisioned again (fail closed).
+    pub locked: u64,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -274,7 +276,7 @@ impl Suit {
                     HilError::Flash(flash::FlashError::Io(flash::path(flash_dir, id), e))
                 })?;
             }
-            let key = flash::read_key(flash_dir, id).map_err(HilError::Flash)?;
+            let provisioning = flash::Provisioning::read(flash_dir, id);
             let mut rng = seeded(scenario.seed, 16 + u64::from(id.raw()));
             let joint_dt = 1.0 / scenario.rates.joint_state_hz;
             let gm = match id.joint_index() {
@@ -306,8 +308,8 @@ impl Suit {
                 history: [None; 2],
                 up: true,
                 boot_count,
-                stream: stream::signer(id, key.as_ref()),
-                transfer: node_transfer(id, image, key),
+                stream: stream::signer(id, provisioning.key.as_ref().ok().and_then(Option::as_ref)),
+                transfer: boot_transfer(id, image, provisioning, &mut stats),
                 flash: NodeFlash::new(flash_dir, id, boot_count),
                 behaviour: scenario.faults.transfer_behaviour(id.raw()),
                 rx_errors: 0,
@@ -522,10 +524,10 @@ impl Suit {
                     let boot_count = n.boot_count;
                     let _ = flash::write(&self.flash_dir, n.id, &FlashImage { boot_count, ..i });
                 }
-                let key = flash::read_key(&self.flash_dir, n.id).ok().flatten();
+                let provisioning = flash::Provisioning::read(&self.flash_dir, n.id);
                 // RAM is gone: the stream signer starts over, without the collection's nonce.
-                n.stream = stream::signer(n.id, key.as_ref());
-                n.transfer = node_transfer(n.id, image, key);
+                n.stream = stream::signer(n.id, provisioning.key.as_ref().ok().and_then(Option::as_ref));
+                n.transfer = boot_transfer(n.id, image, provisioning, &mut self.stats);
                 n.flash = NodeFlash::new(&self.flash_dir, n.id, n.boot_count);
                 n.schedules = schedules(scenario, n, t);
             }
@@ -843,7 +845,7 @@ impl Suit {
                 .into_iter()
                 .collect(),
         };
-        if matches!(cmd.cmd, Command::Begin | Command::Segment(..)) && replies.is_empty() {
+        if matches!(cmd.cmd, Command::Begin { .. } | Command::Segment(..)) && replies.is_empty() {
             node.rx_errors += 1;
         }
         let unauthenticated = |r: &TableReply| {
@@ -874,13 +876,21 @@ impl Node {
     }
 }
 
-/// A node's transfer state machine as it boots from its flash `image` and key slot.
-fn node_transfer(id: NodeId, image: Option<FlashImage>, key: Option<Key>) -> NodeTransfer {
-    let transfer = NodeTransfer::new(id, image.map(|i| i.table));
-    match key {
-        Some(key) => transfer.with_key(key, image.map_or(0, |i| i.counter)),
-        None => transfer,
+/// A node's transfer state machine as it boots from its flash `image`, key slot and counter
+/// record ([`flash::Provisioning::boot`]); a provisioned node that boots without its key is
+/// counted in `stats.locked`.
+fn boot_transfer(
+    id: NodeId,
+    image: Option<FlashImage>,
+    provisioning: flash::Provisioning,
+    stats: &mut Stats,
+) -> NodeTransfer {
+    let provisioned = provisioning.provisioned();
+    let transfer = provisioning.boot(id, image.as_ref());
+    if provisioned && !transfer.is_keyed() {
+        stats.locked += 1;
     }
+    transfer
 }
 
 /// A normal draw of deviation `sd`; no draw at all when `sd` is 0 (cheaper, and switching a
@@ -1158,6 +1168,8 @@ pub(crate) mod tests {
         long.duration_s = 100.0;
         let long_dir = temp_dir("rest-long");
         let moving = Suit::new(long, &long_dir).unwrap().advance(3.0);
+        let keys = exocal_dbc::auth::KeySet::derived(8);
+        flash::provision(&dir, &keys).unwrap();
         let mut suit = Suit::new(s, &dir).unwrap();
         assert_eq!(suit.advance(3.0), moving);
         // The last samples are on the wire 50 µs after they are taken.
@@ -1185,7 +1197,8 @@ pub(crate) mod tests {
             max_attempts: 4,
             max_restarts: 2,
         };
-        let mut up = Upload::new(node, 9, table, policy);
+        let key = keys.node(node).unwrap().clone();
+        let mut up = Upload::authenticated(node, 9, table, policy, key);
         let mut t = 13.001;
         while up.outcome().is_none() && t < 40.0 {
             if let Some(cmd) = up.poll((t * 1e6) as u64) {
@@ -1329,6 +1342,181 @@ pub(crate) mod tests {
             }
         }
         assert!(out_of_order > 100, "{out_of_order}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+    /// What [`exchange`] saw: the outcome, every command sent, every reply, the time reached.
+    type Exchanged = (
+        Option<Result<u32, exocal_dbc::transfer::UploadError>>,
+        Vec<TableCmd>,
+        Vec<Reply>,
+        f64,
+    );
+
+    /// Drives `up` against `suit` from simulated time `t` until it has an outcome; returns the
+    /// outcome, every command sent, every reply seen and the time reached.
+    fn exchange(suit: &mut Suit, up: &mut exocal_dbc::transfer::Upload, mut t: f64) -> Exchanged {
+        let (mut sent, mut replies) = (Vec::new(), Vec::new());
+        let end = t + 60.0;
+        while up.outcome().is_none() && t < end {
+            if let Some(cmd) = up.poll((t * 1e6) as u64) {
+                sent.push(cmd);
+                suit.receive(&Message::TableCmd(cmd).to_frame::<Frame>().unwrap(), t);
+            }
+            t += 1e-3;
+            for f in suit.advance(t) {
+                if let Ok(Message::TableReply(r)) = decode_frame(&f) {
+                    replies.push(r.reply);
+                    up.on_reply(&r);
+                }
+            }
+        }
+        (up.outcome(), sent, replies, t)
+    }
+
+    /// Sends `cmds` to `suit` at `t`, a millisecond apart; returns the replies and the time.
+    fn replay(suit: &mut Suit, cmds: &[TableCmd], mut t: f64) -> (Vec<Reply>, f64) {
+        let mut replies = Vec::new();
+        for c in cmds {
+            suit.receive(&Message::TableCmd(*c).to_frame::<Frame>().unwrap(), t);
+            t += 1e-3;
+            replies.extend(
+                suit.advance(t)
+                    .iter()
+                    .filter_map(|f| match decode_frame(f) {
+                        Ok(Message::TableReply(r)) => Some(r.reply),
+                        _ => None,
+                    }),
+            );
+        }
+        (replies, t)
+    }
+
+    fn at_rest(seconds: f64) -> Scenario {
+        let mut s = Scenario::paper();
+        s.duration_s = seconds;
+        s
+    }
+
+    fn rest_policy() -> exocal_dbc::transfer::RetryPolicy {
+        exocal_dbc::transfer::RetryPolicy {
+            timeout_us: 100_000,
+            max_attempts: 4,
+            max_restarts: 2,
+        }
+    }
+
+    /// Issue 34, item 4: a provisioned node that reboots and cannot read its key slot (or its
+    /// counter record, or finds its key slot gone) boots without a key and installs nothing
+    /// (NACK `NoKey`), instead of accepting unauthenticated tables.
+    #[test]
+    fn a_node_that_cannot_read_its_key_or_counter_at_a_reboot_installs_nothing() {
+        use exocal_dbc::transfer::{Upload, UploadError};
+        let node = NodeId::JOINTS[2];
+        let keys = exocal_dbc::auth::KeySet::derived(34);
+        let key = keys.node(node).unwrap().clone();
+        let table = Table::from_si(0.0301, -1.5, 0.0299, 0.01, 1.2, 0.9).unwrap();
+        type Damage = fn(&Path, NodeId);
+        let damages: [(&str, Damage); 3] = [
+            ("key slot unreadable", |d, n| {
+                std::fs::write(flash::key_path(d, n), [1u8, 2, 3]).unwrap()
+            }),
+            ("counter record corrupt", |d, n| {
+                let p = flash::counter_path(d, n);
+                let mut b = std::fs::read(&p).unwrap();
+                b[9] ^= 0x40;
+                std::fs::write(p, b).unwrap()
+            }),
+            ("key slot gone", |d, n| {
+                std::fs::remove_file(flash::key_path(d, n)).unwrap()
+            }),
+        ];
+        for (what, damage) in damages {
+            let dir = temp_dir(&format!("locked-{}", what.replace(' ', "-")));
+            flash::provision(&dir, &keys).unwrap();
+            let mut s = at_rest(1.0);
+            s.faults.reboots.push(crate::scenario::Reboot {
+                node: node.raw(),
+                at_s: 2.0,
+                down_s: 0.5,
+            });
+            let mut suit = Suit::new(s, &dir).unwrap();
+            suit.advance(2.2);
+            damage(&dir, node);
+            suit.advance(3.0);
+            assert_eq!(suit.stats().locked, 1, "{what}");
+            let factory = flash::read(&dir, node).unwrap().unwrap();
+            let mut up = Upload::authenticated(node, 1, table, rest_policy(), key.clone());
+            let (outcome, _, replies, t) = exchange(&mut suit, &mut up, 3.0);
+            assert_eq!(
+                outcome,
+                Some(Err(UploadError::Nacked(
+                    exocal_dbc::CmdCode::Begin,
+                    NackReason::NoKey
+                ))),
+                "{what}: {replies:?}"
+            );
+            // Nor does a plain transfer, with the right CRC, install anything.
+            let mut plain = Upload::new(node, 2, table, rest_policy());
+            let (outcome, ..) = exchange(&mut suit, &mut plain, t);
+            assert!(
+                matches!(
+                    outcome,
+                    Some(Err(UploadError::Nacked(_, NackReason::NoKey)))
+                ),
+                "{what}: {outcome:?}"
+            );
+            assert_eq!(flash::read(&dir, node).unwrap().unwrap(), factory, "{what}");
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+    }
+
+    /// Issue 34, item 4: the freshness counter survives a corrupt table image. A genuine
+    /// authenticated push installs a table (counter 1); the image is then corrupted and the
+    /// suit powered up again (the node finds no table and is given its factory one, counter 0
+    /// in the image); the recorded genuine transfer, replayed, is refused as stale: its counter
+    /// comes back from the record kept apart.
+    #[test]
+    fn a_corrupt_table_image_keeps_the_counter_and_a_recorded_transfer_stays_stale() {
+        use exocal_dbc::transfer::Upload;
+        let dir = temp_dir("corrupt-image");
+        let node = NodeId::JOINTS[4];
+        let keys = exocal_dbc::auth::KeySet::derived(35);
+        flash::provision(&dir, &keys).unwrap();
+        let table = Table::from_si(0.0301, -1.5, 0.0299, 0.01, 1.2, 0.9).unwrap();
+        let mut suit = Suit::new(at_rest(1.0), &dir).unwrap();
+        suit.advance(1.5);
+        let key = keys.node(node).unwrap().clone();
+        let mut up = Upload::authenticated(node, 7, table, rest_policy(), key);
+        let (outcome, sent, _, _) = exchange(&mut suit, &mut up, 1.5);
+        assert_eq!(outcome, Some(Ok(table.crc())));
+        assert_eq!(flash::read_counter(&dir, node).unwrap(), Some(1));
+        drop(suit);
+        let p = flash::path(&dir, node);
+        let mut image = std::fs::read(&p).unwrap();
+        image[20] ^= 0x01;
+        std::fs::write(&p, image).unwrap();
+        let mut suit = Suit::new(at_rest(1.0), &dir).unwrap();
+        assert_eq!(suit.stats().flash_corrupt, 1);
+        suit.advance(1.5);
+        let factory = flash::read(&dir, node).unwrap().unwrap();
+        assert_ne!(factory.table, table);
+        let transfer: Vec<TableCmd> = sent
+            .into_iter()
+            .filter(|c| c.cmd.code() != exocal_dbc::CmdCode::Readback)
+            .collect();
+        let (replies, _) = replay(&mut suit, &transfer, 1.5);
+        assert!(
+            replies.iter().any(|r| matches!(
+                r,
+                Reply::Nack {
+                    reason: NackReason::StaleCounter,
+                    ..
+                }
+            )),
+            "{replies:?}"
+        );
+        assert_eq!(flash::read(&dir, node).unwrap().unwrap(), factory);
+        assert_eq!(flash::read_counter(&dir, node).unwrap(), Some(1));
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

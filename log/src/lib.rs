@@ -34,6 +34,7 @@ pub const SCHEMA_ENCODING: &str = "protobuf";
 pub const LEGACY_MESSAGE_ENCODING: &str = "json";
 
 pub mod read;
+pub mod scan;
 
 /// Our message types, generated from `proto/exocal.proto` (package `exocal`).
 #[allow(missing_docs, clippy::doc_markdown)]

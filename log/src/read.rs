@@ -2,15 +2,24 @@
 //!
 //! Contract: [`read_mcap_session`] returns a daemon session log's received raw frames
 //! ([`Topic::CanRx`]) in file order, as the bus delivered them (kernel receive time where there
-//! is one, else the host's), and the end of its collection window ([`Topic::Collection`]). It
-//! neither decodes the frames nor reorders them; bad input is a [`ReadError`] naming what is
+//! is one, else the host's), the end of its collection window ([`Topic::Collection`]) and the
+//! push outcome of its last [`Topic::Calibration`] record that has one (protobuf logs). It
+//! neither decodes the frames nor reorders them. It reads through [`crate::scan`]: one record
+//! at a time, every length and chunk checked, so its memory is one chunk plus the frames it
+//! keeps, each of which the caller admits (or refuses, ending the read) as it comes, told
+//! whether it came before or after the collection end ([`Phase`]). A finished
+//! log must be whole; one cut short (no end magic: a killed daemon's) is read up to where it
+//! stops, and [`McapSession::cut`] says where. Bad input is a [`ReadError`] naming what is
 //! wrong, never a panic.
 
+use std::collections::HashMap;
 use std::fmt;
+use std::io::Read;
 use std::time::Duration;
 
 use exocal_dbc::Received;
 
+use crate::scan::{self, Record, Scan};
 use crate::Topic;
 
 /// A session log that does not read: what is wrong.
@@ -44,55 +53,137 @@ pub struct McapSession {
     pub collection_frames: Option<u64>,
     /// The stream gate's record of the collection (`None`: streams taken unverified).
     pub stream: Option<crate::proto::StreamVerification>,
+    /// The push outcome per node, from the last `/calibration` record that carries one (empty
+    /// when nothing was pushed, or in a log written before the log was binary).
+    pub push: Vec<crate::proto::NodePush>,
+    /// For a log cut short (no end magic): what was read and where it stops.
+    pub cut: Option<Scan>,
 }
 
 const RX: &str = Topic::CanRx.name();
 
-/// Reads a daemon session log: its received raw frames (the time is the kernel receive
-/// timestamp where there is one, else the host's) and the end of its collection window.
-pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
+/// What a channel carries, for this reader.
+enum Carries {
+    Rx(String),
+    Collection(String),
+    /// `/calibration` in protobuf (its push outcome).
+    Calibration,
+    Other,
+}
+
+/// When a frame was received, as the log tells it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Phase {
+    /// Before the collection end record (or in a log without one).
+    Collection,
+    /// After it: during calibration and push.
+    After,
+}
+
+/// Reads a daemon session log from `input` (see the module docs). Each received frame is passed
+/// to `admit`, with its [`Phase`], before it is kept: its error ends the read, as the
+/// [`ReadError`] naming the message.
+pub fn read_mcap_session(
+    input: impl Read,
+    mut admit: impl FnMut(&Received, Phase) -> Result<(), String>,
+) -> Result<McapSession, ReadError> {
     let err = |what: String| ReadError { what };
-    let stream = mcap::MessageStream::new(bytes).map_err(|e| err(e.to_string()))?;
     let mut frames = Vec::new();
     let mut collection_end = None;
     let mut collection_frames = None;
+    let mut push = Vec::new();
     let mut gate = None;
     let mut seen_channel = false;
-    for (i, message) in stream.enumerate() {
-        let m = message.map_err(|e| err(e.to_string()))?;
-        if m.channel.topic == Topic::Collection.name() {
-            let end = crate::decode_collection_end(&m.channel.message_encoding, &m.data)
-                .map_err(|e| err(format!("message {i} on {}: {e}", Topic::Collection.name())))?;
-            if collection_end.is_none() {
-                collection_end = Some(Duration::from_nanos(end.window_end_ns));
-                collection_frames = Some(end.frames);
-                gate = end.stream;
+    let mut channels: HashMap<u16, Carries> = HashMap::new();
+    let mut i = 0u64;
+    let scanned = scan::scan(input, |records| {
+        for r in records {
+            let (channel_id, data) = match *r {
+                Record::Channel {
+                    id,
+                    topic,
+                    encoding,
+                    ..
+                } => {
+                    let carries = match topic {
+                        RX => Carries::Rx(encoding.to_string()),
+                        t if t == Topic::Collection.name() => {
+                            Carries::Collection(encoding.to_string())
+                        }
+                        t if t == Topic::Calibration.name()
+                            && encoding == crate::MESSAGE_ENCODING =>
+                        {
+                            Carries::Calibration
+                        }
+                        _ => Carries::Other,
+                    };
+                    channels.insert(id, carries);
+                    continue;
+                }
+                Record::Message {
+                    channel_id, data, ..
+                } => (channel_id, data),
+                _ => continue,
+            };
+            i += 1;
+            let n = i - 1;
+            match channels.get(&channel_id) {
+                Some(Carries::Collection(encoding)) => {
+                    let end = crate::decode_collection_end(encoding, data).map_err(|e| {
+                        err(format!("message {n} on {}: {e}", Topic::Collection.name()))
+                    })?;
+                    if collection_end.is_none() {
+                        collection_end = Some(Duration::from_nanos(end.window_end_ns));
+                        collection_frames = Some(end.frames);
+                        gate = end.stream;
+                    }
+                }
+                Some(Carries::Calibration) => {
+                    let c = <crate::proto::Calibration as prost::Message>::decode(data).map_err(
+                        |e| err(format!("message {n} on {}: {e}", Topic::Calibration.name())),
+                    )?;
+                    if !c.push.is_empty() {
+                        push = c.push;
+                    }
+                }
+                Some(Carries::Rx(encoding)) => {
+                    seen_channel = true;
+                    let f = crate::decode_can_frame(encoding, data)
+                        .map_err(|e| err(format!("message {n} on {RX}: {e}")))?;
+                    if f.data.len() > 8 {
+                        return Err(err(format!(
+                            "message {n} on {RX}: {} data bytes",
+                            f.data.len()
+                        )));
+                    }
+                    let frame = f.frame().ok_or_else(|| {
+                        err(format!(
+                            "message {n} on {RX}: identifier {:#x} invalid",
+                            f.id
+                        ))
+                    })?;
+                    let rx = Received {
+                        frame,
+                        timestamp: Duration::from_nanos(f.kernel_ns.unwrap_or(f.host_ns)),
+                    };
+                    let phase = match collection_end {
+                        None => Phase::Collection,
+                        Some(_) => Phase::After,
+                    };
+                    admit(&rx, phase).map_err(|e| err(format!("message {n} on {RX}: {e}")))?;
+                    frames.push(rx);
+                }
+                _ => {}
             }
-            continue;
         }
-        if m.channel.topic != RX {
-            continue;
-        }
-        seen_channel = true;
-        let f = crate::decode_can_frame(&m.channel.message_encoding, &m.data)
-            .map_err(|e| err(format!("message {i} on {RX}: {e}")))?;
-        if f.data.len() > 8 {
-            return Err(err(format!(
-                "message {i} on {RX}: {} data bytes",
-                f.data.len()
-            )));
-        }
-        let frame = f.frame().ok_or_else(|| {
-            err(format!(
-                "message {i} on {RX}: identifier {:#x} invalid",
-                f.id
-            ))
-        })?;
-        frames.push(Received {
-            frame,
-            timestamp: Duration::from_nanos(f.kernel_ns.unwrap_or(f.host_ns)),
-        });
-    }
+        Ok(())
+    })?;
+    let cut = match (&scanned.end, scanned.finished) {
+        (scan::End::NotMcap, _) => return Err(err(scanned.end.to_string())),
+        (scan::End::Complete, true) => None,
+        (_, true) => return Err(err(scanned.end.to_string())),
+        (_, false) => Some(scanned),
+    };
     if !seen_channel {
         return Err(err(format!(
             "no message on {RX}: not an exocald session log?"
@@ -103,7 +194,14 @@ pub fn read_mcap_session(bytes: &[u8]) -> Result<McapSession, ReadError> {
         collection_end,
         collection_frames,
         stream: gate,
+        push,
+        cut,
     })
+}
+
+/// An `admit` for [`read_mcap_session`] that keeps every frame (for inputs known to be small).
+pub fn admit_all(_: &Received, _: Phase) -> Result<(), String> {
+    Ok(())
 }
 
 #[cfg(test)]
@@ -146,7 +244,9 @@ mod tests {
             }
             w.finish().unwrap();
         }
-        let f = read_mcap_session(buf.get_ref()).map(|s| s.frames).unwrap();
+        let f = read_mcap_session(buf.get_ref().as_slice(), admit_all)
+            .map(|s| s.frames)
+            .unwrap();
         assert_eq!(f.len(), 2);
         assert_eq!(
             (f[0].frame.raw_id(), f[0].timestamp),
@@ -157,7 +257,7 @@ mod tests {
             (0x12, Duration::from_nanos(5_000_000_007))
         );
         assert_eq!(f[1].frame.data(), &[1, 2]);
-        let e = read_mcap_session(b"not mcap").unwrap_err();
+        let e = read_mcap_session(&b"not mcap"[..], admit_all).unwrap_err();
         assert!(e.to_string().starts_with("MCAP log: "), "{e}");
     }
 
@@ -223,17 +323,63 @@ mod tests {
             stream: None,
         };
         let body = end.encode_to_vec();
-        let s = read_mcap_session(&session_log(5, Some((3, &body)))).unwrap();
+        let s = read_mcap_session(&session_log(5, Some((3, &body)))[..], admit_all).unwrap();
         assert_eq!(s.frames.len(), 5);
         assert_eq!(s.frames[4].frame.data(), &[4]);
         assert_eq!(s.frames[4].timestamp, Duration::from_nanos(1_004));
         assert_eq!(s.collection_frames, Some(3));
+        assert_eq!(s.cut, None);
         assert_eq!(s.collection_end, Some(Duration::from_nanos(4_999)));
         // A session that never finished collecting has no record: replayed whole.
-        let s = read_mcap_session(&session_log(5, None)).unwrap();
+        let s = read_mcap_session(&session_log(5, None)[..], admit_all).unwrap();
         assert_eq!((s.collection_frames, s.collection_end), (None, None));
+        assert_eq!(s.frames.len(), 5);
         // A damaged record is an error naming the topic, not a silent whole replay.
-        let e = read_mcap_session(&session_log(5, Some((2, &[0xFF, 0xFF])))).unwrap_err();
+        let e = read_mcap_session(&session_log(5, Some((2, &[0xFF, 0xFF])))[..], admit_all)
+            .unwrap_err();
         assert!(e.to_string().contains("/collection"), "{e}");
+    }
+
+    /// A finished log must be whole: damage anywhere in its data section is an error naming the
+    /// record. One without its end magic is read up to where it stops, and says so. The caller
+    /// refuses frames through `admit`, which ends the read at that frame.
+    #[test]
+    fn damage_cuts_and_refused_frames() {
+        let log = session_log(40, None);
+        let whole = read_mcap_session(log.as_slice(), admit_all).unwrap();
+        let mut bad = log.clone();
+        // A byte of the chunk's compressed records.
+        let summary = mcap::Summary::read(&log).unwrap().unwrap();
+        let chunk = &summary.chunk_indexes[0];
+        let at = (chunk.chunk_start_offset + chunk.chunk_length) as usize - 5;
+        bad[at] ^= 0x10;
+        let e = read_mcap_session(bad.as_slice(), admit_all).unwrap_err();
+        assert!(e.to_string().contains("is damaged"), "{e}");
+        // Cut inside the chunk: its frames are lost, the rest reads, and the cut is named.
+        let s = read_mcap_session(&log[..at], admit_all);
+        assert!(s.unwrap_err().to_string().contains("no message on /can/rx"));
+        // Cut in the summary: every frame is there.
+        let s = read_mcap_session(&log[..log.len() - 200], admit_all).unwrap();
+        let scan = s.cut.expect("cut short");
+        assert!(
+            scan.to_string().contains("the data section is complete"),
+            "{scan}"
+        );
+        assert_eq!(s.frames, whole.frames);
+        let mut n = 0;
+        let e = read_mcap_session(log.as_slice(), |rx, phase| {
+            assert_eq!(phase, Phase::Collection);
+            n += 1;
+            if n > 10 {
+                Err(format!("frame at {:?} refused", rx.timestamp))
+            } else {
+                Ok(())
+            }
+        })
+        .unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "MCAP log: message 10 on /can/rx: frame at 1.01µs refused"
+        );
     }
 }

@@ -800,13 +800,17 @@ pub fn sort_stream<T>(stream: &mut Vec<(f64, T)>) {
     stream.dedup_by(|b, a| a.0 == b.0);
 }
 
-/// The grid `start, start + 1/hz, …` up to and including `end`.
-pub fn grid(start: f64, end: f64, hz: f64) -> Vec<f64> {
-    if !(start.is_finite() && end.is_finite() && hz > 0.0) || end < start {
+/// The grid `start, start + 1/hz, …` up to and including `end`, at most `max_points` of it
+/// (from `start`): its size is bounded by the caller's rules, never by the times it is given.
+pub fn grid(start: f64, end: f64, hz: f64, max_points: usize) -> Vec<f64> {
+    if !(start.is_finite() && end.is_finite() && hz.is_finite() && hz > 0.0) || end < start {
         return Vec::new();
     }
-    let n = ((end - start) * hz + 1e-9).floor() as usize + 1;
-    (0..n).map(|k| start + k as f64 / hz).collect()
+    // Saturating: a span of 1e300 s is as many points as fit, then cut to `max_points`.
+    let n = (((end - start) * hz + 1e-9).floor() as usize).saturating_add(1);
+    (0..n.min(max_points))
+        .map(|k| start + k as f64 / hz)
+        .collect()
 }
 
 /// One aligned sample: every joint angle (rad) and the end-effector pose at time `t` (host s).
@@ -863,12 +867,15 @@ pub struct Aligned {
 }
 
 /// Resamples the joint streams and the pose stream (host time, sorted) onto one grid at `hz`
-/// over the span common to all streams; grid points where any stream has a gap are excluded.
+/// over the span common to all streams, at most `max_points` of it from the span's start (the
+/// session's rules bound it: [`crate::WindowRules::max_samples`]); grid points where any stream
+/// has a gap are excluded.
 pub fn align(
     joints: &[Vec<(f64, f64)>; JOINTS],
     pose: &[(f64, Pose)],
     hz: f64,
     max_gap: f64,
+    max_points: usize,
 ) -> Aligned {
     let span = |first: Option<f64>, last: Option<f64>| first.zip(last);
     let mut spans: Vec<Option<(f64, f64)>> = joints
@@ -888,7 +895,7 @@ pub fn align(
     let end = spans.iter().map(|s| s.1).fold(f64::INFINITY, f64::min);
     // Start on a multiple of the grid period so that grids of different sessions line up.
     let start = (start * hz).ceil() / hz;
-    let g = grid(start, end, hz);
+    let g = grid(start, end, hz, max_points);
     let per_joint: Vec<Vec<Option<f64>>> = joints
         .iter()
         .map(|s| resample_scalar(s, &g, max_gap))
@@ -1305,7 +1312,7 @@ mod tests {
             sort_stream(&mut s);
             streams.push(s);
         }
-        let g = grid(6.0, 64.0, 100.0);
+        let g = grid(6.0, 64.0, 100.0, usize::MAX);
         let a = resample_scalar(&streams[0], &g, 0.05);
         let b = resample_scalar(&streams[1], &g, 0.05);
         let worst = a
@@ -1384,10 +1391,15 @@ mod tests {
 
     #[test]
     fn grid_is_inclusive_and_rejects_nonsense() {
-        assert_eq!(grid(0.0, 0.03, 100.0).len(), 4);
-        assert!(grid(1.0, 0.0, 100.0).is_empty());
-        assert!(grid(0.0, 1.0, 0.0).is_empty());
-        assert!(grid(f64::NAN, 1.0, 10.0).is_empty());
+        assert_eq!(grid(0.0, 0.03, 100.0, 100).len(), 4);
+        assert!(grid(1.0, 0.0, 100.0, 100).is_empty());
+        assert!(grid(0.0, 1.0, 0.0, 100).is_empty());
+        assert!(grid(f64::NAN, 1.0, 10.0, 100).is_empty());
+        // A span of 1.7e9 s (a recording whose first frames are at time 0) is not 1.7e11
+        // points: the caller's bound is.
+        let g = grid(0.0, 1.7e9, 100.0, 18_101);
+        assert_eq!((g.len(), g[18_100]), (18_101, 181.0));
+        assert_eq!(grid(0.0, f64::MAX, 1000.0, 3).len(), 3);
     }
 
     #[test]
@@ -1415,7 +1427,7 @@ mod tests {
                 (t, pose)
             })
             .collect();
-        let a = align(&joints, &pose, hz, 0.05);
+        let a = align(&joints, &pose, hz, 0.05, usize::MAX);
         // Common span: 10.0006 .. 11.999 → grid 10.01 .. 11.99: 199 points.
         assert_eq!(a.grid_points, 199);
         // Joint 3's hole runs from its sample at 10.9993 to the one at 11.2003 (0.201 s > max
@@ -1434,6 +1446,6 @@ mod tests {
         // A missing stream gives nothing, not a panic.
         let mut empty = joints.clone();
         empty[6].clear();
-        assert_eq!(align(&empty, &pose, hz, 0.05).samples.len(), 0);
+        assert_eq!(align(&empty, &pose, hz, 0.05, usize::MAX).samples.len(), 0);
     }
 }

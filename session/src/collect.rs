@@ -8,8 +8,9 @@
 //!   feeds it the frames of a recording. The same frames give the same [`Collected`], bit for
 //!   bit;
 //! - [`Collector::collected`] aligns what was gathered: every node's clock fitted, all streams
-//!   resampled onto the `window.grid_hz` grid, gaps longer than `window.max_gap_s` excluded,
-//!   and the data-quality summary the report shows;
+//!   resampled onto the `window.grid_hz` grid (at most [`crate::WindowRules::max_samples`]
+//!   points: bounded by the rules, not by the frames' timestamps), gaps longer than
+//!   `window.max_gap_s` excluded, and the data-quality summary the report shows;
 //! - [`Collected::from_samples`] is the same for samples that need no alignment (a CSV file):
 //!   no frames, no clocks.
 
@@ -101,6 +102,7 @@ impl Collector {
             &AlignParams::default(),
             settings.window.grid_hz,
             settings.window.max_gap_s,
+            settings.window.max_samples(),
         );
         let stalls = StallReport::of(&aligned.stalls);
         let quality = frame_quality(

@@ -10,7 +10,7 @@
 //! `window.min_samples` are in: the streams aligned, then LS and our EM on every sample, as the
 //! calibration will (the EM's expected table error, the LS's condition number).
 
-use calib_core::{DhTable, Sample};
+use calib_core::{DhTable, JointRanges, Sample};
 
 use crate::align::AlignedSample;
 use crate::collect::Collector;
@@ -25,6 +25,11 @@ pub const CONDITION_EVERY_S: f64 = 10.0;
 pub const EXPECTED_EVERY_S: f64 = 5.0;
 /// Samples (at most) the in-collection condition estimate runs LS on.
 pub const CONDITION_SAMPLES: usize = 600;
+/// Seconds of added motion the guidance weighs each joint's sweep by.
+pub const GUIDANCE_S: f64 = 10.0;
+/// Noise variance of each pose component the guidance assumes (position m², rotation rad²:
+/// 1 mm, 2 mrad): it ranks the joints, the stated error scales the figures.
+pub const GUIDANCE_NOISE_VAR: [f64; 6] = [1e-6, 1e-6, 1e-6, 4e-6, 4e-6, 4e-6];
 
 /// What the collection knows of the calibration to come.
 #[derive(Debug, Clone, Copy)]
@@ -33,6 +38,39 @@ pub struct Estimate {
     pub condition: f64,
     /// Expected table error, when estimated (stop when good enough).
     pub expected: Option<Expected>,
+    /// Per joint, the expected table error after [`GUIDANCE_S`] s of that joint's motion as a
+    /// fraction (0, 1] of the error now (see the module docs).
+    pub guidance: Option<[f64; JOINTS]>,
+}
+
+/// What guidance needs of the collection so far.
+#[derive(Debug, Clone)]
+pub struct GuidanceInput {
+    /// Aligned samples so far (the scarcest stream's count).
+    pub samples: u64,
+    /// The grid's rate (Hz).
+    pub grid_hz: f64,
+    /// The joints' anatomical ranges.
+    pub ranges: JointRanges<JOINTS>,
+}
+
+impl GuidanceInput {
+    /// Guidance at `table` over the configurations `joints` (a subsample of the collection).
+    pub fn run(&self, table: &DhTable<JOINTS>, joints: &[[f64; JOINTS]]) -> Option<[f64; JOINTS]> {
+        if joints.is_empty() || self.samples == 0 {
+            return None;
+        }
+        let per_config = self.samples as f64 / joints.len() as f64;
+        calib_core::guidance::<JOINTS, PARAMS>(
+            table,
+            joints,
+            per_config,
+            &GUIDANCE_NOISE_VAR,
+            &self.ranges,
+            GUIDANCE_S * self.grid_hz,
+        )
+        .map(|g| g.ratio())
+    }
 }
 
 /// An estimate to compute, owning what it needs (see the module docs).
@@ -44,6 +82,8 @@ pub enum EstimateJob {
         joints: Vec<[f64; JOINTS]>,
         /// The nominal table.
         nominal: Box<DhTable<JOINTS>>,
+        /// For the guidance.
+        guidance: GuidanceInput,
     },
     /// LS and our EM on the collection so far.
     Expected {
@@ -74,6 +114,7 @@ impl EstimateJob {
             EstimateJob::Condition {
                 joints: collector.ingest.joint_snapshot(CONDITION_SAMPLES),
                 nominal: Box::new(settings.nominal),
+                guidance: guidance_input(collector, settings),
             }
         }
     }
@@ -81,7 +122,14 @@ impl EstimateJob {
     /// Computes it; `None` with too little data.
     pub fn run(self) -> Option<Estimate> {
         match self {
-            EstimateJob::Condition { joints, nominal } => condition_estimate(&joints, &nominal),
+            EstimateJob::Condition {
+                joints,
+                nominal,
+                guidance,
+            } => condition_estimate(&joints, &nominal).map(|e| Estimate {
+                guidance: guidance.run(&nominal, &joints),
+                ..e
+            }),
             EstimateJob::Expected {
                 collector,
                 settings,
@@ -109,16 +157,29 @@ fn condition_estimate(joints: &[[f64; JOINTS]], nominal: &DhTable<JOINTS>) -> Op
         .map(|r| Estimate {
             condition: r.condition,
             expected: None,
+            guidance: None,
         })
+}
+
+fn guidance_input(collector: &Collector, settings: &Settings) -> GuidanceInput {
+    GuidanceInput {
+        samples: collector.window.samples(),
+        grid_hz: settings.window.grid_hz,
+        ranges: settings.bounds.joint_range,
+    }
 }
 
 /// LS and our EM on every aligned sample so far, once `window.min_samples` are in; before
 /// that, the condition number alone.
 fn expected_estimate(collector: &Collector, settings: &Settings) -> Option<Estimate> {
     let collected = collector.collected(settings);
+    let joints = collector.ingest.joint_snapshot(CONDITION_SAMPLES);
+    let guidance = guidance_input(collector, settings);
     if collected.samples.len() < settings.window.min_samples.max(50) {
-        let joints = collector.ingest.joint_snapshot(CONDITION_SAMPLES);
-        return condition_estimate(&joints, &settings.nominal);
+        return condition_estimate(&joints, &settings.nominal).map(|e| Estimate {
+            guidance: guidance.run(&settings.nominal, &joints),
+            ..e
+        });
     }
     let mut samples: Vec<Sample<JOINTS>> = collected
         .samples
@@ -131,6 +192,7 @@ fn expected_estimate(collector: &Collector, settings: &Settings) -> Option<Estim
     Some(Estimate {
         condition: c.ls.condition,
         expected: c.stated.map(Expected::from),
+        guidance: guidance.run(&c.ls.table, &joints),
     })
 }
 
@@ -169,5 +231,47 @@ mod tests {
         let still = condition_estimate(&frozen, &nominal).map(|e| e.condition);
         assert!(still.is_none_or(|c| c > 1e3 * k), "{still:?} vs {k}");
         assert!(condition_estimate(&joints[..49], &nominal).is_none());
+    }
+
+    #[test]
+    fn a_session_whose_wrist_never_moves_is_told_to_move_the_wrist() {
+        use crate::window::Window;
+        use calib_core::{Scenario, ScenarioConfig};
+        let settings = Settings::suit_default();
+        let joints: Vec<[f64; JOINTS]> = Scenario::new(ScenarioConfig::<JOINTS>::paper(), 5)
+            .take(3000)
+            .step_by(5)
+            .map(|s| {
+                let mut q = s.sample.joints;
+                q[6] = 0.2; // the wrist's last joint never moves
+                q
+            })
+            .collect();
+        let input = GuidanceInput {
+            samples: 3000,
+            grid_hz: settings.window.grid_hz,
+            ranges: settings.bounds.joint_range,
+        };
+        let g = input.run(&settings.nominal, &joints).unwrap();
+        let best = (0..JOINTS).min_by(|&a, &b| g[a].total_cmp(&g[b])).unwrap();
+        assert_eq!(best, 6, "{g:?}");
+        let mut w = Window::new(settings.window.clone(), settings.bounds.joint_range);
+        w.set_guidance(g);
+        let line = w.progress(10.0).line(0.5);
+        assert!(line.contains(", move joint 7: −"), "{line}");
+        w.set_expected(Expected {
+            position_mm: 3.1,
+            rotation_mrad: 9.0,
+        });
+        let line = w.progress(15.0).line(0.5);
+        assert!(line.contains(", move joint 7: ±3.10 → ±"), "{line}");
+        // Every joint moved: no joint stands out by much, and nothing to advise is said.
+        let moved: Vec<[f64; JOINTS]> = Scenario::new(ScenarioConfig::<JOINTS>::paper(), 5)
+            .take(3000)
+            .step_by(5)
+            .map(|s| s.sample.joints)
+            .collect();
+        let g = input.run(&settings.nominal, &moved).unwrap();
+        assert!(g.iter().all(|&r| r > 0.5), "{g:?}");
     }
 }

@@ -1,10 +1,15 @@
 //! The text formats of recorded sessions: `candump -L` logs (frames) and CSV samples.
 //!
 //! Contract:
-//! - [`parse_candump`] returns the frames in file order with their recorded receive times
-//!   (each line read by the protocol crate's one candump reader, [`Received::from_candump`]);
-//!   it neither decodes nor reorders — the session's ingest does that, as for a live bus;
-//! - [`parse_csv`] returns calibration samples directly (no alignment) in the format below;
+//! - [`CandumpReader`] (and [`parse_candump`] on a whole text) returns the frames in file order
+//!   with their recorded receive times (each line read by the protocol crate's one candump
+//!   reader, [`Received::from_candump`]); it neither decodes nor reorders — the session's
+//!   ingest does that, as for a live bus;
+//! - [`CsvReader`] (and [`parse_csv`]) returns calibration samples directly (no alignment) in
+//!   the format below;
+//! - both take the input a line at a time and keep at most what one session under the window's
+//!   rules can hold ([`Budget`]: its count, and its span from the earliest to the latest time):
+//!   the first line beyond it is refused, so a file of any length is read with bounded memory;
 //! - bad input is a [`ReadError`] naming the input kind, the 1-based line (where there is one)
 //!   and what is wrong; nothing here panics on any input. Parsing takes text, never a file.
 //!
@@ -29,6 +34,7 @@ use exocal_dbc::Received;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
 use crate::outcome::TimedSample;
+use crate::rules::{Budget, WindowRules};
 use crate::JOINTS;
 
 /// Characters of a bad line quoted in its error.
@@ -77,24 +83,59 @@ impl fmt::Display for ReadError {
 
 impl std::error::Error for ReadError {}
 
-/// Parses a `candump -L` log: `(seconds.fraction) iface ID#DATA` per line; blank lines are
-/// skipped.
-pub fn parse_candump(text: &str) -> Result<Vec<Received>, ReadError> {
-    text.lines()
-        .enumerate()
-        .filter(|(_, l)| !l.trim().is_empty())
-        .map(|(n, line)| {
-            let line = line.trim();
-            Received::from_candump(line).map_err(|e| {
-                let shown: String = line.chars().take(MAX_QUOTED).collect();
-                ReadError {
-                    kind: InputKind::Candump,
-                    line: Some(n + 1),
-                    what: format!("{e}, in {shown:?}"),
-                }
-            })
-        })
-        .collect()
+/// A `candump -L` log read line by line: `(seconds.fraction) iface ID#DATA` per line, blank
+/// lines skipped; at most what one session under the window's rules can hold ([`Budget`]).
+#[derive(Debug, Clone)]
+pub struct CandumpReader {
+    budget: Budget,
+    line: usize,
+    frames: Vec<Received>,
+}
+
+impl CandumpReader {
+    /// A reader bounded by `rules` ([`Budget::frames`]).
+    pub fn new(rules: &WindowRules) -> CandumpReader {
+        CandumpReader {
+            budget: Budget::frames(rules),
+            line: 0,
+            frames: Vec::new(),
+        }
+    }
+
+    /// Takes the file's next line (without its line ending).
+    pub fn line(&mut self, line: &str) -> Result<(), ReadError> {
+        self.line += 1;
+        let line = line.trim();
+        if line.is_empty() {
+            return Ok(());
+        }
+        let err = |what: String| ReadError {
+            kind: InputKind::Candump,
+            line: Some(self.line),
+            what,
+        };
+        let shown = || -> String { line.chars().take(MAX_QUOTED).collect() };
+        let rx = Received::from_candump(line).map_err(|e| err(format!("{e}, in {:?}", shown())))?;
+        self.budget
+            .admit(rx.timestamp.as_secs_f64())
+            .map_err(|e| err(format!("{e}, in {:?}", shown())))?;
+        self.frames.push(rx);
+        Ok(())
+    }
+
+    /// The frames, in file order.
+    pub fn finish(self) -> Vec<Received> {
+        self.frames
+    }
+}
+
+/// Parses a `candump -L` log ([`CandumpReader`], line by line).
+pub fn parse_candump(text: &str, rules: &WindowRules) -> Result<Vec<Received>, ReadError> {
+    let mut r = CandumpReader::new(rules);
+    for line in text.lines() {
+        r.line(line)?;
+    }
+    Ok(r.finish())
 }
 
 /// `frames` as a `candump -L` log on interface `iface`, one line each.
@@ -115,46 +156,74 @@ fn csv_err(line: usize, what: impl Into<String>) -> ReadError {
     }
 }
 
-/// Parses CSV samples (format in the module docs).
-pub fn parse_csv(text: &str) -> Result<Vec<TimedSample>, ReadError> {
-    let mut lines = text
-        .lines()
-        .enumerate()
-        .map(|(n, l)| (n + 1, l.trim()))
-        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
-    let (n, header) = lines.next().ok_or_else(|| ReadError {
-        kind: InputKind::Csv,
-        line: None,
-        what: "empty file: no header".into(),
-    })?;
-    let header: String = header
-        .split(',')
-        .map(str::trim)
-        .collect::<Vec<_>>()
-        .join(",");
-    if header != CSV_HEADER {
-        return Err(csv_err(n, format!("header must be `{CSV_HEADER}`")));
+/// CSV samples read line by line (format in the module docs); at most what one session under
+/// the window's rules can hold ([`Budget::samples`]).
+#[derive(Debug, Clone)]
+pub struct CsvReader {
+    budget: Budget,
+    line: usize,
+    header: bool,
+    samples: Vec<TimedSample>,
+}
+
+impl CsvReader {
+    /// A reader bounded by `rules` ([`Budget::samples`]).
+    pub fn new(rules: &WindowRules) -> CsvReader {
+        CsvReader {
+            budget: Budget::samples(rules),
+            line: 0,
+            header: false,
+            samples: Vec::new(),
+        }
     }
-    let names: Vec<&str> = CSV_HEADER.split(',').collect();
-    let mut out: Vec<TimedSample> = Vec::new();
-    for (n, line) in lines {
-        let fields: Vec<&str> = line.split(',').map(str::trim).collect();
-        if fields.len() != names.len() {
+
+    /// Takes the file's next line (without its line ending).
+    pub fn line(&mut self, line: &str) -> Result<(), ReadError> {
+        self.line += 1;
+        let n = self.line;
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            return Ok(());
+        }
+        let mut fields = [""; 15];
+        let mut count = 0;
+        for (i, field) in line.split(',').enumerate() {
+            if let Some(f) = fields.get_mut(i) {
+                *f = field.trim();
+            }
+            count = i + 1;
+        }
+        if !self.header {
+            if count != fields.len()
+                || fields
+                    .iter()
+                    .zip(CSV_HEADER.split(','))
+                    .any(|(a, b)| *a != b)
+            {
+                return Err(csv_err(n, format!("header must be `{CSV_HEADER}`")));
+            }
+            self.header = true;
+            return Ok(());
+        }
+        if count != fields.len() {
             return Err(csv_err(
                 n,
-                format!("{} columns, expected {}", fields.len(), names.len()),
+                format!("{count} columns, expected {}", fields.len()),
             ));
         }
         let mut v = [0.0; 15];
-        for ((x, field), name) in v.iter_mut().zip(&fields).zip(&names) {
+        for ((x, field), name) in v.iter_mut().zip(&fields).zip(CSV_HEADER.split(',')) {
             *x = field
                 .parse::<f64>()
                 .ok()
                 .filter(|x| x.is_finite())
-                .ok_or_else(|| csv_err(n, format!("{name} = {field:?} is not a finite number")))?;
+                .ok_or_else(|| {
+                    let shown: String = field.chars().take(MAX_QUOTED).collect();
+                    csv_err(n, format!("{name} = {shown:?} is not a finite number"))
+                })?;
         }
         let t = v[0];
-        if let Some(prev) = out.last() {
+        if let Some(prev) = self.samples.last() {
             if t <= prev.t {
                 return Err(csv_err(
                     n,
@@ -167,8 +236,11 @@ pub fn parse_csv(text: &str) -> Result<Vec<TimedSample>, ReadError> {
         if (norm - 1.0).abs() > 1e-3 {
             return Err(csv_err(n, format!("quaternion norm {norm:.6}, expected 1")));
         }
+        self.budget
+            .admit(t)
+            .map_err(|e| csv_err(n, e.to_string()))?;
         let rot = UnitQuaternion::from_quaternion(q);
-        out.push(TimedSample {
+        self.samples.push(TimedSample {
             t,
             sample: Sample {
                 joints: std::array::from_fn(|j| v[1 + j]),
@@ -178,15 +250,31 @@ pub fn parse_csv(text: &str) -> Result<Vec<TimedSample>, ReadError> {
                 },
             },
         });
+        Ok(())
     }
-    if out.is_empty() {
-        return Err(ReadError {
+
+    /// The samples, in file order; an error if there is no header or no sample.
+    pub fn finish(self) -> Result<Vec<TimedSample>, ReadError> {
+        let what = match (self.header, self.samples.is_empty()) {
+            (false, _) => "empty file: no header",
+            (true, true) => "no samples after the header",
+            (true, false) => return Ok(self.samples),
+        };
+        Err(ReadError {
             kind: InputKind::Csv,
             line: None,
-            what: "no samples after the header".into(),
-        });
+            what: what.into(),
+        })
     }
-    Ok(out)
+}
+
+/// Parses CSV samples ([`CsvReader`], line by line).
+pub fn parse_csv(text: &str, rules: &WindowRules) -> Result<Vec<TimedSample>, ReadError> {
+    let mut r = CsvReader::new(rules);
+    for line in text.lines() {
+        r.line(line)?;
+    }
+    r.finish()
 }
 
 /// `samples` in the CSV format [`parse_csv`] reads (full precision).
@@ -215,10 +303,14 @@ mod tests {
     use calib_core::ScenarioConfig;
     use std::time::Duration;
 
+    fn rules() -> WindowRules {
+        crate::Settings::suit_default().window
+    }
+
     #[test]
     fn candump_logs_parse_exactly() {
         let log = "(1700000000.123456) vcan0 123#DEADBEEF\n\n(1700000001.5) can1 1ABCDEF0#\n(1700000002.000000001) vcan0 7FF#R\n";
-        let f = parse_candump(log).unwrap();
+        let f = parse_candump(log, &rules()).unwrap();
         assert_eq!(f.len(), 3);
         assert_eq!(f[0].timestamp, Duration::new(1_700_000_000, 123_456_000));
         assert_eq!(f[0].frame.raw_id(), 0x123);
@@ -229,7 +321,7 @@ mod tests {
 
     #[test]
     fn candump_errors_name_the_line_and_the_problem() {
-        let e = parse_candump("(0.5) vcan0 001#\n(1.0) vcan0 800#00\n").unwrap_err();
+        let e = parse_candump("(0.5) vcan0 001#\n(1.0) vcan0 800#00\n", &rules()).unwrap_err();
         assert_eq!((e.kind, e.line), (InputKind::Candump, Some(2)));
         assert!(
             e.to_string()
@@ -258,7 +350,7 @@ mod tests {
                 )
             })
             .collect();
-        let frames = parse_candump(&log).unwrap();
+        let frames = parse_candump(&log, &rules()).unwrap();
         assert_eq!(frames.len(), 100);
         assert_eq!(candump_text(&frames, "vcan0"), log);
     }
@@ -271,7 +363,7 @@ mod tests {
     fn csv_round_trips_through_csv_text() {
         let s = samples(50);
         let text = format!("# a comment\n\n{}", csv_text(&s));
-        let back = parse_csv(&text).unwrap();
+        let back = parse_csv(&text, &rules()).unwrap();
         assert_eq!(back.len(), s.len());
         for (a, b) in back.iter().zip(&s) {
             assert_eq!(a.t, b.t);
@@ -300,14 +392,60 @@ mod tests {
             ),
         ];
         for (text, line, what) in cases {
-            let e = parse_csv(&text).unwrap_err();
+            let e = parse_csv(&text, &rules()).unwrap_err();
             assert_eq!(e.line, Some(line), "{text}");
             assert!(e.to_string().contains(what), "{e}");
         }
-        assert!(parse_csv("").unwrap_err().to_string().contains("no header"));
-        assert!(parse_csv(CSV_HEADER)
+        assert!(parse_csv("", &rules())
+            .unwrap_err()
+            .to_string()
+            .contains("no header"));
+        assert!(parse_csv(CSV_HEADER, &rules())
             .unwrap_err()
             .to_string()
             .contains("no samples"));
+    }
+
+    /// A recording longer than one session (the default window: at most 180 s, + 1 s) is
+    /// refused at its first line beyond, naming the line and the rule: a candump log whose
+    /// first lines are at time 0 (the alignment grid once sized itself from that span), more
+    /// frames than a saturated bus carries, and CSV samples beyond the grid's count or span.
+    #[test]
+    fn recordings_longer_than_a_session_are_refused_at_the_first_line_beyond() {
+        let r = rules();
+        let log = "(0.000000) vcan0 001#\n(0.001000) vcan0 002#\n(1700000000.000000) vcan0 003#\n";
+        let e = parse_candump(log, &r).unwrap_err();
+        assert_eq!((e.kind, e.line), (InputKind::Candump, Some(3)));
+        assert!(e.to_string().contains("session.max_duration_s"), "{e}");
+        assert!(e.to_string().contains("spans more than"), "{e}");
+        // Every frame at the same time: the count bounds it.
+        let max = r.max_frames();
+        let mut reader = CandumpReader::new(&r);
+        let line = "(5.000000) vcan0 001#";
+        for _ in 0..max {
+            reader.line(line).unwrap();
+        }
+        let e = reader.line(line).unwrap_err();
+        assert_eq!(e.line, Some(max + 1));
+        assert!(
+            e.to_string().contains(&format!("more than {max} frames")),
+            "{e}"
+        );
+        // CSV: the grid's count at 100 Hz over 181 s, then the span.
+        let row = |t: f64| format!("{t},0,0,0,0,0,0,0,0.1,0.2,0.3,1,0,0,0");
+        let n = r.max_samples();
+        assert_eq!(n, 18_101);
+        let mut csv = CsvReader::new(&r);
+        csv.line(CSV_HEADER).unwrap();
+        for k in 0..n {
+            csv.line(&row(k as f64 * 0.001)).unwrap();
+        }
+        let e = csv.line(&row(100.0)).unwrap_err();
+        assert_eq!(e.line, Some(n + 2));
+        assert!(e.to_string().contains("session.grid_hz"), "{e}");
+        let text = format!("{CSV_HEADER}\n{}\n{}\n", row(0.0), row(181.5));
+        let e = parse_csv(&text, &r).unwrap_err();
+        assert_eq!(e.line, Some(3));
+        assert!(e.to_string().contains("181.5"), "{e}");
     }
 }

@@ -533,13 +533,15 @@ impl Ingest {
     }
 
     /// Fits the clocks of the streams that calibrate ([`Column::calibrates`]) and resamples
-    /// them onto one grid at `hz` (host s since origin); the receiver stalls found are in
-    /// [`Aligned::stalls`]. The clock reports are theirs, in [`STREAMS`] order.
+    /// them onto one grid at `hz` (host s since origin), of at most `max_points`
+    /// ([`crate::align::align`]); the receiver stalls found are in [`Aligned::stalls`]. The
+    /// clock reports are theirs, in [`STREAMS`] order.
     pub fn align(
         &self,
         params: &AlignParams,
         hz: f64,
         max_gap: f64,
+        max_points: usize,
     ) -> (Aligned, Vec<ClockReport>) {
         let calibrating: Vec<usize> = (0..STREAMS.len())
             .filter(|&i| STREAMS[i].column.calibrates())
@@ -567,7 +569,7 @@ impl Ingest {
             };
             reports.push(clock_report(STREAMS[i].name, series.len(), mapped, track));
         }
-        let mut aligned = align::align(&joints, &poses, hz, max_gap);
+        let mut aligned = align::align(&joints, &poses, hz, max_gap, max_points);
         aligned.stalls = session.stalls;
         (aligned, reports)
     }
@@ -627,7 +629,7 @@ mod tests {
         assert!(matches!(e, Event::Message(Message::ImuGyro(_))), "{e:?}");
         // Its rate is measured like every stream's; it is not aligned (no clock report).
         assert!(ing.stream_rates()[ee].0.is_some());
-        let (_, clocks) = ing.align(&AlignParams::default(), 100.0, 0.05);
+        let (_, clocks) = ing.align(&AlignParams::default(), 100.0, 0.05, usize::MAX);
         assert!(clocks.iter().all(|c| c.node != STREAMS[ee].name));
     }
 
@@ -793,7 +795,7 @@ mod tests {
             ing.on_frame(&rx(*f, *t));
         }
         assert_eq!(ing.stats().poses, 500);
-        let (aligned, reports) = ing.align(&AlignParams::default(), 100.0, 0.05);
+        let (aligned, reports) = ing.align(&AlignParams::default(), 100.0, 0.05, usize::MAX);
         assert_eq!(reports.len(), 8);
         for (node, r) in reports.iter().enumerate() {
             assert_eq!(r.jumps, 0, "{r:?}");
@@ -872,7 +874,7 @@ mod tests {
             _ => 0.0,
         };
         let ing = ingest_session(late, None);
-        let (aligned, reports) = ing.align(&AlignParams::default(), 100.0, 0.05);
+        let (aligned, reports) = ing.align(&AlignParams::default(), 100.0, 0.05, usize::MAX);
         let stalls = StallReport::of(&aligned.stalls);
         assert_eq!(stalls.count, 1, "{:?}", aligned.stalls);
         assert!(stalls
@@ -893,7 +895,7 @@ mod tests {
     #[test]
     fn one_node_rebooting_is_its_own_jump_not_a_stall() {
         let ing = ingest_session(|_| 0.0, Some(3));
-        let (aligned, reports) = ing.align(&AlignParams::default(), 100.0, 0.05);
+        let (aligned, reports) = ing.align(&AlignParams::default(), 100.0, 0.05, usize::MAX);
         assert!(aligned.stalls.is_empty(), "{:?}", aligned.stalls);
         for r in &reports {
             assert_eq!(r.jumps, usize::from(r.node == "Joint3"), "{r:?}");

@@ -7,9 +7,22 @@
 //! is the shipped configuration's values (the daemon's test checks its `exocald.toml` parses to
 //! exactly this), for tests and examples that need a suit without a file.
 
+use std::fmt;
+
 use calib_core::{DhTable, JointRanges, ParamKind, RateBias};
 
 use crate::JOINTS;
+
+/// How much a recording's span may differ from the window's and still count as that long: a
+/// live window runs from the daemon's start to the tick that ends it, a recording from its
+/// first to its last frame (`crate::window::Window::at_end` lets a recording be this much
+/// shorter than `min_duration_s`; a [`Budget`] lets it be this much longer than
+/// `max_duration_s`).
+pub const DURATION_SLACK_S: f64 = 1.0;
+
+/// Most frames a 1 Mbit/s CAN bus carries in a second: the shortest frame (11-bit identifier,
+/// no data) with its interframe space is 47 bits.
+pub const MAX_BUS_FRAMES_PER_S: f64 = 1.0e6 / 47.0;
 
 /// Anatomical bounds a table must respect to be pushed (SI units). [`Bounds::table`] turns
 /// them into calib-core's per-parameter [`calib_core::Bounds`].
@@ -65,6 +78,177 @@ pub struct WindowRules {
     /// motion so far is within both, and at `max_duration_s` at the latest, calibrating what
     /// it has if the motion suffices. `None`: the window closes at `min_duration_s`.
     pub stop_at_expected_error: Option<(f64, f64)>,
+}
+
+impl WindowRules {
+    /// The longest span a recording of one session may have (s): `max_duration_s` plus
+    /// [`DURATION_SLACK_S`].
+    pub fn max_span_s(&self) -> f64 {
+        self.max_duration_s + DURATION_SLACK_S
+    }
+
+    /// Most received frames a session can hold: [`WindowRules::max_span_s`] of a saturated
+    /// 1 Mbit/s bus ([`MAX_BUS_FRAMES_PER_S`]).
+    pub fn max_frames(&self) -> usize {
+        (self.max_span_s() * MAX_BUS_FRAMES_PER_S).ceil() as usize
+    }
+
+    /// Most points of a session's alignment grid, hence most samples it calibrates on:
+    /// ⌊[`WindowRules::max_span_s`] × `grid_hz`⌋ + 1.
+    pub fn max_samples(&self) -> usize {
+        (self.max_span_s() * self.grid_hz).floor() as usize + 1
+    }
+}
+
+/// What a recording is counted in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Item {
+    /// Received frames (a session log, a candump log).
+    Frame,
+    /// Samples (CSV).
+    Sample,
+}
+
+impl fmt::Display for Item {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Item::Frame => "frame",
+            Item::Sample => "sample",
+        })
+    }
+}
+
+/// Why a recording is more than one session under the rules could be.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Beyond {
+    /// More items than the session could hold.
+    Count {
+        /// What is counted.
+        item: Item,
+        /// The most it could hold.
+        max: usize,
+        /// [`WindowRules::max_span_s`].
+        max_span_s: f64,
+        /// For samples, `grid_hz`.
+        grid_hz: f64,
+    },
+    /// Items further apart in time than the session could be long.
+    Span {
+        /// What is counted.
+        item: Item,
+        /// From the earliest to the latest item so far (s).
+        span_s: f64,
+        /// [`WindowRules::max_span_s`].
+        max_span_s: f64,
+    },
+}
+
+impl fmt::Display for Beyond {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            Beyond::Count {
+                item: Item::Frame,
+                max,
+                max_span_s,
+                ..
+            } => write!(
+                f,
+                "more than {max} frames, more than a 1 Mbit/s bus carries ({MAX_BUS_FRAMES_PER_S:.0} \
+                 frames/s) in the longest session this configuration collects ({max_span_s} s: \
+                 session.max_duration_s + {DURATION_SLACK_S} s)"
+            ),
+            Beyond::Count {
+                item: Item::Sample,
+                max,
+                max_span_s,
+                grid_hz,
+            } => write!(
+                f,
+                "more than {max} samples, more than the longest session this configuration \
+                 collects holds ({max_span_s} s: session.max_duration_s + {DURATION_SLACK_S} s, \
+                 on the session.grid_hz = {grid_hz} Hz grid)"
+            ),
+            Beyond::Span {
+                item,
+                span_s,
+                max_span_s,
+            } => write!(
+                f,
+                "this {item} is {span_s:.6} s away from another: the recording spans more than the \
+                 longest session this configuration collects ({max_span_s} s: \
+                 session.max_duration_s + {DURATION_SLACK_S} s)"
+            ),
+        }
+    }
+}
+
+impl std::error::Error for Beyond {}
+
+/// The most a recording may hold under the window's rules — what one live session could have
+/// collected — checked item by item as the recording is read, so that a reader refuses a
+/// longer one at its first item too many, with bounded memory, instead of after reading it.
+#[derive(Debug, Clone)]
+pub struct Budget {
+    item: Item,
+    max: usize,
+    max_span_s: f64,
+    grid_hz: f64,
+    count: usize,
+    /// Earliest and latest time so far.
+    span: Option<(f64, f64)>,
+}
+
+impl Budget {
+    /// For received frames: at most [`WindowRules::max_frames`], within
+    /// [`WindowRules::max_span_s`] of each other.
+    pub fn frames(rules: &WindowRules) -> Budget {
+        Budget::new(Item::Frame, rules.max_frames(), rules)
+    }
+
+    /// For samples: at most [`WindowRules::max_samples`], within [`WindowRules::max_span_s`]
+    /// of each other.
+    pub fn samples(rules: &WindowRules) -> Budget {
+        Budget::new(Item::Sample, rules.max_samples(), rules)
+    }
+
+    fn new(item: Item, max: usize, rules: &WindowRules) -> Budget {
+        Budget {
+            item,
+            max,
+            max_span_s: rules.max_span_s(),
+            grid_hz: rules.grid_hz,
+            count: 0,
+            span: None,
+        }
+    }
+
+    /// Counts one item at time `t_s` (s; a time that is not finite is not a time and counts
+    /// only as an item), or says why it is one too many.
+    pub fn admit(&mut self, t_s: f64) -> Result<(), Beyond> {
+        if self.count >= self.max {
+            return Err(Beyond::Count {
+                item: self.item,
+                max: self.max,
+                max_span_s: self.max_span_s,
+                grid_hz: self.grid_hz,
+            });
+        }
+        if t_s.is_finite() {
+            let (lo, hi) = self
+                .span
+                .map_or((t_s, t_s), |(a, b)| (a.min(t_s), b.max(t_s)));
+            if hi - lo > self.max_span_s {
+                return Err(Beyond::Span {
+                    item: self.item,
+                    span_s: hi - lo,
+                    max_span_s: self.max_span_s,
+                });
+            }
+            self.span = Some((lo, hi));
+        }
+        self.count += 1;
+        Ok(())
+    }
 }
 
 /// What a calibration must satisfy to be pushed (the configuration's `[validation]`).

@@ -30,11 +30,12 @@ use crate::{WindowRules, JOINTS};
 
 /// Bins of a joint's range.
 pub const COVERAGE_BINS: usize = 36;
-/// How much shorter than `min_duration_s` a recording may be and still count as that long
-/// ([`Window::at_end`]).
-pub const DURATION_SLACK_S: f64 = 1.0;
+pub use crate::rules::DURATION_SLACK_S;
 /// Samples needed in a bin to count it as visited.
 pub const BIN_MIN_SAMPLES: u32 = 3;
+/// Smallest relative gain of the expected table error (0..1) the progress line advises motion
+/// for ([`Progress::advice`]).
+pub const GUIDANCE_MIN_GAIN: f64 = 0.05;
 /// Consecutive expected-error estimates within the limits before the window closes when good
 /// enough (see the module docs).
 pub const STOP_GUARD: u32 = 3;
@@ -195,6 +196,9 @@ pub struct Progress {
     pub condition_number: Option<f64>,
     /// Expected table error of the motion so far, when estimated (stop when good enough).
     pub expected: Option<Expected>,
+    /// Per joint, the expected table error after more motion of that joint as a fraction of
+    /// now's, when estimated (`exocal_session::estimate`'s guidance).
+    pub guidance: Option<[f64; JOINTS]>,
     /// Overall readiness 0..1: the least advanced of time, coverage and samples.
     pub readiness: f64,
 }
@@ -220,7 +224,38 @@ impl Progress {
         if let Some(e) = self.expected {
             s.push_str(&format!(", expected {e}"));
         }
+        if let Some(advice) = self.advice() {
+            s.push_str(&format!(", {advice}"));
+        }
         s
+    }
+
+    /// What to move: the joint whose motion would most reduce the expected table error, when
+    /// that is at least [`GUIDANCE_MIN_GAIN`] of it (`move joint 7: ±3.10 → ±2.20 mm
+    /// expected`, or `move joint 7: −29% expected error` before the error is estimated).
+    pub fn advice(&self) -> Option<String> {
+        let g = self.guidance?;
+        let (j, r) = g
+            .iter()
+            .copied()
+            .enumerate()
+            .min_by(|a, b| a.1.total_cmp(&b.1))?;
+        if r.is_nan() || r > 1.0 - GUIDANCE_MIN_GAIN {
+            return None;
+        }
+        Some(match self.expected {
+            Some(e) => format!(
+                "move joint {}: ±{:.2} → ±{:.2} mm expected",
+                j + 1,
+                e.position_mm,
+                e.position_mm * r
+            ),
+            None => format!(
+                "move joint {}: −{:.0}% expected error",
+                j + 1,
+                (1.0 - r) * 100.0
+            ),
+        })
     }
 }
 
@@ -233,6 +268,7 @@ pub struct Window {
     pose_samples: u64,
     condition_number: Option<f64>,
     expected: Option<Expected>,
+    guidance: Option<[f64; JOINTS]>,
     /// Consecutive estimates within the limits, up to the latest.
     within: u32,
 }
@@ -247,6 +283,7 @@ impl Window {
             pose_samples: 0,
             condition_number: None,
             expected: None,
+            guidance: None,
             within: 0,
         }
     }
@@ -282,6 +319,11 @@ impl Window {
             None => false,
         };
         self.within = if within { self.within + 1 } else { 0 };
+    }
+
+    /// Records the latest guidance (see [`Progress::guidance`]).
+    pub fn set_guidance(&mut self, g: [f64; JOINTS]) {
+        self.guidance = Some(g);
     }
 
     /// Whether the expected table error was within `stop_at_expected_error` at the latest
@@ -321,6 +363,7 @@ impl Window {
             coverage,
             condition_number: self.condition_number,
             expected: self.expected,
+            guidance: self.guidance,
             readiness: time.min(cov).min(samples),
         }
     }

@@ -90,6 +90,7 @@ async fn push_run(seed: u64, tally: &mut PushTally) {
         timeout_ms: 200,
         authenticate: true,
         keys,
+        state_dir: None,
     };
     let mut ignore = |_: bool, _: &exocal_bus::Frame, _: Duration| {};
     let report = push_tables(
@@ -173,6 +174,7 @@ async fn a_rogue_sender_on_vcan0_changes_no_table_and_never_makes_the_daemon_rep
         timeout_ms: 200,
         authenticate: true,
         keys: keys.clone(),
+        state_dir: None,
     };
     let wait = Duration::from_millis(500);
     let found = rogue::attacks(&mut daemon, &mut rogue_sock, &dir, &keys, &policy, wait).await;
@@ -187,6 +189,56 @@ async fn a_rogue_sender_on_vcan0_changes_no_table_and_never_makes_the_daemon_rep
     );
     assert!(found.problems.is_empty(), "{}", found.problems.join("\n"));
     assert_eq!(found.lines.len(), 6, "every attack ran");
+}
+
+/// Issue 34, item 1, on vcan0 (the in-process run is `rogue.rs`, same code): the rollback the
+/// review reproduced — the rogue answers the daemon's Begin first with the node's counter +
+/// 60,000 (unsigned), NACKs the `CommitAuth` the daemon signs, keeps the 8 frames, and after
+/// two later genuine pushes sends them with a Commit. The daemon (with its state directory)
+/// signs only the node's own counter + 1, and the older table never lands.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rollback_by_an_inflated_freshness_never_lands_on_vcan0() {
+    exocal_tests::require_vcan("vcan0");
+    let started = Instant::now();
+    let dir = scratch("rollback");
+    let state = dir.join("state");
+    std::fs::create_dir_all(&state).unwrap();
+    let keys = KeySet::derived(34);
+    exocal_hil::flash::provision(&dir, &keys).expect("key slots");
+    let mut scenario = MIX.scenario(34);
+    scenario.faults = Default::default();
+    let mut hil = Hil::new(scenario, &dir).expect("hil");
+    let clock = SimClock::new(1.0).expect("speed");
+    let mut hil_sock = SocketCan::open("vcan0").expect("hil socket on vcan0");
+    let mut daemon = SocketCan::open("vcan0").expect("daemon socket on vcan0");
+    let mut rogue_sock = SocketCan::open("vcan0").expect("rogue socket on vcan0");
+    let hil_task = tokio::spawn(async move { hil.run(&mut hil_sock, &clock).await });
+    tokio::time::sleep(Duration::from_secs_f64(PUSH_AT_S)).await;
+    let policy = PushPolicy {
+        retries: 1,
+        backoff_initial_ms: 50,
+        backoff_max_ms: 200,
+        timeout_ms: 200,
+        authenticate: true,
+        keys,
+        state_dir: Some(state.clone()),
+    };
+    let wait = Duration::from_millis(500);
+    let found = rogue::rollback(&mut daemon, &mut rogue_sock, &dir, &policy, wait).await;
+    hil_task.abort();
+    let counters = std::fs::read_to_string(state.join("node-counters")).unwrap_or_default();
+    let _ = std::fs::remove_dir_all(&dir);
+    for line in &found.lines {
+        println!("{line}");
+    }
+    println!("state directory's node-counters: {counters:?}");
+    println!(
+        "rollback on vcan0: {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
+    assert!(found.problems.is_empty(), "{}", found.problems.join("\n"));
+    assert_eq!(found.lines.len(), 2, "the attack ran to its replay");
+    assert!(counters.contains("Joint3"), "{counters:?}");
 }
 
 /// What one fault row expects the daemon to report.

@@ -166,7 +166,8 @@ async fn session(
         config.push.keys = exocal_dbc::auth::KeySet::derived(opts.seed);
         exocal_hil::flash::provision(&flash_dir, &config.push.keys).map(|_| ())
     } else {
-        // Unauthenticated: the emulated nodes must not keep keys from an earlier demo here.
+        // Unauthenticated: the emulated nodes must not keep keys from an earlier demo here
+        // (they then install nothing: protocol exocal-3, no key, no commit).
         NodeId::ALL.iter().try_for_each(|&n| {
             match std::fs::remove_file(exocal_hil::flash::key_path(&flash_dir, n)) {
                 Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e),

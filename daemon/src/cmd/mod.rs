@@ -135,6 +135,22 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
             );
             eprintln!("exocald: configuration from {source}");
             require_interface(&config.interface)?;
+            if config.push.authenticate {
+                let nodes: Vec<NodeId> = config
+                    .calibration
+                    .joint_nodes
+                    .iter()
+                    .filter_map(|&n| NodeId::new(n))
+                    .collect();
+                match crate::keys::load_if_present(&nodes)? {
+                    Some(keys) => config.push.keys = keys,
+                    None => eprintln!(
+                        "exocald: no credential {}: the nodes' answers are not authenticated \
+                         (each line says so)",
+                        crate::keys::CREDENTIAL
+                    ),
+                }
+            }
             runtime()?.block_on(nodes_on_can(&config, &args))
         }
         #[cfg(feature = "demo")]
@@ -184,13 +200,15 @@ fn session_config(path: Option<&Path>, args: &SessionArgs) -> Result<Config, Dae
 }
 
 /// With `push.authenticate`, loads the keys from the `exocal-keys` credential into `config`
-/// (a key for every joint node, and the trigger key for `run`), or fails (exit 78) before the
-/// bus is touched; says on stderr (the journal) which way it is, never the keys.
+/// (a key for every joint node, and the trigger key for `run`) and takes the state directory
+/// (`$STATE_DIRECTORY`, [`crate::state`]), or fails (exit 78) before the bus is touched; says
+/// on stderr (the journal) which way it is, never the keys.
 pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError> {
     if !config.push.authenticate {
         eprintln!(
-            "exocald: WARNING: authentication is off ([push] authenticate = false): any sender on \
-             the bus can change a node's table or steer the calibration through the sensor streams{}",
+            "exocald: WARNING: authentication is off ([push] authenticate = false): nodes of \
+             protocol exocal-3 install no unauthenticated table, any sender on the bus can forge \
+             their answers, and the sensor streams are taken unverified{}",
             if trigger { " or start a session" } else { "" }
         );
         return Ok(());
@@ -204,6 +222,13 @@ pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError
         .chain([NodeId::END_EFFECTOR])
         .collect();
     config.push.keys = crate::keys::load_credential(&nodes, trigger)?;
+    let Some(state) = crate::state::from_env() else {
+        return Err(DaemonError::Keys(crate::keys::KeyError::NoState));
+    };
+    if let Some(w) = crate::keys::credential_warning() {
+        eprintln!("exocald: {w}");
+    }
+    config.push.state_dir = Some(state);
     eprintln!(
         "exocald: table transfers{} and sensor streams are authenticated (AES-128-CMAC, \
          freshness counters, stream digests): keys of {} node(s){} from the credential {}",
@@ -316,6 +341,9 @@ async fn nodes_on_can(config: &Config, args: &NodesArgs) -> Result<(), DaemonErr
 }
 
 /// `exocald recover IN OUT`: the complete file, and one line saying what was kept.
+/// `exocald recover IN OUT`: the recovered log is written to a temporary file beside OUT and
+/// renamed to OUT once complete and synced, so a failed recovery leaves no OUT (nor a
+/// half-written one, nor the temporary file).
 fn recover_log(args: &RecoverArgs) -> Result<(), DaemonError> {
     let io = |what: String| move |source| DaemonError::Io { what, source };
     let same = match (args.input.canonicalize(), args.output.canonicalize()) {
@@ -328,26 +356,51 @@ fn recover_log(args: &RecoverArgs) -> Result<(), DaemonError> {
             args.output.display()
         )));
     }
-    let bytes =
-        std::fs::read(&args.input).map_err(io(format!("reading {}", args.input.display())))?;
-    let file = std::fs::File::create(&args.output)
-        .map_err(io(format!("creating {}", args.output.display())))?;
-    let out = std::io::BufWriter::new(file);
-    let (recovery, out) = crate::log::recover::recover(&bytes, out, Some(mcap::Compression::Zstd))
+    let input = std::fs::File::open(&args.input)
+        .map_err(io(format!("reading {}", args.input.display())))?;
+    let name = args
+        .output
+        .file_name()
+        .map_or_else(|| "recovered".into(), |n| n.to_string_lossy().into_owned());
+    let temp = args
+        .output
+        .with_file_name(format!(".{name}.{}.partial", std::process::id()));
+    let written = (|| {
+        let file =
+            std::fs::File::create(&temp).map_err(io(format!("creating {}", temp.display())))?;
+        let (recovery, out) = crate::log::recover::recover(
+            std::io::BufReader::new(input),
+            std::io::BufWriter::new(file),
+            Some(mcap::Compression::Zstd),
+        )
         .map_err(|e| match e {
             crate::log::recover::RecoverError::NotMcap => {
                 DaemonError::Input(format!("{}: {e}", args.input.display()))
             }
             crate::log::recover::RecoverError::Write(e) => DaemonError::Log {
-                what: format!("writing {}", args.output.display()),
+                what: format!("writing {}", temp.display()),
                 source: crate::log::mcaplog::LogError::Mcap(e),
             },
         })?;
-    out.into_inner()
-        .map_err(|e| e.into_error())
-        .and_then(|f| f.sync_all())
-        .map_err(io(format!("writing {}", args.output.display())))?;
-    println!("{}: {recovery}", args.input.display());
+        out.into_inner()
+            .map_err(|e| e.into_error())
+            .and_then(|f| f.sync_all())
+            .map_err(io(format!("writing {}", temp.display())))?;
+        std::fs::rename(&temp, &args.output).map_err(io(format!(
+            "renaming {} to {}",
+            temp.display(),
+            args.output.display()
+        )))?;
+        Ok(recovery)
+    })();
+    let recovery = match written {
+        Ok(r) => r,
+        Err(e) => {
+            let _ = std::fs::remove_file(&temp);
+            return Err(e);
+        }
+    };
+    println!("{}: recovered {recovery}", args.input.display());
     println!(
         "wrote {}: {} messages, with summary, indexes and footer",
         args.output.display(),

@@ -8,12 +8,14 @@
 //!   place that judges a node's answer; an answer whose fields do not give the CRC it states is
 //!   not an answer. With keys (`push.authenticate`), each Readback carries a fresh nonce and an
 //!   answer counts only with a `ReadbackMac` that verifies over it (a forged answer is no
-//!   answer, as in the push); the tables read back from a log are not re-verified;
-//! - "the last session's pushed table" of a node is the table it returned to the last complete
-//!   readback in the newest session log (by modification time) of the output directory that
-//!   holds one: the push's verification readback, which is what the node confirmed holding when
-//!   that session ended. A log cut short is read through [`crate::log::recover`]. `--log FILE` names
-//!   the log instead;
+//!   answer, as in the push); each node's line says whether its answer was signed;
+//! - "the last push" of a node is the push outcome the newest session log (by modification
+//!   time) of the output directory records for it in its `/calibration` record
+//!   ([`exocal_log::proto::NodePush`]): the CRC the node proved holding at the end of the push,
+//!   in an answer whose MAC verified (`verified_crc`). Never a readback found in `/can/rx`: any
+//!   sender on the bus can put one there after the verified one (issue 34). A node the push
+//!   proved nothing of is shown with its outcome and compared with nothing. A log cut short is
+//!   read through [`crate::log::recover`]. `--log FILE` names the log instead;
 //! - a node that does not answer is named; [`read_tables`] never fails for a silent node, only
 //!   for the bus ([`exocal_bus::BusError`]).
 
@@ -212,44 +214,50 @@ pub async fn read_tables<T: Transport>(
         .collect())
 }
 
-/// The tables the nodes confirmed in a session log: per node, the answer to its last complete
-/// readback in `/can/rx`.
-pub fn pushed_tables(frames: &[exocal_bus::Received]) -> BTreeMap<NodeId, Table> {
-    let mut reads: BTreeMap<NodeId, TableRead> = BTreeMap::new();
-    let mut held = BTreeMap::new();
-    for rx in frames {
-        let Ok(Message::TableReply(reply)) = exocal_dbc::decode_frame(&rx.frame) else {
-            continue;
-        };
-        let read = reads
-            .entry(reply.node)
-            .or_insert_with(|| TableRead::new(reply.node, reply.session));
-        if read.session != reply.session || read.answer.is_some() {
-            *read = TableRead::new(reply.node, reply.session);
-        }
-        read.on_reply(&reply);
-        if let Some(Answer::Holds(t)) = read.answer() {
-            held.insert(reply.node, t);
-        }
-    }
-    held
+/// What a session log says the last push left on a node.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LastPush {
+    /// The CRC the node proved holding at the end of the push (an answer whose MAC verified);
+    /// `None` when the push proved nothing of it.
+    pub verified_crc: Option<u32>,
+    /// The CRC of the table the push sent it.
+    pub sent_crc: u32,
+    /// The push's outcome for it (`new`, `old`, `unknown`).
+    pub holds: String,
 }
 
-/// A session log's confirmed tables ([`pushed_tables`]); a log cut short is recovered first.
-pub fn log_tables(path: &Path) -> Result<BTreeMap<NodeId, Table>, DaemonError> {
+/// The push outcome per node recorded in a session log ([`exocal_log::read::McapSession::push`]).
+pub fn pushed(records: &[exocal_log::proto::NodePush]) -> BTreeMap<NodeId, LastPush> {
+    records
+        .iter()
+        .filter_map(|r| {
+            let node = NodeId::JOINTS.into_iter().find(|n| n.name() == r.node)?;
+            let last = LastPush {
+                verified_crc: r.verified_crc,
+                sent_crc: r.new_crc,
+                holds: r.holds.clone(),
+            };
+            Some((node, last))
+        })
+        .collect()
+}
+
+/// A session log's push outcome per node ([`pushed`]); a log cut short is recovered first.
+pub fn log_push(path: &Path) -> Result<BTreeMap<NodeId, LastPush>, DaemonError> {
     let bytes = std::fs::read(path).map_err(|source| DaemonError::Io {
         what: format!("reading {}", path.display()),
         source,
     })?;
-    let (session, _) = crate::cmd::offline::read_session_log(path, &bytes)?;
-    Ok(pushed_tables(&session.frames))
+    let session =
+        crate::cmd::offline::read_session_log(path, &bytes[..], exocal_log::read::admit_all)?;
+    Ok(pushed(&session.push))
 }
 
-/// A session log, and the table each node confirmed in it ([`pushed_tables`]).
-pub type Pushed = (PathBuf, BTreeMap<NodeId, Table>);
+/// A session log, and what its push left on each node ([`pushed`]).
+pub type Pushed = (PathBuf, BTreeMap<NodeId, LastPush>);
 
-/// The newest session log in `dir` (by modification time) in which a node confirmed a table,
-/// with those tables; `None` if no log has one. Unreadable logs are skipped, each named on
+/// The newest session log in `dir` (by modification time) that records a push, with its
+/// outcome per node; `None` if no log has one. Unreadable logs are skipped, each named on
 /// stderr.
 pub fn last_push(dir: &Path) -> Result<Option<Pushed>, DaemonError> {
     let entries = match std::fs::read_dir(dir) {
@@ -270,7 +278,7 @@ pub fn last_push(dir: &Path) -> Result<Option<Pushed>, DaemonError> {
         .collect();
     logs.sort();
     for (_, path) in logs.into_iter().rev() {
-        match log_tables(&path) {
+        match log_push(&path) {
             Ok(t) if !t.is_empty() => return Ok(Some((path, t))),
             Ok(_) => {}
             Err(e) => eprintln!("exocald: skipping {}: {e}", path.display()),
@@ -310,10 +318,14 @@ pub async fn list<T: Transport>(
         source,
     })?;
     let last = match log {
-        Some(p) => Some((p.to_path_buf(), log_tables(p)?)),
+        Some(p) => Some((p.to_path_buf(), log_push(p)?)),
         None => last_push(&config.output.directory)?,
     };
-    Ok(Listing::new(&config.interface, &answers, last))
+    let signed: Vec<bool> = nodes
+        .iter()
+        .map(|&n| config.push.authenticate && config.push.keys.node(n).is_some())
+        .collect();
+    Ok(Listing::new(&config.interface, &answers, &signed, last))
 }
 
 /// A table in SI units, for people and scripts.
@@ -359,9 +371,14 @@ pub struct NodeStatus {
     pub crc: Option<u32>,
     /// The table held, when it answered and holds one.
     pub table: Option<TableSi>,
-    /// CRC of the table the last push left on it, when the log has one for this node.
+    /// Whether its answer was signed (a `ReadbackMac` over our nonce that verified).
+    pub signed: bool,
+    /// CRC of the table the last push left on it, as the node proved it then (the log's push
+    /// record, `verified_crc`); `None` when the log proved nothing of this node.
     pub last_pushed_crc: Option<u32>,
-    /// Whether it holds that table (`None`: no answer, or nothing to compare with).
+    /// The last push's outcome for it (`new`, `old`, `unknown`), when the log has one.
+    pub last_push: Option<String>,
+    /// Whether it holds that table (`None`: no answer, or nothing proved to compare with).
     pub matches_last_push: Option<bool>,
 }
 
@@ -379,10 +396,12 @@ pub struct Listing {
 }
 
 impl Listing {
-    /// The listing of `answers`, compared with the tables of `last` (a log and its tables).
+    /// The listing of `answers` (each `signed` or not), compared with what `last` (a log and
+    /// its push outcome) proved.
     pub fn new(
         interface: &str,
         answers: &[(NodeId, Option<Answer>)],
+        signed: &[bool],
         last: Option<Pushed>,
     ) -> Listing {
         let (compared_with, pushed) = match last {
@@ -391,21 +410,26 @@ impl Listing {
         };
         let nodes: Vec<NodeStatus> = answers
             .iter()
-            .map(|(node, answer)| {
+            .enumerate()
+            .map(|(i, (node, answer))| {
                 let held = match answer {
                     Some(Answer::Holds(t)) => Some(*t),
                     _ => None,
                 };
+                let crc = answer.map(|_| held.map_or(0, |t| t.crc()));
                 let last = pushed.get(node);
+                let proved = last.and_then(|l| l.verified_crc);
                 NodeStatus {
                     node: node.name().to_string(),
                     id: node.raw(),
                     answered: answer.is_some(),
-                    crc: answer.map(|_| held.map_or(0, |t| t.crc())),
+                    crc,
                     table: held.as_ref().map(TableSi::from),
-                    last_pushed_crc: last.map(Table::crc),
-                    matches_last_push: match (answer, last) {
-                        (Some(_), Some(l)) => Some(held.as_ref() == Some(l)),
+                    signed: answer.is_some() && signed.get(i).copied().unwrap_or(false),
+                    last_pushed_crc: proved,
+                    last_push: last.map(|l| l.holds.clone()),
+                    matches_last_push: match (crc, proved) {
+                        (Some(c), Some(p)) => Some(c == p),
                         _ => None,
                     },
                 }
@@ -440,12 +464,16 @@ impl Listing {
             "last push"
         )];
         for n in &self.nodes {
-            let vs = match (n.matches_last_push, n.last_pushed_crc) {
-                (Some(true), _) => "holds it".to_string(),
-                (Some(false), Some(c)) => format!("differs (pushed {c:#010x})"),
-                (None, Some(c)) if !n.answered => format!("(pushed {c:#010x})"),
+            let mut vs = match (n.matches_last_push, n.last_pushed_crc, &n.last_push) {
+                (Some(true), _, _) => "holds it".to_string(),
+                (Some(false), Some(c), _) => format!("differs (pushed {c:#010x})"),
+                (None, Some(c), _) if !n.answered => format!("(pushed {c:#010x})"),
+                (_, None, Some(h)) => format!("not proved by the push ({h})"),
                 _ => "-".to_string(),
             };
+            if n.answered && !n.signed {
+                vs.push_str(" [unsigned answer]");
+            }
             let line = match (&n.table, n.answered) {
                 (Some(t), _) => format!(
                     "{:<7} {:>2} {:<10} {:>9.3} {:>9.4} {:>9.3} {:>10.4} {:>7.3} {:>11.4}  {vs}",
@@ -469,7 +497,7 @@ impl Listing {
         }
         out.push(match &self.compared_with {
             Some(p) => format!(
-                "last push: the tables the nodes confirmed in {}",
+                "last push: the tables the nodes proved holding (signed answers) in {}",
                 p.display()
             ),
             None => "last push: no session log with a push in the output directory".into(),
@@ -489,5 +517,60 @@ impl Listing {
         }
         out.push(summary);
         out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Issue 34, item 2: the listing compares with what the push proved (`verified_crc`), not
+    /// with what it sent or claimed. A node whose push proved nothing (all its answers forged
+    /// or lost) is "not proved", even when it holds the sent table; a push that proved the old
+    /// table makes a node holding the sent one "differs".
+    #[test]
+    fn the_listing_compares_with_the_verified_crc_of_the_push_record() {
+        let sent = Table::from_si(0.03, -1.5, 0.03, 0.01, 1.2, 0.9).unwrap();
+        let old = Table::from_si(0.031, -1.5, 0.03, 0.01, 1.2, 0.9).unwrap();
+        let record =
+            |node: NodeId, holds: &str, verified: Option<u32>| exocal_log::proto::NodePush {
+                node: node.name().to_string(),
+                new_crc: sent.crc(),
+                holds: holds.to_string(),
+                verified_crc: verified,
+                ..Default::default()
+            };
+        let [j1, j2, j3] = [NodeId::JOINTS[0], NodeId::JOINTS[1], NodeId::JOINTS[2]];
+        let records = [
+            record(j1, "new", Some(sent.crc())),
+            record(j2, "unknown", None),
+            record(j3, "old", Some(old.crc())),
+        ];
+        let last = Some((PathBuf::from("s.mcap"), pushed(&records)));
+        let answers = [
+            (j1, Some(Answer::Holds(sent))),
+            (j2, Some(Answer::Holds(sent))),
+            (j3, Some(Answer::Holds(sent))),
+        ];
+        let listing = Listing::new("vcan0", &answers, &[true; 3], last);
+        let got: Vec<_> = listing
+            .nodes
+            .iter()
+            .map(|n| (n.last_pushed_crc, n.matches_last_push))
+            .collect();
+        assert_eq!(
+            got,
+            [
+                (Some(sent.crc()), Some(true)),
+                (None, None),
+                (Some(old.crc()), Some(false)),
+            ]
+        );
+        let text = listing.lines().join("\n");
+        assert!(text.contains("not proved by the push (unknown)"), "{text}");
+        assert!(
+            text.contains(&format!("differs (pushed {:#010x})", old.crc())),
+            "{text}"
+        );
     }
 }

@@ -12,9 +12,15 @@
 //!   that never finished collecting) is replayed whole. A candump log is
 //!   replayed whole: `--export-candump` writes exactly the frames the calibration used, so it
 //!   replays to the same result;
-//! - an MCAP log cut short (a killed daemon's: no summary, no footer) is read through
-//!   [`crate::log::recover`]: every message of every complete chunk; the run warns how much was
-//!   recovered and where the file was cut ([`read_session_log`]);
+//! - an MCAP log cut short (a killed daemon's: no summary, no footer) is read up to where it
+//!   stops: every message of every complete chunk; the run warns how much was recovered and
+//!   where the file was cut ([`read_session_log`]);
+//! - every input is read as a stream, a record or a line at a time, and keeps at most what one
+//!   session under the configuration can hold ([`Budget`]: `session.max_duration_s`, and
+//!   `session.grid_hz` for samples); beyond it, or on a record, chunk or line longer than a
+//!   session's log or recording can have, the input is refused at that point (65, naming the
+//!   line or message and the limit). Memory is bounded by the configuration, whatever the
+//!   file's size or what its lengths claim;
 //! - CSV samples (`t,q1,…,q7,x,y,z,qw,qx,qy,qz`, see [`exocal_session::formats`]) bypass
 //!   alignment; the EM steps at the file's median sample interval (`session.grid_hz` when they
 //!   agree to [`exocal_session::replay::CSV_RATE_TOLERANCE`]);
@@ -31,23 +37,28 @@
 //!   shows the data's quality and excitation; the TOML and URDF exports only for a validated
 //!   table.
 
+use std::io::{BufRead, BufReader, Read, Seek};
 use std::path::{Path, PathBuf};
 
-use exocal_log::read::{read_mcap_session, McapSession};
+use exocal_dbc::Received;
+use exocal_log::read::{read_mcap_session, McapSession, Phase};
+use exocal_log::scan::Scan;
 use exocal_session::collect::Collected;
-use exocal_session::formats::{self, ReadError};
+use exocal_session::formats::{self, CandumpReader, CsvReader, InputKind, ReadError};
 use exocal_session::pipeline::{self, Calibrated};
 use exocal_session::replay::{replay_gated, Recording};
+use exocal_session::rules::Budget;
 use exocal_session::verify::{RejectRun, StreamGate};
-use exocal_session::Settings;
+use exocal_session::{Settings, WindowRules};
 
 pub use crate::cli::Format;
 use crate::config::Config;
 use crate::exit::DaemonError;
-use crate::log::recover::{self, Recovery};
 use crate::shell::runner::{SessionError, SessionSummary};
 
 const MCAP_MAGIC: &[u8] = b"\x89MCAP";
+/// Bytes from the start of the input that [`detect_format`] looks at.
+const DETECT_BYTES: u64 = 4096;
 
 /// The format of `path`: by extension (`.mcap`, `.csv`, `.log`/`.candump`), else by content
 /// (the MCAP magic, a `(time)` candump line, the CSV header).
@@ -64,7 +75,7 @@ pub fn detect_format(path: &Path, bytes: &[u8]) -> Result<Format, DaemonError> {
     if bytes.starts_with(MCAP_MAGIC) {
         return Ok(Format::Mcap);
     }
-    let text = String::from_utf8_lossy(&bytes[..bytes.len().min(4096)]);
+    let text = String::from_utf8_lossy(&bytes[..bytes.len().min(DETECT_BYTES as usize)]);
     let first = text
         .lines()
         .map(str::trim)
@@ -80,37 +91,80 @@ pub fn detect_format(path: &Path, bytes: &[u8]) -> Result<Format, DaemonError> {
     }
 }
 
-/// A daemon session log, finished or cut short: a finished file is read as it is; one without
-/// its end magic (a killed daemon's) is first recovered in memory ([`crate::log::recover`]: every
-/// message of every complete chunk), and the [`Recovery`] says what was kept.
+/// Longest line of a text input (bytes): a candump line is under 60, a CSV row under 500.
+pub const MAX_LINE_BYTES: usize = 4096;
+
+/// A daemon session log read from `input` (`path` names it in the messages), finished or cut
+/// short ([`exocal_log::read`]: record by record, every length and chunk checked; one without
+/// its end magic, a killed daemon's, is read up to where it stops and
+/// [`McapSession::cut`] says where). Each received frame is passed to `admit` first.
 pub fn read_session_log(
     path: &Path,
-    bytes: &[u8],
-) -> Result<(McapSession, Option<Recovery>), DaemonError> {
-    let bad =
-        |e: exocal_log::read::ReadError| DaemonError::Input(format!("{}: {e}", path.display()));
-    if recover::is_finished(bytes) {
-        return Ok((read_mcap_session(bytes).map_err(bad)?, None));
-    }
-    let (recovery, complete) = recover::recover_in_memory(bytes)
-        .map_err(|e| DaemonError::Input(format!("{}: {e}", path.display())))?;
-    let session = read_mcap_session(&complete).map_err(|e| {
-        DaemonError::Input(format!(
-            "{}: {e} (the log was cut short: {recovery})",
-            path.display()
-        ))
-    })?;
-    Ok((session, Some(recovery)))
+    input: impl Read,
+    admit: impl FnMut(&Received, Phase) -> Result<(), String>,
+) -> Result<McapSession, DaemonError> {
+    read_mcap_session(input, admit)
+        .map_err(|e| DaemonError::Input(format!("{}: {e}", path.display())))
 }
 
-/// Reads `bytes` (from `path`, for the messages) as `format`; for an MCAP log cut short, also
-/// what was recovered of it ([`read_session_log`]).
+/// Calls `f` on each line of `input` (without its line ending), in order; a line longer than
+/// [`MAX_LINE_BYTES`] or not UTF-8 is an error naming it, so a file of any size is read with
+/// bounded memory.
+fn each_line(
+    path: &Path,
+    kind: InputKind,
+    mut input: impl BufRead,
+    mut f: impl FnMut(&str) -> Result<(), ReadError>,
+) -> Result<(), DaemonError> {
+    let mut buf = Vec::new();
+    for n in 1.. {
+        buf.clear();
+        let bad = |what: String| {
+            let e = ReadError {
+                kind,
+                line: Some(n),
+                what,
+            };
+            DaemonError::Input(format!("{}: {e}", path.display()))
+        };
+        let got = (&mut input)
+            .take(MAX_LINE_BYTES as u64 + 1)
+            .read_until(b'\n', &mut buf)
+            .map_err(|source| DaemonError::Io {
+                what: format!("reading {}", path.display()),
+                source,
+            })?;
+        if got == 0 {
+            break;
+        }
+        if buf.last() == Some(&b'\n') {
+            buf.pop();
+        } else if got > MAX_LINE_BYTES {
+            return Err(bad(format!(
+                "longer than {MAX_LINE_BYTES} bytes, more than any line of this format"
+            )));
+        }
+        let line = std::str::from_utf8(&buf).map_err(|e| {
+            bad(format!(
+                "not UTF-8 text (byte {} of the line)",
+                e.valid_up_to() + 1
+            ))
+        })?;
+        f(line).map_err(|e| DaemonError::Input(format!("{}: {e}", path.display())))?;
+    }
+    Ok(())
+}
+
+/// Reads `input` (from `path`, for the messages) as `format`, keeping at most what one session
+/// under `rules` can hold ([`Budget`]); for an MCAP log cut short, also what was read of it and
+/// where it stops.
 pub fn read_input(
     path: &Path,
-    bytes: &[u8],
+    input: impl Read,
     format: Format,
-) -> Result<(Recording, Option<Recovery>), DaemonError> {
-    read_input_gated(path, bytes, format).map(|(r, recovery, _)| (r, recovery))
+    rules: &WindowRules,
+) -> Result<(Recording, Option<Scan>), DaemonError> {
+    read_input_gated(path, input, format, rules).map(|(r, cut, _)| (r, cut))
 }
 
 /// [`read_input`], with the live session's stream gate to re-apply when the log has one (an
@@ -118,22 +172,30 @@ pub fn read_input(
 /// exactly the frames the live session took ([`exocal_session::verify`]).
 pub fn read_input_gated(
     path: &Path,
-    bytes: &[u8],
+    input: impl Read,
     format: Format,
-) -> Result<(Recording, Option<Recovery>, Option<StreamGate>), DaemonError> {
-    let bad = |e: ReadError| DaemonError::Input(format!("{}: {e}", path.display()));
-    let text = || {
-        std::str::from_utf8(bytes).map_err(|e| {
-            DaemonError::Input(format!(
-                "{}: not UTF-8 text (byte {}); is it a {format} file?",
-                path.display(),
-                e.valid_up_to()
-            ))
-        })
-    };
+    rules: &WindowRules,
+) -> Result<(Recording, Option<Scan>, Option<StreamGate>), DaemonError> {
+    let input = BufReader::new(input);
     match format {
         Format::Mcap => {
-            let (session, recovery) = read_session_log(path, bytes)?;
+            // The collection's frames are one session's; the frames after it (calibration and
+            // push) are counted against as many again.
+            let mut collection = Budget::frames(rules);
+            let (mut after, most_after) = (0usize, rules.max_frames());
+            let session = read_session_log(path, input, |rx, phase| match phase {
+                Phase::Collection => collection
+                    .admit(rx.timestamp.as_secs_f64())
+                    .map_err(|e| e.to_string()),
+                Phase::After if after >= most_after => Err(format!(
+                    "more than {most_after} frames after the collection end (as many as the \
+                     longest session this configuration collects may hold)"
+                )),
+                Phase::After => {
+                    after += 1;
+                    Ok(())
+                }
+            })?;
             let mut frames = session.frames;
             if let Some(n) = session.collection_frames {
                 let n = usize::try_from(n).unwrap_or(usize::MAX);
@@ -160,18 +222,21 @@ pub fn read_input_gated(
                     .collect();
                 StreamGate::replaying(&runs)
             });
-            Ok((Recording::Frames(frames), recovery, gate))
+            Ok((Recording::Frames(frames), session.cut, gate))
         }
-        Format::Candump => Ok((
-            Recording::Frames(formats::parse_candump(text()?).map_err(bad)?),
-            None,
-            None,
-        )),
-        Format::Csv => Ok((
-            Recording::Samples(formats::parse_csv(text()?).map_err(bad)?),
-            None,
-            None,
-        )),
+        Format::Candump => {
+            let mut reader = CandumpReader::new(rules);
+            each_line(path, InputKind::Candump, input, |l| reader.line(l))?;
+            Ok((Recording::Frames(reader.finish()), None, None))
+        }
+        Format::Csv => {
+            let mut reader = CsvReader::new(rules);
+            each_line(path, InputKind::Csv, input, |l| reader.line(l))?;
+            let samples = reader
+                .finish()
+                .map_err(|e| DaemonError::Input(format!("{}: {e}", path.display())))?;
+            Ok((Recording::Samples(samples), None, None))
+        }
     }
 }
 
@@ -247,19 +312,29 @@ pub fn run(
     opts: &OfflineOptions,
 ) -> Result<SessionSummary, Box<SessionError>> {
     let path = &opts.input;
-    let bytes = std::fs::read(path).map_err(|source| DaemonError::Io {
+    let io = |source| DaemonError::Io {
         what: format!("reading {}", path.display()),
         source,
-    })?;
+    };
+    let mut file = std::fs::File::open(path).map_err(io)?;
     let format = match opts.format {
         Some(f) => f,
-        None => detect_format(path, &bytes)?,
+        None => {
+            let mut head = Vec::new();
+            (&mut file)
+                .take(DETECT_BYTES)
+                .read_to_end(&mut head)
+                .and_then(|_| file.rewind())
+                .map_err(io)?;
+            detect_format(path, &head)?
+        }
     };
-    let (input, recovery, gate) = read_input_gated(path, &bytes, format)?;
+    let (input, recovery, gate) =
+        read_input_gated(path, file, format, &config.calibration.window)?;
     if let Some(r) = &recovery {
         eprintln!(
             "exocald: warning: {} was cut short (no summary or footer: the daemon was killed or \
-             lost power): {r}; `exocald recover` writes it as a complete, indexed file",
+             lost power): recovered {r}; `exocald recover` writes it as a complete, indexed file",
             path.display()
         );
     }

@@ -8,13 +8,14 @@
 //!   passed since the last session started, whatever started it. A flood of Trigger frames
 //!   therefore starts at most one session per cooldown, and forged or replayed ones none;
 //! - a valid trigger inside the cooldown is consumed: its counter can never start a session
-//!   later. The last accepted counter persists in `<output.directory>/trigger-counter`, so a
+//!   later. The last accepted counter persists in the state directory's `trigger-counter`
+//!   ([`crate::state`], fsynced; not in `output.directory`, which `--output` changes), so a
 //!   restart does not reopen old triggers to replay;
 //! - refused frames are counted and reported at most once per cooldown (a flood must not
 //!   flood the journal either);
 //! - time is the bus clock's monotonic reading, passed in: the gate never reads a clock.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Duration;
 
 use exocal_bus::{Clock, Transport};
@@ -26,9 +27,6 @@ use crate::exit::DaemonError;
 use crate::shell::notify::{Notifier, Reporter};
 use crate::shell::runner::{run_session, TICK};
 use crate::shell::shutdown::Shutdown;
-
-/// The file, in the output directory, that keeps the last accepted trigger counter.
-pub const COUNTER_FILE: &str = "trigger-counter";
 
 /// What the gate makes of a start request.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -103,38 +101,6 @@ impl TriggerGate {
     }
 }
 
-/// Reads the last accepted trigger counter from `dir` (0 when there is none yet).
-pub fn load_counter(dir: &Path) -> Result<u32, DaemonError> {
-    let path = dir.join(COUNTER_FILE);
-    match std::fs::read_to_string(&path) {
-        Ok(text) => text.trim().parse().map_err(|_| DaemonError::Io {
-            what: format!("reading {}", path.display()),
-            source: std::io::Error::new(
-                std::io::ErrorKind::InvalidData,
-                "not a trigger counter (a decimal number); delete it to start again from 0",
-            ),
-        }),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(0),
-        Err(source) => Err(DaemonError::Io {
-            what: format!("reading {}", path.display()),
-            source,
-        }),
-    }
-}
-
-/// Writes the counter to `dir` atomically.
-fn save_counter(dir: &Path, counter: u32) -> Result<(), DaemonError> {
-    let path = dir.join(COUNTER_FILE);
-    let tmp: PathBuf = dir.join(format!("{COUNTER_FILE}.tmp"));
-    let io = |source| DaemonError::Io {
-        what: format!("writing {}", path.display()),
-        source,
-    };
-    std::fs::create_dir_all(dir).map_err(io)?;
-    std::fs::write(&tmp, format!("{counter}\n")).map_err(io)?;
-    std::fs::rename(&tmp, &path).map_err(io)
-}
-
 /// What the serve loop did.
 #[derive(Debug, Default, Clone, PartialEq, Eq)]
 pub struct ServeStats {
@@ -161,7 +127,7 @@ pub async fn serve<T: Transport>(
     reporter: &mut Reporter,
 ) -> Result<ServeStats, DaemonError> {
     const IDLE: &str = "idle: waiting for a trigger (CAN Trigger frame or SIGUSR1)";
-    let dir = config.output.directory.clone();
+    let state = config.push.state_dir.clone();
     let key = if config.push.authenticate {
         config.push.keys.trigger().cloned()
     } else {
@@ -174,7 +140,11 @@ pub async fn serve<T: Transport>(
         }));
     }
     let cooldown = Duration::from_secs_f64(config.trigger.cooldown_s);
-    let mut gate = TriggerGate::new(key, load_counter(&dir)?, cooldown);
+    let counter = match &state {
+        Some(dir) => crate::state::load_trigger_counter(dir)?,
+        None => 0,
+    };
+    let mut gate = TriggerGate::new(key, counter, cooldown);
     let mut stats = ServeStats::default();
     let mut refused_since_note = 0u64;
     let mut last_note: Option<Duration> = None;
@@ -205,8 +175,8 @@ pub async fn serve<T: Transport>(
                 };
                 let before = gate.counter();
                 let v = gate.trigger(&t, clock.monotonic());
-                if gate.counter() != before {
-                    save_counter(&dir, gate.counter())?;
+                if let (Some(dir), true) = (&state, gate.counter() != before) {
+                    crate::state::save_trigger_counter(dir, gate.counter())?;
                 }
                 ("CAN Trigger frame", v)
             }
@@ -354,25 +324,11 @@ mod tests {
         }
     }
 
-    #[test]
-    fn the_counter_persists_and_a_bad_file_is_an_error() {
-        let dir = std::env::temp_dir().join(format!("exocald-serve-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        assert_eq!(load_counter(&dir).unwrap(), 0);
-        save_counter(&dir, 0x1_0001).unwrap();
-        assert_eq!(load_counter(&dir).unwrap(), 0x1_0001);
-        std::fs::write(dir.join(COUNTER_FILE), "many").unwrap();
-        assert!(load_counter(&dir)
-            .unwrap_err()
-            .to_string()
-            .contains("trigger-counter"));
-        let _ = std::fs::remove_dir_all(&dir);
-    }
-
     /// The serve loop itself on the in-process bus, on virtual time: for 150 s, every 50 ms,
     /// an authentic fresh trigger, its replay and a forgery, with a 60 s cooldown. Exactly
     /// three sessions start (at 0, 60 and 120 s; each fails for want of motion: no suit is
-    /// on this bus), and the counter file holds the last accepted counter.
+    /// on this bus), and the counter file holds the last accepted counter — in the state
+    /// directory, not in the output directory.
     #[tokio::test(start_paused = true)]
     async fn the_serve_loop_under_a_trigger_flood_starts_one_session_per_cooldown() {
         use exocal_bus::{InProcessBus, SimClock};
@@ -380,6 +336,9 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
         let mut config = Config::default_config();
         config.output.directory = dir.clone();
+        let state = dir.with_extension("state");
+        let _ = std::fs::remove_dir_all(&state);
+        config.push.state_dir = Some(state.clone());
         config.calibration.window.min_duration_s = 1.0;
         config.calibration.window.max_duration_s = 2.0;
         config.calibration.window.min_samples = 10;
@@ -426,8 +385,10 @@ mod tests {
                     .is_ok_and(|e| e.path().extension().is_some_and(|x| x == "mcap"))
             })
             .count();
-        let counter = load_counter(&dir).unwrap();
+        let counter = crate::state::load_trigger_counter(&state).unwrap();
+        assert!(!dir.join(crate::state::TRIGGER_COUNTER).exists());
         let _ = std::fs::remove_dir_all(&dir);
+        let _ = std::fs::remove_dir_all(&state);
         assert_eq!((stats.sessions, logs), (3, 3), "{stats:?}");
         assert!(stats.refused > 1000 && stats.cooled > 500, "{stats:?}");
         // The last authentic trigger came while idle, at 150 s.

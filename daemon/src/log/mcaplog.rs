@@ -175,6 +175,7 @@ pub fn progress(p: &exocal_session::window::Progress) -> proto::Progress {
         readiness: p.readiness,
         expected_position_mm: p.expected.map(|e| e.position_mm),
         expected_rotation_mrad: p.expected.map(|e| e.rotation_mrad),
+        guidance: p.guidance.map_or_else(Vec::new, |g| g.to_vec()),
     }
 }
 
@@ -444,6 +445,7 @@ mod tests {
             coverage: [0.5; 7],
             condition_number: None,
             expected: None,
+            guidance: Some([1.0, 0.9, 0.9, 0.9, 0.9, 0.9, 0.4]),
             readiness: 0.1,
         }
     }

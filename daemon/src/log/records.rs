@@ -269,26 +269,32 @@ pub fn calibration_record(
             .em
             .as_ref()
             .map_or_else(Vec::new, |em| em.consistency.to_vec()),
-        push: push.map_or_else(Vec::new, |p| {
-            p.nodes
-                .iter()
-                .map(|n| proto::NodePush {
-                    node: n.node.clone(),
-                    new_crc: n.new_crc,
-                    held_crc: n.held_crc,
-                    holds: match n.holds {
-                        Holds::New => "new",
-                        Holds::Old => "old",
-                        Holds::Unknown => "unknown",
-                    }
-                    .to_string(),
-                    attempts: n.attempts,
-                    error: n.error.clone().unwrap_or_default(),
-                    authenticated: n.authenticated,
-                })
-                .collect()
-        }),
+        push: push.map_or_else(Vec::new, push_records),
     }
+}
+
+/// The push outcome as logged: per node, the CRC sent, what it holds, and the CRC it proved
+/// holding in an answer whose MAC verified (what `exocald nodes` compares with).
+pub fn push_records(p: &PushReport) -> Vec<proto::NodePush> {
+    p.nodes
+        .iter()
+        .map(|n| proto::NodePush {
+            node: n.node.clone(),
+            new_crc: n.new_crc,
+            held_crc: n.held_crc,
+            holds: match n.holds {
+                Holds::New => "new",
+                Holds::Old => "old",
+                Holds::Unknown => "unknown",
+            }
+            .to_string(),
+            attempts: n.attempts,
+            error: n.error.clone().unwrap_or_default(),
+            authenticated: n.authenticated,
+            verified_crc: n.verified_crc,
+            counter: n.counter,
+        })
+        .collect()
 }
 
 #[cfg(test)]

@@ -9,157 +9,26 @@
 //! - works on MCAP records only — header, schemas, channels, messages, chunks, attachments,
 //!   metadata — and never decodes a message, so it does not depend on the log's message
 //!   encoding;
-//! - scans from the start magic, one record at a time, and keeps every record up to the first
-//!   one that is cut short or damaged (a bad CRC, a chunk that does not decompress, a tail of
-//!   zeroes) or up to the data end; a chunk is kept whole or not at all;
+//! - reads the input through the bounded scan ([`exocal_log::scan`]: one record at a time,
+//!   every length, chunk size and CRC checked, a chunk kept whole or not at all) and keeps
+//!   every record up to the first one that is cut short or damaged (a bad CRC, a chunk that
+//!   does not decompress, ids that disagree, a tail of zeroes) or up to the data end;
 //! - [`recover`] copies what it kept into a new, complete MCAP (summary, chunk and message
 //!   indexes, statistics, footer) with the same schema and channel ids, sequence numbers and
 //!   times, and returns a [`Recovery`]: how many messages, over which log times, from how many
 //!   chunks, and where the input ends ([`End`]);
-//! - nothing here panics on any input.
+//! - nothing here panics on any input, and its memory is one chunk plus the writer's.
 
+use std::borrow::Cow;
 use std::collections::BTreeMap;
 use std::fmt;
-use std::io::{Cursor, Seek, Write};
+use std::io::{Cursor, Read, Seek, Write};
 
-use mcap::records::{op, Record};
+pub use exocal_log::scan::End;
+use exocal_log::scan::{self, Record};
 
-/// How the input ends.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum End {
-    /// The data section is whole: its data-end record was reached (the summary after it is
-    /// rebuilt, read or not).
-    Complete,
-    /// The file stops inside the record that starts at byte `at` (`opcode`, when its first byte
-    /// is there): `have` of its `need` bytes are there. `need` is `None` when the record's
-    /// 9-byte opcode and length are cut, or its length is the writer's placeholder for the chunk
-    /// it had open. `have == 0`: the file stops between two records, before the data end.
-    Cut {
-        /// Byte offset where the cut record starts.
-        at: u64,
-        /// Its opcode, when its first byte is there.
-        opcode: Option<u8>,
-        /// Bytes of it in the file.
-        have: u64,
-        /// Its full length in bytes, when known.
-        need: Option<u64>,
-    },
-    /// The record at byte `at` is whole but unreadable: the reason.
-    Damaged {
-        /// Byte offset where the record starts.
-        at: u64,
-        /// Its opcode.
-        opcode: u8,
-        /// Why it is unreadable.
-        why: String,
-    },
-}
-
-/// What a scan kept.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Recovery {
-    /// Messages kept.
-    pub messages: u64,
-    /// Complete chunks kept.
-    pub chunks: u64,
-    /// Earliest and latest log time of the messages kept (ns), if any.
-    pub log_times: Option<(u64, u64)>,
-    /// Bytes of the input read as whole records (where the kept part ends).
-    pub kept_bytes: u64,
-    /// Size of the input.
-    pub file_bytes: u64,
-    /// How the input ends.
-    pub end: End,
-}
-
-impl Recovery {
-    /// Seconds between the first and the last message kept.
-    pub fn span_s(&self) -> f64 {
-        self.log_times
-            .map_or(0.0, |(a, b)| b.saturating_sub(a) as f64 * 1e-9)
-    }
-
-    /// Whether every message of the input was kept.
-    pub fn is_complete(&self) -> bool {
-        self.end == End::Complete
-    }
-}
-
-/// The record kind, for messages.
-fn record_name(opcode: u8) -> String {
-    match opcode {
-        op::HEADER => "header".into(),
-        op::FOOTER => "footer".into(),
-        op::SCHEMA => "schema".into(),
-        op::CHANNEL => "channel".into(),
-        op::MESSAGE => "message".into(),
-        op::CHUNK => "chunk".into(),
-        op::MESSAGE_INDEX => "message index".into(),
-        op::CHUNK_INDEX => "chunk index".into(),
-        op::ATTACHMENT => "attachment".into(),
-        op::ATTACHMENT_INDEX => "attachment index".into(),
-        op::STATISTICS => "statistics".into(),
-        op::METADATA => "metadata".into(),
-        op::METADATA_INDEX => "metadata index".into(),
-        op::SUMMARY_OFFSET => "summary offset".into(),
-        op::DATA_END => "data end".into(),
-        other => format!("record with opcode {other:#04x}"),
-    }
-}
-
-impl fmt::Display for End {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            End::Complete => f.write_str("the data section is complete"),
-            End::Cut { at, have: 0, .. } => write!(
-                f,
-                "the file ends at byte {at}, between two records, before the data end"
-            ),
-            End::Cut {
-                at,
-                opcode,
-                have,
-                need,
-            } => {
-                let name = opcode.map_or_else(|| "record".into(), record_name);
-                match need {
-                    Some(need) => write!(
-                        f,
-                        "the file ends inside the {name} that starts at byte {at} ({have} of its \
-                         {need} bytes were written)"
-                    ),
-                    None => write!(
-                        f,
-                        "the file ends inside the {name} that starts at byte {at} ({have} bytes \
-                         written, its length never was: the record the writer had open)"
-                    ),
-                }
-            }
-            End::Damaged { at, opcode, why } => write!(
-                f,
-                "the {} at byte {at} is damaged ({why})",
-                record_name(*opcode)
-            ),
-        }
-    }
-}
-
-impl fmt::Display for Recovery {
-    /// One sentence: what was kept, and where the input stops.
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(
-            f,
-            "recovered {} messages ({:.1} s of session) from {} complete chunks, the first {} of \
-             {} bytes; {}",
-            self.messages,
-            self.span_s(),
-            self.chunks,
-            self.kept_bytes,
-            self.file_bytes,
-            self.end
-        )
-    }
-}
+/// What a recovery kept: [`exocal_log::scan::Scan`].
+pub type Recovery = scan::Scan;
 
 /// Why nothing could be recovered.
 #[derive(Debug)]
@@ -194,266 +63,110 @@ impl From<mcap::McapError> for RecoverError {
     }
 }
 
-/// Opcode and length of a record header: 1 + 8 bytes.
-const RECORD_HEADER: usize = 9;
-
-/// A record that can be copied into the new file.
-enum Kept {
-    Schema(mcap::records::SchemaHeader, Vec<u8>),
-    Channel(mcap::records::Channel),
-    Message(mcap::records::MessageHeader, Vec<u8>),
-    Attachment(mcap::Attachment<'static>),
-    Metadata(mcap::records::Metadata),
+fn owned(pairs: &[(&str, &str)]) -> BTreeMap<String, String> {
+    pairs
+        .iter()
+        .map(|(k, v)| (k.to_string(), v.to_string()))
+        .collect()
 }
 
-fn keep(record: Record<'_>) -> Option<Kept> {
-    match record {
-        Record::Schema { header, data } => Some(Kept::Schema(header, data.into_owned())),
-        Record::Channel(c) => Some(Kept::Channel(c)),
-        Record::Message { header, data } => Some(Kept::Message(header, data.into_owned())),
-        Record::Attachment { header, data, .. } => Some(Kept::Attachment(mcap::Attachment {
-            log_time: header.log_time,
-            create_time: header.create_time,
-            name: header.name,
-            media_type: header.media_type,
-            data: std::borrow::Cow::Owned(data.into_owned()),
-        })),
-        Record::Metadata(m) => Some(Kept::Metadata(m)),
-        // Indexes, statistics and the footer are rebuilt by the writer.
-        _ => None,
-    }
-}
-
-/// The records inside a chunk, all of them or the reason the chunk is unreadable (the CRC is
-/// checked once the last record is out, so nothing is kept before then).
-fn chunk_records(header: mcap::records::ChunkHeader, data: &[u8]) -> Result<Vec<Kept>, String> {
-    let reader = mcap::read::ChunkReader::new(header, data).map_err(|e| e.to_string())?;
-    let mut out = Vec::new();
-    for record in reader {
-        let record = record.map_err(|e| e.to_string())?;
-        if let Some(k) = keep(record) {
-            out.push(k);
-        }
-    }
-    Ok(out)
-}
-
-/// Copies records into the new file, keeping ids, and counts the messages.
-/// A schema as the writer compares it: name, encoding, data.
-type SchemaKey = (String, String, Vec<u8>);
-/// A channel as the writer compares it: schema id, topic, encoding, metadata.
-type ChannelKey = (u16, String, String, BTreeMap<String, String>);
-
-struct Copier<W: Write + Seek> {
-    writer: mcap::Writer<W>,
-    messages: u64,
-    log_times: Option<(u64, u64)>,
-    /// Schemas and channels copied so far, by id: a record the writer would refuse (an id
-    /// redefined differently, a channel of an unknown schema, a message on an unknown channel)
-    /// marks its chunk damaged instead of failing the recovery ([`Copier::check`]).
-    schemas: BTreeMap<u16, SchemaKey>,
-    channels: BTreeMap<u16, ChannelKey>,
-}
-
-impl<W: Write + Seek> Copier<W> {
-    /// Copies `kept` (checked by [`Copier::check`]: only I/O can fail here).
-    fn copy(&mut self, kept: Vec<Kept>) -> Result<(), mcap::McapError> {
-        for k in kept {
-            match k {
-                Kept::Schema(h, data) => {
-                    self.writer
-                        .add_schema_with_id(h.id, &h.name, &h.encoding, &data)?;
-                    self.schemas.insert(h.id, (h.name, h.encoding, data));
-                }
-                Kept::Channel(c) => {
-                    self.writer.add_channel_with_id(
-                        c.id,
-                        c.schema_id,
-                        &c.topic,
-                        &c.message_encoding,
-                        &c.metadata,
-                    )?;
-                    self.channels
-                        .insert(c.id, (c.schema_id, c.topic, c.message_encoding, c.metadata));
-                }
-                Kept::Message(header, data) => {
-                    self.writer.write_to_known_channel(&header, &data)?;
-                    self.messages += 1;
-                    let t = header.log_time;
-                    self.log_times =
-                        Some(self.log_times.map_or((t, t), |(a, b)| (a.min(t), b.max(t))));
-                }
-                Kept::Attachment(a) => self.writer.attach(&a)?,
-                Kept::Metadata(m) => self.writer.write_metadata(&m)?,
+/// Copies one unit the scan handed out into `w` (the scan checked its ids: only I/O can fail).
+fn copy<W: Write + Seek>(
+    w: &mut mcap::Writer<W>,
+    records: &[Record<'_>],
+) -> Result<(), mcap::McapError> {
+    for r in records {
+        match r {
+            // The new file has its own header (with the input's profile: see `recover`).
+            Record::Header { .. } => {}
+            Record::Schema {
+                id,
+                name,
+                encoding,
+                data,
+            } => {
+                w.add_schema_with_id(*id, name, encoding, data)?;
             }
-        }
-        Ok(())
-    }
-
-    /// Why the writer would refuse a record of `kept`, if it would: a schema id 0 or redefined
-    /// differently, a channel redefined differently or of a schema never defined, a message on
-    /// a channel never defined (earlier, or in `kept` itself).
-    fn check(&self, kept: &[Kept]) -> Result<(), String> {
-        let mut schemas: BTreeMap<u16, SchemaKey> = BTreeMap::new();
-        let mut channels: BTreeMap<u16, ChannelKey> = BTreeMap::new();
-        for k in kept {
-            match k {
-                Kept::Schema(h, data) => {
-                    let key = (h.name.clone(), h.encoding.clone(), data.clone());
-                    let known = self.schemas.get(&h.id).or(schemas.get(&h.id));
-                    if h.id == 0 || known.is_some_and(|s| *s != key) {
-                        return Err(format!("schema {} redefined or invalid", h.id));
-                    }
-                    schemas.insert(h.id, key);
-                }
-                Kept::Channel(c) => {
-                    let key = (
-                        c.schema_id,
-                        c.topic.clone(),
-                        c.message_encoding.clone(),
-                        c.metadata.clone(),
-                    );
-                    let schema_known = c.schema_id == 0
-                        || self.schemas.contains_key(&c.schema_id)
-                        || schemas.contains_key(&c.schema_id);
-                    let known = self.channels.get(&c.id).or(channels.get(&c.id));
-                    if !schema_known || known.is_some_and(|k| *k != key) {
-                        return Err(format!(
-                            "channel {} redefined or of a schema never defined",
-                            c.id
-                        ));
-                    }
-                    channels.insert(c.id, key);
-                }
-                Kept::Message(h, _)
-                    if !self.channels.contains_key(&h.channel_id)
-                        && !channels.contains_key(&h.channel_id) =>
-                {
-                    return Err(format!(
-                        "a message on channel {} never defined",
-                        h.channel_id
-                    ))
-                }
-                _ => {}
+            Record::Channel {
+                id,
+                schema_id,
+                topic,
+                encoding,
+                metadata,
+            } => {
+                w.add_channel_with_id(*id, *schema_id, topic, encoding, &owned(metadata))?;
             }
+            Record::Message {
+                channel_id,
+                sequence,
+                log_time,
+                publish_time,
+                data,
+            } => {
+                let header = mcap::records::MessageHeader {
+                    channel_id: *channel_id,
+                    sequence: *sequence,
+                    log_time: *log_time,
+                    publish_time: *publish_time,
+                };
+                w.write_to_known_channel(&header, data)?;
+            }
+            Record::Attachment {
+                log_time,
+                create_time,
+                name,
+                media_type,
+                data,
+            } => w.attach(&mcap::Attachment {
+                log_time: *log_time,
+                create_time: *create_time,
+                name: name.to_string(),
+                media_type: media_type.to_string(),
+                data: Cow::Borrowed(data),
+            })?,
+            Record::Metadata { name, metadata } => w.write_metadata(&mcap::records::Metadata {
+                name: name.to_string(),
+                metadata: owned(metadata),
+            })?,
         }
-        Ok(())
     }
+    Ok(())
 }
 
-/// Scans `bytes` (see the module docs) and writes what it keeps to `out` as a complete MCAP,
+/// Scans `input` (see the module docs) and writes what it keeps to `out` as a complete MCAP,
 /// its chunks compressed with `compression`. Returns what was kept and the writer.
-pub fn recover<W: Write + Seek>(
-    bytes: &[u8],
+pub fn recover<R: Read, W: Write + Seek>(
+    mut input: R,
     out: W,
     compression: Option<mcap::Compression>,
 ) -> Result<(Recovery, W), RecoverError> {
-    if !bytes.starts_with(mcap::MAGIC) {
+    // The magic and the header record come first: the header's profile and library go to the
+    // new file. What is read here is scanned again, from the start.
+    let mut head = Vec::new();
+    let _ = (&mut input)
+        .take(scan::HEADER_PEEK_BYTES)
+        .read_to_end(&mut head);
+    if !head.starts_with(mcap::MAGIC) {
         return Err(RecoverError::NotMcap);
     }
-    let mut pos = mcap::MAGIC.len();
-    // The header record comes first: its profile and library go to the new file.
     let mut options = mcap::WriteOptions::new()
         .compression(compression)
         .library(concat!("exocald ", env!("CARGO_PKG_VERSION"), " recover"));
-    if let Some((op::HEADER, body)) = record_at(bytes, pos) {
-        if let Ok(Record::Header(h)) = mcap::parse_record(op::HEADER, body) {
-            options = options.profile(h.profile).library(format!(
-                "{} (recovered by exocald {})",
-                h.library,
-                env!("CARGO_PKG_VERSION")
-            ));
-        }
+    if let Some((profile, library)) = scan::header(&head) {
+        options = options.profile(profile).library(format!(
+            "{library} (recovered by exocald {})",
+            env!("CARGO_PKG_VERSION")
+        ));
     }
-    let mut copier = Copier {
-        writer: mcap::Writer::with_options(out, options)?,
-        messages: 0,
-        log_times: None,
-        schemas: BTreeMap::new(),
-        channels: BTreeMap::new(),
-    };
-    let mut chunks = 0u64;
-    let end = loop {
-        let at = pos as u64;
-        let rest = &bytes[pos..];
-        if rest.len() < RECORD_HEADER {
-            break End::Cut {
-                at,
-                opcode: rest.first().copied(),
-                have: rest.len() as u64,
-                need: None,
-            };
-        }
-        let opcode = rest[0];
-        let mut len = [0u8; 8];
-        len.copy_from_slice(&rest[1..RECORD_HEADER]);
-        let len = u64::from_le_bytes(len);
-        let have = (rest.len() - RECORD_HEADER) as u64;
-        if opcode == 0 {
-            break End::Damaged {
-                at,
-                opcode,
-                why: "opcode 0x00: a tail of zeroes, allocated but never written".into(),
-            };
-        }
-        if len > have {
-            break End::Cut {
-                at,
-                opcode: Some(opcode),
-                have: have + RECORD_HEADER as u64,
-                // The writer's placeholder for the open chunk is u64::MAX.
-                need: len.checked_add(RECORD_HEADER as u64),
-            };
-        }
-        let body = &rest[RECORD_HEADER..RECORD_HEADER + len as usize];
-        let damaged = |why: String| End::Damaged { at, opcode, why };
-        let record = match mcap::parse_record(opcode, body) {
-            Ok(r) => r,
-            Err(e) => break damaged(e.to_string()),
-        };
-        let kept = match record {
-            Record::DataEnd(_) => break End::Complete,
-            Record::Chunk { header, data } => match chunk_records(header, &data) {
-                Ok(kept) => {
-                    chunks += 1;
-                    kept
-                }
-                Err(why) => break damaged(why),
-            },
-            other => keep(other).into_iter().collect(),
-        };
-        if let Err(why) = copier.check(&kept) {
-            break damaged(why);
-        }
-        copier.copy(kept)?;
-        pos += RECORD_HEADER + len as usize;
-    };
-    let kept_bytes = match &end {
-        End::Complete => bytes.len() as u64,
-        End::Cut { at, .. } | End::Damaged { at, .. } => *at,
-    };
-    copier.writer.finish()?;
-    let recovery = Recovery {
-        messages: copier.messages,
-        chunks,
-        log_times: copier.log_times,
-        kept_bytes,
-        file_bytes: bytes.len() as u64,
-        end,
-    };
-    Ok((recovery, copier.writer.into_inner()))
+    let mut writer = mcap::Writer::with_options(out, options)?;
+    let recovery = scan::scan(Cursor::new(&head).chain(input), |records| {
+        copy(&mut writer, records)
+    })?;
+    writer.finish()?;
+    Ok((recovery, writer.into_inner()))
 }
 
-/// The opcode and body of the whole record at `pos`, if there is one.
-fn record_at(bytes: &[u8], pos: usize) -> Option<(u8, &[u8])> {
-    let rest = bytes.get(pos..)?;
-    let len = u64::from_le_bytes(rest.get(1..RECORD_HEADER)?.try_into().ok()?);
-    let end = RECORD_HEADER.checked_add(usize::try_from(len).ok()?)?;
-    Some((rest[0], rest.get(RECORD_HEADER..end)?))
-}
-
-/// Whether `bytes` is an MCAP file with its end magic (a finished log; anything else that starts
-/// like MCAP is read through [`recover`]).
+/// Whether `bytes` is an MCAP file with its end magic (a finished log).
 pub fn is_finished(bytes: &[u8]) -> bool {
     bytes.len() >= 2 * mcap::MAGIC.len()
         && bytes.starts_with(mcap::MAGIC)
@@ -469,6 +182,10 @@ pub fn recover_in_memory(bytes: &[u8]) -> Result<(Recovery, Vec<u8>), RecoverErr
 #[cfg(test)]
 mod tests {
     use super::*;
+    use mcap::records::op;
+
+    /// Opcode and length of a record header: 1 + 8 bytes.
+    const RECORD_HEADER: usize = 9;
     use crate::log::mcaplog::{CanFrameRecord, Level, SessionLog, Topic};
     use crate::log::records::Record;
     use std::collections::BTreeMap;

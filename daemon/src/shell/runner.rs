@@ -540,6 +540,9 @@ impl<T: Transport> Running<'_, '_, T> {
                         if let Some(x) = e.expected {
                             self.collector.window.set_expected(x);
                         }
+                        if let Some(g) = e.guidance {
+                            self.collector.window.set_guidance(g);
+                        }
                     }
                 }
                 rx = self.bus.recv() => {
@@ -1028,6 +1031,7 @@ mod tests {
     ) {
         let flash = dir.join("flash");
         std::fs::create_dir_all(&flash).unwrap();
+        exocal_hil::flash::provision(&flash, &config.push.keys).unwrap();
         scenario.duration_s = 400.0;
         let mut hil = Hil::new(scenario, &flash).unwrap();
         let crcs = |flash: &std::path::Path| -> Vec<Option<u32>> {
@@ -1075,8 +1079,8 @@ mod tests {
         c.output.directory = dir.to_path_buf();
         c.calibration.window.min_duration_s = 15.0;
         c.push.timeout_ms = 400;
-        // The hil's nodes here hold no keys (authenticated pushes: push.rs, demo, atomic_push).
-        c.push.authenticate = false;
+        // Authenticated, as on a suit: the hil's nodes are provisioned with these keys.
+        c.push.keys = exocal_dbc::auth::KeySet::derived(31);
         c
     }
 

@@ -12,6 +12,9 @@
 //! - (d) the daemon pushes to a node that stays silent (transfer fault `Silent`) while the rogue
 //!   answers for it: Freshness, ACKs with the right CRCs, the readback fields, a guessed MAC.
 //!
+//! - the rollback of issue 34 ([`rollback`]): an inflated, unauthenticated `Freshness` answer
+//!   and a forged NACK, the 8 frames kept and replayed with a Commit after later pushes.
+//!
 //! Each attack must leave the attacked node's flash CRC unchanged, and the node's refusal
 //! (NACK `BadMac` / `StaleCounter`) must be seen, so the attack is known to have reached it;
 //! the daemon must never report `New` for (d).
@@ -89,7 +92,7 @@ async fn send_and_listen<T: Transport>(
 /// The frames of a transfer of `t` to `node` in `session`, with `auth` = (counter, MAC) as a
 /// `CommitAuth` before the Commit, or none.
 fn transfer(node: NodeId, session: u8, t: &Table, auth: Option<(u32, u32)>) -> Vec<Frame> {
-    let mut cmds = vec![Command::Begin];
+    let mut cmds = vec![Command::Begin { nonce: 0x5eed }];
     cmds.extend(Field::ALL.map(|f| Command::Segment(f, t.raw(f))));
     if let Some((counter, mac)) = auth {
         cmds.push(Command::CommitAuth {
@@ -272,7 +275,11 @@ async fn forge<T: Transport>(
     }
     let mut replies = Vec::new();
     match cmd.cmd {
-        Command::Begin => replies.push(Reply::Freshness { counter: 7 }),
+        Command::Begin { .. } => {
+            *guess = guess.rotate_left(5) ^ 0x9e37_79b9;
+            replies.push(Reply::Freshness { counter: 7 });
+            replies.push(Reply::FreshnessMac { mac: *guess });
+        }
         Command::Readback { .. } => {
             replies.extend(Field::ALL.map(|f| Reply::Readback(f, table.raw(f))));
             *guess = guess.rotate_left(5) ^ 0x9e37_79b9;
@@ -296,4 +303,165 @@ async fn forge<T: Transport>(
             .expect("rogue sends");
     }
     replies.len() as u64
+}
+
+/// The rollback of issue 34 (item 1), as the review reproduced it, on any transport. During a
+/// genuine push of `t1` to [`TARGET`] the rogue answers the daemon's Begin first, with the
+/// node's counter + 60,000, a guessed `FreshnessMac` and an ACK; it keeps Begin, the six
+/// segments and the `CommitAuth` the daemon signs, and NACKs that `CommitAuth` in the node's
+/// name. Two later genuine pushes (`t2`, `t3`) follow. Then the rogue sends the 8 kept frames
+/// and a Commit of `t1`'s CRC, on the live node.
+///
+/// Must hold: the daemon signs only the node's own counter + 1 (never the forged one); push 1
+/// still ends with the node holding `t1`; the replay is refused (`StaleCounter`) and the node
+/// keeps `t3`, the newest verified table, with the counter it had.
+pub async fn rollback<T: Transport>(
+    daemon: &mut T,
+    rogue: &mut T,
+    flash: &Path,
+    policy: &PushPolicy,
+    wait: Duration,
+) -> Findings {
+    let mut out = Findings::default();
+    let clock = Clock::Wall;
+    let image = exocal_hil::flash::read(flash, TARGET)
+        .expect("flash readable")
+        .expect("a factory table");
+    let record = exocal_hil::flash::read_counter(flash, TARGET).expect("counter record readable");
+    // The node boots with the higher of its counter record and its table image's.
+    let (factory, c0) = (image.table, image.counter.max(record.unwrap_or(0)));
+    let (t1, t2, t3) = (
+        moved(&factory, 111),
+        moved(&factory, 222),
+        moved(&factory, 333),
+    );
+    // Push 1, with the rogue answering first.
+    let session = 60u8;
+    let mut ignore = |_: bool, _: &Frame, _: Duration| {};
+    let tables = [(TARGET, t1)];
+    let (mut kept, mut nacked, mut signed_lo) = (Vec::<Frame>::new(), false, Vec::new());
+    let report = {
+        let push = push_tables(daemon, &clock, &tables, policy, session, &mut ignore);
+        tokio::pin!(push);
+        loop {
+            let got = tokio::select! {
+                r = &mut push => break r,
+                rx = rogue.recv() => rx,
+            };
+            let Ok(rx) = got else { continue };
+            let Ok(Message::TableCmd(cmd)) = exocal_dbc::decode_frame(&rx.frame) else {
+                continue;
+            };
+            if cmd.node != TARGET {
+                continue;
+            }
+            let mut forged = Vec::new();
+            match cmd.cmd {
+                Command::Begin { .. } if !nacked => {
+                    kept = vec![rx.frame];
+                    forged.push(Reply::Freshness {
+                        counter: c0 + 60_000,
+                    });
+                    forged.push(Reply::FreshnessMac { mac: 0xdead_beef });
+                    forged.push(Reply::Ack {
+                        cmd: CmdCode::Begin,
+                        held_crc: factory.crc(),
+                    });
+                }
+                Command::Segment(..) if !nacked => kept.push(rx.frame),
+                Command::CommitAuth { counter_lo, .. } => {
+                    signed_lo.push(counter_lo);
+                    if !nacked {
+                        kept.push(rx.frame);
+                        nacked = true;
+                        forged.push(Reply::Nack {
+                            cmd: CmdCode::CommitAuth,
+                            held_crc: factory.crc(),
+                            reason: NackReason::BadSession,
+                        });
+                    }
+                }
+                _ => {}
+            }
+            for reply in forged {
+                let m = Message::TableReply(exocal_dbc::TableReply {
+                    node: TARGET,
+                    session: cmd.session,
+                    reply,
+                });
+                rogue
+                    .send(&m.to_frame().expect("encodable"))
+                    .await
+                    .expect("rogue sends");
+            }
+        }
+    };
+    let r1 = &report.expect("bus").nodes[0];
+    let after1 = flash_crc(flash, TARGET);
+    let line = format!(
+        "rollback, push 1 with the rogue answering first: report {:?}, {} frames kept, \
+         CommitAuth signed for counter_lo {signed_lo:?} (node counter {c0}), flash {:#010x}",
+        r1.holds,
+        kept.len(),
+        after1.0.unwrap_or(0)
+    );
+    if kept.len() != 8 || !nacked {
+        out.problems
+            .push(format!("{line}: the attack did not run as the review's"));
+    }
+    if signed_lo.iter().any(|&lo| lo != (c0 + 1) as u16) {
+        out.problems.push(format!(
+            "{line}: a counter other than the node's + 1 was signed"
+        ));
+    }
+    if r1.holds == Holds::New && after1.0 != Some(t1.crc()) {
+        out.problems.push(format!(
+            "{line}: reported New but the node does not hold it"
+        ));
+    }
+    out.lines.push(line);
+    // Two later genuine pushes.
+    for (t, session) in [(t2, 61u8), (t3, 62)] {
+        let report = push_tables(daemon, &clock, &[(TARGET, t)], policy, session, &mut ignore)
+            .await
+            .expect("bus");
+        let r = &report.nodes[0];
+        if r.holds != Holds::New || flash_crc(flash, TARGET).0 != Some(t.crc()) {
+            out.problems
+                .push(format!("genuine push of {:#010x} failed: {r:?}", t.crc()));
+            return out;
+        }
+    }
+    let before = flash_crc(flash, TARGET);
+    // The replay: the 8 kept frames and a Commit of t1.
+    let mut replay = kept.clone();
+    replay.push(frame(TableCmd {
+        node: TARGET,
+        session,
+        cmd: Command::Commit { crc: t1.crc() },
+    }));
+    let replies = send_and_listen(rogue, &replay, TARGET, wait).await;
+    let now = flash_crc(flash, TARGET);
+    let line = format!(
+        "rollback, replay of the kept frames after two genuine pushes: {TARGET} answered {:?}; \
+         flash {:#010x} counter {} (t3 {:#010x}, t1 {:#010x})",
+        replies
+            .iter()
+            .filter(|r| matches!(r, Reply::Nack { .. }))
+            .collect::<Vec<_>>(),
+        now.0.unwrap_or(0),
+        now.1,
+        t3.crc(),
+        t1.crc()
+    );
+    if now != before || now.0 != Some(t3.crc()) {
+        out.problems.push(format!(
+            "{line}: the older table landed or the flash changed"
+        ));
+    }
+    if !refused(&replies, NackReason::StaleCounter) {
+        out.problems.push(format!("{line}: no StaleCounter seen"));
+    }
+    out.lines.push(line);
+    out
 }

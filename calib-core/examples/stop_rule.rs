@@ -3,7 +3,7 @@
 //! within [2 mm, 6 mrad], at 120 s at the latest) collects, and the table error it then reaches,
 //! against a fixed minute of the same session (see `calib_core::sweep::good_enough`).
 //!
-//! `cargo run -p calib-core --release --example good_enough` (τ ∈ {0.1, 0.3, 1, 3, 10} s ×
+//! `cargo run -p calib-core --release --example stop_rule` (τ ∈ {0.1, 0.3, 1, 3, 10} s ×
 //! σ ∈ {0.25, 1, 4} × pose noise {none, 1 mm / 2 mrad}, 5 seeds per cell; optional `--seeds N`,
 //! `--sigma S`, `--tau T`, `--noise 0|1` to run part of it, `--limits MM,MRAD`). The whole grid
 //! took 4 min 33 s on one core (2026-11-24, load ≈ 1.7): a session that never meets the limits
