@@ -369,6 +369,15 @@ struct RawTrigger {
 // ---- parsing ----------------------------------------------------------------------------------
 
 impl Config {
+    /// The configured joint nodes' ids (the ones the DBC knows), joint 1 first.
+    pub fn joint_node_ids(&self) -> Vec<exocal_dbc::NodeId> {
+        self.calibration
+            .joint_nodes
+            .iter()
+            .filter_map(|&n| exocal_dbc::NodeId::new(n))
+            .collect()
+    }
+
     /// Reads and validates the configuration file at `path`.
     pub fn load(path: &Path) -> Result<Config, ConfigError> {
         let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {

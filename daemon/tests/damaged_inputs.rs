@@ -2,8 +2,8 @@
 //! one test per class of the bad-input campaign (`fuzz/campaign.py`), each driving the binary
 //! and asserting exit 65 (or, for `recover` and a log merely cut short, what it must do
 //! instead) and the message naming what is wrong. The same inputs seed the fuzz corpus
-//! (`write_fuzz_seeds`, ignored: `EXOCAL_FUZZ_CORPUS=$PWD/fuzz/corpus cargo test -p exocald
-//! --test damaged_inputs -- --ignored`).
+//! (`write_fuzz_seeds`: `EXOCAL_FUZZ_CORPUS=$PWD/fuzz/corpus cargo test -p exocald
+//! --test damaged_inputs write_fuzz_seeds`).
 //!
 //! Memory is asserted through the limits rather than RSS: an input beyond one session under
 //! the configuration is refused at its first line or frame beyond it, and a record, chunk or
@@ -496,12 +496,13 @@ fn bit_flips_of_a_log_read_or_are_bad_input() {
     assert!(read > 0 && bad > read, "{read} read, {bad} refused");
 }
 
-/// Writes the damaged inputs above into `$EXOCAL_FUZZ_CORPUS/<target>/` as the fuzz targets'
-/// seeds (see fuzz/README.md).
+/// Writes the damaged inputs above as the fuzz targets' seeds (see fuzz/README.md): into
+/// `$EXOCAL_FUZZ_CORPUS/<target>/` when that is set, else into a temporary directory, where the
+/// test checks that every reader's target got its seeds.
 #[test]
-#[ignore = "writes the fuzz seed corpus: EXOCAL_FUZZ_CORPUS=$PWD/fuzz/corpus"]
 fn write_fuzz_seeds() {
-    let root = PathBuf::from(std::env::var("EXOCAL_FUZZ_CORPUS").expect("EXOCAL_FUZZ_CORPUS"));
+    let root = std::env::var_os("EXOCAL_FUZZ_CORPUS")
+        .map_or_else(|| temp_dir("fuzz-corpus"), PathBuf::from);
     let put = |target: &str, name: &str, bytes: &[u8]| {
         let d = root.join(target);
         std::fs::create_dir_all(&d).unwrap();
@@ -543,4 +544,13 @@ fn write_fuzz_seeds() {
     put("offline_csv", "intact.csv", csv.as_bytes());
     let far = csv.replace("\n0.29,", "\n1000.29,");
     put("offline_csv", "span.csv", far.as_bytes());
+    for (target, at_least) in [
+        ("offline_mcap", 4),
+        ("recover", 4),
+        ("offline_candump", 2),
+        ("offline_csv", 2),
+    ] {
+        let n = std::fs::read_dir(root.join(target)).map_or(0, Iterator::count);
+        assert!(n >= at_least, "{target}: {n} seeds");
+    }
 }

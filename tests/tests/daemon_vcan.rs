@@ -198,6 +198,14 @@ fn credentials(dir: &Path) -> PathBuf {
     creds
 }
 
+/// The daemon's state directory (`$STATE_DIRECTORY`, the shipped unit's `StateDirectory=`):
+/// with keys, exocald keeps the nodes' freshness counters and the trigger counter there.
+fn state(dir: &Path) -> PathBuf {
+    let state = dir.join("state");
+    std::fs::create_dir_all(&state).unwrap();
+    state
+}
+
 struct Hil {
     child: Child,
     flash: PathBuf,
@@ -433,6 +441,7 @@ fn calibrate_on_vcan0_pushes_a_table_every_node_holds_and_logs_every_frame() {
         .arg(&cfg)
         .arg("calibrate")
         .env("CREDENTIALS_DIRECTORY", credentials(&dir))
+        .env("STATE_DIRECTORY", state(&dir))
         .stdin(Stdio::null())
         .output()
         .expect("run exocald");
@@ -598,6 +607,7 @@ fn sigterm_during_collection_finishes_the_log_and_pushes_nothing() {
         .arg(&cfg)
         .arg("calibrate")
         .env("CREDENTIALS_DIRECTORY", credentials(&dir))
+        .env("STATE_DIRECTORY", state(&dir))
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -764,6 +774,8 @@ fn serve_runs_a_session_per_trigger_and_stops_on_sigterm() {
             .arg(&cfg)
             .args(["run", "--dry-run"])
             .env("CREDENTIALS_DIRECTORY", credentials(&dir))
+            .env("STATE_DIRECTORY", state(&dir))
+            .env("STATE_DIRECTORY", state(&dir))
             .stdin(Stdio::null())
             .stdout(Stdio::null())
             .stderr(Stdio::piped())

@@ -523,6 +523,7 @@ fn serve_feeds_the_watchdog_while_idle() {
     boot_run();
     let unit = format!(
         "[Service]\nType=notify\nNotifyAccess=main\nWatchdogSec={}s\nLoadCredential=exocal-keys:/etc/credstore/exocal-keys\n\
+         StateDirectory=exocald-serve\n\
          ExecStart=/usr/bin/exocald --config /etc/exocal/exocald.toml run --dry-run --output /run/exocald-serve\n",
         WATCHDOG.as_secs()
     );

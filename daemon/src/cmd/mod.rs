@@ -21,7 +21,6 @@ use crate::shell::notify::{Notifier, Reporter};
 use crate::shell::runner::run_session;
 use crate::shell::shutdown::Shutdown;
 use crate::shell::summary::finish;
-use exocal_dbc::NodeId;
 
 /// Where a configuration came from.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -136,12 +135,7 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
             eprintln!("exocald: configuration from {source}");
             require_interface(&config.interface)?;
             if config.push.authenticate {
-                let nodes: Vec<NodeId> = config
-                    .calibration
-                    .joint_nodes
-                    .iter()
-                    .filter_map(|&n| NodeId::new(n))
-                    .collect();
+                let nodes = config.joint_node_ids();
                 match crate::keys::load_if_present(&nodes)? {
                     Some(keys) => config.push.keys = keys,
                     None => eprintln!(
@@ -213,14 +207,9 @@ pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError
         );
         return Ok(());
     }
-    let nodes: Vec<NodeId> = config
-        .calibration
-        .joint_nodes
-        .iter()
-        .filter_map(|&n| NodeId::new(n))
-        // The end effector signs its stream (session::verify) with a key of its own.
-        .chain([NodeId::END_EFFECTOR])
-        .collect();
+    let mut nodes = config.joint_node_ids();
+    // The end effector signs its stream (session::verify) with a key of its own.
+    nodes.push(exocal_dbc::NodeId::END_EFFECTOR);
     config.push.keys = crate::keys::load_credential(&nodes, trigger)?;
     let Some(state) = crate::state::from_env() else {
         return Err(DaemonError::Keys(crate::keys::KeyError::NoState));

@@ -296,12 +296,7 @@ pub async fn list<T: Transport>(
     config: &crate::config::Config,
     log: Option<&Path>,
 ) -> Result<Listing, DaemonError> {
-    let nodes: Vec<NodeId> = config
-        .calibration
-        .joint_nodes
-        .iter()
-        .filter_map(|&n| NodeId::new(n))
-        .collect();
+    let nodes = config.joint_node_ids();
     let session = (micros(clock.now()) / 1000 % 251) as u8;
     let answers = read_tables(
         bus,
