@@ -526,7 +526,10 @@ impl Suit {
                 }
                 let provisioning = flash::Provisioning::read(&self.flash_dir, n.id);
                 // RAM is gone: the stream signer starts over, without the collection's nonce.
-                n.stream = stream::signer(n.id, provisioning.key.as_ref().ok().and_then(Option::as_ref));
+                n.stream = stream::signer(
+                    n.id,
+                    provisioning.key.as_ref().ok().and_then(Option::as_ref),
+                );
                 n.transfer = boot_transfer(n.id, image, provisioning, &mut self.stats);
                 n.flash = NodeFlash::new(&self.flash_dir, n.id, n.boot_count);
                 n.schedules = schedules(scenario, n, t);
@@ -1163,20 +1166,34 @@ pub(crate) mod tests {
             to_s: 10.0,
             rate_hz: 100.0,
         });
-        // Up to its end, the motion is that of a longer scenario, faults included.
+        // Up to its end, the motion is that of a longer scenario, faults included (keyed alike:
+        // the same stream digests).
+        let keys = exocal_dbc::auth::KeySet::derived(8);
         let mut long = s.clone();
         long.duration_s = 100.0;
         let long_dir = temp_dir("rest-long");
+        flash::provision(&long_dir, &keys).unwrap();
         let moving = Suit::new(long, &long_dir).unwrap().advance(3.0);
-        let keys = exocal_dbc::auth::KeySet::derived(8);
         flash::provision(&dir, &keys).unwrap();
         let mut suit = Suit::new(s, &dir).unwrap();
         assert_eq!(suit.advance(3.0), moving);
         // The last samples are on the wire 50 µs after they are taken.
         suit.advance(3.001);
         let samples = suit.stats().samples;
-        // At rest: heartbeats only, from every node at its rate (1 Hz in this scenario).
-        let rest = suit.advance(13.001);
+        // At rest: heartbeats only, from every node at its rate (1 Hz in this scenario), but for
+        // the digest closing each node's last span of motion (every node is keyed), which goes
+        // out with a heartbeat once a digest period has passed.
+        let (digests, rest): (Vec<Frame>, Vec<Frame>) = suit
+            .advance(13.001)
+            .into_iter()
+            .partition(|f| matches!(decode_frame(f), Ok(Message::StreamDigest(_))));
+        assert_eq!(
+            counts(&digests),
+            NodeId::ALL
+                .map(|n| (u32::from(spec::STREAM_DIGEST.id(n.raw())), 1))
+                .into_iter()
+                .collect(),
+        );
         let c = counts(&rest);
         assert_eq!(
             c.keys().copied().collect::<Vec<_>>(),
