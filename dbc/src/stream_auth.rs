@@ -245,6 +245,14 @@ impl Verifier {
         self.node
     }
 
+    /// The controller sent the collection a new nonce (a node rebooted and lost the old one):
+    /// every node restarts its sequence under it, and so does the verifier. Spans signed under
+    /// the old nonce no longer verify.
+    pub fn restart(&mut self, nonce: StreamNonce) {
+        self.nonce = nonce.nonce;
+        self.next_seq = 0;
+    }
+
     /// Checks `digest` against the frames (identifier, data) held since the previous digest,
     /// in their order of arrival. `Ok` when they are exactly what the node signed; on any
     /// `Err` but [`Reject::Stale`] the caller drops the held frames (and on `Stale` keeps

@@ -21,7 +21,7 @@ use crate::align::{AlignParams, AlignedSample};
 use crate::ingest::{ClockReport, Event, FrameStats, Ingest, Reading, StallReport};
 use crate::stream::{Column, STREAMS};
 use crate::verify::{Dropped, StreamGate};
-use crate::window::Window;
+use crate::window::{Shortfall, Window};
 use crate::Settings;
 
 /// A session's frames so far: the decoded streams and the collection window.
@@ -67,15 +67,28 @@ impl Collector {
         dropped
     }
 
-    /// The shortfall the stream gate adds when the window fails: `None` when nothing was
-    /// dropped.
-    pub fn unverified(&self) -> Option<crate::window::Shortfall> {
-        let s = self.gate.as_ref()?.stats();
-        (s.dropped_spans > 0).then_some(crate::window::Shortfall::Unverified {
-            spans: s.dropped_spans,
-            frames: s.dropped_frames,
-            seconds: s.dropped_s,
-        })
+    /// What the stream gate says against calibrating on this collection (empty without a
+    /// gate): a [`Shortfall::SecondSender`] for every node on whose identifiers frames it did
+    /// not sign arrived, and [`Shortfall::Unverified`] when spans were dropped and either the
+    /// window `failed` or they exceed [`crate::verify::MAX_DROPPED_FRACTION`] of all spans. A
+    /// session with any of these is refused: its data were attacked or too much is missing.
+    pub fn unverified(&self, failed: bool) -> Vec<Shortfall> {
+        let Some(s) = self.gate.as_ref().map(StreamGate::stats) else {
+            return Vec::new();
+        };
+        let mut why: Vec<Shortfall> = s
+            .second_senders()
+            .map(|(node, spans)| Shortfall::SecondSender { node, spans })
+            .collect();
+        if s.dropped_spans > 0 && (failed || s.heavy_loss()) {
+            why.push(Shortfall::Unverified {
+                spans: s.dropped_spans,
+                frames: s.dropped_frames,
+                seconds: s.dropped_s,
+                of: s.dropped_spans + s.verified_spans,
+            });
+        }
+        why
     }
 
     /// Takes one received frame (see the module docs); returns what ingest made of it.

@@ -74,9 +74,8 @@ pub fn replay_gated(
                 collected: collector.collected(&settings),
                 shortfalls: {
                     let mut s = collector.window.at_end(duration_s);
-                    if !s.is_empty() {
-                        s.extend(collector.unverified());
-                    }
+                    let failed = !s.is_empty();
+                    s.extend(collector.unverified(failed));
                     s
                 },
                 settings,

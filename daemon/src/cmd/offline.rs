@@ -329,8 +329,7 @@ pub fn run(
             detect_format(path, &head)?
         }
     };
-    let (input, recovery, gate) =
-        read_input_gated(path, file, format, &config.calibration.window)?;
+    let (input, recovery, gate) = read_input_gated(path, file, format, &config.calibration.window)?;
     if let Some(r) = &recovery {
         eprintln!(
             "exocald: warning: {} was cut short (no summary or footer: the daemon was killed or \

@@ -111,6 +111,7 @@ pub fn stream_verification(gate: &exocal_session::verify::StreamGate) -> proto::
         no_digest: g.no_digest,
         stale: g.stale,
         second_sender: g.second_sender.to_vec(),
+        start_frames: g.start_frames,
         rejects: gate
             .rejects()
             .iter()
