@@ -591,11 +591,11 @@ fn provisioned_keys() -> Vec<String> {
 fn the_push_was_authenticated_with_the_credential_and_no_key_leaked() {
     let run = boot_run();
     assert!(
-        run.journal.contains("table transfers are authenticated")
+        run.journal.contains("sensor streams are authenticated")
             && run
                 .journal
                 .contains("provisioned the key slots of 8 node(s)"),
-        "the journal does not say the transfers were authenticated"
+        "the journal does not say the transfers and streams were authenticated"
     );
     let push = boot_push();
     for node in push["nodes"].as_array().expect("nodes") {
