@@ -609,8 +609,9 @@ fn the_push_was_authenticated_with_the_credential_and_no_key_leaked() {
             .unwrap();
         assert!(image.counter >= 1, "node {n}: counter {}", image.counter);
     }
+    // Joint1 … Joint7, EndEffector, Trigger.
     let keys = provisioned_keys();
-    assert_eq!(keys.len(), 8);
+    assert_eq!(keys.len(), 9);
     let bytes = std::fs::read(&run.logs[0]).unwrap();
     let mut messages = Vec::new();
     for m in mcap::MessageStream::new(&bytes).expect("message stream") {
