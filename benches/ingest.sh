@@ -43,7 +43,7 @@ credentials() {
     (
         umask 077
         mkdir -p "$CREDENTIALS_DIRECTORY"
-        for name in Joint1 Joint2 Joint3 Joint4 Joint5 Joint6 Joint7 Trigger; do
+        for name in Joint1 Joint2 Joint3 Joint4 Joint5 Joint6 Joint7 EndEffector Trigger; do
             echo "$name $(od -An -N16 -tx1 /dev/urandom | tr -d ' \n')"
         done >"$CREDENTIALS_DIRECTORY/exocal-keys"
     )

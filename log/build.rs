@@ -14,6 +14,14 @@ fn main() {
             ".exocal.CollectionEnd",
             "#[derive(serde::Serialize, serde::Deserialize)]",
         )
+        .type_attribute(
+            ".exocal.RejectRun",
+            "#[derive(serde::Serialize, serde::Deserialize)]",
+        )
+        .type_attribute(
+            ".exocal.StreamVerification",
+            "#[derive(serde::Serialize, serde::Deserialize)]",
+        )
         .compile_fds(fds)
         .expect("generate the message types");
 }

@@ -156,6 +156,11 @@ pub struct Config {
     pub live: LiveConfig,
     /// The serve mode's trigger rules (`[trigger]`).
     pub trigger: TriggerRules,
+    /// Whether an authenticated session (`[push] authenticate`) verifies the sensor streams
+    /// (`exocal_session::verify`). Always on from the configuration file; off only where a
+    /// test's subject is the wire's faults (the fault matrix: the gate drops every span a lost,
+    /// duplicated or corrupted frame touches, so 10 % loss leaves no data).
+    pub verify_streams: bool,
 }
 
 /// A configuration error: which key, on which line, what is wrong.
@@ -912,6 +917,7 @@ impl Checker<'_> {
             push,
             live,
             trigger,
+            verify_streams: true,
         })
     }
 }

@@ -119,6 +119,14 @@ impl DaemonError {
             DaemonError::Interface { .. } | DaemonError::Push(_) | DaemonError::NoAnswer(_) => {
                 code::UNAVAILABLE
             }
+            // Frames on a node's identifiers that the node did not sign: hostile input.
+            DaemonError::Session(why)
+                if why
+                    .iter()
+                    .any(|s| matches!(s, Shortfall::SecondSender { .. })) =>
+            {
+                code::DATAERR
+            }
             DaemonError::Session(_) | DaemonError::Calibration(_) => code::NOINPUT,
             DaemonError::Validation(_) | DaemonError::Unpushable(_) => code::DATAERR,
             DaemonError::Io { .. } | DaemonError::Bus { .. } | DaemonError::Log { .. } => {

@@ -65,6 +65,7 @@ fn the_mcap_reader_reads_the_frames_the_daemon_logged() {
                 malformed: 0,
                 invalid_angles: 0,
                 dropped: 0,
+                stream: None,
             };
             log.write_record(end.window_end_ns, &Record::CollectionEnd(&end))
                 .unwrap();

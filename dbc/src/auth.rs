@@ -382,10 +382,12 @@ impl KeySet {
             let slot = if name == "Trigger" {
                 None
             } else {
-                let node = NodeId::JOINTS
+                let node = NodeId::ALL
                     .into_iter()
                     .find(|n| n.name() == name)
-                    .ok_or(err("unknown name: expected Joint1 … Joint7 or Trigger"))?;
+                    .ok_or(err(
+                        "unknown name: expected Joint1 … Joint7, EndEffector or Trigger",
+                    ))?;
                 Some(usize::from(node.raw() - 1))
             };
             let held = match slot {
@@ -425,7 +427,7 @@ impl KeySet {
         master[8..].copy_from_slice(b"exocal-d");
         let master = Key(master);
         let mut keys = KeySet::default();
-        for node in NodeId::JOINTS {
+        for node in NodeId::ALL {
             keys.nodes[usize::from(node.raw() - 1)] = Some(master.derive(&[node.raw()]));
         }
         keys.trigger = Some(master.derive(b"Trigger"));

@@ -29,6 +29,7 @@ pub mod frame;
 mod layout;
 pub mod message;
 pub mod pose;
+pub mod stream_auth;
 pub mod table;
 pub mod transfer;
 
@@ -50,7 +51,8 @@ pub mod spec {
 
 pub use message::{
     decode, decode_frame, CmdCode, Command, Heartbeat, ImuVector, JointState, Message, NackReason,
-    NodeState, PoseFrame, PosePage, Reply, TableCmd, TableReply, Trigger, TriggerCommand,
+    NodeState, PoseFrame, PosePage, Reply, StreamDigest, StreamNonce, TableCmd, TableReply,
+    Trigger, TriggerCommand,
 };
 pub use table::{Field, Table};
 

@@ -12,8 +12,8 @@
 //! which typed field each signal is, and the types themselves.
 
 use crate::spec::{
-    ee_pose, heartbeat, imu_accel, imu_gyro, imu_mag, joint_state, lookup, table_cmd, table_reply,
-    trigger, Kind, SignalSpec, DLC,
+    ee_pose, heartbeat, imu_accel, imu_gyro, imu_mag, joint_state, lookup, stream_digest,
+    stream_nonce, table_cmd, table_reply, trigger, Kind, SignalSpec, DLC,
 };
 use crate::table::Field;
 use crate::{DecodeError, EncodeError, NodeId};
@@ -394,6 +394,27 @@ pub struct Trigger {
     pub mac: u32,
 }
 
+/// A `StreamDigest_<node>` frame: authenticates the data frames the node sent since its
+/// previous digest ([`crate::stream_auth`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct StreamDigest {
+    /// Sending node.
+    pub node: NodeId,
+    /// Low 16 bits of the digest sequence number.
+    pub seq_lo: u16,
+    /// Data frames covered.
+    pub count: u8,
+    /// The AES-128-CMAC truncated to 40 bits.
+    pub mac: u64,
+}
+
+/// `StreamNonce`: the controller's nonce for the stream digests of one collection.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct StreamNonce {
+    /// The nonce (48 bits).
+    pub nonce: u64,
+}
+
 /// Any message of the protocol.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Message {
@@ -415,6 +436,10 @@ pub enum Message {
     TableReply(TableReply),
     /// `Trigger`.
     Trigger(Trigger),
+    /// `StreamDigest_<node>`.
+    StreamDigest(StreamDigest),
+    /// `StreamNonce`.
+    StreamNonce(StreamNonce),
 }
 
 /// The signals of an IMU family: the x, y, z axes and the low timestamp.
@@ -578,6 +603,18 @@ pub fn decode(id: u16, data: &[u8]) -> Result<Message, DecodeError> {
                 mac: raw(&MAC) as u32,
             })
         }
+        Kind::StreamDigest => {
+            use stream_digest::*;
+            Message::StreamDigest(StreamDigest {
+                node: node?,
+                seq_lo: raw(&SEQ) as u16,
+                count: raw(&COUNT) as u8,
+                mac: raw(&MAC) as u64,
+            })
+        }
+        Kind::StreamNonce => Message::StreamNonce(StreamNonce {
+            nonce: raw(&stream_nonce::NONCE) as u64,
+        }),
     })
 }
 
@@ -603,7 +640,8 @@ impl Message {
             Message::Heartbeat(m) => Some(m.node),
             Message::TableCmd(m) => Some(m.node),
             Message::TableReply(m) => Some(m.node),
-            Message::Trigger(_) => None,
+            Message::StreamDigest(m) => Some(m.node),
+            Message::Trigger(_) | Message::StreamNonce(_) => None,
         }
     }
 
@@ -619,6 +657,8 @@ impl Message {
             Message::TableCmd(_) => Kind::TableCmd,
             Message::TableReply(_) => Kind::TableReply,
             Message::Trigger(_) => Kind::Trigger,
+            Message::StreamDigest(_) => Kind::StreamDigest,
+            Message::StreamNonce(_) => Kind::StreamNonce,
         }
     }
 
@@ -742,6 +782,15 @@ impl Message {
                 COMMAND.encode_raw(d, t.command as i64)?;
                 COUNTER_LO.encode_raw(d, i64::from(t.counter_lo))?;
                 MAC.encode_raw(d, i64::from(t.mac))?;
+            }
+            Message::StreamDigest(m) => {
+                use stream_digest::*;
+                SEQ.encode_raw(d, i64::from(m.seq_lo))?;
+                COUNT.encode_raw(d, i64::from(m.count))?;
+                MAC.encode_raw(d, m.mac as i64)?;
+            }
+            Message::StreamNonce(m) => {
+                stream_nonce::NONCE.encode_raw(d, m.nonce as i64)?;
             }
         }
         Ok((id, *d, DLC))
@@ -916,6 +965,15 @@ mod tests {
                     counter_lo,
                     mac
                 })),
+            (node(), any::<u16>(), any::<u8>(), 0u64..1 << 40).prop_map(
+                |(node, seq_lo, count, mac)| Message::StreamDigest(StreamDigest {
+                    node,
+                    seq_lo,
+                    count,
+                    mac
+                })
+            ),
+            (0u64..1 << 48).prop_map(|nonce| Message::StreamNonce(StreamNonce { nonce })),
         ]
     }
 

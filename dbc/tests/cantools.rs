@@ -136,6 +136,12 @@ fn signals(m: &Message) -> Vec<(&'static str, f64)> {
             ("CounterLo", f64::from(t.counter_lo)),
             ("Mac", f64::from(t.mac)),
         ],
+        Message::StreamDigest(d) => vec![
+            ("Seq", f64::from(d.seq_lo)),
+            ("Count", f64::from(d.count)),
+            ("Mac", d.mac as f64),
+        ],
+        Message::StreamNonce(n) => vec![("Nonce", n.nonce as f64)],
     }
 }
 

@@ -182,7 +182,7 @@ pub fn write_key(dir: &Path, node: NodeId, key: &Key) -> std::io::Result<()> {
 /// the old one would otherwise verify again).
 pub fn provision(dir: &Path, keys: &KeySet) -> std::io::Result<Vec<NodeId>> {
     let mut done = Vec::new();
-    for node in NodeId::JOINTS {
+    for node in NodeId::ALL {
         if let Some(key) = keys.node(node) {
             write_key(dir, node, key)?;
             let record = read_counter(dir, node).ok().flatten().unwrap_or(0);
@@ -435,8 +435,8 @@ mod tests {
         let d = dir("keys");
         let keys = KeySet::derived(11);
         assert_eq!(read_key(&d, NodeId::JOINTS[0]).unwrap(), None);
-        assert_eq!(provision(&d, &keys).unwrap(), NodeId::JOINTS.to_vec());
-        for node in NodeId::JOINTS {
+        assert_eq!(provision(&d, &keys).unwrap(), NodeId::ALL.to_vec());
+        for node in NodeId::ALL {
             assert_eq!(read_key(&d, node).unwrap().as_ref(), keys.node(node));
             let mode = std::fs::metadata(key_path(&d, node))
                 .unwrap()

@@ -35,6 +35,7 @@ pub mod flash;
 pub mod motion;
 pub mod scenario;
 pub mod sim;
+pub mod stream;
 pub mod trial;
 
 pub use scenario::{Scenario, ScenarioError};

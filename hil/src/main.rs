@@ -161,7 +161,7 @@ fn provision_keys(file: Option<&Path>, flash_dir: &Path) -> anyhow::Result<Strin
     let done = exocal_hil::flash::provision(flash_dir, &keys)
         .with_context(|| format!("writing key slots in {}", flash_dir.display()))?;
     Ok(format!(
-        "provisioned the key slots of {} joint node(s) from {}",
+        "provisioned the key slots of {} node(s) from {}",
         done.len(),
         path.display()
     ))
@@ -204,7 +204,7 @@ mod tests {
         let file = dir.join("keys");
         std::fs::write(&file, "Joint2 000102030405060708090a0b0c0d0e0f\n").unwrap();
         let said = provision_keys(Some(&file), &dir.join("flash")).unwrap();
-        assert!(said.contains("1 joint node(s)"), "{said}");
+        assert!(said.contains("1 node(s)"), "{said}");
         assert!(
             exocal_hil::flash::read_key(&dir.join("flash"), NodeId::JOINTS[1])
                 .unwrap()

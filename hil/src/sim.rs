@@ -26,6 +26,7 @@
 use crate::flash::{self, FlashImage, NodeFlash};
 use crate::motion::{Chain, Motion};
 use crate::scenario::{Scenario, TransferBehaviour};
+use crate::stream::{self, Signer};
 use crate::HilError;
 use calib_core::{DhTable, Discretisation, GaussMarkov, Rng};
 use exocal_bus::embedded_can::{ExtendedId, Frame as _, StandardId};
@@ -154,6 +155,8 @@ struct Node {
     history: [Option<(f64, Vector3<f64>)>; 2],
     up: bool,
     boot_count: u32,
+    /// The stream signer, for a node holding a key (`crate::stream`).
+    stream: Option<Signer>,
     transfer: NodeTransfer,
     flash: NodeFlash,
     behaviour: TransferBehaviour,
@@ -305,6 +308,7 @@ impl Suit {
                 history: [None; 2],
                 up: true,
                 boot_count,
+                stream: stream::signer(id, provisioning.key.as_ref().ok().and_then(Option::as_ref)),
                 transfer: boot_transfer(id, image, provisioning, &mut stats),
                 flash: NodeFlash::new(flash_dir, id, boot_count),
                 behaviour: scenario.faults.transfer_behaviour(id.raw()),
@@ -521,6 +525,11 @@ impl Suit {
                     let _ = flash::write(&self.flash_dir, n.id, &FlashImage { boot_count, ..i });
                 }
                 let provisioning = flash::Provisioning::read(&self.flash_dir, n.id);
+                // RAM is gone: the stream signer starts over, without the collection's nonce.
+                n.stream = stream::signer(
+                    n.id,
+                    provisioning.key.as_ref().ok().and_then(Option::as_ref),
+                );
                 n.transfer = boot_transfer(n.id, image, provisioning, &mut self.stats);
                 n.flash = NodeFlash::new(&self.flash_dir, n.id, n.boot_count);
                 n.schedules = schedules(scenario, n, t);
@@ -684,15 +693,26 @@ impl Suit {
                 })]
             }
         };
+        let local_us = self.nodes[n].local_us(t);
         for m in messages {
             match m.to_frame::<Frame>() {
                 Ok(f) => {
                     self.nodes[n].last_frame = Some(f);
                     self.emit(t + TX_LATENCY_S, f);
+                    let full = self.nodes[n]
+                        .stream
+                        .as_mut()
+                        .and_then(|s| s.sign(&f, local_us));
+                    if let Some(digest) = full {
+                        self.emit(t + TX_LATENCY_S, digest);
+                    }
                 }
                 // A value the DBC cannot carry: the firmware drops the sample and counts it.
                 Err(_) => self.nodes[n].tx_errors += 1,
             }
+        }
+        if let Some(digest) = self.nodes[n].stream.as_mut().and_then(|s| s.due(local_us)) {
+            self.emit(t + TX_LATENCY_S, digest);
         }
     }
 
@@ -778,6 +798,15 @@ impl Suit {
         if frame.is_extended() {
             return;
         }
+        if let Ok(Message::StreamNonce(nonce)) = exocal_dbc::decode_frame(frame) {
+            for node in self.nodes.iter_mut().filter(|n| n.up) {
+                let local_us = node.local_us(t_s);
+                if let Some(s) = node.stream.as_mut() {
+                    s.set_nonce(nonce, local_us);
+                }
+            }
+            return;
+        }
         // A table command addresses a joint node: index n of `self.nodes`.
         let n = match spec::lookup(frame.raw_id() as u16) {
             Some((family, Some(node))) if family.kind == spec::Kind::TableCmd => node.joint_index(),
@@ -801,7 +830,7 @@ impl Suit {
         };
         self.stats.commands += 1;
         let node = &mut self.nodes[n];
-        let local = ((t_s - node.clock.boot_s).max(0.0) * 1e6) as u64;
+        let local = node.local_us(t_s);
         let replies: Vec<TableReply> = match node.behaviour {
             TransferBehaviour::Silent => Vec::new(),
             TransferBehaviour::Nack => vec![TableReply {
@@ -840,6 +869,13 @@ impl Suit {
                 .expect("replies are always encodable");
             self.emit(t_s + REPLY_LATENCY_S + i as f64 * 20e-6, frame);
         }
+    }
+}
+
+impl Node {
+    /// Microseconds since the node booted (its firmware's monotonic time).
+    fn local_us(&self, t_s: f64) -> u64 {
+        ((t_s - self.clock.boot_s).max(0.0) * 1e6) as u64
     }
 }
 
@@ -1130,20 +1166,34 @@ pub(crate) mod tests {
             to_s: 10.0,
             rate_hz: 100.0,
         });
-        // Up to its end, the motion is that of a longer scenario, faults included.
+        // Up to its end, the motion is that of a longer scenario, faults included (keyed alike:
+        // the same stream digests).
+        let keys = exocal_dbc::auth::KeySet::derived(8);
         let mut long = s.clone();
         long.duration_s = 100.0;
         let long_dir = temp_dir("rest-long");
+        flash::provision(&long_dir, &keys).unwrap();
         let moving = Suit::new(long, &long_dir).unwrap().advance(3.0);
-        let keys = exocal_dbc::auth::KeySet::derived(8);
         flash::provision(&dir, &keys).unwrap();
         let mut suit = Suit::new(s, &dir).unwrap();
         assert_eq!(suit.advance(3.0), moving);
         // The last samples are on the wire 50 µs after they are taken.
         suit.advance(3.001);
         let samples = suit.stats().samples;
-        // At rest: heartbeats only, from every node at its rate (1 Hz in this scenario).
-        let rest = suit.advance(13.001);
+        // At rest: heartbeats only, from every node at its rate (1 Hz in this scenario), but for
+        // the digest closing each node's last span of motion (every node is keyed), which goes
+        // out with a heartbeat once a digest period has passed.
+        let (digests, rest): (Vec<Frame>, Vec<Frame>) = suit
+            .advance(13.001)
+            .into_iter()
+            .partition(|f| matches!(decode_frame(f), Ok(Message::StreamDigest(_))));
+        assert_eq!(
+            counts(&digests),
+            NodeId::ALL
+                .map(|n| (u32::from(spec::STREAM_DIGEST.id(n.raw())), 1))
+                .into_iter()
+                .collect(),
+        );
         let c = counts(&rest);
         assert_eq!(
             c.keys().copied().collect::<Vec<_>>(),

@@ -393,6 +393,7 @@ mod tests {
             malformed: 2,
             invalid_angles: 1,
             dropped: 0,
+            stream: None,
         };
         let bin = end.encode_to_vec();
         assert_eq!(decode_collection_end("protobuf", &bin).unwrap(), end);

@@ -38,7 +38,7 @@ impl fmt::Display for ReadError {
 impl std::error::Error for ReadError {}
 
 /// A daemon session log, as the offline replay needs it.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct McapSession {
     /// Received raw frames (topic [`Topic::CanRx`]), in file order.
     pub frames: Vec<Received>,
@@ -51,6 +51,8 @@ pub struct McapSession {
     /// time would not do: frames still queued in the receiver at the end carry earlier
     /// timestamps but were not used.)
     pub collection_frames: Option<u64>,
+    /// The stream gate's record of the collection (`None`: streams taken unverified).
+    pub stream: Option<crate::proto::StreamVerification>,
     /// The push outcome per node, from the last `/calibration` record that carries one (empty
     /// when nothing was pushed, or in a log written before the log was binary).
     pub push: Vec<crate::proto::NodePush>,
@@ -90,6 +92,7 @@ pub fn read_mcap_session(
     let mut collection_end = None;
     let mut collection_frames = None;
     let mut push = Vec::new();
+    let mut gate = None;
     let mut seen_channel = false;
     let mut channels: HashMap<u16, Carries> = HashMap::new();
     let mut i = 0u64;
@@ -132,6 +135,7 @@ pub fn read_mcap_session(
                     if collection_end.is_none() {
                         collection_end = Some(Duration::from_nanos(end.window_end_ns));
                         collection_frames = Some(end.frames);
+                        gate = end.stream;
                     }
                 }
                 Some(Carries::Calibration) => {
@@ -189,6 +193,7 @@ pub fn read_mcap_session(
         frames,
         collection_end,
         collection_frames,
+        stream: gate,
         push,
         cut,
     })
@@ -315,6 +320,7 @@ mod tests {
             malformed: 0,
             invalid_angles: 0,
             dropped: 0,
+            stream: None,
         };
         let body = end.encode_to_vec();
         let s = read_mcap_session(&session_log(5, Some((3, &body)))[..], admit_all).unwrap();

@@ -20,7 +20,8 @@ use exocal_dbc::Received;
 use crate::align::{AlignParams, AlignedSample};
 use crate::ingest::{ClockReport, Event, FrameStats, Ingest, Reading, StallReport};
 use crate::stream::{Column, STREAMS};
-use crate::window::Window;
+use crate::verify::{Dropped, StreamGate};
+use crate::window::{Shortfall, Window};
 use crate::Settings;
 
 /// A session's frames so far: the decoded streams and the collection window.
@@ -30,6 +31,11 @@ pub struct Collector {
     pub ingest: Ingest,
     /// The collection window: coverage, sample counts, ready/failed.
     pub window: Window,
+    /// The stream gate, when the sensor streams are authenticated: frames reach
+    /// [`Collector::on_frame`] only through it ([`Collector::take`]).
+    pub gate: Option<StreamGate>,
+    /// Frames taken through [`Collector::take`] (the received frames, before the gate).
+    pub taken: u64,
 }
 
 impl Collector {
@@ -38,7 +44,51 @@ impl Collector {
         Collector {
             ingest: Ingest::new(settings.joint_nodes),
             window: Window::new(settings.window.clone(), settings.bounds.joint_range),
+            gate: None,
+            taken: 0,
         }
+    }
+
+    /// Takes one received frame through the stream gate, if there is one: `each` sees every
+    /// frame ingest takes now with its [`Event`]; returns the spans the gate dropped.
+    pub fn take(&mut self, rx: &Received, mut each: impl FnMut(&Received, Event)) -> Vec<Dropped> {
+        self.taken += 1;
+        let Some(gate) = self.gate.as_mut() else {
+            let event = self.on_frame(rx);
+            each(rx, event);
+            return Vec::new();
+        };
+        let mut pass = Vec::new();
+        let dropped = gate.on_frame(rx, &mut pass);
+        for r in &pass {
+            let event = self.on_frame(r);
+            each(r, event);
+        }
+        dropped
+    }
+
+    /// What the stream gate says against calibrating on this collection (empty without a
+    /// gate): a [`Shortfall::SecondSender`] for every node on whose identifiers frames it did
+    /// not sign arrived, and [`Shortfall::Unverified`] when spans were dropped and either the
+    /// window `failed` or they exceed [`crate::verify::MAX_DROPPED_FRACTION`] of all spans. A
+    /// session with any of these is refused: its data were attacked or too much is missing.
+    pub fn unverified(&self, failed: bool) -> Vec<Shortfall> {
+        let Some(s) = self.gate.as_ref().map(StreamGate::stats) else {
+            return Vec::new();
+        };
+        let mut why: Vec<Shortfall> = s
+            .second_senders()
+            .map(|(node, spans)| Shortfall::SecondSender { node, spans })
+            .collect();
+        if s.dropped_spans > 0 && (failed || s.heavy_loss()) {
+            why.push(Shortfall::Unverified {
+                spans: s.dropped_spans,
+                frames: s.dropped_frames,
+                seconds: s.dropped_s,
+                of: s.dropped_spans + s.verified_spans,
+            });
+        }
+        why
     }
 
     /// Takes one received frame (see the module docs); returns what ingest made of it.

@@ -12,6 +12,7 @@
 //! |---|---|
 //! | [`rules`] | what the data path reads: node ids, nominal table, bounds, window and validation rules |
 //! | [`stream`] | the streams a session takes in, declared once: source node, message, column |
+//! | [`verify`] | the stream gate: a node's data frames pass only once the digest covering them verifies |
 //! | [`ingest`] | frames → decoded messages → per-node streams; counts unknown/malformed frames |
 //! | [`align`] | per-node clock models, resampling onto one grid |
 //! | [`window`] | the collection window: coverage, sample counts, ready/failed and why |
@@ -38,6 +39,7 @@ pub mod replay;
 pub mod rules;
 pub mod stream;
 pub mod validate;
+pub mod verify;
 pub mod window;
 
 pub use rules::{Bounds, SensorSpec, Settings, ValidationRules, WindowRules};

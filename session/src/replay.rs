@@ -47,12 +47,24 @@ pub struct Replay {
 
 /// Replays `recording` under `settings` (see the module docs).
 pub fn replay(recording: &Recording, settings: &Settings) -> Replay {
+    replay_gated(recording, settings, None)
+}
+
+/// [`replay`] with the live session's stream gate re-applied to the frames
+/// ([`crate::verify::StreamGate::replaying`]): the frames the live session's gate passed, and
+/// only those, reach ingest.
+pub fn replay_gated(
+    recording: &Recording,
+    settings: &Settings,
+    gate: Option<crate::verify::StreamGate>,
+) -> Replay {
     let mut settings = settings.clone();
     match recording {
         Recording::Frames(frames) => {
             let mut collector = Collector::new(&settings);
+            collector.gate = gate;
             for rx in frames {
-                collector.on_frame(rx);
+                collector.take(rx, |_, _| {});
             }
             let duration_s = match (frames.first(), frames.last()) {
                 (Some(a), Some(b)) => b.timestamp.saturating_sub(a.timestamp).as_secs_f64(),
@@ -60,7 +72,12 @@ pub fn replay(recording: &Recording, settings: &Settings) -> Replay {
             };
             Replay {
                 collected: collector.collected(&settings),
-                shortfalls: collector.window.at_end(duration_s),
+                shortfalls: {
+                    let mut s = collector.window.at_end(duration_s);
+                    let failed = !s.is_empty();
+                    s.extend(collector.unverified(failed));
+                    s
+                },
                 settings,
                 duration_s,
             }

@@ -125,6 +125,26 @@ pub enum Shortfall {
         /// Samples required.
         need: usize,
     },
+    /// Spans of the sensor streams failed authentication and were dropped
+    /// ([`crate::verify`]): the window counted verified samples only.
+    Unverified {
+        /// Spans dropped.
+        spans: u64,
+        /// Frames they held.
+        frames: u64,
+        /// Seconds of stream they held.
+        seconds: f64,
+        /// Spans in all (verified and dropped).
+        of: u64,
+    },
+    /// Frames the node did not sign arrived on its identifiers ([`crate::verify`]): a second
+    /// sender on the bus. Its spans were dropped; the session is refused all the same.
+    SecondSender {
+        /// The node whose identifiers were used.
+        node: exocal_dbc::NodeId,
+        /// Spans that held more frames than the node's digests cover.
+        spans: u64,
+    },
 }
 
 impl fmt::Display for Shortfall {
@@ -154,6 +174,22 @@ impl fmt::Display for Shortfall {
                     "{have} samples from the scarcest stream, {need} required"
                 )
             }
+            Shortfall::Unverified {
+                spans,
+                frames,
+                seconds,
+                of,
+            } => write!(
+                f,
+                "the verified data fall short: {spans} of {of} spans of the sensor streams \
+                 ({frames} frames, {seconds:.1} s) failed authentication and were dropped \
+                 (lost frames, or frames the nodes did not sign)"
+            ),
+            Shortfall::SecondSender { node, spans } => write!(
+                f,
+                "a second sender on {node}'s identifiers: {spans} spans held frames {node} \
+                 did not sign (dropped; the session is refused: someone else is on the bus)"
+            ),
         }
     }
 }

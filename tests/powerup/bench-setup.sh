@@ -16,7 +16,7 @@ dpkg -i "$EXOCAL_DEB"
 # exocal-keys.
 (
     umask 077
-    for name in Joint1 Joint2 Joint3 Joint4 Joint5 Joint6 Joint7 Trigger; do
+    for name in Joint1 Joint2 Joint3 Joint4 Joint5 Joint6 Joint7 EndEffector Trigger; do
         echo "$name $(od -An -N16 -tx1 /dev/urandom | tr -d ' \n')"
     done > /root/exocal-keys
     install -d -m 0700 /etc/credstore
@@ -24,6 +24,7 @@ dpkg -i "$EXOCAL_DEB"
     rm /root/exocal-keys
 )
 test "$(grep -c '^Joint[1-7] [0-9a-f]\{32\}$' /etc/credstore/exocal-keys)" = 7
+grep -q '^EndEffector [0-9a-f]\{32\}$' /etc/credstore/exocal-keys
 
 # vcan0 the way a bench makes it: the package's example .netdev/.network, networkd.
 cp /usr/share/exocal/examples/80-vcan0.netdev /usr/share/exocal/examples/80-vcan0.network \

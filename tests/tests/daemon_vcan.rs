@@ -191,6 +191,7 @@ fn credentials(dir: &Path) -> PathBuf {
                 )
             })
             .collect();
+        text.push_str("EndEffector 0f1e2d3c4b5a69788796a5b4c3d2e1f0\n");
         text.push_str("Trigger 00112233445566778899aabbccddeeff\n");
         std::fs::write(creds.join("exocal-keys"), text).unwrap();
     }

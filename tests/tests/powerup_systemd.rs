@@ -591,11 +591,11 @@ fn provisioned_keys() -> Vec<String> {
 fn the_push_was_authenticated_with_the_credential_and_no_key_leaked() {
     let run = boot_run();
     assert!(
-        run.journal.contains("table transfers are authenticated")
+        run.journal.contains("sensor streams are authenticated")
             && run
                 .journal
-                .contains("provisioned the key slots of 7 joint node(s)"),
-        "the journal does not say the transfers were authenticated"
+                .contains("provisioned the key slots of 8 node(s)"),
+        "the journal does not say the transfers and streams were authenticated"
     );
     let push = boot_push();
     for node in push["nodes"].as_array().expect("nodes") {
@@ -609,8 +609,9 @@ fn the_push_was_authenticated_with_the_credential_and_no_key_leaked() {
             .unwrap();
         assert!(image.counter >= 1, "node {n}: counter {}", image.counter);
     }
+    // Joint1 … Joint7, EndEffector, Trigger.
     let keys = provisioned_keys();
-    assert_eq!(keys.len(), 8);
+    assert_eq!(keys.len(), 9);
     let bytes = std::fs::read(&run.logs[0]).unwrap();
     let mut messages = Vec::new();
     for m in mcap::MessageStream::new(&bytes).expect("message stream") {

@@ -367,15 +367,10 @@ fn own_jumps(s: &SessionSummary, n: u8, bad: &mut Vec<String>) -> (&'static str,
 }
 
 /// Runs one row's session; returns the problems found and a one-line outcome.
-async fn run_row(row: &Row) -> (Vec<String>, String) {
-    let dir = scratch(&row.name.replace([' ', ',', '%', '(', ')', '/'], "_"));
-    let flash_dir = dir.join("flash");
-    std::fs::create_dir_all(&flash_dir).unwrap();
-    let mut scenario = Scenario::paper();
-    scenario.seed = 7;
-    scenario.rates.imu_hz = 10.0;
-    (row.apply)(&mut scenario);
-    scenario.validate().expect("row scenario is valid");
+/// The configuration of a short session on vcan0 (the fault rows' and the stream rogue's):
+/// 6–12 s windows, the log under `dir`, a validation that accepts the coarser tables such
+/// windows give, quick push retries; authenticated with `KeySet::derived(7)`.
+fn short_session_config(dir: &std::path::Path) -> Config {
     let mut config = Config::default_config();
     config.interface = "vcan0".into();
     config.output.directory = dir.join("out");
@@ -393,8 +388,25 @@ async fn run_row(row: &Row) -> (Vec<String>, String) {
     config.push.timeout_ms = 200;
     config.push.backoff_initial_ms = 50;
     config.push.backoff_max_ms = 200;
-    scenario.duration_s = 600.0;
     config.push.keys = KeySet::derived(7);
+    config
+}
+
+async fn run_row(row: &Row) -> (Vec<String>, String) {
+    let dir = scratch(&row.name.replace([' ', ',', '%', '(', ')', '/'], "_"));
+    let flash_dir = dir.join("flash");
+    std::fs::create_dir_all(&flash_dir).unwrap();
+    let mut scenario = Scenario::paper();
+    scenario.seed = 7;
+    scenario.rates.imu_hz = 10.0;
+    (row.apply)(&mut scenario);
+    scenario.validate().expect("row scenario is valid");
+    let mut config = short_session_config(&dir);
+    scenario.duration_s = 600.0;
+    // The wire's faults are this matrix's subject, as in process (daemon/tests/fault_matrix.rs):
+    // the stream gate would drop every span a lost, duplicated or corrupted frame touches.
+    // Stream authentication on vcan0 has its own test (a_rogue_in_the_sensor_streams_…).
+    config.verify_streams = false;
     exocal_hil::flash::provision(&flash_dir, &config.push.keys).expect("key slots");
     let hil = Hil::new(scenario, &flash_dir).expect("hil");
     let clock = SimClock::new(1.0).unwrap();
@@ -508,4 +520,110 @@ async fn fault_rows_on_vcan0_report_the_degraded_node_and_push_nothing_invalid()
         failures.extend(bad.into_iter().map(|b| format!("{}: {b}", row.name)));
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// Issue 34, item 3, on vcan0 (in process: `shell::runner::tests::a_rogue_injecting_biased_
+/// frames_is_named_and_the_session_refused`): during an authenticated collection a third
+/// socket sends, after every tenth Joint3 `JointState` it sees, a copy with the angle biased by
+/// 0.03 rad. The stream gate drops every span the copies land in, and the session is refused
+/// naming Joint3 (only) as having a second sender on its identifiers (exit 65); nothing is
+/// pushed and every joint node still holds its factory table.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_rogue_in_the_sensor_streams_on_vcan0_is_named_and_no_table_changes() {
+    use exocal_bus::Transport as _;
+    use exocal_dbc::{JointState, Message};
+    use exocal_session::window::Shortfall;
+    use exocald::exit::DaemonError;
+    exocal_tests::require_vcan("vcan0");
+    let dir = scratch("stream-rogue");
+    let flash_dir = dir.join("flash");
+    std::fs::create_dir_all(&flash_dir).unwrap();
+    let mut scenario = Scenario::paper();
+    scenario.seed = 7;
+    scenario.rates.imu_hz = 10.0;
+    scenario.duration_s = 600.0;
+    let config = short_session_config(&dir);
+    assert!(config.push.authenticate && config.verify_streams);
+    exocal_hil::flash::provision(&flash_dir, &config.push.keys).expect("key slots");
+    let hil = Hil::new(scenario, &flash_dir).expect("hil");
+    let clock = SimClock::new(1.0).unwrap();
+    let suit = RunningSuit::start(
+        hil,
+        SocketCan::open("vcan0").expect("hil socket on vcan0"),
+        clock,
+    );
+    let mut rogue_sock = SocketCan::open("vcan0").expect("rogue socket on vcan0");
+    let rogue = tokio::spawn(async move {
+        let (mut seen, mut sent) = (0u64, 0u64);
+        while let Ok(rx) = rogue_sock.recv().await {
+            let Ok(Message::JointState(j)) = exocal_dbc::decode_frame(&rx.frame) else {
+                continue;
+            };
+            if j.node != NodeId::JOINTS[2] {
+                continue;
+            }
+            seen += 1;
+            if seen % 10 != 0 {
+                continue;
+            }
+            let biased = Message::JointState(JointState {
+                angle: j.angle + 0.03,
+                ..j
+            });
+            if rogue_sock
+                .send(&biased.to_frame().expect("encodable"))
+                .await
+                .is_ok()
+            {
+                sent += 1;
+            }
+        }
+        sent
+    });
+    let mut daemon_sock = SocketCan::open("vcan0").expect("daemon socket on vcan0");
+    let (_stop, shutdown) = exocald::shell::shutdown::Shutdown::manual();
+    let o = session_against_suit(
+        suit,
+        &mut daemon_sock,
+        &exocal_bus::Clock::Wall,
+        &config,
+        shutdown.wait(),
+    )
+    .await;
+    rogue.abort();
+    let _ = std::fs::remove_dir_all(&dir);
+    let s = o.summary().expect("a session summary");
+    let g = s.stream.as_ref().expect("the streams were verified");
+    println!(
+        "stream rogue on vcan0: {} spans verified, {} dropped ({} frames, {:.1} s), {} frames \
+         from before the nonce; second senders {:?}; {:.0} s",
+        g.verified_spans,
+        g.dropped_spans,
+        g.dropped_frames,
+        g.dropped_s,
+        g.start_frames,
+        g.second_senders().collect::<Vec<_>>(),
+        o.wall.as_secs_f64()
+    );
+    let named: Vec<NodeId> = g.second_senders().map(|(n, _)| n).collect();
+    assert_eq!(named, [NodeId::JOINTS[2]], "{g:?}");
+    let e = o.result.as_ref().expect_err("the session is refused");
+    println!("session: {}", e.error);
+    let DaemonError::Session(why) = &e.error else {
+        panic!("{}", e.error);
+    };
+    assert!(
+        why.iter().any(|w| matches!(
+            w,
+            Shortfall::SecondSender { node, spans } if *node == NodeId::JOINTS[2] && *spans > 0
+        )),
+        "{why:?}"
+    );
+    assert_eq!(e.error.exit_code(), exocald::exit::code::DATAERR);
+    assert!(s.push.is_none(), "nothing pushed");
+    assert!(o.problems().is_empty(), "{:?}", o.problems());
+    for ((node, factory), (_, flash)) in o.factory.iter().zip(&o.flash) {
+        let held = flash.as_ref().expect("flash readable").or(*factory);
+        assert_eq!(held, *factory, "{node} still holds its factory table");
+    }
 }

@@ -93,7 +93,7 @@ restarted.
 Provision the keys (as root):
 
     umask 077
-    for name in Joint1 Joint2 Joint3 Joint4 Joint5 Joint6 Joint7 Trigger; do
+    for name in Joint1 Joint2 Joint3 Joint4 Joint5 Joint6 Joint7 EndEffector Trigger; do
         echo \"$name $(od -An -N16 -tx1 /dev/urandom | tr -d ' \\n')\"
     done > exocal-keys
     install -d -m 0700 /etc/credstore

@@ -168,7 +168,7 @@ async fn session(
     } else {
         // Unauthenticated: the emulated nodes must not keep keys from an earlier demo here
         // (they then install nothing: protocol exocal-3, no key, no commit).
-        NodeId::JOINTS.iter().try_for_each(|&n| {
+        NodeId::ALL.iter().try_for_each(|&n| {
             match std::fs::remove_file(exocal_hil::flash::key_path(&flash_dir, n)) {
                 Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(e),
                 _ => Ok(()),

@@ -254,13 +254,15 @@ pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError
     if !config.push.authenticate {
         eprintln!(
             "exocald: WARNING: authentication is off ([push] authenticate = false): nodes of \
-             protocol exocal-3 install no unauthenticated table, and any sender on the bus can \
-             forge their answers{}",
+             protocol exocal-3 install no unauthenticated table, any sender on the bus can forge \
+             their answers, and the sensor streams are taken unverified{}",
             if trigger { " or start a session" } else { "" }
         );
         return Ok(());
     }
-    let nodes = config.joint_node_ids();
+    let mut nodes = config.joint_node_ids();
+    // The end effector signs its stream (session::verify) with a key of its own.
+    nodes.push(exocal_dbc::NodeId::END_EFFECTOR);
     config.push.keys = crate::keys::load_credential(&nodes, trigger)?;
     let Some(state) = crate::state::from_env() else {
         return Err(DaemonError::Keys(crate::keys::KeyError::NoState));
@@ -270,8 +272,8 @@ pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError
     }
     config.push.state_dir = Some(state);
     eprintln!(
-        "exocald: table transfers{} are authenticated (AES-128-CMAC, freshness counters): keys \
-         of {} joint node(s){} from the credential {}",
+        "exocald: table transfers{} and sensor streams are authenticated (AES-128-CMAC, \
+         freshness counters, stream digests): keys of {} node(s){} from the credential {}",
         if trigger { " and triggers" } else { "" },
         nodes.len(),
         if trigger { " and the trigger key" } else { "" },

@@ -26,7 +26,7 @@
 //!   agree to [`exocal_session::replay::CSV_RATE_TOLERANCE`]);
 //! - the recording is judged by the live session's rules (`[session]`: `min_duration_s`, give or
 //!   take [`exocal_session::window::DURATION_SLACK_S`], every joint's excitation, `min_samples`): one the live daemon
-//!   would not have calibrated is not calibrated here either ([`replay`] names what it misses);
+//!   would not have calibrated is not calibrated here either ([`exocal_session::replay::replay`] names what it misses);
 //! - the outcome is judged as live: [`DaemonError::Validation`] (65) if validation refuses,
 //!   [`DaemonError::Session`] (66) if the session rules are not met,
 //!   [`DaemonError::Calibration`] (66) if the samples do not calibrate; unreadable input is
@@ -46,8 +46,9 @@ use exocal_log::scan::Scan;
 use exocal_session::collect::Collected;
 use exocal_session::formats::{self, CandumpReader, CsvReader, InputKind, ReadError};
 use exocal_session::pipeline::{self, Calibrated};
-use exocal_session::replay::{replay, Recording};
+use exocal_session::replay::{replay_gated, Recording};
 use exocal_session::rules::Budget;
+use exocal_session::verify::{RejectRun, StreamGate};
 use exocal_session::{Settings, WindowRules};
 
 pub use crate::cli::Format;
@@ -163,6 +164,18 @@ pub fn read_input(
     format: Format,
     rules: &WindowRules,
 ) -> Result<(Recording, Option<Scan>), DaemonError> {
+    read_input_gated(path, input, format, rules).map(|(r, cut, _)| (r, cut))
+}
+
+/// [`read_input`], with the live session's stream gate to re-apply when the log has one (an
+/// MCAP log of a session whose sensor streams were authenticated): the replay then takes
+/// exactly the frames the live session took ([`exocal_session::verify`]).
+pub fn read_input_gated(
+    path: &Path,
+    input: impl Read,
+    format: Format,
+    rules: &WindowRules,
+) -> Result<(Recording, Option<Scan>, Option<StreamGate>), DaemonError> {
     let input = BufReader::new(input);
     match format {
         Format::Mcap => {
@@ -196,12 +209,25 @@ pub fn read_input(
                 }
                 frames.truncate(n);
             }
-            Ok((Recording::Frames(frames), session.cut))
+            let gate = session.stream.map(|s| {
+                let runs: Vec<RejectRun> = s
+                    .rejects
+                    .iter()
+                    .map(|r| RejectRun {
+                        node: u8::try_from(r.node).unwrap_or(u8::MAX),
+                        first: r.first,
+                        count: r.count,
+                        stale: r.stale,
+                    })
+                    .collect();
+                StreamGate::replaying(&runs)
+            });
+            Ok((Recording::Frames(frames), session.cut, gate))
         }
         Format::Candump => {
             let mut reader = CandumpReader::new(rules);
             each_line(path, InputKind::Candump, input, |l| reader.line(l))?;
-            Ok((Recording::Frames(reader.finish()), None))
+            Ok((Recording::Frames(reader.finish()), None, None))
         }
         Format::Csv => {
             let mut reader = CsvReader::new(rules);
@@ -209,7 +235,7 @@ pub fn read_input(
             let samples = reader
                 .finish()
                 .map_err(|e| DaemonError::Input(format!("{}: {e}", path.display())))?;
-            Ok((Recording::Samples(samples), None))
+            Ok((Recording::Samples(samples), None, None))
         }
     }
 }
@@ -225,11 +251,16 @@ pub struct Recalibration {
     pub calibrated: Calibrated,
 }
 
-/// Runs the pipeline on `input` (see the module docs): [`replay`], then, if the recording meets
+/// Runs the pipeline on `input` behind `gate` (see the module docs and [`read_input_gated`]):
+/// [`replay_gated`], then, if the recording meets
 /// the session rules, the calibration; [`DaemonError::Session`] naming every rule it misses
 /// otherwise.
-pub fn recalibrate(input: &Recording, config: &Config) -> Result<Recalibration, DaemonError> {
-    let r = replay(input, &config.calibration);
+pub fn recalibrate(
+    input: &Recording,
+    gate: Option<StreamGate>,
+    config: &Config,
+) -> Result<Recalibration, DaemonError> {
+    let r = replay_gated(input, &config.calibration, gate);
     if !r.shortfalls.is_empty() {
         return Err(DaemonError::Session(r.shortfalls));
     }
@@ -298,7 +329,7 @@ pub fn run(
             detect_format(path, &head)?
         }
     };
-    let (input, recovery) = read_input(path, file, format, &config.calibration.window)?;
+    let (input, recovery, gate) = read_input_gated(path, file, format, &config.calibration.window)?;
     if let Some(r) = &recovery {
         eprintln!(
             "exocald: warning: {} was cut short (no summary or footer: the daemon was killed or \
@@ -328,7 +359,8 @@ pub fn run(
             path.display()
         );
     }
-    let replayed = replay(&input, &config.calibration);
+    let export_gate = gate.clone();
+    let replayed = replay_gated(&input, &config.calibration, gate);
     let report_path = opts
         .report
         .clone()
@@ -373,7 +405,16 @@ pub fn run(
         }
     };
     if let (Recording::Frames(frames), Some(out)) = (&input, &opts.export_candump) {
-        let text = formats::candump_text(frames, &config.interface);
+        // Behind the stream gate, the frames it passed, in the order ingest took them: a
+        // candump replay (ungated) then takes exactly what the calibration used.
+        let passed = export_gate.map(|mut g| {
+            let mut pass = Vec::new();
+            for rx in frames {
+                g.on_frame(rx, &mut pass);
+            }
+            pass
+        });
+        let text = formats::candump_text(passed.as_deref().unwrap_or(frames), &config.interface);
         write_file(out, "candump log", text.as_bytes())?;
     }
     let accepted = calibrated.outcome.verdict.accepted();

@@ -535,6 +535,7 @@ mod tests {
             malformed: 0,
             invalid_angles: 0,
             dropped: 0,
+            stream: None,
         };
         log.write_record(t0, &Record::CollectionEnd(&end)).unwrap();
         let calibration = proto::Calibration {

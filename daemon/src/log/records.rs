@@ -97,6 +97,35 @@ pub enum Record<'a> {
     },
 }
 
+/// The `/collection` record of what the stream gate passed and dropped.
+pub fn stream_verification(gate: &exocal_session::verify::StreamGate) -> proto::StreamVerification {
+    let g = gate.stats();
+    proto::StreamVerification {
+        verified_spans: g.verified_spans,
+        verified_frames: g.verified_frames,
+        dropped_spans: g.dropped_spans,
+        dropped_frames: g.dropped_frames,
+        dropped_s: g.dropped_s,
+        bad_mac: g.bad_mac,
+        deficit: g.deficit,
+        no_digest: g.no_digest,
+        stale: g.stale,
+        second_sender: g.second_sender.to_vec(),
+        start_frames: g.start_frames,
+        rejects: gate
+            .rejects()
+            .iter()
+            .map(|r| proto::RejectRun {
+                node: u32::from(r.node),
+                first: r.first,
+                count: r.count,
+                stale: r.stale,
+            })
+            .collect(),
+        rejects_truncated: g.rejects_truncated,
+    }
+}
+
 /// The raw frame `frame` seen at `t` (host time; on SocketCAN also the kernel's timestamp).
 pub fn frame_record(frame: &Frame, t: std::time::Duration) -> CanFrameRecord {
     use exocal_bus::embedded_can::Frame as _;

@@ -35,10 +35,12 @@ use crate::log::records;
 use crate::push::{push_tables, PushObserver, PushReport};
 use crate::shell::notify::{Notifier, Reporter};
 use crate::shell::tee::Recorder;
+use exocal_dbc::stream_auth;
 use exocal_session::collect::{Collected, Collector};
 use exocal_session::estimate::{Estimate, EstimateJob};
 use exocal_session::ingest::{ClockReport, Event, FrameStats, StallReport};
 use exocal_session::pipeline::{self, Calibrated, Outcome};
+use exocal_session::verify::{GateStats, StreamGate};
 use exocal_session::window::{Phase, Shortfall};
 
 /// Real time between two turns of the housekeeping tick.
@@ -78,6 +80,9 @@ pub struct SessionSummary {
     pub push: Option<PushReport>,
     /// The HTML calibration report, once written (next to the log for a live session).
     pub report_path: Option<PathBuf>,
+    /// Stream verification: spans verified and dropped; `None` when the streams were not
+    /// authenticated (`[push] authenticate = false`, or an offline replay).
+    pub stream: Option<GateStats>,
     /// What the user waited after the collection window, when every node's table was verified.
     pub latency: Option<Latency>,
 }
@@ -126,6 +131,7 @@ impl SessionSummary {
             push: None,
             report_path: None,
             latency: None,
+            stream: None,
         }
     }
 
@@ -229,11 +235,29 @@ impl Io<'_> {
         self.check(r);
     }
 
-    /// Logs one received frame and feeds it to the collection.
+    /// Logs one received frame and feeds it to the collection through the stream gate (the
+    /// frames it passes now; a warning for each of the first spans it drops).
     fn take_frame(&mut self, rx: &Received, collector: &mut Collector) {
         self.frame(false, &rx.frame, rx.timestamp);
-        let t = ns(rx.timestamp);
-        match collector.on_frame(rx) {
+        let mut events = Vec::new();
+        let dropped = collector.take(rx, |rx, event| events.push((rx.timestamp, event)));
+        for (at, event) in events {
+            self.take_event(at, event, collector);
+        }
+        for d in dropped {
+            let spans = collector
+                .gate
+                .as_ref()
+                .map_or(0, |g| g.stats().dropped_spans);
+            if spans <= 10 {
+                self.event(rx.timestamp, Level::Warning, &format!("stream span {d}"));
+            }
+        }
+    }
+
+    fn take_event(&mut self, at: Duration, event: Event, collector: &Collector) {
+        let t = ns(at);
+        match event {
             Event::Sample {
                 stream,
                 node_timestamp_us,
@@ -246,14 +270,14 @@ impl Io<'_> {
                 // The first few are worth a line each; the counters carry the rest.
                 let s = collector.ingest.stats();
                 if s.unknown + s.malformed <= 10 {
-                    self.event(rx.timestamp, Level::Warning, &format!("bad frame: {e}"));
+                    self.event(at, Level::Warning, &format!("bad frame: {e}"));
                 }
             }
             Event::Message(exocal_dbc::Message::Trigger(t))
                 if t.command == exocal_dbc::TriggerCommand::StartCalibration =>
             {
                 self.event(
-                    rx.timestamp,
+                    at,
                     Level::Warning,
                     "trigger ignored (CAN Trigger frame): a session is running",
                 );
@@ -370,6 +394,7 @@ pub async fn run_session_with<T: Transport>(
         config,
         io: &mut io,
         collector: Collector::new(&config.calibration),
+        stream_key: None,
         origin: Duration::ZERO,
         tick,
         summary: SessionSummary::new(log_path),
@@ -415,6 +440,9 @@ struct Running<'a, 'io, T> {
     config: &'a Config,
     io: &'a mut Io<'io>,
     collector: Collector,
+    /// The key the collection's stream nonces are made with, when the streams are
+    /// authenticated.
+    stream_key: Option<exocal_dbc::auth::Key>,
     /// Bus time of the collection's first frame: aligned sample times are relative to it.
     origin: Duration,
     tick: tokio::time::Interval,
@@ -478,6 +506,7 @@ impl<T: Transport> Running<'_, '_, T> {
         // The window is timed on the clock's monotonic reading: a step of the host's wall clock
         // (NTP at boot) neither stretches nor cuts it.
         let started = self.clock.monotonic();
+        self.authenticate_streams().await?;
         let required = self.config.calibration.window.excitation_required;
         let mut estimate_job: Option<tokio::task::JoinHandle<Option<Estimate>>> = None;
         let mut last_estimate_s = 0.0;
@@ -499,10 +528,26 @@ impl<T: Transport> Running<'_, '_, T> {
                     self.io.reporter.update(&progress, required, self.io.notifier);
                     let r = self.io.log.progress(ns(self.clock.now()), &progress);
                     self.io.check(r);
-                    match session.phase(elapsed) {
+                    // A collection the stream gate speaks against (a second sender, heavy
+                    // loss) is refused when its window closes, naming why.
+                    let phase = match session.phase(elapsed) {
+                        Phase::Ready => match self.collector.unverified(false) {
+                            why if why.is_empty() => Phase::Ready,
+                            why => Phase::Failed(why),
+                        },
+                        p => p,
+                    };
+                    match phase {
                         Phase::Collecting => {}
                         Phase::Ready => break,
-                        Phase::Failed(why) => {
+                        Phase::Failed(mut why) => {
+                            if !why.iter().any(|w| {
+                                matches!(w, Shortfall::Unverified { .. } | Shortfall::SecondSender { .. })
+                            }) {
+                                why.extend(self.collector.unverified(true));
+                            }
+                            self.summary.stream =
+                                self.collector.gate.as_ref().map(|g| g.stats().clone());
                             if let Some(job) = estimate_job.take() {
                                 job.abort();
                             }
@@ -527,6 +572,10 @@ impl<T: Transport> Running<'_, '_, T> {
                 rx = self.bus.recv() => {
                     let rx = rx.map_err(|source| DaemonError::Bus { what: "receiving CAN".into(), source })?;
                     self.io.take_frame(&rx, &mut self.collector);
+                    // A node rebooted: it lost the nonce with its RAM; every node gets a new one.
+                    if self.collector.gate.as_mut().is_some_and(StreamGate::nonce_wanted) {
+                        self.send_stream_nonce().await?;
+                    }
                 }
             }
             self.io.log_failed()?;
@@ -538,13 +587,23 @@ impl<T: Transport> Running<'_, '_, T> {
         let now = self.clock.now();
         // The record `exocald offline` honours: a replay of this log calibrates on the first
         // `frames` frames of /can/rx, as this session did.
+        // With the stream gate, the frames received (as logged), not those ingest took yet.
         let end = CollectionEnd {
-            frames: s.received,
+            frames: if self.collector.gate.is_some() {
+                self.collector.taken
+            } else {
+                s.received
+            },
             window_end_ns: ns(now),
             unknown: s.unknown,
             malformed: s.malformed,
             invalid_angles: s.invalid_angles,
             dropped: self.bus.dropped(),
+            stream: self
+                .collector
+                .gate
+                .as_ref()
+                .map(records::stream_verification),
         };
         let r = self.io.log.collection_end(&end);
         self.io.check(r);
@@ -556,6 +615,39 @@ impl<T: Transport> Running<'_, '_, T> {
                 s.received, s.unknown, s.malformed, s.invalid_angles, end.dropped
             ),
         );
+        if let Some(g) = self.collector.gate.as_ref().map(|g| g.stats().clone()) {
+            self.io.event(
+                now,
+                Level::Info,
+                &format!(
+                    "stream verification: {} spans verified ({} frames); {} spans dropped \
+                     unverified ({} frames, {:.1} s: {} bad MAC, {} frames lost, {} without a \
+                     digest); {} replayed digests ignored; {} frames from before the nonce \
+                     dropped",
+                    g.verified_spans,
+                    g.verified_frames,
+                    g.dropped_spans,
+                    g.dropped_frames,
+                    g.dropped_s,
+                    g.bad_mac,
+                    g.deficit,
+                    g.no_digest,
+                    g.stale,
+                    g.start_frames
+                ),
+            );
+            for (node, spans) in g.second_senders() {
+                self.io.event(
+                    now,
+                    Level::Warning,
+                    &format!(
+                        "a second sender on {node}'s identifiers: {spans} spans held more \
+                         frames than its digests cover (dropped)"
+                    ),
+                );
+            }
+            self.summary.stream = Some(g);
+        }
         for (node, repeats) in s.babbling() {
             self.io.event(
                 now,
@@ -563,6 +655,55 @@ impl<T: Transport> Running<'_, '_, T> {
                 &format!("{node} is babbling: {repeats} frames repeated verbatim"),
             );
         }
+        Ok(())
+    }
+
+    /// Opens the collection's stream authentication: a fresh nonce to every node
+    /// (`StreamNonce`) and the gate that holds each node's frames until its digest verifies.
+    /// With `[push] authenticate = false` the streams are taken unverified, with a warning.
+    async fn authenticate_streams(&mut self) -> Result<(), DaemonError> {
+        let now = self.clock.now();
+        let keys = &self.config.push.keys;
+        let key = NodeId::ALL.into_iter().find_map(|n| keys.node(n));
+        let on = self.config.push.authenticate && self.config.verify_streams;
+        let (true, Some(key)) = (on, key) else {
+            self.io.event(
+                now,
+                Level::Warning,
+                "sensor streams are not authenticated ([push] authenticate = false, or no keys): any sender \
+                 on the bus can steer the calibration",
+            );
+            return Ok(());
+        };
+        // The gate's nonce is set with the first one sent.
+        self.collector.gate = Some(StreamGate::new(keys, exocal_dbc::StreamNonce { nonce: 0 }));
+        self.stream_key = Some(key.clone());
+        self.send_stream_nonce().await
+    }
+
+    /// Sends a fresh `StreamNonce` to every node and gives it to the stream gate (at the
+    /// collection's start, and again when a node rebooted).
+    async fn send_stream_nonce(&mut self) -> Result<(), DaemonError> {
+        let (Some(key), Some(gate)) = (&self.stream_key, self.collector.gate.as_mut()) else {
+            return Ok(());
+        };
+        let now = self.clock.now();
+        let nonce = stream_auth::session_nonce(key, now.as_micros() as u64);
+        gate.renonce(nonce);
+        let frame: Frame = exocal_dbc::Message::StreamNonce(nonce)
+            .to_frame()
+            .map_err(|e| DaemonError::Internal {
+                what: "encoding the stream nonce".into(),
+                source: e.to_string().into(),
+            })?;
+        self.bus
+            .send(&frame)
+            .await
+            .map_err(|source| DaemonError::Bus {
+                what: "sending the stream nonce".into(),
+                source,
+            })?;
+        self.io.frame(true, &frame, now);
         Ok(())
     }
 
@@ -1038,7 +1179,8 @@ mod tests {
         assert_eq!(err.error.exit_code(), crate::exit::code::TEMPFAIL);
         let summary = err.summary.unwrap();
         assert!(summary.push.is_none());
-        assert_eq!(topic_count(&summary, "/can/tx"), 0);
+        // Sent: the collection's stream nonce, nothing else.
+        assert_eq!(topic_count(&summary, "/can/tx"), 1);
         assert!(topic_count(&summary, "/can/rx") > 1000);
         let stats = assert_finished(&summary.log_path).stats.unwrap();
         assert_eq!(
@@ -1073,7 +1215,8 @@ mod tests {
         let summary = err.summary.unwrap();
         assert!(summary.outcome.is_some() && summary.push.is_none());
         assert!(summary.latency.is_none(), "nothing was verified");
-        assert_eq!(topic_count(&summary, "/can/tx"), 0);
+        // Sent: the collection's stream nonce, no table command.
+        assert_eq!(topic_count(&summary, "/can/tx"), 1);
         assert_eq!(topic_count(&summary, "/calibration"), 1);
         assert_finished(&summary.log_path);
         assert_eq!(before, after);
@@ -1173,8 +1316,146 @@ mod tests {
         );
         for c in &summary.clocks {
             let want = usize::from(c.node == "Joint4");
-            assert_eq!(c.jumps, want, "{c:?}");
+            assert_eq!(c.jumps, want, "{c:?}; streams {:?}", summary.stream);
         }
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// One authenticated session (the hil's nodes hold the keys the daemon has) against the
+    /// paper hil, with a rogue on the bus when `rogue`: during bursts (~0.3 s every 10 s) it
+    /// sends a biased copy of each Joint3 angle (+0.03 rad) and each pose's position page
+    /// (x + 2 cm). Returns the result, and the joint nodes' flash tables before and after.
+    async fn authenticated_session(
+        name: &str,
+        rogue: bool,
+    ) -> (Result<SessionSummary, SessionError>, Vec<Table>, Vec<Table>) {
+        use exocal_dbc::{JointState, Message, PosePage};
+        let dir = temp_dir(name);
+        let flash = dir.join("flash");
+        std::fs::create_dir_all(&flash).unwrap();
+        let keys = exocal_dbc::auth::KeySet::derived(21);
+        exocal_hil::flash::provision(&flash, &keys).unwrap();
+        // The demo's window (the fixed minute): a 15-s session is refused on this suit.
+        let mut config = Config::default_config();
+        config.output.directory = dir.clone();
+        config.push.timeout_ms = 400;
+        config.push.authenticate = true;
+        config.push.keys = keys;
+        let mut scenario = Scenario::paper();
+        scenario.duration_s = 400.0;
+        let mut hil = Hil::new(scenario, &flash).unwrap();
+        let tables = |flash: &std::path::Path| -> Vec<Table> {
+            NodeId::JOINTS
+                .iter()
+                .map(|&n| exocal_hil::flash::read(flash, n).unwrap().unwrap().table)
+                .collect()
+        };
+        let before = tables(&flash);
+        let clock = SimClock::new(1.0).unwrap();
+        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+        let mut hil_end = bus.attach();
+        let mut daemon_end = bus.attach();
+        let mut rogue_end = bus.attach();
+        let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await });
+        let rogue_task = tokio::spawn(async move {
+            let mut seen = 0u64;
+            if !rogue {
+                return;
+            }
+            while let Ok(rx) = rogue_end.recv().await {
+                seen += 1;
+                // Bursts of ~0.3 s every 10 s (the suit sends ~3,500 frames/s).
+                if seen % 35_000 >= 1_000 {
+                    continue;
+                }
+                let biased = match exocal_dbc::decode_frame(&rx.frame) {
+                    Ok(Message::JointState(j)) if j.node == NodeId::JOINTS[2] => {
+                        Message::JointState(JointState {
+                            angle: j.angle + 0.03,
+                            ..j
+                        })
+                    }
+                    Ok(Message::EePose(mut p)) => match p.page {
+                        PosePage::TimePosX { timestamp_us, x } => {
+                            p.page = PosePage::TimePosX {
+                                timestamp_us,
+                                x: x + 0.02,
+                            };
+                            Message::EePose(p)
+                        }
+                        _ => continue,
+                    },
+                    _ => continue,
+                };
+                let _ = rogue_end.send(&biased.to_frame::<Frame>().unwrap()).await;
+            }
+        });
+        let mut notifier = Notifier::disabled();
+        let mut reporter = Reporter::Plain { last_line: None };
+        let (_stop, shutdown) = Shutdown::manual();
+        let result = run_session(
+            &mut daemon_end,
+            &clock.bus_clock(),
+            &config,
+            false,
+            shutdown.wait(),
+            &mut notifier,
+            &mut reporter,
+        )
+        .await;
+        hil_task.abort();
+        rogue_task.abort();
+        (result, before, tables(&flash))
+    }
+
+    /// A rogue injecting biased JointState and EePose frames during an authenticated session
+    /// steers nothing: every span its frames land in is dropped, the session is refused naming
+    /// Joint3 and the end effector as nodes with a second sender on their identifiers (exit
+    /// 65), nothing is pushed and every node keeps its table. The same session without the
+    /// rogue verifies every span past the start and pushes.
+    #[tokio::test(start_paused = true)]
+    async fn a_rogue_injecting_biased_frames_is_named_and_the_session_refused() {
+        let (clean, _, _) = authenticated_session("stream-clean", false).await;
+        let clean = clean.unwrap_or_else(|e| panic!("clean session: {}", e.error));
+        let c = clean.stream.clone().expect("streams verified");
+        assert_eq!(
+            (c.dropped_spans, c.second_senders().count()),
+            (0, 0),
+            "{c:?}"
+        );
+        assert!(c.verified_spans > 4000, "{c:?}");
+        assert!(clean.push.as_ref().is_some_and(|p| p.complete()));
+
+        let (attacked, before, after) = authenticated_session("stream-rogue", true).await;
+        let summary = match &attacked {
+            Ok(s) => s.clone(),
+            Err(e) => e.summary.clone().expect("a summary"),
+        };
+        let g = summary.stream.clone().expect("streams verified");
+        assert!(g.dropped_spans > 0 && g.dropped_frames > 0, "{g:?}");
+        let named: Vec<NodeId> = g.second_senders().map(|(n, _)| n).collect();
+        assert_eq!(named, [NodeId::JOINTS[2], NodeId::END_EFFECTOR], "{g:?}");
+        let e = attacked.expect_err("refused");
+        let DaemonError::Session(why) = &e.error else {
+            panic!("{}", e.error);
+        };
+        let refused: Vec<NodeId> = why
+            .iter()
+            .filter_map(|w| match *w {
+                Shortfall::SecondSender { node, spans } if spans > 0 => Some(node),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(refused, named, "{why:?}");
+        assert!(
+            e.error
+                .to_string()
+                .contains("a second sender on Joint3's identifiers"),
+            "{}",
+            e.error
+        );
+        assert_eq!(e.error.exit_code(), crate::exit::code::DATAERR);
+        assert!(summary.push.is_none(), "nothing pushed");
+        assert_eq!(after, before, "the nodes keep their tables");
     }
 }

@@ -13,6 +13,21 @@ pub fn print_summary(summary: &SessionSummary) {
         "frames: {} received, {} unknown, {} malformed, {} invalid angles",
         f.received, f.unknown, f.malformed, f.invalid_angles
     );
+    if let Some(g) = &summary.stream {
+        println!(
+            "streams: {} spans verified ({} frames), {} dropped unverified ({} frames, {:.1} s), \
+             {} frames from before the nonce{}",
+            g.verified_spans,
+            g.verified_frames,
+            g.dropped_spans,
+            g.dropped_frames,
+            g.dropped_s,
+            g.start_frames,
+            g.second_senders()
+                .map(|(n, c)| format!("; a second sender on {n}'s identifiers ({c} spans)"))
+                .collect::<String>()
+        );
+    }
     println!(
         "aligned samples: {} ({} grid points excluded as gaps)",
         summary.aligned_samples, summary.gaps
