@@ -274,7 +274,7 @@ pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError
     eprintln!(
         "exocald: table transfers{} and sensor streams are authenticated (AES-128-CMAC, \
          freshness counters, stream digests): keys of {} node(s){} from the credential {}",
-        if trigger { " and triggers" } else { "" },
+        if trigger { ", triggers" } else { "" },
         nodes.len(),
         if trigger { " and the trigger key" } else { "" },
         crate::keys::CREDENTIAL
