@@ -348,12 +348,14 @@ mod tests {
         let mut cli = Cli::command();
         for sub in cli.get_subcommands_mut() {
             let name = sub.get_name().to_string();
-            let help = sub.render_long_help().to_string();
-            let at = help
-                .find("Exit status:")
+            // As narrow as a small terminal: the statuses must be found however clap wraps.
+            let help = sub.clone().term_width(50).render_long_help().to_string();
+            // Paragraphs with their line breaks undone: clap wraps at the terminal's width.
+            let para = help
+                .split("\n\n")
+                .map(|p| p.split_whitespace().collect::<Vec<_>>().join(" "))
+                .find_map(|p| p.find("Exit status:").map(|at| p[at..].to_string()))
                 .unwrap_or_else(|| panic!("{name} --help lists no exit status:\n{help}"));
-            // The paragraph that lists them; the options' help follows a blank line.
-            let para = help[at..].split("\n\n").next().unwrap_or_default();
             let statuses: Vec<u8> = para
                 .split(|c: char| !c.is_ascii_digit())
                 .filter_map(|w| w.parse().ok())
