@@ -2,9 +2,12 @@
 //! against the bound, on a real suit's sensors (see `calib_core::sweep::field_grid`).
 //!
 //! `cargo run -p calib-core --release --example field [-- --seeds N] [--only SUBSTRING]
-//! [--without rate-bias,robust,restricted|all[,+relinearise]] [--spec]` (`+relinearise` turns the
+//! [--without rate-bias,robust,restricted|all[,+relinearise]] [--spec] [--prior RAMP_DEG_S,WALK]
+//! [--consider RAMP_DEG_S,WALK]` (`+relinearise` turns the
 //! re-linearisation at the smoothed drift on) (`--spec`: the EM is told
-//! the sensors' rate bias, `DriftEmOptions::rate_bias_spec`, as the cell simulates it)
+//! the sensors' rate bias, `DriftEmOptions::rate_bias_spec`, as the cell simulates it; `--prior`:
+//! that spec in every cell; `--consider`: the stated error with the allowance for that rate
+//! bias, `DriftEmOptions::consider`)
 
 use std::time::Instant;
 
@@ -37,6 +40,15 @@ fn variant(o: DriftEmOptions<7>, without: &str) -> DriftEmOptions<7> {
     o
 }
 
+/// `RAMP_DEG_S,WALK_RAD_S_SQRT_S` as a [`calib_core::RateBias`].
+fn rate_bias(v: &str) -> calib_core::RateBias {
+    let (r, w) = v.split_once(',').expect("RAMP_DEG_S,WALK_RAD_S_SQRT_S");
+    calib_core::RateBias {
+        ramp: r.parse::<f64>().expect("ramp °/s").to_radians(),
+        walk: w.parse().expect("walk rad/s/√s"),
+    }
+}
+
 fn main() {
     let seeds: u64 = arg("--seeds").map_or(8, |v| v.parse().expect("--seeds N"));
     let only = arg("--only");
@@ -44,13 +56,11 @@ fn main() {
     let spec = std::env::args().any(|a| a == "--spec");
     // `--prior RAMP_DEG_S,WALK`: the same spec told in every cell, whatever it simulates (a
     // default the daemon could ship for sensors whose spec nobody configured).
-    let prior = arg("--prior").map(|v| {
-        let (r, w) = v.split_once(',').expect("--prior RAMP_DEG_S,WALK_RAD_S_SQRT_S");
-        calib_core::RateBias {
-            ramp: r.parse::<f64>().expect("ramp °/s").to_radians(),
-            walk: w.parse().expect("walk rad/s/√s"),
-        }
-    });
+    let prior = arg("--prior").map(|v| rate_bias(&v));
+    // `--consider RAMP_DEG_S,WALK`: the EM weighs such a rate bias where its model leaves it out
+    // (`DriftEmOptions::consider`), in every cell; real ÷ stated is then of the stated error with
+    // that allowance (`DriftEmResult::stated_with_allowance`).
+    let consider = arg("--consider").map_or(calib_core::RateBias::NONE, |v| rate_bias(&v));
     println!("| cell | real ÷ stated (pos / rot) | our table vs LS | vs the bound | real (mm / mrad) | stated | refused |");
     println!("|---|---|---|---|---|---|---|");
     let t0 = Instant::now();
@@ -62,7 +72,10 @@ fn main() {
         let mut failed = 0;
         for seed in 1..=seeds {
             match session_with(&cell, seed, |o| {
-                let o = variant(o, &without);
+                let o = DriftEmOptions {
+                    consider,
+                    ..variant(o, &without)
+                };
                 match (spec, prior) {
                     (true, _) => DriftEmOptions {
                         rate_bias_spec: cell.field.bias,
@@ -82,7 +95,7 @@ fn main() {
         // A refused session states nothing: real ÷ stated is over the accepted ones.
         let refused = sessions.iter().filter(|s| s.refused).count();
         let accepted: Vec<Session> = sessions.iter().filter(|s| !s.refused).copied().collect();
-        let rs = pooled(&accepted, |s| s.em, |s| s.stated);
+        let rs = pooled(&accepted, |s| s.em, |s| s.allowed);
         let vl = pooled(&sessions, |s| s.em, |s| s.ls);
         let vb = pooled(&sessions, |s| s.em, |s| s.bound);
         let real = pooled(
@@ -95,7 +108,7 @@ fn main() {
         );
         let st = pooled(
             &sessions,
-            |s| s.stated,
+            |s| s.allowed,
             |_| TableError {
                 position_m: 1e-3,
                 rotation_rad: 1e-3,

@@ -240,6 +240,14 @@ pub struct DriftEmOptions<const N: usize> {
     /// spec, every joint's model has the rate bias at least this large, and the stated error
     /// includes it.
     pub rate_bias_spec: RateBias,
+    /// A rate bias to weigh without modelling it ([`RateBias::NONE`]: none): where the chosen
+    /// model leaves the rate bias out, [`DriftEmResult::allowance`] is what one of this size
+    /// would add to the table error (Schmidt's *consider* covariance: the table's response
+    /// `A⁻¹ B t` to the rate bias's coefficients `t` at their intensities). Below what a session
+    /// detects, such a bias moves the table without a trace in the data. It changes neither the
+    /// estimate nor [`DriftEmResult::stated_error`]: state
+    /// [`DriftEmResult::stated_with_allowance`] where the sensors may have it.
+    pub consider: RateBias,
     /// Refuse ([`Refusal::TooManyDiscounted`]) when more than this share of the samples is
     /// discounted.
     pub max_discounted_share: f64,
@@ -275,6 +283,7 @@ impl<const N: usize> DriftEmOptions<N> {
             relinearisations: 0,
             restricted: true,
             rate_bias_spec: RateBias::NONE,
+            consider: RateBias::NONE,
             max_discounted_share: 0.1,
             max_inconsistency: 9.0,
             max_jump: 6.0,
@@ -544,6 +553,10 @@ pub struct DriftEmResult<const N: usize> {
     /// uncertainty of the drift-model choice (the model not chosen at its BIC weight: its
     /// covariance and the difference of its table).
     pub stated_error: TableError,
+    /// What a rate bias of [`DriftEmOptions::consider`]'s size would add to the table error
+    /// where the chosen model leaves it out (1σ; zero without one, or where the model has the
+    /// rate bias). Not part of [`Self::stated_error`].
+    pub allowance: TableError,
     /// Per joint, the drift model and why.
     pub models: [JointDrift; N],
     /// Per joint, the integrated rate bias's coefficients (rad; 0 for Gauss-Markov joints):
@@ -558,6 +571,16 @@ pub struct DriftEmResult<const N: usize> {
 }
 
 impl<const N: usize> DriftEmResult<N> {
+    /// [`Self::stated_error`] with [`Self::allowance`] added (root sum of squares): the error to
+    /// state where the sensors may have the considered rate bias.
+    pub fn stated_with_allowance(&self) -> TableError {
+        let (s, a) = (self.stated_error, self.allowance);
+        TableError {
+            position_m: libm::hypot(s.position_m, a.position_m),
+            rotation_rad: libm::hypot(s.rotation_rad, a.rotation_rad),
+        }
+    }
+
     /// The log-likelihoods of the final objective (the last part of [`Self::log_likelihood`]):
     /// never decreasing.
     pub fn last_objective(&self) -> &[f64] {
@@ -1568,7 +1591,10 @@ fn finish<const N: usize, const P: usize>(
     // is kept without them.
     let threshold = rate_bias_threshold(kn);
     let trend = opts.rate_bias && (it.prior.iter().any(|v| *v > 0.0) || it.statistic > threshold - 9.2);
-    let (_, acc) = accumulate(ws, &x0, &zero_t, &par, trend)?;
+    // The consider allowance needs the rate bias's columns too (accumulated, not fitted).
+    let considered = opts.consider.intensities(last * opts.dt);
+    let considering = considered.iter().any(|v| *v > 0.0);
+    let (_, acc) = accumulate(ws, &x0, &zero_t, &par, trend || considering)?;
     let spec = it.floor_prior.iter().any(|v| *v > 0.0);
     let (fitted, statistic) = match trend.then(|| acc.fit_prior(opts.rank_tolerance, &it.floor_prior)).flatten() {
         Some((v, lr)) => (v, lr),
@@ -1658,6 +1684,16 @@ fn finish<const N: usize, const P: usize>(
     let pose_stride = kn.div_ceil(EXPECTED_ERROR_POSES);
     let poses = || samples.iter().step_by(pose_stride).map(|s| &s.joints);
     let expected_error = expected_table_error::<N, P>(&table, poses(), |u| info.an.variance_along(u));
+    // The consider allowance, where the chosen model leaves the rate bias out (at that model's
+    // weight where the other one is mixed in).
+    let keep = 1.0 - alternative.as_ref().map_or(0.0, |(w, _, _)| *w);
+    let allowance = expected_table_error::<N, P>(&table, poses(), |u| {
+        if rich || !considering {
+            0.0
+        } else {
+            keep * acc.consider_variance(&info.an, u, &considered)
+        }
+    });
     let stated_error = expected_table_error::<N, P>(&table, poses(), |u| {
         let v0 = info.an.variance_along(u);
         let mut v = v0;
@@ -1733,6 +1769,7 @@ fn finish<const N: usize, const P: usize>(
         std_errors: core::array::from_fn(|k| core::array::from_fn(|j| crb_x[k * N + j])),
         expected_error,
         stated_error,
+        allowance,
         models,
         rate_bias: rate,
         discounted,

@@ -114,6 +114,24 @@ impl<const N: usize, const P: usize> InfoAcc<N, P> {
         })
     }
 
+    /// `uᵀ A⁻¹ B Λ Bᵀ A⁻¹ u` with `Λ` the intensities `prior` per joint: the variance along `u`
+    /// that rate-bias coefficients of those intensities add to the geometry estimated without
+    /// them (`an`, the analysis of `A`; Schmidt's consider covariance). 0 without the columns.
+    pub fn consider_variance(&self, an: &Analysis<P>, u: &[f64; P], prior: &TrendPrior) -> f64 {
+        if !self.trend {
+            return 0.0;
+        }
+        let a = an.solve(u);
+        let mut v = 0.0;
+        for j in 0..N {
+            for (m, lambda) in prior.iter().enumerate() {
+                let d: f64 = (0..P).map(|p| self.bt[p][j][m] * a[p]).sum();
+                v += lambda * d * d;
+            }
+        }
+        v
+    }
+
     /// The intensities that maximise the marginal likelihood (the rate bias integrated out, the
     /// geometry profiled, the drift parameters fixed), searched per term in ln v (golden section
     /// over [max(1e-14, floor), 1] rad², two rounds) against the floor (0: the term out), and

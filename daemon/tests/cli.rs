@@ -245,7 +245,8 @@ fn the_default_config_prints_and_checks() {
 }
 
 /// Issue 30: without the sensors' spec the summary says what the expected table error leaves
-/// out (a rate bias too small for the session to show); with `[sensors]` it does not.
+/// out, with a figure: what a rate bias of 0.01 °/s, too small for the session to show, would
+/// add to the table error (calib-core's consider allowance); with `[sensors]` it does not.
 #[test]
 fn the_summary_says_when_the_sensors_rate_bias_is_not_configured() {
     let dir = std::env::temp_dir().join(format!("exocald-cli-sensors-{}", std::process::id()));
@@ -265,11 +266,20 @@ fn the_summary_says_when_the_sensors_rate_bias_is_not_configured() {
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
         let (code, out, err) = exocald(&args);
         assert_eq!(code, 0, "{err}");
-        assert_eq!(
-            out.contains("sensors' rate bias: not configured ([sensors])"),
-            said,
-            "{out}"
-        );
+        let line = out
+            .lines()
+            .find(|l| l.starts_with("sensors' rate bias: not configured ([sensors])"));
+        assert_eq!(line.is_some(), said, "{out}");
+        if let Some(line) = line {
+            // `… one of 0.01 °/s, … would add ±4.68 mm, ±13.81 mrad (1σ) …`: a figure, not zero.
+            let mm: f64 = line
+                .split("would add ±")
+                .nth(1)
+                .and_then(|r| r.split(" mm").next())
+                .and_then(|v| v.parse().ok())
+                .unwrap_or_else(|| panic!("no figure in {line:?}"));
+            assert!(mm > 0.5 && mm < 50.0, "{line}");
+        }
     }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -964,6 +964,15 @@ fn ls_against_em(out: &mut String, em: &EmDetail) {
         "<tr><td>our EM, pushed (stated: its Cramér-Rao bound with the drift-model choice)</td><td>{}</td></tr>",
         fmt(em.stated_error)
     );
+    if em.allowance.position_m > 0.0 {
+        let _ = write!(
+            out,
+            "<tr><td>what a rate bias of {} °/s, too small for the session to show, would add \
+             (the sensors' spec, <code>[sensors]</code>, is not configured)</td><td>{}</td></tr>",
+            exocal_session::rules::UNCONFIGURED_RATE_BIAS_DEG_S,
+            fmt(em.allowance)
+        );
+    }
     let apart = em.ls_em_difference.map_or(String::new(), |d| {
         format!(
             "; the LS table's FK differs from the EM table's by {:.2} mm, {:.2} mrad RMS there",

@@ -75,6 +75,10 @@ pub struct EmDetail {
     /// The expected table error to state and validate with (1σ): the bound with the
     /// uncertainty of the drift-model choice (calib-core's `stated_error`).
     pub stated_error: TableError,
+    /// What a rate bias of [`crate::rules::UNCONFIGURED_RATE_BIAS_DEG_S`] would add where the
+    /// sensors' spec is not configured and the model leaves the rate bias out (calib-core's
+    /// `allowance`; zero otherwise). Not part of `stated_error`.
+    pub allowance: TableError,
     /// Per joint, the drift model (the paper's Gauss-Markov, or with a rate bias) and why.
     pub models: [JointDrift; JOINTS],
     /// The reference samples discounted as glitches: how many, runs of sample indices, ν.

@@ -31,12 +31,13 @@ use calib_core::drift_conf::Z_95;
 use calib_core::{
     drift_confidence, em_drift, identify_ls_with, ls_expected_table_error, ls_white_expected_error,
     separate, table_error, DhTable, DriftEmOptions, DriftSlot, InputChecks, JointDrift, LsOptions,
-    Sample, SeparationSlot, EXPECTED_ERROR_POSES,
+    RateBias, Sample, SeparationSlot, EXPECTED_ERROR_POSES,
 };
 use nalgebra::{DMatrix, SMatrix};
 use serde::Serialize;
 
 use crate::align::AlignedSample;
+use crate::rules::UNCONFIGURED_RATE_BIAS_DEG_S;
 use crate::validate::{split_holdout, validate, HeldOut, Refusal, Verdict};
 use crate::{Settings, JOINTS};
 
@@ -111,6 +112,22 @@ pub struct EmSummary {
     /// Log-likelihood at the last iterate (NaN if none); within one objective it never
     /// decreases.
     pub log_likelihood_last: f64,
+    /// Without the sensors' spec (`[sensors]`), what a rate bias of
+    /// [`crate::rules::UNCONFIGURED_RATE_BIAS_DEG_S`], too small for the session to show,
+    /// would add to the table error (1σ, not part of the stated error); `None` with the spec,
+    /// or where the drift model has the rate bias.
+    pub unmodelled_rate_bias: Option<UnmodelledRateBias>,
+}
+
+/// What an unmodelled rate bias of `rate_deg_s` would add to the table error (1σ).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct UnmodelledRateBias {
+    /// The rate bias weighed (°/s, a ramp from the session's start).
+    pub rate_deg_s: f64,
+    /// What it adds to the position error (mm, RMS over the session's poses).
+    pub position_mm: f64,
+    /// What it adds to the rotation error (mrad).
+    pub rotation_mrad: f64,
 }
 
 /// One joint's drift with its 95% confidence interval, as summaries state it.
@@ -390,6 +407,13 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
                 drift_95: r.drift_confidence.map(|c| c.map(|c| DriftInterval::of(&c))),
                 log_likelihood_first: r.last_objective().first().copied().unwrap_or(f64::NAN),
                 log_likelihood_last: r.last_objective().last().copied().unwrap_or(f64::NAN),
+                unmodelled_rate_bias: (r.allowance.position_m > 0.0).then_some(
+                    UnmodelledRateBias {
+                        rate_deg_s: UNCONFIGURED_RATE_BIAS_DEG_S,
+                        position_mm: r.allowance.position_m * 1e3,
+                        rotation_mrad: r.allowance.rotation_rad * 1e3,
+                    },
+                ),
             };
             (Some(summary), None, tau, sigma)
         }
@@ -472,9 +496,19 @@ pub fn options(settings: &Settings) -> (LsOptions<JOINTS>, DriftEmOptions<JOINTS
         checks,
         ..LsOptions::new()
     };
+    let spec = settings.sensors.rate_bias;
     let em_opts = DriftEmOptions {
         checks,
-        rate_bias_spec: settings.sensors.rate_bias,
+        rate_bias_spec: spec,
+        // Without the spec: what a rate bias too small to show would do, stated apart.
+        consider: if spec.is_none() {
+            RateBias {
+                ramp: UNCONFIGURED_RATE_BIAS_DEG_S.to_radians(),
+                walk: 0.0,
+            }
+        } else {
+            RateBias::NONE
+        },
         ..DriftEmOptions::new(1.0 / settings.window.grid_hz)
     };
     (ls_opts, em_opts)
@@ -530,6 +564,7 @@ pub fn ls_then_em(
             std_errors: std::array::from_fn(|p| r.std_errors[p / JOINTS][p % JOINTS]),
             expected_error: r.expected_error,
             stated_error: r.stated_error,
+            allowance: r.allowance,
             models: r.models,
             discounted: r.discounted.clone(),
             consistency: r.consistency,

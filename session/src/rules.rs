@@ -265,6 +265,11 @@ pub struct ValidationRules {
     pub max_expected_rotation_error_mrad: f64,
 }
 
+/// The rate bias weighed when the sensors' spec is not configured (°/s, a ramp): what one this
+/// size, too small for a session to show, would add to the table error is stated beside the
+/// expected error (calib-core's `DriftEmOptions::consider`); it scales linearly with the size.
+pub const UNCONFIGURED_RATE_BIAS_DEG_S: f64 = 0.01;
+
 /// What the suit's angle sensors are known to do beyond the paper's model (the configuration's
 /// optional `[sensors]`): a rate bias left after fusion, from the sensors' spec. The drift EM
 /// then keeps a rate bias in every joint's model whatever one session's data say: a small

@@ -270,6 +270,7 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
                         "expected table error:",
                         "drift joint",
                         "drift model joint",
+                        "sensors' rate bias:",
                         "reference glitches discounted:",
                         "held-out mean pose error:",
                         "held-out mean position error:",
@@ -279,8 +280,8 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
                     .any(|p| l.starts_with(p))
                 })
                 .collect();
-            if kept.len() != 26 {
-                bail!("the demo's summary lacks its aligned/expected/drift/model/glitch/held-out/push lines:\n{out}");
+            if kept.len() != 27 {
+                bail!("the demo's summary lacks its aligned/expected/drift/model/sensors/glitch/held-out/push lines:\n{out}");
             }
             Ok(fenced(&kept))
         }

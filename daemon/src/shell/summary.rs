@@ -70,14 +70,8 @@ pub fn print_summary(summary: &SessionSummary) {
             for (j, m) in em.models.iter().enumerate() {
                 println!("drift model joint {}: {m}", j + 1);
             }
-            if !em.models.iter().any(|m| m.by_spec) {
-                // Issue 30: a rate bias too small for the session to show still moves the
-                // table; only the sensors' spec puts it in the stated error.
-                println!(
-                    "sensors' rate bias: not configured ([sensors]): the expected table error \
-                     leaves out a rate bias smaller than this session can show (see \
-                     calib-core/README.md, the field sweep); set it from the IMUs' spec"
-                );
+            if let Some(line) = rate_bias_line(em) {
+                println!("{line}");
             }
             println!("{}", discounted_line(em));
         }
@@ -144,6 +138,28 @@ pub fn finish(result: Result<SessionSummary, SessionError>) -> Result<(), Daemon
             Err(error)
         }
     }
+}
+
+/// Without the sensors' spec (issue 30): what a rate bias too small for the session to show
+/// would add to the table error, or that the data chose the rate bias themselves. `None` when
+/// the spec is configured.
+pub fn rate_bias_line(em: &exocal_session::pipeline::EmSummary) -> Option<String> {
+    if em.models.iter().any(|m| m.by_spec) {
+        return None;
+    }
+    Some(match &em.unmodelled_rate_bias {
+        Some(u) => format!(
+            "sensors' rate bias: not configured ([sensors]): one of {} °/s, too small for this \
+             session to show, would add ±{:.2} mm, ±{:.2} mrad (1σ) to the table error; set it \
+             from the IMUs' spec",
+            u.rate_deg_s, u.position_mm, u.rotation_mrad
+        ),
+        None => {
+            "sensors' rate bias: not configured ([sensors]); this session's data chose it (drift \
+                 models above)"
+                .to_string()
+        }
+    })
 }
 
 /// The reference samples the EM discounted as glitches, and when: `reference glitches
