@@ -28,8 +28,8 @@ use parking_lot::Mutex;
 use prost::Message as _;
 
 use crate::config::{Config, JOINTS};
-use crate::log::mcaplog;
 use crate::log::records::{arm_transforms, Record};
+use crate::log::{mcaplog, records};
 
 /// Most messages per second of log time on the streaming channels (`/joint_states`, `/tf`,
 /// `/ee_pose`): plenty to watch an arm move, a few percent of what the bus carries.
@@ -63,7 +63,6 @@ struct Channels {
 /// What the view keeps between records.
 struct State {
     table: calib_core::DhTable<JOINTS>,
-    limits: [(f64, f64); JOINTS],
     joints: [Option<(f64, f64)>; JOINTS],
     pose: Option<crate::log::records::Transform>,
     last_sent_ns: Option<u64>,
@@ -137,12 +136,8 @@ fn channel(ctx: &Arc<Context>, topic: Topic) -> Result<Arc<RawChannel>, foxglove
         .build_raw()
 }
 
-/// The URDF of `table` as a `std_msgs/String` JSON message.
-fn robot_description(
-    table: &calib_core::DhTable<JOINTS>,
-    limits: &[(f64, f64); JOINTS],
-) -> Vec<u8> {
-    let urdf = exocal_report::export::urdf("exocal_suit", table, limits).unwrap_or_default();
+/// A URDF as a `std_msgs/String` JSON message.
+fn robot_description(urdf: &str) -> Vec<u8> {
     serde_json::to_vec(&serde_json::json!({ "data": urdf })).unwrap_or_default()
 }
 
@@ -207,14 +202,14 @@ impl LiveView {
         let limits = config.calibration.bounds.joint_range.limits;
         let mut state = State {
             table,
-            limits,
             joints: [None; JOINTS],
             pose: None,
             last_sent_ns: None,
             last_rate_ns: None,
             latched: Vec::new(),
         };
-        state.latch(ROBOT_DESCRIPTION, robot_description(&table, &limits));
+        let nominal = records::urdf(&table, &limits).unwrap_or_default();
+        state.latch(ROBOT_DESCRIPTION, robot_description(&nominal));
         let shared = Arc::new(Shared {
             channels,
             state: Mutex::new(state),
@@ -292,11 +287,16 @@ impl LiveView {
                 let bytes = cal.encode_to_vec();
                 c.calibration.log_with_meta(&bytes, at);
                 state.latch(Topic::Calibration.name(), bytes);
-                self.calibrated(&mut state, cal, at);
+                self.calibrated(&mut state, cal);
             }
             Record::Event { level, message } => {
                 let bytes = mcaplog::log_message(log_ns, level, message).encode_to_vec();
                 c.events.log_with_meta(&bytes, at);
+            }
+            Record::RobotDescription(urdf) => {
+                let bytes = robot_description(urdf);
+                c.robot_description.log_with_meta(&bytes, at);
+                state.latch(ROBOT_DESCRIPTION, bytes);
             }
             Record::Frame { .. }
             | Record::Arm(_)
@@ -344,28 +344,18 @@ impl LiveView {
         }
     }
 
-    /// A calibrated table: the arm is drawn on it from now on; its URDF is stamped `at` the
-    /// calibration record's log time (session time, as every other message).
-    fn calibrated(&self, state: &mut State, cal: &proto::Calibration, at: PartialMetadata) {
+    /// A calibrated table: the arm is drawn on it from now on (its URDF comes as the session's
+    /// [`Record::RobotDescription`], stamped with the calibration's log time).
+    fn calibrated(&self, state: &mut State, cal: &proto::Calibration) {
         let rows = cal.after.iter().map(|r| calib_core::DhRow {
             a: r.a,
             alpha: r.alpha,
             d: r.d,
             theta_offset: r.theta_offset,
         });
-        let Some(table) = table_of(rows) else {
-            return;
-        };
-        if table == state.table {
-            return;
+        if let Some(table) = table_of(rows) {
+            state.table = table;
         }
-        state.table = table;
-        let bytes = robot_description(&table, &state.limits);
-        self.shared
-            .channels
-            .robot_description
-            .log_with_meta(&bytes, at);
-        state.latch(ROBOT_DESCRIPTION, bytes);
     }
 }
 

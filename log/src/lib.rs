@@ -84,6 +84,8 @@ pub enum Topic {
     Calibration,
     /// What happened, human-readable.
     Events,
+    /// The arm's URDF: the nominal table's, then the calibrated one's.
+    RobotDescription,
 }
 
 /// A channel's schema: name, encoding and data, as MCAP stores it.
@@ -118,7 +120,7 @@ fn foxglove_schema<T: foxglove::Encode>(name: &'static str) -> Schema {
 
 impl Topic {
     /// Every topic, in channel order.
-    pub const ALL: [Topic; 11] = [
+    pub const ALL: [Topic; 12] = [
         Topic::CanRx,
         Topic::CanTx,
         Topic::JointStates,
@@ -130,6 +132,7 @@ impl Topic {
         Topic::Calibration,
         Topic::Events,
         Topic::EeGyro,
+        Topic::RobotDescription,
     ];
 
     /// The topic name in the file.
@@ -146,6 +149,7 @@ impl Topic {
             Topic::Collection => "/collection",
             Topic::Calibration => "/calibration",
             Topic::Events => "/events",
+            Topic::RobotDescription => "/robot_description",
         }
     }
 
@@ -167,6 +171,7 @@ impl Topic {
             Topic::Collection => "exocal.CollectionEnd",
             Topic::Calibration => "exocal.Calibration",
             Topic::Events => "foxglove.Log",
+            Topic::RobotDescription => "exocal.RobotDescription",
         }
     }
 

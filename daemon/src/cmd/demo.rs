@@ -497,6 +497,7 @@ pub fn check_flash(result: &DemoResult) -> Result<(), DaemonError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use prost::Message as _;
 
     #[test]
     fn the_paper_scenario_calibrates_pushes_and_persists() {
@@ -531,6 +532,37 @@ mod tests {
         );
         let rx = s.log_counts.iter().find(|(t, _)| t == "/can/rx").unwrap().1;
         assert!(rx >= s.frames.received, "{rx} < {}", s.frames.received);
+        // Foxglove's 3D panel draws the arm from `/robot_description`: the nominal table's URDF
+        // at the session's start, the pushed table's at the calibration's log time.
+        let urdfs: Vec<(u64, String)> = mcap::MessageStream::new(&bytes)
+            .unwrap()
+            .map(Result::unwrap)
+            .filter(|m| m.channel.topic == "/robot_description")
+            .map(|m| {
+                let d = exocal_log::proto::RobotDescription::decode(&*m.data).unwrap();
+                (m.log_time, d.data)
+            })
+            .collect();
+        let limits = &config.calibration.bounds.joint_range.limits;
+        let pushed = s.outcome.as_ref().unwrap().table();
+        let want = [
+            crate::log::records::urdf(&config.calibration.nominal, limits).unwrap(),
+            crate::log::records::urdf(&pushed, limits).unwrap(),
+        ];
+        assert_eq!(
+            urdfs.len(),
+            2,
+            "{:?}",
+            urdfs.iter().map(|u| u.0).collect::<Vec<_>>()
+        );
+        assert_eq!([&urdfs[0].1, &urdfs[1].1], [&want[0], &want[1]]);
+        let calibration = mcap::MessageStream::new(&bytes)
+            .unwrap()
+            .map(Result::unwrap)
+            .find(|m| m.channel.topic == "/calibration")
+            .unwrap();
+        assert!(urdfs[0].0 < calibration.log_time);
+        assert_eq!(urdfs[1].0, calibration.log_time);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

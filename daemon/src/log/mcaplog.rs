@@ -366,6 +366,13 @@ impl<W: Write + Seek> SessionLog<W> {
             Record::Progress(p) => self.write(Topic::Progress, log_ns, &progress(p)),
             Record::CollectionEnd(end) => self.write(Topic::Collection, log_ns, end),
             Record::Calibration(c) => self.write(Topic::Calibration, log_ns, c),
+            Record::RobotDescription(urdf) => self.write(
+                Topic::RobotDescription,
+                log_ns,
+                &proto::RobotDescription {
+                    data: urdf.to_string(),
+                },
+            ),
             Record::Event { level, message } => {
                 self.write(Topic::Events, log_ns, &log_message(log_ns, level, message))
             }
@@ -544,6 +551,8 @@ mod tests {
         };
         log.write_record(t0, &Record::Calibration(&calibration))
             .unwrap();
+        log.write_record(t0, &Record::RobotDescription("<robot name=\"r\"/>"))
+            .unwrap();
         for (level, message) in [
             (Level::Info, "session started"),
             (Level::Warning, "node 3: 2 malformed frames"),
@@ -561,6 +570,7 @@ mod tests {
             ("/aligned", 50),
             ("/progress", 1),
             ("/collection", 1),
+            ("/robot_description", 1),
             ("/calibration", 1),
             ("/events", 2),
         ])
@@ -579,6 +589,7 @@ mod tests {
             Topic::Collection => drop(proto::CollectionEnd::decode(data).unwrap()),
             Topic::Calibration => drop(proto::Calibration::decode(data).unwrap()),
             Topic::Events => drop(fox::Log::decode(data).unwrap()),
+            Topic::RobotDescription => drop(proto::RobotDescription::decode(data).unwrap()),
         }
     }
 

@@ -88,6 +88,9 @@ pub enum Record<'a> {
     CollectionEnd(&'a CollectionEnd),
     /// The calibration result (and, once pushed, the push report).
     Calibration(&'a proto::Calibration),
+    /// The arm's URDF ([`urdf`]): the nominal table's at the session's start, the calibrated
+    /// table's with the calibration.
+    RobotDescription(&'a str),
     /// What happened, human-readable.
     Event {
         /// Severity.
@@ -95,6 +98,15 @@ pub enum Record<'a> {
         /// The text.
         message: &'a str,
     },
+}
+
+/// The robot name of the suit's URDF.
+pub const ROBOT_NAME: &str = "exocal_suit";
+
+/// The URDF of `table` with the joints' `limits` (rad), as `--export-urdf` writes it; `None`
+/// when the table has a non-finite value (nothing to draw).
+pub fn urdf(table: &calib_core::DhTable<JOINTS>, limits: &[(f64, f64); JOINTS]) -> Option<String> {
+    exocal_report::export::urdf(ROBOT_NAME, table, limits).ok()
 }
 
 /// The `/collection` record of what the stream gate passed and dropped.

@@ -383,6 +383,12 @@ pub async fn run_session_with<T: Transport>(
         Level::Info,
         &format!("session started on {}", config.interface),
     );
+    // The arm as built, for Foxglove's 3D panel until the calibrated one follows.
+    let limits = &config.calibration.bounds.joint_range.limits;
+    if let Some(urdf) = records::urdf(&config.calibration.nominal, limits) {
+        let r = io.log.robot_description(ns(start), &urdf);
+        io.check(r);
+    }
     io.notifier.ready("collecting free motion");
     io.housekeeping();
 
@@ -868,6 +874,11 @@ impl<T: Transport> Running<'_, '_, T> {
         let now = self.clock.now();
         let r = self.io.log.calibration(ns(now), &record);
         self.io.check(r);
+        let limits = &self.config.calibration.bounds.joint_range.limits;
+        if let Some(urdf) = records::urdf(&table, limits) {
+            let r = self.io.log.robot_description(ns(now), &urdf);
+            self.io.check(r);
+        }
         let v = &calibrated.outcome.verdict;
         self.io.event(
             now,

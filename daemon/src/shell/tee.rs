@@ -132,6 +132,11 @@ impl<'a, W: Write + std::io::Seek> Recorder<'a, W> {
         self.record(log_ns, Record::Calibration(calibration))
     }
 
+    /// Records the arm's URDF ([`crate::log::records::urdf`]).
+    pub fn robot_description(&mut self, log_ns: u64, urdf: &str) -> Result<(), LogError> {
+        self.record(log_ns, Record::RobotDescription(urdf))
+    }
+
     /// Records a human-readable event.
     pub fn event(&mut self, log_ns: u64, level: Level, message: &str) -> Result<(), LogError> {
         self.record(log_ns, Record::Event { level, message })
