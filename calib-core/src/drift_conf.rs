@@ -38,9 +38,8 @@
 //! drift slower than the session has no estimable stationary deviation either.
 //!
 //! # Cost
-//! `6N + 1` read-only filter passes over all K samples (43 for the suit), no allocation:
-//! 97 ms at K = 6,000 (the paper scenario, release, best of 7 on this shared 2-core machine;
-//! 2.2 ms a pass), test `cost_at_k_6000`.
+//! `6N + 1` read-only filter passes over all K samples (43 for the suit), no allocation; test
+//! `cost_at_k_6000` prints the time on a machine (timings live in BENCHMARKS.md).
 //!
 //! # Monte Carlo check (test `monte_carlo_standard_errors_match_the_spread`)
 //! 50 sessions of 24 s (K = 2,400, 120 τ) with exact Gauss-Markov drift τ = 0.2 s, σ = 10 mrad
@@ -146,8 +145,7 @@ pub(crate) fn moved<const N: usize>(par: &Params<N>, d: &[(usize, f64)]) -> Para
 /// contract, method, what it leaves out). `slots` are the workspace slots of the session
 /// `em_drift` returned `result` for, `&workspace[..samples.len()]`; they are not modified.
 ///
-/// Cost: `6N + 1` filter passes over the K samples (43 for the suit): 97 ms at K = 6,000
-/// (paper scenario, release). Empirical spread over reported se ≈ 1.16 and 95% coverage ≈ 86%
+/// Cost: `6N + 1` filter passes over the K samples (43 for the suit). Empirical spread over reported se ≈ 1.16 and 95% coverage ≈ 86%
 /// on 120-τ sessions (module docs: Monte Carlo check, and how short sessions fare).
 ///
 /// Errors: [`CalibError::InvalidInput`] when the slots do not reproduce the result's

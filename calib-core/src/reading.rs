@@ -31,8 +31,8 @@
 //! Per joint: one pass over the readings for the moments; 18 steady-state filter passes (the
 //! golden-section search of the arm's intensity, each gain a few hundred 4-state Riccati steps
 //! from the last one); a forward and a backward pass to move the readings. Then two FK per
-//! sample to move the poses. 24 ms for the suit at K = 6,000 on one desktop core (a test prints
-//! it: `cargo test -p calib-core --release cost_at_k_6000 -- --ignored --nocapture`). No
+//! sample to move the poses. The time on a machine: `cargo test -p calib-core --release
+//! cost_at_k_6000 -- --ignored --nocapture` prints it (timings live in BENCHMARKS.md). No
 //! allocation: the caller gives one [`SeparationSlot`] per sample.
 
 use nalgebra::{Matrix4, Vector4};

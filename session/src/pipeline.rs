@@ -518,7 +518,7 @@ pub fn options(settings: &Settings) -> (LsOptions<JOINTS>, DriftEmOptions<JOINTS
 /// report shows. When the EM fails, the LS table is the result and the EM's error is kept as
 /// text. With `detail` (the pushed table's pass, the one summaries show), also what the LS
 /// table alone is expected to be worth (the report's LS-against-EM figures) and the confidence
-/// of every joint's τ and σ: about 120 ms more at K = 6,000, skipped where nobody shows them.
+/// of every joint's τ and σ: `6N + 1` more filter passes, skipped where nobody shows them.
 pub fn ls_then_em(
     nominal: &DhTable<JOINTS>,
     fit: &[Sample<JOINTS>],
