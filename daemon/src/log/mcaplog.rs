@@ -6,9 +6,12 @@
 //!   transforms and events; ours for raw frames and the rest): Foxglove's 3D, plot and log
 //!   panels, the `mcap` crate and Python's `mcap-protobuf-support` read it without generated
 //!   code;
-//! - [`SessionLog::tick`] closes the open chunk, flushes and `fdatasync`s whenever the flush
-//!   interval has passed, so a hard kill loses at most that interval (≤ 1 s by config): the
-//!   file stays readable by a linear scan up to its last closed chunk;
+//! - [`SessionLog::tick`] closes the open chunk and flushes it to the kernel whenever the flush
+//!   interval has passed, and has it `fdatasync`ed on the log's own thread ([`Syncer`]): an
+//!   `fdatasync` can take seconds on an SD card or a busy host, and the caller is the loop that
+//!   feeds systemd's watchdog. A hard kill loses at most that interval (≤ 1 s by config) plus
+//!   one sync in flight; the file stays readable by a linear scan up to its last closed chunk.
+//!   A failed sync is the next tick's error;
 //! - [`SessionLog::finish`] writes the summary (statistics, indexes) and footer; the daemon calls
 //!   it on every exit path, SIGTERM/SIGINT included;
 //! - message counts per topic are kept so callers and tests can check them against the file.
@@ -30,6 +33,7 @@
 //! | `/collection` | `exocal.CollectionEnd` | once, when collection ends: frames received in the window (a replay calibrates on exactly those), the window's end, bad-frame and drop counts |
 //! | `/calibration` | `exocal.Calibration` | tables before and after, τ and σ, metrics, validation verdict; again with the push report |
 //! | `/events` | `foxglove.Log` | what happened, human-readable, with a level |
+//! | `/robot_description` | `exocal.RobotDescription` | the arm's URDF: the nominal table's at the start, the calibrated one's with the calibration |
 //!
 //! Log time is host wall-clock time in ns. Messages on a topic are numbered from 1 (the MCAP
 //! `sequence`, per channel).
@@ -212,8 +216,84 @@ pub struct SessionLog<W: Write + Seek> {
     sequences: [u32; Topic::ALL.len()],
     flush_interval_ns: u64,
     last_flush_ns: Option<u64>,
-    sync: Option<File>,
+    sync: Option<Syncer>,
     buffer: Vec<u8>,
+}
+
+/// `fdatasync`s a log file on a thread of its own, on request: requests made while one waits
+/// are one sync (it starts after them). The first error is kept for the next request.
+struct Syncer {
+    file: File,
+    requests: Option<std::sync::mpsc::SyncSender<()>>,
+    error: std::sync::Arc<std::sync::Mutex<Option<std::io::Error>>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Syncer {
+    fn new(file: File) -> std::io::Result<Syncer> {
+        let (requests, rx) = std::sync::mpsc::sync_channel::<()>(1);
+        let error: std::sync::Arc<std::sync::Mutex<Option<std::io::Error>>> =
+            std::sync::Arc::default();
+        let (f, e) = (file.try_clone()?, std::sync::Arc::clone(&error));
+        let thread = std::thread::Builder::new()
+            .name("exocald-log-sync".into())
+            .spawn(move || {
+                while rx.recv().is_ok() {
+                    if let Err(err) = f.sync_data() {
+                        let mut slot = e.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+                        slot.get_or_insert(err);
+                    }
+                }
+            })?;
+        Ok(Syncer {
+            file,
+            requests: Some(requests),
+            error,
+            thread: Some(thread),
+        })
+    }
+
+    /// The first sync error since the last call, if any.
+    fn failed(&self) -> Option<std::io::Error> {
+        self.error
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .take()
+    }
+
+    /// Asks for a sync of what was written so far; returns an earlier sync's error.
+    fn request(&self) -> std::io::Result<()> {
+        if let Some(e) = self.failed() {
+            return Err(e);
+        }
+        if let Some(tx) = &self.requests {
+            // Full: a sync is already waiting to start, and will cover this request too.
+            let _ = tx.try_send(());
+        }
+        Ok(())
+    }
+
+    /// Waits for the thread to end, then syncs everything (data and metadata) here.
+    fn finish(mut self) -> std::io::Result<()> {
+        self.stop();
+        if let Some(e) = self.failed() {
+            return Err(e);
+        }
+        self.file.sync_all()
+    }
+
+    fn stop(&mut self) {
+        self.requests = None;
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for Syncer {
+    fn drop(&mut self) {
+        self.stop();
+    }
 }
 
 /// The file name of a session started at `start_ns` (ns since the epoch, UTC).
@@ -271,7 +351,7 @@ impl SessionLog<BufWriter<File>> {
                 Err(e) => return Err(e.into()),
             }
         };
-        let sync = file.try_clone()?;
+        let sync = Syncer::new(file.try_clone()?)?;
         let mut log = SessionLog::new(BufWriter::new(file), flush_interval_ns)?;
         log.sync = Some(sync);
         Ok((path, log))
@@ -396,11 +476,12 @@ impl<W: Write + Seek> SessionLog<W> {
         Ok(due)
     }
 
-    /// Closes the open chunk, flushes and syncs now.
+    /// Closes the open chunk, flushes it to the kernel and has it synced (on the log's sync
+    /// thread; an earlier sync's error is returned here).
     pub fn flush(&mut self) -> Result<(), LogError> {
         self.writer.flush()?;
-        if let Some(f) = &self.sync {
-            f.sync_data()?;
+        if let Some(s) = &self.sync {
+            s.request()?;
         }
         Ok(())
     }
@@ -416,8 +497,8 @@ impl<W: Write + Seek> SessionLog<W> {
     /// Writes the summary and footer; returns the counts.
     pub fn finish(mut self) -> Result<Counts, LogError> {
         self.writer.finish()?;
-        if let Some(f) = &self.sync {
-            f.sync_all()?;
+        if let Some(s) = self.sync.take() {
+            s.finish()?;
         }
         Ok(self.counts())
     }
@@ -602,6 +683,31 @@ mod tests {
             *counts.entry(m.channel.topic.clone()).or_insert(0) += 1;
         }
         counts
+    }
+
+    /// The sync runs on the log's thread and its error reaches the next request: `fsync` of
+    /// `/dev/null` fails (EINVAL) as a full disk or a dying SD card would.
+    #[test]
+    fn a_failed_sync_is_the_next_flush_error_and_never_blocks_the_caller() {
+        let syncer = Syncer::new(File::open("/dev/null").unwrap()).unwrap();
+        assert!(syncer.request().is_ok(), "the first request only asks");
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+        let err = loop {
+            std::thread::sleep(std::time::Duration::from_millis(5));
+            if let Err(e) = syncer.request() {
+                break e;
+            }
+            assert!(std::time::Instant::now() < deadline, "the sync thread never ran");
+        };
+        assert_eq!(err.raw_os_error(), Some(22), "EINVAL: {err}");
+        // A good file: requests coalesce, finish syncs everything and ends the thread.
+        let path = std::env::temp_dir().join(format!("exocald-sync-{}", std::process::id()));
+        let good = Syncer::new(File::create(&path).unwrap()).unwrap();
+        for _ in 0..100 {
+            good.request().unwrap();
+        }
+        good.finish().unwrap();
+        std::fs::remove_file(&path).unwrap();
     }
 
     #[test]

@@ -206,11 +206,13 @@ impl Io<'_> {
         }
     }
 
+    /// The watchdog first: the log's flush writes a chunk (its sync runs on the log's own
+    /// thread, `crate::log::mcaplog`).
     fn housekeeping(&mut self) {
         let now = self.started.elapsed();
+        self.notifier.watchdog(now);
         let r = self.log.tick(ns(now)).map(|_| ());
         self.check(r);
-        self.notifier.watchdog(now);
     }
 
     /// Between two of many records written in one go (a session's aligned samples, its arm
