@@ -255,6 +255,12 @@ impl Io<'_> {
                 self.event(rx.timestamp, Level::Warning, &format!("stream span {d}"));
             }
         }
+        // The housekeeping turn (time-gated: a clock read when nothing is due) after every frame
+        // as well as on the tick: with a backlog of frames the socket is always ready, and tokio
+        // fires timers only when the task yields and the runtime turns its driver (after its
+        // co-operative budget, every few thousand frames): on a starved controller that was
+        // seconds, and systemd's watchdog killed the daemon (issue 34, item 7).
+        self.housekeeping();
     }
 
     fn take_event(&mut self, at: Duration, event: Event, collector: &Collector) {
