@@ -1,11 +1,12 @@
 //! The table transfer under an adversarial bus: an authenticated controller [`Upload`] of NEW to
 //! a node holding OLD and a key, through a channel whose losses, duplicates, reorderings and
 //! delays are fuzzer-chosen, with node reboots (state rebuilt from storage: table and freshness
-//! counter), failing storage writes, injected foreign commands (arbitrary sessions, fields,
+//! counter), failing storage writes (every write, or the table image only: the counter record
+//! written, the image not), injected foreign commands (arbitrary sessions, fields, nonces,
 //! CRCs, counters, MACs), complete foreign transfers of arbitrary tables with correct CRCs (with
 //! no `CommitAuth` or one with a guessed MAC), replays of any command delivered earlier, and
-//! forged replies to the controller (arbitrary, or answering its last command with NEW's CRC
-//! and fields).
+//! forged replies to the controller (arbitrary, including forged freshness counters and MACs,
+//! or answering its last command with NEW's CRC and fields).
 //!
 //! Invariants checked after every step: the node's held table is OLD or NEW, never anything
 //! else (never mixed, never a foreign table); storage and the node agree, counter included;
@@ -39,7 +40,7 @@ enum Step {
     /// Power-cycle the node.
     Reboot,
     /// Make the next storage writes fail (or not).
-    FlashFails(bool),
+    FlashFails(Fault),
     /// A foreign command reaches the node.
     Foreign(Foreign),
     /// A complete foreign transfer with the right CRC reaches the node.
@@ -50,9 +51,20 @@ enum Step {
     ForgedReply(ForgedReply),
 }
 
+/// Which storage writes fail.
+#[derive(Arbitrary, Debug, Clone, Copy, PartialEq, Eq)]
+enum Fault {
+    None,
+    /// Every write: the counter record and the table image.
+    All,
+    /// The table image only: the counter record is written, the image is not.
+    TableOnly,
+}
+
 #[derive(Arbitrary, Debug)]
 struct ForeignTransfer {
     session: u8,
+    nonce: u32,
     table: [i32; 6],
     /// `(counter_lo, mac)` of a `CommitAuth` before the Commit, or none.
     auth: Option<(u16, u32)>,
@@ -86,26 +98,39 @@ struct Input {
     steps: Vec<Step>,
 }
 
+/// The node's storage: the table image and the counter record, apart; `counter` is the
+/// highest of the record and the image's (what a node boots with).
 struct Flash {
     table: Option<Table>,
     counter: u32,
-    fail: bool,
+    fail: Fault,
 }
 
 impl TableStorage for Flash {
+    fn store_counter(&mut self, counter: u32) -> Result<(), StorageError> {
+        if self.fail == Fault::All {
+            return Err(StorageError);
+        }
+        self.counter = self.counter.max(counter);
+        Ok(())
+    }
+
     fn store(&mut self, t: &Table, counter: u32) -> Result<(), StorageError> {
-        if self.fail {
+        if self.fail != Fault::None {
             return Err(StorageError);
         }
         self.table = Some(*t);
-        self.counter = counter;
+        self.counter = self.counter.max(counter);
         Ok(())
     }
 }
 
 /// The node and the controller share this key; the fuzzer never sees it.
 fn key() -> Key {
-    KeySet::derived(0x00ab_cdef).node(NodeId::JOINTS[2]).unwrap().clone()
+    KeySet::derived(0x00ab_cdef)
+        .node(NodeId::JOINTS[2])
+        .unwrap()
+        .clone()
 }
 
 fn boot(node: NodeId, flash: &Flash) -> NodeTransfer {
@@ -142,7 +167,7 @@ fuzz_target!(|input: Input| {
     let mut flash = Flash {
         table: old,
         counter: input.counter,
-        fail: false,
+        fail: Fault::None,
     };
     let mut nt = boot(node, &flash);
     let mut up = Upload::authenticated(node, input.session, new, policy, key());
@@ -218,7 +243,7 @@ fuzz_target!(|input: Input| {
             Step::Foreign(f) => {
                 let field = Field::ALL[usize::from(f.field) % 6];
                 let cmd = match f.kind % 6 {
-                    0 => Command::Begin,
+                    0 => Command::Begin { nonce: f.crc },
                     1 => Command::Segment(field, f.raw),
                     2 => Command::Commit { crc: f.crc },
                     3 => Command::Readback { nonce: f.crc },
@@ -237,7 +262,7 @@ fuzz_target!(|input: Input| {
             }
             Step::ForeignTransfer(f) => {
                 let t = table(f.table);
-                let mut cmds = vec![Command::Begin];
+                let mut cmds = vec![Command::Begin { nonce: f.nonce }];
                 cmds.extend(Field::ALL.map(|k| Command::Segment(k, t.raw(k))));
                 if let Some((counter_lo, mac)) = f.auth {
                     cmds.push(Command::CommitAuth { counter_lo, mac });
@@ -260,7 +285,7 @@ fuzz_target!(|input: Input| {
             }
             Step::ForgedReply(f) => {
                 let field = Field::ALL[usize::from(f.field) % 6];
-                let reply = match f.kind % 6 {
+                let reply = match f.kind % 7 {
                     0 => Reply::Ack {
                         cmd: CmdCode::Readback,
                         held_crc: new.crc(),
@@ -268,11 +293,15 @@ fuzz_target!(|input: Input| {
                     1 => Reply::Readback(field, new.raw(field)),
                     2 => Reply::ReadbackMac { mac: f.value },
                     3 => Reply::Freshness { counter: f.value },
+                    6 => Reply::FreshnessMac { mac: f.value },
                     4 => Reply::Ack {
                         cmd: CmdCode::Commit,
                         held_crc: f.value,
                     },
-                    _ => Reply::Readback(field, f.raw.clamp(field.raw_bounds().0, field.raw_bounds().1)),
+                    _ => Reply::Readback(
+                        field,
+                        f.raw.clamp(field.raw_bounds().0, field.raw_bounds().1),
+                    ),
                 };
                 up.on_reply(&TableReply {
                     node,
@@ -287,8 +316,15 @@ fuzz_target!(|input: Input| {
             "node holds a table that is neither the old nor the new one: {held:?}"
         );
         assert_eq!(held, flash.table, "node and storage disagree");
-        assert_eq!(nt.counter(), flash.counter, "counter in RAM and storage disagree");
-        assert!(flash.counter >= last_counter, "the stored counter went back");
+        assert_eq!(
+            nt.counter(),
+            flash.counter,
+            "counter in RAM and storage disagree"
+        );
+        assert!(
+            flash.counter >= last_counter,
+            "the stored counter went back"
+        );
         last_counter = flash.counter;
         if let Some(Ok(crc)) = up.outcome() {
             assert_eq!(crc, new.crc());
