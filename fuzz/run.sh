@@ -3,6 +3,7 @@
 # shared: one core per target), and prints libFuzzer's final line per target.
 # Usage: fuzz/run.sh [SECONDS] [TARGET...]
 #   FUZZ_RUNS=N   stop each target after N executions instead (SECONDS still caps it)
+#   (-timeout=10: an input that takes over 10 s is a finding, as a crash is)
 #   FUZZ_FLAGS    cargo-fuzz build flags (default `-s none -O`: no sanitizer — the crates are
 #                 `#![deny(unsafe_code)]` or safe Rust over safe dependencies — for ~3x the
 #                 executions per second; use `FUZZ_FLAGS=-O` for AddressSanitizer)
@@ -22,7 +23,7 @@ for t in "${targets[@]}"; do
   log="logs/$t.log"
   # shellcheck disable=SC2086
   if cargo +nightly fuzz run ${FUZZ_FLAGS:--s none -O} "$t" "corpus/$t" -- \
-      -max_total_time="$secs" ${FUZZ_RUNS:+-runs="$FUZZ_RUNS"} -rss_limit_mb=2048 >"$log" 2>&1; then
+      -max_total_time="$secs" ${FUZZ_RUNS:+-runs="$FUZZ_RUNS"} -rss_limit_mb=2048 -timeout=10 >"$log" 2>&1; then
     echo "$t: ok: $(grep -E '^(#[0-9]+|Done)' "$log" | tail -1)"
   else
     echo "$t: FAILED (see fuzz/$log and fuzz/artifacts/$t/)"

@@ -697,7 +697,10 @@ mod tests {
             if let Err(e) = syncer.request() {
                 break e;
             }
-            assert!(std::time::Instant::now() < deadline, "the sync thread never ran");
+            assert!(
+                std::time::Instant::now() < deadline,
+                "the sync thread never ran"
+            );
         };
         assert_eq!(err.raw_os_error(), Some(22), "EINVAL: {err}");
         // A good file: requests coalesce, finish syncs everything and ends the thread.
