@@ -7,7 +7,7 @@
 //!   panels, the `mcap` crate and Python's `mcap-protobuf-support` read it without generated
 //!   code;
 //! - [`SessionLog::tick`] closes the open chunk and flushes it to the kernel whenever the flush
-//!   interval has passed, and has it `fdatasync`ed on the log's own thread ([`Syncer`]): an
+//!   interval has passed, and has it `fdatasync`ed on the log's own thread (`Syncer`): an
 //!   `fdatasync` can take seconds on an SD card or a busy host, and the caller is the loop that
 //!   feeds systemd's watchdog. A hard kill loses at most that interval (≤ 1 s by config) plus
 //!   one sync in flight; the file stays readable by a linear scan up to its last closed chunk.
