@@ -124,42 +124,9 @@ fn missing_keys_exit_78_and_authentication_off_is_said() {
             "{err}"
         );
     }
-    // `calibrate -i lo` with the credential in `creds`'s folder: its status and stderr.
-    let calibrate_with = |creds: &std::path::Path| {
-        let out = Command::new(env!("CARGO_BIN_EXE_exocald"))
-            .args([
-                "--config",
-                shipped.to_str().unwrap(),
-                "calibrate",
-                "-i",
-                "lo",
-            ])
-            .env("CREDENTIALS_DIRECTORY", creds.parent().unwrap())
-            .output()
-            .unwrap();
-        (
-            out.status.code(),
-            String::from_utf8_lossy(&out.stderr).into_owned(),
-        )
-    };
-    let creds = temp("exocal-keys", "Joint1 000102030405060708090a0b0c0d0e0f\n");
-    let (code, err) = calibrate_with(&creds);
-    assert_eq!(code, Some(78), "{err}");
-    assert!(err.contains("no key for Joint2"), "{err}");
-    assert!(!err.contains("000102"), "a key in the message: {err}");
-    // Every joint's key but not the end effector's (it signs its stream): 78, naming it.
-    let joints: String = (1..=7)
-        .map(|n| format!("Joint{n} 000102030405060708090a0b0c0d0e{n:02x}\n"))
-        .collect();
-    let no_ee = temp("no-ee/exocal-keys", &joints);
-    let (code, err) = calibrate_with(&no_ee);
-    assert_eq!(code, Some(78), "{err}");
-    assert!(err.contains("no key for EndEffector"), "{err}");
-    // Every key, but no state directory (issue 34): 78, naming it; with one, on to the socket.
-    let all = format!("{joints}EndEffector 000102030405060708090a0b0c0d0e08\n");
-    let full = temp("full/exocal-keys", &all);
-    let state = full.parent().unwrap().join("state");
-    for with_state in [false, true] {
+    // `calibrate -i lo` with the credential in `creds`'s folder and the state directory
+    // `state` (none: unset): its status and stderr.
+    let calibrate_with = |creds: &std::path::Path, state: Option<&std::path::Path>| {
         let mut cmd = Command::new(env!("CARGO_BIN_EXE_exocald"));
         cmd.args([
             "--config",
@@ -168,17 +135,40 @@ fn missing_keys_exit_78_and_authentication_off_is_said() {
             "-i",
             "lo",
         ])
-        .env("CREDENTIALS_DIRECTORY", full.parent().unwrap())
+        .env("CREDENTIALS_DIRECTORY", creds.parent().unwrap())
         .env_remove("STATE_DIRECTORY");
-        if with_state {
-            cmd.env("STATE_DIRECTORY", &state);
+        if let Some(state) = state {
+            cmd.env("STATE_DIRECTORY", state);
         }
         let out = cmd.output().unwrap();
-        let err = String::from_utf8_lossy(&out.stderr);
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let creds = temp("exocal-keys", "Joint1 000102030405060708090a0b0c0d0e0f\n");
+    let (code, err) = calibrate_with(&creds, None);
+    assert_eq!(code, Some(78), "{err}");
+    assert!(err.contains("no key for Joint2"), "{err}");
+    assert!(!err.contains("000102"), "a key in the message: {err}");
+    // Every joint's key but not the end effector's (it signs its stream): 78, naming it.
+    let joints: String = (1..=7)
+        .map(|n| format!("Joint{n} 000102030405060708090a0b0c0d0e{n:02x}\n"))
+        .collect();
+    let no_ee = temp("no-ee/exocal-keys", &joints);
+    let (code, err) = calibrate_with(&no_ee, None);
+    assert_eq!(code, Some(78), "{err}");
+    assert!(err.contains("no key for EndEffector"), "{err}");
+    // Every key, but no state directory (issue 34): 78, naming it; with one, on to the socket.
+    let all = format!("{joints}EndEffector 000102030405060708090a0b0c0d0e08\n");
+    let full = temp("full/exocal-keys", &all);
+    let state = full.parent().unwrap().join("state");
+    for with_state in [false, true] {
+        let (code, err) = calibrate_with(&full, with_state.then_some(state.as_path()));
         if with_state {
-            assert_eq!(out.status.code(), Some(69), "{err}");
+            assert_eq!(code, Some(69), "{err}");
         } else {
-            assert_eq!(out.status.code(), Some(78), "{err}");
+            assert_eq!(code, Some(78), "{err}");
             assert!(err.contains("STATE_DIRECTORY"), "{err}");
         }
     }
