@@ -373,7 +373,13 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
     let fit: Vec<Sample<JOINTS>> = fit.iter().map(|s| s.sample).collect();
     let held: Vec<Sample<JOINTS>> = held.iter().map(|s| s.sample).collect();
     let (ls_opts, em_opts) = options(settings);
-    let judged = ls_then_em(&settings.nominal, &fit, &ls_opts, &em_opts, false)?.calibrated;
+    // The judged pass states nothing: the allowance is the detail pass's alone (`consider` changes
+    // neither table nor stated error, calib-core's tests check it bit for bit).
+    let judged_opts = DriftEmOptions {
+        consider: RateBias::NONE,
+        ..em_opts
+    };
+    let judged = ls_then_em(&settings.nominal, &fit, &ls_opts, &judged_opts, false)?.calibrated;
     let every: Vec<Sample<JOINTS>> = all.iter().map(|s| s.sample).collect();
     let detail = ls_then_em(&judged, &every, &ls_opts, &em_opts, true)?;
     let ls = &detail.ls;
