@@ -187,10 +187,11 @@ pub fn package(t: &Target, bins: &[PathBuf]) -> Result<PathBuf> {
         &read("systemd/80-can0.network")?,
         0o644,
     )?;
-    for bench in ["80-vcan0.netdev", "80-vcan0.network"] {
+    // The bench's vcan0, and the drop-in the live view needs (installed by hand: it opens IP).
+    for example in ["80-vcan0.netdev", "80-vcan0.network", "exocald-live.conf"] {
         put(
-            &format!("usr/share/exocal/examples/{bench}"),
-            &read(&format!("systemd/{bench}"))?,
+            &format!("usr/share/exocal/examples/{example}"),
+            &read(&format!("systemd/{example}"))?,
             0o644,
         )?;
     }

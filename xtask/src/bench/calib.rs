@@ -500,8 +500,8 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
         ),
     });
     goals.push(Goal {
-        what: "LS + our EM ≤ 100 ms at K = 6,000 on one core".into(),
-        met: em6000.is_some_and(|t| t <= 0.1),
+        what: "LS + our EM ≤ 150 ms at K = 6,000 on one core (issue 30's budget for its drift model)".into(),
+        met: em6000.is_some_and(|t| t <= 0.15),
         detail: em6000.map_or("not measured".into(), |t| {
             format!(
                 "{} ms median (CPU). Most of it is our EM: its filter/smoother maps on every 4th sample, a few exact informations, and one two-stage pass plus one filter/smoother pass over all 6,000 samples (counts in the table above); the rest is the LS",
