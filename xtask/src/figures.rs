@@ -14,6 +14,9 @@
 //! - a figure that is measured, not computed from a seed (peak memory), is checked within a
 //!   tolerance ([`Source::tolerance`]): the block's words must be the command's, and each of its
 //!   numbers within that share of the measured one; `--write` rewrites it only when it is not;
+//! - the README's screenshot of the demo's report: its alt text quotes the figures it shows,
+//!   checked like any block; `--write` takes the screenshot again (headless Chromium) whenever
+//!   that text is stale, so the picture and the text are of one demo;
 //! - a figure that no quick command regenerates (the benchmarks, minutes to hours on a quiet
 //!   machine) is quoted from the BENCHMARKS.md section that states it, and compared with it.
 
@@ -60,6 +63,9 @@ enum Source {
     /// BENCHMARKS.md's goals table: each goal, whether it is met, and the first sentence of its
     /// figure.
     BenchGoals,
+    /// The README's picture of the demo's report (seed 2024): its alt text with the expected
+    /// table error it shows; the screenshot is taken beside it (see [`SCREENSHOT`]).
+    ReportShot,
     /// Peak RSS of `exocald demo` (release build, at full speed) for the shipped configuration's
     /// shortest and longest collection windows.
     Memory,
@@ -90,7 +96,12 @@ const BLOCKS: &[(&str, &str, Source)] = &[
     ("systemd/README.md", "security-full", Source::SecurityFull),
     ("systemd/README.md", "memory", Source::Memory),
     ("README.md", "bench-goals", Source::BenchGoals),
+    ("README.md", "report-shot", Source::ReportShot),
 ];
+
+/// Where the README's screenshot of the demo's report lives, and the window Chromium draws it in.
+const SCREENSHOT: &str = "docs/report-demo.png";
+const SCREENSHOT_WINDOW: &str = "--window-size=1200,1240";
 
 /// `cargo xtask figures [--write]`.
 pub fn run(args: Args) -> Result<u8> {
@@ -146,6 +157,11 @@ pub fn regenerate(root: &Path, write: bool) -> Result<Vec<String>> {
         let want = if agrees { have.to_string() } else { want };
         if !agrees {
             stale.push(format!("{file}#{name}"));
+            if write && source == Source::ReportShot {
+                let shot = scratch.join("report-shot.png");
+                std::fs::copy(&shot, root.join(SCREENSHOT))
+                    .with_context(|| format!("copying {} to {SCREENSHOT}", shot.display()))?;
+            }
             if !write {
                 println!(
                     "--- {file}, block {name}: the README says\n{have}--- the command prints\n{want}---"
@@ -315,6 +331,37 @@ fn cell<'a>(table: &[&'a str], method: &str, col: usize) -> Result<&'a str> {
         .map(str::trim)
         .nth(col + 1)
         .with_context(|| format!("`{method}` row has no column {col}"))
+}
+
+/// Headless Chromium's picture of `page` (the top of it, [`SCREENSHOT_WINDOW`]) into `png`.
+fn screenshot(page: &Path, png: &Path, work: &Path) -> Result<()> {
+    let chromium =
+        crate::host::which("chromium").context("chromium is not on PATH (package chromium)")?;
+    let (_, _) = output(
+        Command::new(chromium)
+            .args([
+                "--headless=new",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--hide-scrollbars",
+                "--disable-background-networking",
+                "--no-first-run",
+                "--disable-component-update",
+                "--disable-sync",
+                SCREENSHOT_WINDOW,
+            ])
+            .arg(format!(
+                "--user-data-dir={}",
+                work.join("profile").display()
+            ))
+            .arg(format!("--screenshot={}", png.display()))
+            .arg(format!("file://{}", page.display())),
+        0,
+    )?;
+    if !png.is_file() {
+        bail!("chromium wrote no screenshot of {}", page.display());
+    }
+    Ok(())
 }
 
 /// The first sentence of `text`: up to a full stop followed by a space and a capital.
@@ -497,6 +544,36 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
                 bail!("BENCHMARKS.md's goals table is empty");
             }
             Ok(format!("{}\n", rows.join("\n")))
+        }
+        Source::ReportShot => {
+            let dir = scratch.join("report-shot");
+            std::fs::create_dir_all(&dir)?;
+            // Run from `dir` with a relative output directory: the report names its log by the
+            // path it was given, and no machine's path belongs in the picture.
+            let (out, _) = output(
+                Command::new(bin.join("exocald")).current_dir(&dir).args([
+                    "demo",
+                    "--seed",
+                    "2024",
+                    "-o",
+                    "exocal-demo",
+                ]),
+                0,
+            )?;
+            let expected = out
+                .lines()
+                .find_map(|l| l.strip_prefix("expected table error: "))
+                .with_context(|| format!("the demo printed no expected table error:\n{out}"))?;
+            let report = std::fs::read_dir(dir.join("exocal-demo"))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .find(|p| p.extension().is_some_and(|x| x == "html"))
+                .context("the demo wrote no report")?;
+            screenshot(&report, &scratch.join("report-shot.png"), &dir)?;
+            Ok(format!(
+                "![The demo's calibration report (seed 2024): verdict, held-out errors before and after,\n\
+                 expected table error {expected}, condition number; the end-effector trajectories\n\
+                 of the measured arm, the nominal and the calibrated model]({SCREENSHOT})\n"
+            ))
         }
         Source::Memory => {
             let shipped = std::fs::read_to_string(root.join("daemon/exocald.toml"))?;
