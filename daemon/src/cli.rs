@@ -181,6 +181,10 @@ pub struct DemoArgs {
     /// connect to ws://127.0.0.1:8765 and watch the arm, the progress and the result.
     #[arg(long)]
     pub live: bool,
+    /// After the session, power the emulated nodes up again from their flash and ask them what
+    /// they hold, as `exocald nodes` asks a suit's nodes on a bus (its listing, on stdout).
+    #[arg(long)]
+    pub nodes: bool,
 }
 
 /// A finite number above zero (`--speed`): a negative one reaches this parser, which names it.

@@ -11,21 +11,21 @@
 
 use std::path::Path;
 
-use exocal_bus::{InProcessBus, SimClock};
 use exocal_dbc::table::{Field, Table};
 use exocal_dbc::NodeId;
-use exocal_hil::scenario::{TransferBehaviour, TransferFault};
-use exocal_hil::{Hil, Linger, Scenario};
-use exocald::cmd::nodes::{self, Listing};
+use exocald::cmd::nodes::Listing;
 use exocald::config::Config;
 use exocald::shell::runner::SessionSummary;
+
+/// The demo's seed: the suit's scenario and the keys it derives.
+const SEED: u64 = 2;
 
 /// One live session of the paper scenario, as `exocald demo` runs it, with 20 s of collection
 /// and validation limits wide enough that it pushes (what is pushed does not matter here; seed
 /// 3 at 20 s fits joint 4's a 6.7 mm above its true value, 3 mm from the bound, and is refused).
 fn pushed_session(dir: &Path) -> (Config, SessionSummary) {
     let opts = exocald::cmd::demo::DemoOptions {
-        seed: 2,
+        seed: SEED,
         speed: 1e6,
         output: dir.to_path_buf(),
         hold: false,
@@ -45,43 +45,9 @@ fn pushed_session(dir: &Path) -> (Config, SessionSummary) {
 
 /// The emulated suit powered up from the flash in `flash`, with `silent` nodes that never
 /// answer a table command, asked by `exocald nodes` (compared with `log`, or the newest log in
-/// the configuration's output directory).
+/// the configuration's output directory): what `exocald demo --nodes` does after its session.
 fn ask(config: &Config, flash: &Path, silent: &[u8], log: Option<&Path>) -> Listing {
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .start_paused(true)
-        .build()
-        .unwrap();
-    runtime.block_on(async {
-        let mut scenario = Scenario::paper();
-        scenario.duration_s = 1.0;
-        scenario.faults.transfer = silent
-            .iter()
-            .map(|&node| TransferFault {
-                node,
-                behaviour: TransferBehaviour::Silent,
-            })
-            .collect();
-        let mut hil = Hil::new(scenario, flash).unwrap();
-        let clock = SimClock::new(1.0).unwrap();
-        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
-        let mut suit = bus.attach();
-        let mut daemon = bus.attach();
-        let hil = tokio::spawn(async move {
-            hil.linger(
-                &mut suit,
-                &clock,
-                Linger::UntilStopped,
-                std::future::pending(),
-            )
-            .await
-        });
-        let listing = nodes::list(&mut daemon, &clock.bus_clock(), config, log)
-            .await
-            .unwrap();
-        hil.abort();
-        listing
-    })
+    exocald::cmd::demo::ask_nodes(config, SEED, flash, silent, log).unwrap()
 }
 
 fn held(flash: &Path, n: u8) -> Table {

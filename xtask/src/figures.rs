@@ -66,6 +66,9 @@ enum Source {
     /// The README's picture of the demo's report (seed 2024): its alt text with the expected
     /// table error it shows; the screenshot is taken beside it (see [`SCREENSHOT`]).
     ReportShot,
+    /// `exocald demo --seed 2024 --nodes`: the listing of what the emulated nodes hold after
+    /// the session, the log's timestamped name replaced by `exocal-<start>`.
+    Nodes,
     /// Peak RSS of `exocald demo` (release build, at full speed) for the shipped configuration's
     /// shortest and longest collection windows.
     Memory,
@@ -97,6 +100,7 @@ const BLOCKS: &[(&str, &str, Source)] = &[
     ("systemd/README.md", "memory", Source::Memory),
     ("README.md", "bench-goals", Source::BenchGoals),
     ("README.md", "report-shot", Source::ReportShot),
+    ("README.md", "nodes", Source::Nodes),
 ];
 
 /// Where the README's screenshot of the demo's report lives, and the window Chromium draws it in.
@@ -364,6 +368,31 @@ fn screenshot(page: &Path, png: &Path, work: &Path) -> Result<()> {
     Ok(())
 }
 
+/// `line` with a session log's timestamped name (`exocal-20261126T141606Z`) as
+/// `exocal-<start>`: the one wall-clock figure of the demo's output.
+fn session_name(line: &str) -> String {
+    let mut out = String::new();
+    let mut rest = line;
+    while let Some(i) = rest.find("exocal-") {
+        let (head, tail) = rest.split_at(i + "exocal-".len());
+        out.push_str(head);
+        let stamp = tail.as_bytes();
+        let is_stamp = stamp.len() >= 16
+            && stamp[..8].iter().all(u8::is_ascii_digit)
+            && stamp[8] == b'T'
+            && stamp[9..15].iter().all(u8::is_ascii_digit)
+            && stamp[15] == b'Z';
+        if is_stamp {
+            out.push_str("<start>");
+            rest = &tail[16..];
+        } else {
+            rest = tail;
+        }
+    }
+    out.push_str(rest);
+    out
+}
+
 /// The first sentence of `text`: up to a full stop followed by a space and a capital.
 fn first_sentence(text: &str) -> &str {
     let mut from = 0;
@@ -575,6 +604,35 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
                  of the measured arm, the nominal and the calibrated model]({SCREENSHOT})\n"
             ))
         }
+        Source::Nodes => {
+            let dir = scratch.join("nodes");
+            std::fs::create_dir_all(&dir)?;
+            let (out, _) = output(
+                Command::new(bin.join("exocald")).current_dir(&dir).args([
+                    "demo",
+                    "--seed",
+                    "2024",
+                    "--nodes",
+                    "-o",
+                    "exocal-demo",
+                ]),
+                0,
+            )?;
+            let mut lines = vec![
+                "$ exocald demo --seed 2024 --nodes -o exocal-demo".to_string(),
+                "…".into(),
+            ];
+            let listing = out
+                .lines()
+                .skip_while(|l| !l.starts_with("node "))
+                .map(session_name);
+            lines.extend(listing);
+            if lines.len() != 2 + 1 + 7 + 2 {
+                bail!("the demo's node listing is not a header, 7 nodes and 2 lines:\n{out}");
+            }
+            let lines: Vec<&str> = lines.iter().map(String::as_str).collect();
+            Ok(fenced(&lines))
+        }
         Source::Memory => {
             let shipped = std::fs::read_to_string(root.join("daemon/exocald.toml"))?;
             let key = |name: &str| -> Result<f64> {
@@ -709,6 +767,14 @@ mod tests {
         assert_eq!(
             numbers("a 1.5 b 20. c 3"),
             ("a # b #. c #".to_string(), vec![1.5, 20.0, 3.0])
+        );
+    }
+
+    #[test]
+    fn a_session_logs_start_is_replaced_and_nothing_else() {
+        assert_eq!(
+            session_name("in exocal-demo/exocal-20261126T142937Z.mcap, exocal-x"),
+            "in exocal-demo/exocal-<start>.mcap, exocal-x"
         );
     }
 

@@ -34,8 +34,10 @@ use std::time::{Duration, Instant};
 use exocal_bus::{Clock, InProcessBus, SimClock, Transport};
 use exocal_dbc::NodeId;
 use exocal_hil::flash::FlashError;
+use exocal_hil::scenario::{TransferBehaviour, TransferFault};
 use exocal_hil::{Hil, HilError, Linger, Scenario};
 
+use crate::cmd::nodes;
 use crate::config::Config;
 use crate::exit::DaemonError;
 use crate::live::LiveView;
@@ -471,6 +473,66 @@ impl PushTally {
             }
         }
     }
+}
+
+/// The emulated suit powered up again from its flash in `flash` (with `silent` node ids that
+/// never answer a table command) and asked by `exocald nodes` ([`nodes::list`]) what each joint
+/// node holds, compared with `log` or the newest session log of `config`'s output directory:
+/// what `exocald nodes` shows on a real bus after a session. With `push.authenticate` the reads
+/// are signed with the keys the demo derives from `seed`, as the session's were. On its own
+/// paused runtime (call it outside any runtime).
+pub fn ask_nodes(
+    config: &Config,
+    seed: u64,
+    flash: &Path,
+    silent: &[u8],
+    log: Option<&Path>,
+) -> Result<nodes::Listing, DaemonError> {
+    let mut config = config.clone();
+    if config.push.authenticate {
+        config.push.keys = exocal_dbc::auth::KeySet::derived(seed);
+    }
+    let mut scenario = Scenario::paper();
+    scenario.seed = seed;
+    scenario.duration_s = 1.0;
+    scenario.faults.transfer = silent
+        .iter()
+        .map(|&node| TransferFault {
+            node,
+            behaviour: TransferBehaviour::Silent,
+        })
+        .collect();
+    let mut hil = Hil::new(scenario, flash).map_err(|e| DaemonError::Interface {
+        name: "in-process hil".into(),
+        reason: e.to_string(),
+    })?;
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .start_paused(true)
+        .build()
+        .map_err(|source| DaemonError::Io {
+            what: "starting the async runtime".into(),
+            source,
+        })?;
+    runtime.block_on(async {
+        let clock = SimClock::new(1.0).expect("1.0 is a valid speed");
+        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+        let mut suit = bus.attach();
+        let mut daemon = bus.attach();
+        let bus_clock = clock.bus_clock();
+        let hil = tokio::spawn(async move {
+            hil.linger(
+                &mut suit,
+                &clock,
+                Linger::UntilStopped,
+                std::future::pending(),
+            )
+            .await
+        });
+        let listing = nodes::list(&mut daemon, &bus_clock, &config, log).await;
+        hil.abort();
+        listing
+    })
 }
 
 /// Checks that every node's flash holds the table the daemon pushed to it.

@@ -198,6 +198,12 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
                     if check.is_ok() {
                         println!("every node persisted the pushed table (CRC match)");
                     }
+                    if args.nodes {
+                        let flash = args.output.join("flash");
+                        let listing =
+                            crate::cmd::demo::ask_nodes(&config, args.seed, &flash, &[], None)?;
+                        println!("{}", listing.lines().join("\n"));
+                    }
                     check
                 }
                 Err(e) => finish(Err(e)),
