@@ -30,9 +30,11 @@ use crate::paths::{self, workspace_root};
 
 /// Check (or regenerate) every figure the READMEs quote.
 ///
-/// Regenerate every figure the READMEs quote (the demo's summary for its seeds, the paper
-/// example's tables, the config-error example, the unit's security deductions) from the command
-/// that prints it, and fail naming each block that differs.
+/// Regenerate every figure the READMEs quote (the demo's summary for its seeds, its `nodes`
+/// listing and the screenshot of its report, the paper example's tables, the config-error
+/// example, the unit's security deductions, the peak memory of the shortest and longest
+/// window, BENCHMARKS.md's goals) from the command that prints it, and fail naming each block
+/// that differs.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Rewrite the stale blocks in place.
