@@ -339,6 +339,33 @@ fn cell<'a>(table: &[&'a str], method: &str, col: usize) -> Result<&'a str> {
         .with_context(|| format!("`{method}` row has no column {col}"))
 }
 
+/// `exocald demo --seed SEED --nodes -o exocal-demo`, run once per seed from `scratch/demo-SEED`
+/// (a relative output directory: the report names its log by the path it was given, and no
+/// machine's path belongs in a figure): its stdout, and that directory. The demo blocks, the
+/// report's picture and the `nodes` listing all quote this one run.
+fn demo(bin: &Path, scratch: &Path, seed: u64) -> Result<(String, PathBuf)> {
+    let dir = scratch.join(format!("demo-{seed}"));
+    let saved = dir.join("stdout");
+    if let Ok(out) = std::fs::read_to_string(&saved) {
+        return Ok((out, dir));
+    }
+    std::fs::create_dir_all(&dir)?;
+    let seed = seed.to_string();
+    let (out, _) = output(
+        Command::new(bin.join("exocald")).current_dir(&dir).args([
+            "demo",
+            "--seed",
+            seed.as_str(),
+            "--nodes",
+            "-o",
+            "exocal-demo",
+        ]),
+        0,
+    )?;
+    std::fs::write(&saved, &out)?;
+    Ok((out, dir))
+}
+
 /// Headless Chromium's picture of `page` (the top of it, [`SCREENSHOT_WINDOW`]) into `png`.
 fn screenshot(page: &Path, png: &Path, work: &Path) -> Result<()> {
     let chromium =
@@ -441,14 +468,7 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
     let bin = release(root);
     match source {
         Source::Demo(seed) => {
-            let dir = scratch.join(format!("demo-{seed}"));
-            let seed = seed.to_string();
-            let (out, _) = output(
-                Command::new(bin.join("exocald"))
-                    .args(["demo", "--seed", seed.as_str(), "-o"])
-                    .arg(&dir),
-                0,
-            )?;
+            let (out, _) = demo(&bin, scratch, seed)?;
             let kept: Vec<&str> = out
                 .lines()
                 .filter(|l| {
@@ -577,20 +597,7 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
             Ok(format!("{}\n", rows.join("\n")))
         }
         Source::ReportShot => {
-            let dir = scratch.join("report-shot");
-            std::fs::create_dir_all(&dir)?;
-            // Run from `dir` with a relative output directory: the report names its log by the
-            // path it was given, and no machine's path belongs in the picture.
-            let (out, _) = output(
-                Command::new(bin.join("exocald")).current_dir(&dir).args([
-                    "demo",
-                    "--seed",
-                    "2024",
-                    "-o",
-                    "exocal-demo",
-                ]),
-                0,
-            )?;
+            let (out, dir) = demo(&bin, scratch, 2024)?;
             let expected = out
                 .lines()
                 .find_map(|l| l.strip_prefix("expected table error: "))
@@ -607,19 +614,7 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
             ))
         }
         Source::Nodes => {
-            let dir = scratch.join("nodes");
-            std::fs::create_dir_all(&dir)?;
-            let (out, _) = output(
-                Command::new(bin.join("exocald")).current_dir(&dir).args([
-                    "demo",
-                    "--seed",
-                    "2024",
-                    "--nodes",
-                    "-o",
-                    "exocal-demo",
-                ]),
-                0,
-            )?;
+            let (out, _) = demo(&bin, scratch, 2024)?;
             let mut lines = vec![
                 "$ exocald demo --seed 2024 --nodes -o exocal-demo".to_string(),
                 "…".into(),
