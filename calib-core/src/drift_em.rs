@@ -125,9 +125,11 @@ use crate::linalg::{Analysis, QrAccumulator};
 use crate::ls::{positive, validate_samples, InputChecks};
 use crate::metrics::{expected_table_error, TableError};
 use crate::model::{DhTable, Sample};
-use crate::paper_em::MAX_EM_ITERATIONS;
 
 const M: usize = RATE_BIAS_TERMS;
+
+/// Capacity of every EM likelihood history (the iteration limit of our EM and of the paper's).
+pub const MAX_EM_ITERATIONS: usize = 256;
 
 /// The iteration runs on at least this many samples (fewer only if the session is shorter).
 pub const MIN_ITERATION_SAMPLES: usize = 1000;

@@ -15,8 +15,8 @@
 //! | Gauss-Markov drift, rate bias, and the seeded session simulator (drift in the arm or the reading, reading noise, glitches, slips) | [`GaussMarkov`], [`RateBias`], [`Scenario`], [`ScenarioConfig`], [`DriftSite`], [`Outliers`], [`Slip`] |
 //! | least squares | [`identify_ls`]`::<N, P>(&start, &samples, &LsOptions) -> Result<LsResult, CalibError>` |
 //! | least squares with the per-sample work split by the caller (e.g. over cores) | [`identify_ls_with`], [`Linearise`], [`normal_equations`], [`GramAccumulator::merge`] |
-//! | least squares with base and tool frames (`P = 4N + 12`) | [`identify_ls_frames`] |
-//! | the paper's EM (eqs. 33–36) | [`paper_em()`] |
+//! | least squares with base and tool frames (`P = 4N + 12`; feature `research`) | [`identify_ls_frames`] |
+//! | the paper's EM (eqs. 33–36; feature `research`) | [`paper_em()`] |
 //! | the drift's rough part out of the readings, before LS and the EM | [`separate()`], [`SeparationSlot`] |
 //! | our EM (Kalman + RTS smoother over the drift; drift model per joint, Student-t reference, REML drift, stated error, refusals: the contract is in [`drift_em`]) | [`em_drift()`], [`DriftEmResult::stated_error`], [`JointDrift`], [`Discounted`], [`Consistency`], [`Refusal`] |
 //! | what LS alone is worth when the EM gives no figure | [`ls_white_expected_error`] |
@@ -24,7 +24,7 @@
 //! | which joint's motion would most reduce the expected table error (guidance while collecting) | [`guidance()`], [`Guidance`] |
 //! | objective y (eq. 10) and parameter errors | [`objective_y`], [`ParamErrors`] |
 //! | table error, expected table error, the Cramér-Rao bound | [`table_error`], [`DriftEmResult::expected_error`], [`cramer_rao()`] |
-//! | the accuracy sweep and its field cells (std) | `sweep` |
+//! | the accuracy sweep and its field cells (feature `research`) | `sweep` |
 //!
 //! # Quick start
 //! ```
@@ -68,6 +68,7 @@ pub mod drift;
 pub mod drift_conf;
 pub mod drift_em;
 pub mod error;
+#[cfg(any(test, feature = "research"))]
 pub mod frames;
 pub mod guidance;
 mod info;
@@ -76,13 +77,14 @@ pub mod linalg;
 pub mod ls;
 pub mod metrics;
 pub mod model;
+#[cfg(any(test, feature = "research"))]
 pub mod paper_em;
 pub mod reading;
 pub mod rng;
 #[cfg(test)]
 mod scenario_tests;
 pub mod sim;
-#[cfg(any(test, feature = "std"))]
+#[cfg(any(test, feature = "research"))]
 pub mod sweep;
 
 pub use drift::{Discretisation, DriftParams, GaussMarkov, RateBias};
@@ -91,9 +93,10 @@ pub use drift_conf::{drift_confidence, DriftConfidence};
 pub use drift_em::em_drift_vec;
 pub use drift_em::{
     cramer_rao, discounted_samples, em_drift, Consistency, Discounted, DriftEmOptions, DriftEmResult, DriftModel, DriftSlot,
-    JointConsistency, JointDrift, Refusal, Trend, EXPECTED_ERROR_POSES, RATE_BIAS_TERMS,
+    JointConsistency, JointDrift, Refusal, Trend, EXPECTED_ERROR_POSES, MAX_EM_ITERATIONS, RATE_BIAS_TERMS,
 };
 pub use error::CalibError;
+#[cfg(any(test, feature = "research"))]
 pub use frames::{identify_ls_frames, LsFramesResult, Mounting, Param, FRAME_PARAMS};
 pub use guidance::{guidance, Guidance, GUIDANCE_CONFIGS, GUIDANCE_POSES, PRIOR_SD};
 pub use linalg::{GramAccumulator, Observability, QrAccumulator, QrPanel, GRAM_MAX_CONDITION};
@@ -109,7 +112,8 @@ pub use model::{
     bound_violations, check_bounds, clamp_to_bounds, pose_error, BoundViolation, Bounds, DhRow, DhTable, Frame, JointRanges,
     ParamKind, Sample, SUIT_JOINTS, SUIT_PARAMS,
 };
-pub use paper_em::{paper_em, PaperEmForm, PaperEmOptions, PaperEmResult, MAX_EM_ITERATIONS};
+#[cfg(any(test, feature = "research"))]
+pub use paper_em::{paper_em, PaperEmForm, PaperEmOptions, PaperEmResult};
 pub use reading::{separate, JointSeparation, SeparationSlot};
 pub use rng::Rng;
 pub use sim::{DriftSite, Motion, Outliers, Scenario, ScenarioConfig, SimSample, Slip};

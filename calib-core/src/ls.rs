@@ -293,7 +293,9 @@ pub(crate) fn linearise_qr<const N: usize, const P: usize>(table: &DhTable<N>, s
 pub(crate) enum Linearised<const P: usize> {
     /// Normal equations (the well-conditioned case).
     Gram(GramAccumulator<P>),
-    /// Square-root information (Householder / Givens QR).
+    /// Square-root information (Householder / Givens QR): base and tool frame identification
+    /// (`frames`, feature `research`) linearises into it.
+    #[cfg_attr(not(any(test, feature = "research")), allow(dead_code))]
     Qr(QrAccumulator<P>),
 }
 

@@ -17,12 +17,10 @@
 
 use nalgebra::{Matrix6, SymmetricEigen, Vector6};
 
+use crate::drift_em::MAX_EM_ITERATIONS;
 use crate::error::CalibError;
 use crate::ls::{validate_samples, InputChecks};
 use crate::model::{pose_error, DhTable, Sample};
-
-/// Capacity of every EM likelihood history (the iteration limit of both EMs).
-pub const MAX_EM_ITERATIONS: usize = 256;
 
 const LN_2PI: f64 = 1.837_877_066_409_345_3;
 
