@@ -14,9 +14,9 @@ use serde_json::Value;
 
 use super::ceres;
 use super::common::{
-    capture, f, json_lines, ms, pinned, run, s, show, venv_python, Ctx, Goal, Section,
+    capture, cargo_release, f, json_lines, ms, pinned, run, s, show, venv_python, Ctx, Goal,
+    Section,
 };
-use crate::paths;
 
 /// This part's section title in the report.
 pub const TITLE: &str = "Calibration: calib-core against scipy and Ceres";
@@ -32,15 +32,7 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
     } else {
         ("1000,6000,20000", "7", "3", "5")
     };
-    let mut build = Command::new(paths::cargo());
-    build.current_dir(&ctx.root).args([
-        "build",
-        "--release",
-        "-p",
-        "calib-core",
-        "--example",
-        "export_dataset",
-    ]);
+    let mut build = cargo_release(ctx, "build", "calib-core", &["--example", "export_dataset"]);
     let build_cmd = show(&build);
     run(&mut build)?;
     let data = ctx.target.join("bench/calib");
@@ -58,15 +50,12 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
     let rust_cmd = show(&rust);
     let rust_out = json_lines(&capture(&mut rust)?);
     // The multi-core figure: the daemon's parallel linearisation, not pinned (it needs cores).
-    let mut build_par = Command::new(paths::cargo());
-    build_par.current_dir(&ctx.root).args([
+    let mut build_par = cargo_release(
+        ctx,
         "build",
-        "--release",
-        "-p",
         "exocal-session",
-        "--example",
-        "parallel_ls",
-    ]);
+        &["--example", "parallel_ls"],
+    );
     let build_par_cmd = show(&build_par);
     run(&mut build_par)?;
     let mut par = Command::new(ctx.target.join("release/examples/parallel_ls"));

@@ -13,6 +13,8 @@ use serde_json::Value;
 
 /// What the parts share.
 pub struct Ctx {
+    /// The cargo that runs us.
+    pub cargo: String,
     pub root: PathBuf,
     pub target: PathBuf,
     pub quick: bool,
@@ -65,6 +67,15 @@ pub fn show(cmd: &Command) -> String {
         }
     }
     s
+}
+
+/// `cargo <verb> --release -p <package> <more…>`, run in the workspace root.
+pub fn cargo_release(ctx: &Ctx, verb: &str, package: &str, more: &[&str]) -> Command {
+    let mut c = Command::new(&ctx.cargo);
+    c.current_dir(&ctx.root)
+        .args([verb, "--release", "-p", package])
+        .args(more);
+    c
 }
 
 /// Runs `cmd`, stderr passed through, and returns its stdout; fails on a non-zero status.
