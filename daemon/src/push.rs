@@ -563,7 +563,7 @@ fn on_received(rx: &Received, jobs: &mut [Job], observer: &mut dyn PushObserver)
 mod tests {
     use super::*;
     use crate::config::Config;
-    use exocal_bus::InProcessBus;
+    use exocal_bus::{Endpoint, InProcessBus};
     use exocal_dbc::auth::KeySet;
     use exocal_dbc::transfer::{NodeTransfer, StorageError, TableStorage};
     use std::sync::{Arc, Mutex};
@@ -605,16 +605,16 @@ mod tests {
         Table::from_si(0.04 + k * 1e-3, 1.5, 0.001, 0.01 * k, 1.0, 1.0).unwrap()
     }
 
-    /// Emulated nodes answering on `bus`; replies are dropped when `lose(n)` says so for the
-    /// n-th reply, and `silent` nodes never answer.
+    /// Emulated nodes answering on a new bus, and the daemon's endpoint on it; replies are
+    /// dropped when `lose(n)` says so for the n-th reply, and `silent` nodes never answer.
     fn spawn_nodes(
-        bus: &InProcessBus,
         flashes: Vec<(NodeId, Flash)>,
         lose: impl Fn(u64) -> bool + Send + 'static,
         silent: Vec<NodeId>,
-    ) -> tokio::task::JoinHandle<()> {
+    ) -> (tokio::task::JoinHandle<()>, Endpoint) {
+        let bus = InProcessBus::new();
         let mut ep = bus.attach();
-        tokio::spawn(async move {
+        let nodes = tokio::spawn(async move {
             let mut nodes: Vec<(NodeTransfer, Flash)> = flashes
                 .into_iter()
                 .map(|(n, f)| (keyed(n, &f), f))
@@ -639,7 +639,8 @@ mod tests {
                     }
                 }
             }
-        })
+        });
+        (nodes, bus.attach())
     }
 
     /// `push_tables` on the wall clock, sessions from `first_session`; the bus does not fail.
@@ -692,10 +693,8 @@ mod tests {
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn every_node_gets_its_table_by_crc() {
-        let bus = InProcessBus::new();
         let (flashes, tables) = setup(true);
-        let nodes = spawn_nodes(&bus, flashes.clone(), |_| false, vec![]);
-        let mut ep = bus.attach();
+        let (nodes, mut ep) = spawn_nodes(flashes.clone(), |_| false, vec![]);
         let mut sent = 0;
         let mut sink = |tx: bool, _: &Frame, _: Duration| sent += usize::from(tx);
         let report = push(&mut ep, &tables, &policy(), 1, &mut sink).await;
@@ -710,12 +709,10 @@ mod tests {
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn lost_replies_are_retried_and_a_silent_node_is_reported() {
-        let bus = InProcessBus::new();
         let (flashes, tables) = setup(true);
         // Lose every 5th reply; node 4 never answers.
         let silent = NodeId::JOINTS[3];
-        let nodes = spawn_nodes(&bus, flashes.clone(), |n| n % 5 == 0, vec![silent]);
-        let mut ep = bus.attach();
+        let (nodes, mut ep) = spawn_nodes(flashes.clone(), |n| n % 5 == 0, vec![silent]);
         let mut sink = |_: bool, _: &Frame, _: Duration| {};
         let report = push(&mut ep, &tables, &policy(), 200, &mut sink).await;
         assert!(!report.complete());
@@ -900,10 +897,8 @@ mod tests {
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn a_node_without_a_key_is_not_pushed_to() {
-        let bus = InProcessBus::new();
         let (flashes, tables) = setup(true);
-        let nodes = spawn_nodes(&bus, flashes.clone(), |_| false, vec![]);
-        let mut ep = bus.attach();
+        let (nodes, mut ep) = spawn_nodes(flashes.clone(), |_| false, vec![]);
         let mut policy = policy();
         policy.keys.set_node(NodeId::JOINTS[1], None);
         let mut sent = 0;
@@ -951,11 +946,9 @@ mod tests {
             counters.verified(node, &key, record.0);
             counters.signed(node, &key, record.1);
             counters.save(&dir).unwrap();
-            let bus = InProcessBus::new();
             let flash = Flash::holding(table(0.0));
             *flash.1.lock().unwrap() = 50;
-            let nodes = spawn_nodes(&bus, vec![(node, flash.clone())], |_| false, vec![]);
-            let mut ep = bus.attach();
+            let (nodes, mut ep) = spawn_nodes(vec![(node, flash.clone())], |_| false, vec![]);
             let policy = PushPolicy {
                 state_dir: Some(dir.clone()),
                 ..policy()
@@ -1002,11 +995,9 @@ mod tests {
         let node = NodeId::JOINTS[4];
         let key = keys().node(node).unwrap().clone();
         let dir = state_dir("before");
-        let bus = InProcessBus::new();
         let flash = Flash::default();
         *flash.1.lock().unwrap() = 7;
-        let nodes = spawn_nodes(&bus, vec![(node, flash.clone())], |_| false, vec![]);
-        let mut ep = bus.attach();
+        let (nodes, mut ep) = spawn_nodes(vec![(node, flash.clone())], |_| false, vec![]);
         let policy = PushPolicy {
             state_dir: Some(dir.clone()),
             ..policy()
