@@ -12,7 +12,7 @@
 //! Not root, or not Debian: nothing is installed and the error says what to install.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::Command;
 
 use anyhow::{bail, Context, Result};
 
