@@ -1124,8 +1124,7 @@ mod tests {
                 .collect()
         };
         let before = crcs(&flash);
-        let (bus, clock, hil_task) = play(hil);
-        let mut daemon_end = bus.attach();
+        let ([mut daemon_end], clock, hil_task) = play(hil);
         let (stop, shutdown) = Shutdown::manual();
         if let Some(s) = stop_after_s {
             tokio::spawn(async move {
@@ -1140,19 +1139,21 @@ mod tests {
     }
 
     /// `hil` playing on a new in-process bus stamped with its simulated clock (the test
-    /// runtime's): the bus, the clock and the hil's task.
-    fn play(
+    /// runtime's): `N` endpoints on it (attached before the hil starts), the clock and the
+    /// hil's task.
+    fn play<const N: usize>(
         mut hil: Hil,
     ) -> (
-        InProcessBus,
+        [exocal_bus::Endpoint; N],
         SimClock,
         tokio::task::JoinHandle<Result<exocal_hil::RunReport, exocal_hil::HilError>>,
     ) {
         let clock = SimClock::new(1.0).unwrap();
         let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
         let mut hil_end = bus.attach();
+        let ends = std::array::from_fn(|_| bus.attach());
         let task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await });
-        (bus, clock, task)
+        (ends, clock, task)
     }
 
     /// [`run_session`] on `clock`'s time without notifications, its progress in plain lines.
@@ -1398,9 +1399,7 @@ mod tests {
                 .collect()
         };
         let before = tables(&flash);
-        let (bus, clock, hil_task) = play(hil);
-        let mut daemon_end = bus.attach();
-        let mut rogue_end = bus.attach();
+        let ([mut daemon_end, mut rogue_end], clock, hil_task) = play(hil);
         let rogue_task = tokio::spawn(async move {
             let mut seen = 0u64;
             if !rogue {
