@@ -8,6 +8,7 @@
 use std::fmt;
 use std::ops::Range;
 
+use plotters::chart::MeshStyle;
 use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
