@@ -603,10 +603,13 @@ fn spd_solve<const N: usize>(a: &[[f64; N]; N], b: &mut [[f64; N]; N]) -> Result
     Ok(())
 }
 
+/// An `N × N` matrix, row by row.
+type Square<const N: usize> = [[f64; N]; N];
+
 /// The Rauch-Tung-Striebel gain at a step whose filtered covariance is `cov`: the predicted
 /// covariance `P⁻ = Φ P Φ + Q` and `Gᵀ = (P⁻)⁻¹ Φ P` (so `gt[b][a] = G[a][b]`).
 #[inline(always)]
-fn rts_gain<const N: usize>(cov: &[[f64; N]; N], par: &Params<N>) -> Result<([[f64; N]; N], [[f64; N]; N]), CalibError> {
+fn rts_gain<const N: usize>(cov: &Square<N>, par: &Params<N>) -> Result<(Square<N>, Square<N>), CalibError> {
     let mut fp = *cov;
     let mut pred = *cov;
     for a in 0..N {
@@ -624,7 +627,7 @@ fn rts_gain<const N: usize>(cov: &[[f64; N]; N], par: &Params<N>) -> Result<([[f
 /// `m += G D`, `G` given by `gt` as [`rts_gain`] returns it (row `a` of `G D` is
 /// `Σ_b gt[b][a] D[b]`).
 #[inline(always)]
-fn add_gain_times<const N: usize>(m: &mut [[f64; N]; N], gt: &[[f64; N]; N], d: &[[f64; N]; N]) {
+fn add_gain_times<const N: usize>(m: &mut Square<N>, gt: &Square<N>, d: &Square<N>) {
     for (a, row) in m.iter_mut().enumerate() {
         let ga: [f64; N] = core::array::from_fn(|b| gt[b][a]);
         let add = combo(&ga, d);
