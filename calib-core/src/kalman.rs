@@ -294,6 +294,18 @@ pub(crate) fn filter<const N: usize, const P: usize>(
     t: &Trend<N>,
     par: &Params<N>,
 ) -> Result<f64, CalibError> {
+    filter_weighting(slots, x, t, par, None)
+}
+
+/// [`filter`], and with `robust_dof` [`filter_robust`]'s weights set before each update.
+#[inline(always)]
+fn filter_weighting<const N: usize, const P: usize>(
+    slots: &mut [DriftSlot<N>],
+    x: &[f64; P],
+    t: &Trend<N>,
+    par: &Params<N>,
+    robust_dof: Option<f64>,
+) -> Result<f64, CalibError> {
     let mut f = Filter::start(par);
     let mut ll = 0.0;
     for (k, slot) in slots.iter_mut().enumerate() {
@@ -301,6 +313,15 @@ pub(crate) fn filter<const N: usize, const P: usize>(
             f.predict(par);
         }
         slot.y = residual(slot, x, t);
+        if let Some(dof) = robust_dof {
+            let mut probe = f;
+            let mut m = 0.0;
+            for i in 0..6 {
+                let (nu, s, _) = probe.observe(&slot.h[i][3], slot.y[i], par.r[i])?;
+                m += nu * nu / s;
+            }
+            slot.w = (dof + 6.0) / (dof + m);
+        }
         observe_sample(&mut f, slot, par, &mut ll, None)?;
         slot.mean = f.m;
         slot.cov = f.p;
@@ -360,25 +381,7 @@ pub(crate) fn filter_robust<const N: usize, const P: usize>(
     par: &Params<N>,
     dof: f64,
 ) -> Result<f64, CalibError> {
-    let mut f = Filter::start(par);
-    let mut ll = 0.0;
-    for (k, slot) in slots.iter_mut().enumerate() {
-        if k > 0 {
-            f.predict(par);
-        }
-        slot.y = residual(slot, x, t);
-        let mut probe = f;
-        let mut m = 0.0;
-        for i in 0..6 {
-            let (nu, s, _) = probe.observe(&slot.h[i][3], slot.y[i], par.r[i])?;
-            m += nu * nu / s;
-        }
-        slot.w = (dof + 6.0) / (dof + m);
-        observe_sample(&mut f, slot, par, &mut ll, None)?;
-        slot.mean = f.m;
-        slot.cov = f.p;
-    }
-    Ok(ll)
+    filter_weighting(slots, x, t, par, Some(dof))
 }
 
 /// Per joint: the long-run variance (batch means) and the lag-one autocorrelation of its
@@ -503,6 +506,33 @@ pub(crate) struct Stats<const N: usize> {
     pub var: [f64; 6],
 }
 
+impl<const N: usize> Stats<N> {
+    /// Nothing summed yet.
+    const ZERO: Self = Stats {
+        e0: [0.0; N],
+        s00: [0.0; N],
+        s10: [0.0; N],
+        s11: [0.0; N],
+        res: [0.0; 6],
+        var: [0.0; 6],
+    };
+
+    /// Joint `j`'s second moment `x` at sample `k` of `kn`: the first sample's, and into the
+    /// sums over all but the last (`s00`) and all but the first (`s11`).
+    #[inline(always)]
+    fn add_moment(&mut self, k: usize, kn: usize, j: usize, x: f64) {
+        if k == 0 {
+            self.e0[j] = x;
+        }
+        if k + 1 < kn {
+            self.s00[j] += x;
+        }
+        if k > 0 {
+            self.s11[j] += x;
+        }
+    }
+}
+
 /// `Σ_b x[b]·rows[b]` (a vector-matrix product as a sum of scaled rows: vectorises).
 #[inline(always)]
 fn combo<const N: usize>(x: &[f64; N], rows: &[[f64; N]; N]) -> [f64; N] {
@@ -573,6 +603,40 @@ fn spd_solve<const N: usize>(a: &[[f64; N]; N], b: &mut [[f64; N]; N]) -> Result
     Ok(())
 }
 
+/// An `N × N` matrix, row by row.
+type Square<const N: usize> = [[f64; N]; N];
+
+/// The Rauch-Tung-Striebel gain at a step whose filtered covariance is `cov`: the predicted
+/// covariance `P⁻ = Φ P Φ + Q` and `Gᵀ = (P⁻)⁻¹ Φ P` (so `gt[b][a] = G[a][b]`).
+#[inline(always)]
+fn rts_gain<const N: usize>(cov: &Square<N>, par: &Params<N>) -> Result<(Square<N>, Square<N>), CalibError> {
+    let mut fp = *cov;
+    let mut pred = *cov;
+    for a in 0..N {
+        for b in 0..N {
+            fp[a][b] *= par.phi[a];
+            pred[a][b] = fp[a][b] * par.phi[b];
+        }
+        pred[a][a] += par.q[a];
+    }
+    let mut gt = fp;
+    spd_solve(&pred, &mut gt)?;
+    Ok((pred, gt))
+}
+
+/// `m += G D`, `G` given by `gt` as [`rts_gain`] returns it (row `a` of `G D` is
+/// `Σ_b gt[b][a] D[b]`).
+#[inline(always)]
+fn add_gain_times<const N: usize>(m: &mut Square<N>, gt: &Square<N>, d: &Square<N>) {
+    for (a, row) in m.iter_mut().enumerate() {
+        let ga: [f64; N] = core::array::from_fn(|b| gt[b][a]);
+        let add = combo(&ga, d);
+        for (x, y) in row.iter_mut().zip(&add) {
+            *x += y;
+        }
+    }
+}
+
 /// RTS smoother over the filtered slots (in place: the slots then hold the smoothed moments,
 /// and each its `m2`), the M-step statistics (weighted: `res` and `var` sum `w_k`-scaled terms)
 /// and the gradient of the log-likelihood in the static parameters,
@@ -583,29 +647,13 @@ pub(crate) fn smooth<const N: usize, const P: usize>(
     par: &Params<N>,
 ) -> Result<(Stats<N>, [f64; P], Trend<N>), CalibError> {
     let kn = slots.len();
-    let mut st = Stats {
-        e0: [0.0; N],
-        s00: [0.0; N],
-        s10: [0.0; N],
-        s11: [0.0; N],
-        res: [0.0; 6],
-        var: [0.0; 6],
-    };
+    let mut st = Stats::ZERO;
     let mut grad = [0.0; P];
     let mut grad_t = [[0.0; RATE_BIAS_TERMS]; N];
     let rinv: [f64; 6] = core::array::from_fn(|i| 1.0 / par.r[i]);
     let mut add = |k: usize, slot: &mut DriftSlot<N>, st: &mut Stats<N>| {
         for j in 0..N {
-            let ex = slot.mean[j] * slot.mean[j] + slot.cov[j][j];
-            if k == 0 {
-                st.e0[j] = ex;
-            }
-            if k + 1 < kn {
-                st.s00[j] += ex;
-            }
-            if k > 0 {
-                st.s11[j] += ex;
-            }
+            st.add_moment(k, kn, j, slot.mean[j] * slot.mean[j] + slot.cov[j][j]);
         }
         let w = slot.w;
         let b = basis(slot.s);
@@ -634,19 +682,7 @@ pub(crate) fn smooth<const N: usize, const P: usize>(
     for k in (0..kn - 1).rev() {
         let (lo, hi) = slots.split_at_mut(k + 1);
         let (cur, next) = (&mut lo[k], &hi[0]);
-        // Predicted covariance P⁻ = Φ P Φ + Q and Φ P.
-        let mut fp = cur.cov;
-        let mut pred = cur.cov;
-        for a in 0..N {
-            for b in 0..N {
-                fp[a][b] *= par.phi[a];
-                pred[a][b] = fp[a][b] * par.phi[b];
-            }
-            pred[a][a] += par.q[a];
-        }
-        // Smoother gain Gᵀ = (P⁻)⁻¹ Φ P (so gt[b][a] = G[a][b]).
-        let mut gt = fp;
-        spd_solve(&pred, &mut gt)?;
+        let (pred, gt) = rts_gain(&cur.cov, par)?;
         // Mean: m_s = m + G (m_s' − Φ m).
         let dm: [f64; N] = core::array::from_fn(|b| next.mean[b] - par.phi[b] * cur.mean[b]);
         let gdm = combo(&dm, &gt);
@@ -660,13 +696,7 @@ pub(crate) fn smooth<const N: usize, const P: usize>(
             let drow: [f64; N] = core::array::from_fn(|c| next.cov[b][c] - pred[b][c]);
             dgt[b] = combo(&drow, &gt);
         }
-        for (a, row) in cur.cov.iter_mut().enumerate() {
-            let ga: [f64; N] = core::array::from_fn(|b| gt[b][a]);
-            let add = combo(&ga, &dgt);
-            for (c, v) in row.iter_mut().zip(&add) {
-                *c += v;
-            }
-        }
+        add_gain_times(&mut cur.cov, &gt, &dgt);
         // Symmetric up to rounding: make it exactly so.
         for a in 0..N {
             for c in a + 1..N {
@@ -731,14 +761,7 @@ pub(crate) fn restricted_moments<const N: usize>(
         slot.cov = f.p;
         slot.sens = c;
     }
-    let mut st = Stats {
-        e0: [0.0; N],
-        s00: [0.0; N],
-        s10: [0.0; N],
-        s11: [0.0; N],
-        res: [0.0; 6],
-        var: [0.0; 6],
-    };
+    let mut st = Stats::ZERO;
     // (C V Cᵀ)_jj and (A V Bᵀ)_jj.
     let quad = |a: &[f64; N], b: &[f64; N]| -> f64 {
         let vb = combo(b, v);
@@ -746,42 +769,17 @@ pub(crate) fn restricted_moments<const N: usize>(
     };
     let add = |k: usize, cur: &[[f64; N]; N], st: &mut Stats<N>| {
         for (j, row) in cur.iter().enumerate() {
-            let x = quad(row, row);
-            if k == 0 {
-                st.e0[j] = x;
-            }
-            if k + 1 < kn {
-                st.s00[j] += x;
-            }
-            if k > 0 {
-                st.s11[j] += x;
-            }
+            st.add_moment(k, kn, j, quad(row, row));
         }
     };
     add(kn - 1, &slots[kn - 1].sens, &mut st);
     for k in (0..kn - 1).rev() {
         let (lo, hi) = slots.split_at_mut(k + 1);
         let (cur, next) = (&mut lo[k], &hi[0]);
-        let mut fp = cur.cov;
-        let mut pred = cur.cov;
-        for a in 0..N {
-            for b in 0..N {
-                fp[a][b] *= par.phi[a];
-                pred[a][b] = fp[a][b] * par.phi[b];
-            }
-            pred[a][a] += par.q[a];
-        }
-        let mut gt = fp;
-        spd_solve(&pred, &mut gt)?;
-        // C̃_k = C_k + G (C̃_{k+1} − Φ C_k); row a of G·D is Σ_b gt[b][a] D[b].
+        let (_, gt) = rts_gain(&cur.cov, par)?;
+        // C̃_k = C_k + G (C̃_{k+1} − Φ C_k).
         let d: [[f64; N]; N] = core::array::from_fn(|b| core::array::from_fn(|l| next.sens[b][l] - par.phi[b] * cur.sens[b][l]));
-        for (a, row) in cur.sens.iter_mut().enumerate() {
-            let ga: [f64; N] = core::array::from_fn(|b| gt[b][a]);
-            let add = combo(&ga, &d);
-            for (x, y) in row.iter_mut().zip(&add) {
-                *x += y;
-            }
-        }
+        add_gain_times(&mut cur.sens, &gt, &d);
         for j in 0..N {
             st.s10[j] += quad(&next.sens[j], &cur.sens[j]);
         }

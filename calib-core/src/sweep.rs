@@ -589,16 +589,28 @@ pub fn field_grid() -> Vec<(&'static str, Cell)> {
 mod tests {
     use super::*;
 
+    /// The paper's scenario with drift `tau`, `sigma` and 1 mm / 2 mrad pose noise, `seconds`
+    /// long.
+    fn paper_cell(tau: f64, sigma: f64, seconds: f64) -> Cell {
+        Cell {
+            tau,
+            sigma,
+            noise: (1e-3, 2e-3),
+            seconds,
+            field: Field::PAPER,
+        }
+    }
+
+    /// The summary of `cell`'s sessions with seeds 1 to `seeds`.
+    fn summary(cell: &Cell, seeds: u64) -> Summary {
+        let sessions: Vec<Session> = (1..=seeds).map(|seed| session(cell, seed).unwrap()).collect();
+        Summary::of(&sessions)
+    }
+
     #[test]
     fn the_bound_at_the_truth_is_below_what_ls_reaches_and_true_tables_vary() {
         assert_ne!(true_table(1), true_table(2));
-        let cell = Cell {
-            tau: 1.0,
-            sigma: 1.0,
-            noise: (1e-3, 2e-3),
-            seconds: 10.0,
-            field: Field::PAPER,
-        };
+        let cell = paper_cell(1.0, 1.0, 10.0);
         let s = session(&cell, 1).unwrap();
         assert!(s.bound.position_m > 0.0 && s.bound.rotation_rad > 0.0, "{s:?}");
         assert!(s.ls.position_m > s.bound.position_m, "{s:?}");
@@ -611,15 +623,8 @@ mod tests {
     #[test]
     fn reduced_sweep_em_at_the_bound_and_better_than_ls() {
         for (tau, sigma) in [(0.1, 1.0), (1.0, 1.0), (0.3, 4.0)] {
-            let cell = Cell {
-                tau,
-                sigma,
-                noise: (1e-3, 2e-3),
-                seconds: 20.0,
-                field: Field::PAPER,
-            };
-            let sessions: Vec<Session> = (1..=4).map(|seed| session(&cell, seed).unwrap()).collect();
-            let s = Summary::of(&sessions);
+            let cell = paper_cell(tau, sigma, 20.0);
+            let s = summary(&cell, 4);
             let (ep, er) = s.em_ratio();
             std::eprintln!(
                 "{cell:?}: EM/bound {ep:.3} {er:.3}, LS/bound {:.3} {:.3}",
@@ -643,15 +648,8 @@ mod tests {
     /// 0.78 of the bound at the truth: optimistic by about a fifth on sessions this short.
     #[test]
     fn monte_carlo_agrees_with_the_bound_and_ls_does_not_reach_it() {
-        let cell = Cell {
-            tau: 1.0,
-            sigma: 1.0,
-            noise: (1e-3, 2e-3),
-            seconds: 10.0,
-            field: Field::PAPER,
-        };
-        let sessions: Vec<Session> = (1..=50).map(|seed| session(&cell, seed).unwrap()).collect();
-        let s = Summary::of(&sessions);
+        let cell = paper_cell(1.0, 1.0, 10.0);
+        let s = summary(&cell, 50);
         let (ep, er) = s.em_ratio();
         let (lp, lr) = s.ls_ratio();
         let rp = s.reported.position_m / s.bound.position_m;
@@ -685,13 +683,7 @@ mod tests {
     /// so [2, 7] stops at 8 s, [1, 5] never, anything at 4 s.
     #[test]
     fn the_stop_rule_stops_at_the_first_evaluation_within_the_limits() {
-        let cell = Cell {
-            tau: 0.3,
-            sigma: 1.0,
-            noise: (1e-3, 2e-3),
-            seconds: 0.0,
-            field: Field::PAPER,
-        };
+        let cell = paper_cell(0.3, 1.0, 0.0);
         let rule = |mm, mrad| StopRule {
             min_s: 4.0,
             max_s: 12.0,

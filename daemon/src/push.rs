@@ -563,7 +563,7 @@ fn on_received(rx: &Received, jobs: &mut [Job], observer: &mut dyn PushObserver)
 mod tests {
     use super::*;
     use crate::config::Config;
-    use exocal_bus::InProcessBus;
+    use exocal_bus::{Endpoint, InProcessBus};
     use exocal_dbc::auth::KeySet;
     use exocal_dbc::transfer::{NodeTransfer, StorageError, TableStorage};
     use std::sync::{Arc, Mutex};
@@ -571,6 +571,14 @@ mod tests {
     /// A node's storage: its table, and its counter (kept apart).
     #[derive(Default, Clone)]
     struct Flash(Arc<Mutex<Option<Table>>>, Arc<Mutex<u32>>);
+    impl Flash {
+        /// Storage holding `t`, its counter 0.
+        fn holding(t: Table) -> Self {
+            let f = Flash::default();
+            *f.0.lock().unwrap() = Some(t);
+            f
+        }
+    }
     impl TableStorage for Flash {
         fn store_counter(&mut self, counter: u32) -> Result<(), StorageError> {
             *self.1.lock().unwrap() = counter;
@@ -597,16 +605,16 @@ mod tests {
         Table::from_si(0.04 + k * 1e-3, 1.5, 0.001, 0.01 * k, 1.0, 1.0).unwrap()
     }
 
-    /// Emulated nodes answering on `bus`; replies are dropped when `lose(n)` says so for the
-    /// n-th reply, and `silent` nodes never answer.
+    /// Emulated nodes answering on a new bus, and the daemon's endpoint on it; replies are
+    /// dropped when `lose(n)` says so for the n-th reply, and `silent` nodes never answer.
     fn spawn_nodes(
-        bus: &InProcessBus,
         flashes: Vec<(NodeId, Flash)>,
         lose: impl Fn(u64) -> bool + Send + 'static,
         silent: Vec<NodeId>,
-    ) -> tokio::task::JoinHandle<()> {
+    ) -> (tokio::task::JoinHandle<()>, Endpoint) {
+        let bus = InProcessBus::new();
         let mut ep = bus.attach();
-        tokio::spawn(async move {
+        let nodes = tokio::spawn(async move {
             let mut nodes: Vec<(NodeTransfer, Flash)> = flashes
                 .into_iter()
                 .map(|(n, f)| (keyed(n, &f), f))
@@ -631,7 +639,22 @@ mod tests {
                     }
                 }
             }
-        })
+        });
+        (nodes, bus.attach())
+    }
+
+    /// `push_tables` on the wall clock, sessions from `first_session`; the bus does not fail.
+    async fn push(
+        ep: &mut impl Transport,
+        tables: &[(NodeId, Table)],
+        policy: &PushPolicy,
+        first_session: u8,
+        observer: &mut dyn PushObserver,
+    ) -> PushReport {
+        let clock = Clock::Wall;
+        push_tables(ep, &clock, tables, policy, first_session, observer)
+            .await
+            .unwrap()
     }
 
     type Setup = (Vec<(NodeId, Flash)>, Vec<(NodeId, Table)>);
@@ -640,10 +663,11 @@ mod tests {
         let flashes: Vec<(NodeId, Flash)> = NodeId::JOINTS
             .iter()
             .map(|&n| {
-                let f = Flash::default();
-                if old {
-                    *f.0.lock().unwrap() = Some(table(0.0));
-                }
+                let f = if old {
+                    Flash::holding(table(0.0))
+                } else {
+                    Flash::default()
+                };
                 (n, f)
             })
             .collect();
@@ -669,16 +693,11 @@ mod tests {
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn every_node_gets_its_table_by_crc() {
-        let bus = InProcessBus::new();
         let (flashes, tables) = setup(true);
-        let nodes = spawn_nodes(&bus, flashes.clone(), |_| false, vec![]);
-        let mut ep = bus.attach();
-        let clock = Clock::Wall;
+        let (nodes, mut ep) = spawn_nodes(flashes.clone(), |_| false, vec![]);
         let mut sent = 0;
         let mut sink = |tx: bool, _: &Frame, _: Duration| sent += usize::from(tx);
-        let report = push_tables(&mut ep, &clock, &tables, &policy(), 1, &mut sink)
-            .await
-            .unwrap();
+        let report = push(&mut ep, &tables, &policy(), 1, &mut sink).await;
         assert!(report.complete(), "{:#?}", report.lines());
         for ((_, flash), (_, t)) in flashes.iter().zip(&tables) {
             assert_eq!(flash.0.lock().unwrap().unwrap().crc(), t.crc());
@@ -690,17 +709,12 @@ mod tests {
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn lost_replies_are_retried_and_a_silent_node_is_reported() {
-        let bus = InProcessBus::new();
         let (flashes, tables) = setup(true);
         // Lose every 5th reply; node 4 never answers.
         let silent = NodeId::JOINTS[3];
-        let nodes = spawn_nodes(&bus, flashes.clone(), |n| n % 5 == 0, vec![silent]);
-        let mut ep = bus.attach();
-        let clock = Clock::Wall;
+        let (nodes, mut ep) = spawn_nodes(flashes.clone(), |n| n % 5 == 0, vec![silent]);
         let mut sink = |_: bool, _: &Frame, _: Duration| {};
-        let report = push_tables(&mut ep, &clock, &tables, &policy(), 200, &mut sink)
-            .await
-            .unwrap();
+        let report = push(&mut ep, &tables, &policy(), 200, &mut sink).await;
         assert!(!report.complete());
         for (r, ((node, flash), (_, t))) in report.nodes.iter().zip(flashes.iter().zip(&tables)) {
             let held = flash.0.lock().unwrap().unwrap();
@@ -771,8 +785,7 @@ mod tests {
     async fn a_late_commit_after_the_last_attempt_is_not_reported_old() {
         let bus = InProcessBus::new();
         let node = NodeId::JOINTS[2];
-        let flash = Flash::default();
-        *flash.0.lock().unwrap() = Some(table(0.0));
+        let flash = Flash::holding(table(0.0));
         let policy = policy();
         let sends = RetryPolicy::default().max_attempts as usize;
         // The Commit's own resends, then every Begin of the later attempts (each unanswered).
@@ -783,12 +796,9 @@ mod tests {
         );
         let emulated = spawn_lagging_node(&bus, node, flash.clone(), lag);
         let mut ep = bus.attach();
-        let clock = Clock::Wall;
         let new = table(3.0);
         let mut sink = |_: bool, _: &Frame, _: Duration| {};
-        let report = push_tables(&mut ep, &clock, &[(node, new)], &policy, 7, &mut sink)
-            .await
-            .unwrap();
+        let report = push(&mut ep, &[(node, new)], &policy, 7, &mut sink).await;
         emulated.abort();
         let held = flash.0.lock().unwrap().unwrap();
         assert_eq!(held, new, "the late Commit installed the new table");
@@ -805,23 +815,12 @@ mod tests {
     async fn an_unanswered_final_crc_query_is_reported_unknown() {
         let bus = InProcessBus::new();
         let node = NodeId::JOINTS[0];
-        let flash = Flash::default();
-        *flash.0.lock().unwrap() = Some(table(0.0));
+        let flash = Flash::holding(table(0.0));
         // The node never gets past its first Commit.
         let emulated = spawn_lagging_node(&bus, node, flash.clone(), usize::MAX);
         let mut ep = bus.attach();
-        let clock = Clock::Wall;
         let mut sink = |_: bool, _: &Frame, _: Duration| {};
-        let report = push_tables(
-            &mut ep,
-            &clock,
-            &[(node, table(2.0))],
-            &policy(),
-            9,
-            &mut sink,
-        )
-        .await
-        .unwrap();
+        let report = push(&mut ep, &[(node, table(2.0))], &policy(), 9, &mut sink).await;
         emulated.abort();
         let r = &report.nodes[0];
         assert_eq!(r.holds, Holds::Unknown, "{r:?}");
@@ -884,16 +883,7 @@ mod tests {
                 ..policy()
             };
             let mut sink = |_: bool, _: &Frame, _: Duration| {};
-            let report = push_tables(
-                &mut ep,
-                &Clock::Wall,
-                &[(node, table(4.0))],
-                &policy,
-                3,
-                &mut sink,
-            )
-            .await
-            .unwrap();
+            let report = push(&mut ep, &[(node, table(4.0))], &policy, 3, &mut sink).await;
             forging.abort();
             let r = &report.nodes[0];
             if authenticate {
@@ -907,17 +897,13 @@ mod tests {
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn a_node_without_a_key_is_not_pushed_to() {
-        let bus = InProcessBus::new();
         let (flashes, tables) = setup(true);
-        let nodes = spawn_nodes(&bus, flashes.clone(), |_| false, vec![]);
-        let mut ep = bus.attach();
+        let (nodes, mut ep) = spawn_nodes(flashes.clone(), |_| false, vec![]);
         let mut policy = policy();
         policy.keys.set_node(NodeId::JOINTS[1], None);
         let mut sent = 0;
         let mut sink = |tx: bool, _: &Frame, _: Duration| sent += usize::from(tx);
-        let report = push_tables(&mut ep, &Clock::Wall, &tables, &policy, 1, &mut sink)
-            .await
-            .unwrap();
+        let report = push(&mut ep, &tables, &policy, 1, &mut sink).await;
         nodes.abort();
         let r = &report.nodes[1];
         assert_eq!((r.holds, r.attempts), (Holds::Unknown, 0), "{r:?}");
@@ -960,12 +946,9 @@ mod tests {
             counters.verified(node, &key, record.0);
             counters.signed(node, &key, record.1);
             counters.save(&dir).unwrap();
-            let bus = InProcessBus::new();
-            let flash = Flash::default();
-            *flash.0.lock().unwrap() = Some(table(0.0));
+            let flash = Flash::holding(table(0.0));
             *flash.1.lock().unwrap() = 50;
-            let nodes = spawn_nodes(&bus, vec![(node, flash.clone())], |_| false, vec![]);
-            let mut ep = bus.attach();
+            let (nodes, mut ep) = spawn_nodes(vec![(node, flash.clone())], |_| false, vec![]);
             let policy = PushPolicy {
                 state_dir: Some(dir.clone()),
                 ..policy()
@@ -976,16 +959,7 @@ mod tests {
                     auths += usize::from(c.cmd.code() == CmdCode::CommitAuth);
                 }
             };
-            let report = push_tables(
-                &mut ep,
-                &Clock::Wall,
-                &[(node, table(5.0))],
-                &policy,
-                1,
-                &mut sink,
-            )
-            .await
-            .unwrap();
+            let report = push(&mut ep, &[(node, table(5.0))], &policy, 1, &mut sink).await;
             nodes.abort();
             let r = &report.nodes[0];
             let after = NodeCounters::load(&dir)
@@ -1021,11 +995,9 @@ mod tests {
         let node = NodeId::JOINTS[4];
         let key = keys().node(node).unwrap().clone();
         let dir = state_dir("before");
-        let bus = InProcessBus::new();
         let flash = Flash::default();
         *flash.1.lock().unwrap() = 7;
-        let nodes = spawn_nodes(&bus, vec![(node, flash.clone())], |_| false, vec![]);
-        let mut ep = bus.attach();
+        let (nodes, mut ep) = spawn_nodes(vec![(node, flash.clone())], |_| false, vec![]);
         let policy = PushPolicy {
             state_dir: Some(dir.clone()),
             ..policy()
@@ -1038,16 +1010,7 @@ mod tests {
                 }
             }
         };
-        let report = push_tables(
-            &mut ep,
-            &Clock::Wall,
-            &[(node, table(2.0))],
-            &policy,
-            1,
-            &mut sink,
-        )
-        .await
-        .unwrap();
+        let report = push(&mut ep, &[(node, table(2.0))], &policy, 1, &mut sink).await;
         assert_eq!(report.nodes[0].holds, Holds::New);
         assert!(!on_the_bus.is_empty());
         for r in on_the_bus {
@@ -1058,16 +1021,7 @@ mod tests {
         std::fs::write(dir.join(crate::state::NODE_COUNTERS), "Joint5 what\n").unwrap();
         let mut sent = 0;
         let mut sink = |tx: bool, _: &Frame, _: Duration| sent += usize::from(tx);
-        let report = push_tables(
-            &mut ep,
-            &Clock::Wall,
-            &[(node, table(3.0))],
-            &policy,
-            9,
-            &mut sink,
-        )
-        .await
-        .unwrap();
+        let report = push(&mut ep, &[(node, table(3.0))], &policy, 9, &mut sink).await;
         nodes.abort();
         let r = &report.nodes[0];
         assert_eq!((r.holds, r.attempts, sent), (Holds::Unknown, 0, 0), "{r:?}");

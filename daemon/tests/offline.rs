@@ -123,6 +123,17 @@ fn offline_recalibration_agrees_with_the_live_session() {
         export_urdf: Some(urdf_out.clone()),
         export_candump: Some(candump.clone()),
     };
+    // The live session's table, bit for bit, and its improvement.
+    let same_table_as_live = |outcome: &Outcome| {
+        assert_eq!(
+            outcome.node_rows, live_outcome.node_rows,
+            "not bit-identical"
+        );
+        assert_eq!(
+            outcome.verdict.improvement,
+            live_outcome.verdict.improvement
+        );
+    };
     let (summary, outcome) = offline_outcome(&config, &from_mcap).unwrap();
     // `used` counts the frames received (as logged); ingest took those the stream gate passed
     // (the digests verified by the collection's end), the same offline as live.
@@ -131,14 +142,7 @@ fn offline_recalibration_agrees_with_the_live_session() {
     assert_eq!(summary.frames, live.frames);
     assert_eq!(summary.aligned_samples, live.aligned_samples);
     assert_eq!(summary.clocks, live.clocks);
-    assert_eq!(
-        outcome.node_rows, live_outcome.node_rows,
-        "not bit-identical"
-    );
-    assert_eq!(
-        outcome.verdict.improvement,
-        live_outcome.verdict.improvement
-    );
+    same_table_as_live(&outcome);
     assert_eq!(outcome.verdict.reasons, live_outcome.verdict.reasons);
     assert!(std::fs::metadata(dir.join("offline.html")).unwrap().len() > 10_000);
 
@@ -155,14 +159,7 @@ fn offline_recalibration_agrees_with_the_live_session() {
     let (summary_c, outcome_c) = offline_outcome(&config, &from_candump).unwrap();
     assert_eq!(summary_c.frames, summary.frames);
     assert_eq!(summary_c.aligned_samples, live.aligned_samples);
-    assert_eq!(
-        outcome_c.node_rows, live_outcome.node_rows,
-        "not bit-identical"
-    );
-    assert_eq!(
-        outcome_c.verdict.improvement,
-        live_outcome.verdict.improvement
-    );
+    same_table_as_live(&outcome_c);
 
     // (c) The aligned samples as CSV bypass alignment and give the same table to rounding.
     let (recording, _, gate) = offline::read_input_gated(

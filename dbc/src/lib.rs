@@ -67,26 +67,20 @@ impl NodeId {
     /// The end-effector reference node.
     pub const END_EFFECTOR: NodeId = NodeId(8);
     /// The seven joint nodes, proximal first.
-    pub const JOINTS: [NodeId; 7] = [
-        NodeId(1),
-        NodeId(2),
-        NodeId(3),
-        NodeId(4),
-        NodeId(5),
-        NodeId(6),
-        NodeId(7),
-    ];
+    pub const JOINTS: [NodeId; 7] = NodeId::first();
     /// Every node.
-    pub const ALL: [NodeId; 8] = [
-        NodeId(1),
-        NodeId(2),
-        NodeId(3),
-        NodeId(4),
-        NodeId(5),
-        NodeId(6),
-        NodeId(7),
-        NodeId(8),
-    ];
+    pub const ALL: [NodeId; 8] = NodeId::first();
+
+    /// Nodes 1..=N.
+    const fn first<const N: usize>() -> [NodeId; N] {
+        let mut nodes = [NodeId(0); N];
+        let mut i = 0;
+        while i < N {
+            nodes[i] = NodeId(i as u8 + 1);
+            i += 1;
+        }
+        nodes
+    }
 
     /// The node with this id, if it exists (1..=8).
     pub const fn new(id: u8) -> Option<NodeId> {

@@ -106,6 +106,20 @@ struct Staging {
     authorised: Option<Authorised>,
 }
 
+impl Staging {
+    /// Whether this staging is `session`'s (else `BadSession`) with all six segments (else
+    /// `Incomplete`): what `CommitAuth` and `Commit` need.
+    fn complete_in(&self, session: u8) -> Result<(), NackReason> {
+        if self.session != session {
+            return Err(NackReason::BadSession);
+        }
+        if self.next < 6 {
+            return Err(NackReason::Incomplete);
+        }
+        Ok(())
+    }
+}
+
 /// Node side of the transfer.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct NodeTransfer {
@@ -328,12 +342,7 @@ impl NodeTransfer {
             return Err(NackReason::NoKey);
         };
         let st = self.staging.as_mut().ok_or(NackReason::NotStaging)?;
-        if st.session != session {
-            return Err(NackReason::BadSession);
-        }
-        if st.next < 6 {
-            return Err(NackReason::Incomplete);
-        }
+        st.complete_in(session)?;
         st.last_us = now_us;
         let table = Table::from_raw(st.staged).map_err(|_| NackReason::OutOfRange)?;
         let verifies = |counter: Option<u32>| {
@@ -373,12 +382,7 @@ impl NodeTransfer {
             }
             return Err(NackReason::NotStaging);
         };
-        if st.session != session {
-            return Err(NackReason::BadSession);
-        }
-        if st.next < 6 {
-            return Err(NackReason::Incomplete);
-        }
+        st.complete_in(session)?;
         self.staging = None;
         let table = Table::from_raw(st.staged).map_err(|_| NackReason::OutOfRange)?;
         if table.crc() != crc {
@@ -954,6 +958,16 @@ mod tests {
 
     /// A node booted from `flash`, holding [`key`], its counter the higher of the record and
     /// the image's.
+    /// Flash holding `t`, its image's counter at `counter` and its counter record at `record`.
+    fn holding(t: Table, counter: u32, record: u32) -> Flash {
+        Flash {
+            table: Some(t),
+            counter,
+            record,
+            fail: false,
+        }
+    }
+
     fn boot(flash: &Flash) -> NodeTransfer {
         NodeTransfer::new(NODE, flash.table).with_key(key(), flash.counter.max(flash.record))
     }
@@ -1029,10 +1043,7 @@ mod tests {
                 .filter(|(i, _)| mask >> i & 1 == 1)
                 .collect();
             for reboot in std::iter::once(None).chain((0..=delivered.len()).map(Some)) {
-                let mut flash = Flash {
-                    table: Some(old()),
-                    ..Flash::default()
-                };
+                let mut flash = holding(old(), 0, 0);
                 let cmds: Vec<TableCmd> = delivered.iter().map(|(_, c)| *c).collect();
                 let got = run(&cmds, reboot, &mut flash);
                 let split = reboot.unwrap_or(0);
@@ -1047,10 +1058,7 @@ mod tests {
     fn every_prefix_leaves_the_old_table_and_the_node_can_continue_after() {
         let full = transfer(&new(), 1, 1);
         for p in 0..9 {
-            let mut flash = Flash {
-                table: Some(old()),
-                ..Flash::default()
-            };
+            let mut flash = holding(old(), 0, 0);
             assert_eq!(run(&full[..p], None, &mut flash), Some(old()), "prefix {p}");
             // Then a complete second transfer still works.
             let mut node = boot(&flash);
@@ -1063,55 +1071,27 @@ mod tests {
 
     #[test]
     fn commit_with_wrong_crc_or_failing_flash_keeps_the_old_table() {
-        let mut cmds = transfer(&new(), 1, 1);
-        cmds[8].cmd = Command::Commit {
+        let mut wrong_crc = transfer(&new(), 1, 1);
+        wrong_crc[8].cmd = Command::Commit {
             crc: new().crc() ^ 1,
         };
-        let mut flash = Flash {
-            table: Some(old()),
-            ..Flash::default()
-        };
-        let mut node = boot(&flash);
-        let mut last = Replies::new();
-        for c in &cmds {
-            last = node.handle(c, 0, &mut flash);
+        for (cmds, fail, reason) in [
+            (wrong_crc, false, NackReason::CrcMismatch),
+            (transfer(&new(), 1, 1), true, NackReason::FlashError),
+        ] {
+            let mut flash = Flash {
+                fail,
+                ..holding(old(), 0, 0)
+            };
+            let mut node = boot(&flash);
+            assert_eq!(deliver(&mut node, &cmds, &mut flash), refused(reason));
+            assert_eq!(node.held(), Some(&old()));
         }
-        assert_eq!(
-            last[0].reply,
-            Reply::Nack {
-                cmd: CmdCode::Commit,
-                held_crc: old().crc(),
-                reason: NackReason::CrcMismatch
-            }
-        );
-        assert_eq!(node.held(), Some(&old()));
-
-        let mut flash = Flash {
-            table: Some(old()),
-            fail: true,
-            ..Flash::default()
-        };
-        let mut node = boot(&flash);
-        for c in &transfer(&new(), 1, 1) {
-            last = node.handle(c, 0, &mut flash);
-        }
-        assert_eq!(
-            last[0].reply,
-            Reply::Nack {
-                cmd: CmdCode::Commit,
-                held_crc: old().crc(),
-                reason: NackReason::FlashError
-            }
-        );
-        assert_eq!(node.held(), Some(&old()));
     }
 
     #[test]
     fn foreign_session_segments_and_stale_staging_are_refused() {
-        let mut flash = Flash {
-            table: Some(old()),
-            ..Flash::default()
-        };
+        let mut flash = holding(old(), 0, 0);
         let mut node = boot(&flash);
         let a = transfer(&new(), 1, 1);
         let b = transfer(&new(), 2, 1);
@@ -1174,11 +1154,7 @@ mod tests {
         ops: &[(u8, u8)],
         loss_pct: u8,
     ) -> (Option<Result<u32, UploadError>>, Option<Table>) {
-        let mut flash = Flash {
-            table: Some(old()),
-            counter: 41,
-            ..Flash::default()
-        };
+        let mut flash = holding(old(), 41, 0);
         let mut node = boot(&flash);
         let policy = RetryPolicy {
             timeout_us: 10_000,
@@ -1285,11 +1261,7 @@ mod tests {
 
     #[test]
     fn a_keyed_node_installs_only_authenticated_fresh_tables() {
-        let mut flash = Flash {
-            table: Some(old()),
-            counter: 0x1_fff0,
-            ..Flash::default()
-        };
+        let mut flash = holding(old(), 0x1_fff0, 0);
         let mut node = boot(&flash);
         // (a) a well-formed transfer with the right CRC and no CommitAuth.
         let plain = plain(&new(), 1);
@@ -1384,11 +1356,7 @@ mod tests {
 
     #[test]
     fn a_keyed_readback_is_signed_over_the_nonce() {
-        let mut flash = Flash {
-            table: Some(new()),
-            counter: 9,
-            ..Flash::default()
-        };
+        let mut flash = holding(new(), 9, 0);
         let mut node = boot(&flash);
         let rb = |nonce| TableCmd {
             node: NODE,
@@ -1492,10 +1460,7 @@ mod tests {
             (new(), Ok(new().crc())),
             (old(), Err(UploadError::ReadbackMismatch)),
         ] {
-            let mut flash = Flash {
-                table: Some(held),
-                ..Flash::default()
-            };
+            let mut flash = holding(held, 0, 0);
             let mut node = boot(&flash);
             let mut up = Upload::verify(NODE, 8, new(), policy, Some(key()));
             let cmd = up.poll(0).unwrap();
@@ -1511,10 +1476,7 @@ mod tests {
     /// upload to it ends at once, naming why.
     #[test]
     fn a_node_without_a_key_installs_nothing() {
-        let mut flash = Flash {
-            table: Some(old()),
-            ..Flash::default()
-        };
+        let mut flash = holding(old(), 0, 0);
         let mut node = NodeTransfer::new(NODE, flash.table);
         assert!(!node.is_keyed());
         let no_key = |cmd| Reply::Nack {
@@ -1565,12 +1527,7 @@ mod tests {
     /// installs nothing.
     #[test]
     fn the_counter_survives_a_lost_table_image() {
-        let mut flash = Flash {
-            table: Some(old()),
-            counter: 7,
-            record: 7,
-            ..Flash::default()
-        };
+        let mut flash = holding(old(), 7, 7);
         let genuine = transfer(&new(), 1, 8);
         assert_eq!(run(&genuine, None, &mut flash), Some(new()));
         assert_eq!((flash.counter, flash.record), (8, 8));
@@ -1643,10 +1600,7 @@ mod tests {
             other_auth,
         ];
         for interloper in interlopers {
-            let mut flash = Flash {
-                table: Some(old()),
-                ..Flash::default()
-            };
+            let mut flash = holding(old(), 0, 0);
             let mut node = boot(&flash);
             let r = deliver(&mut node, &cmds[..8], &mut flash);
             assert_eq!(
@@ -1664,10 +1618,7 @@ mod tests {
             );
             assert_eq!(flash.table, Some(old()), "{interloper:?}");
         }
-        let mut flash = Flash {
-            table: Some(old()),
-            ..Flash::default()
-        };
+        let mut flash = holding(old(), 0, 0);
         let mut node = boot(&flash);
         deliver(&mut node, &cmds[..8], &mut flash);
         let again = deliver(&mut node, &cmds[7..], &mut flash);
@@ -1696,12 +1647,7 @@ mod tests {
             Table::from_raw(raw).unwrap()
         };
         let (t1, t2, t3) = (t(1), t(2), t(3));
-        let mut flash = Flash {
-            table: Some(old()),
-            counter: C,
-            record: C,
-            ..Flash::default()
-        };
+        let mut flash = holding(old(), C, C);
         let mut node = boot(&flash);
         let policy = RetryPolicy::default();
         // Push 1, the rogue on the bus: its answers reach the controller first.
@@ -1824,12 +1770,7 @@ mod tests {
                 }),
             ),
         ] {
-            let mut flash = Flash {
-                table: Some(old()),
-                counter: 10,
-                record: 10,
-                ..Flash::default()
-            };
+            let mut flash = holding(old(), 10, 10);
             let mut node = boot(&flash);
             let mut up = Upload::authenticated(NODE, 1, new(), RetryPolicy::default(), key())
                 .with_counter_window(low, high);

@@ -5,18 +5,10 @@
 //! abort or another error.
 #![no_main]
 
-use std::path::Path;
-
-use exocald::cmd::offline::{read_input, Format};
-use exocald::config::Config;
-use exocald::exit::DaemonError;
+use exocald::cmd::offline::Format;
 use libfuzzer_sys::fuzz_target;
 
-fuzz_target!(|data: &[u8]| {
-    let rules = Config::default_config().calibration.window;
-    match read_input(Path::new("fuzz.log"), data, Format::Candump, &rules) {
-        Ok(_) => {}
-        Err(DaemonError::Input(what)) => assert!(what.starts_with("fuzz.log: "), "{what}"),
-        Err(e) => panic!("not bad input: {e}"),
-    }
-});
+#[path = "common/offline.rs"]
+mod offline;
+
+fuzz_target!(|data: &[u8]| offline::read_as(data, "fuzz.log", Format::Candump));

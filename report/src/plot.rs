@@ -8,6 +8,8 @@
 use std::fmt;
 use std::ops::Range;
 
+use plotters::chart::MeshStyle;
+use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
@@ -231,22 +233,48 @@ pub fn legend(entries: &[(String, RGBColor, Swatch)]) -> String {
 /// Labels per axis plotters draws at most (its default for both axes).
 pub const AXIS_LABELS: usize = 10;
 
+/// A chart on `area` over `xs` × `ys`, captioned `title`, with `y_area` pixels for the y
+/// labels (and the charts' margin and x label area).
+fn chart<'c, 'b>(
+    area: &DrawingArea<SVGBackend<'b>, Shift>,
+    title: &str,
+    y_area: u32,
+    xs: Range<f64>,
+    ys: Range<f64>,
+) -> Result<ChartContext<'c, SVGBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>, PlotError>
+{
+    ChartBuilder::on(area)
+        .margin(8)
+        .caption(title, (FONT, 17))
+        .x_label_area_size(38)
+        .y_label_area_size(y_area)
+        .build_cartesian_2d(xs, ys)
+        .map_err(|x| err(title, x))
+}
+
+/// Draws `mesh` in the charts' style (label fonts, light grey grid lines); a failure names
+/// the chart `title`.
+fn draw_mesh(
+    mesh: &mut MeshStyle<'_, '_, RangedCoordf64, RangedCoordf64, SVGBackend<'_>>,
+    title: &str,
+) -> Result<(), PlotError> {
+    mesh.label_style((FONT, 13))
+        .axis_desc_style((FONT, 14))
+        .light_line_style(RGBColor(238, 238, 238))
+        .bold_line_style(RGBColor(215, 215, 215))
+        .draw()
+        .map_err(|x| err(title, x))
+}
+
 fn draw_panel(area: &DrawingArea<SVGBackend<'_>, Shift>, panel: &Panel) -> Result<(), PlotError> {
     let e = |what: &dyn fmt::Display| err(&panel.title, what);
-    let xs = padded(
-        panel
-            .series
-            .iter()
-            .flat_map(|s| s.points.iter().map(|p| p.0)),
-    )
-    .ok_or_else(|| e(&"no finite point to draw"))?;
-    let ys = padded(
-        panel
-            .series
-            .iter()
-            .flat_map(|s| s.points.iter().map(|p| p.1)),
-    )
-    .ok_or_else(|| e(&"no finite point to draw"))?;
+    // The padded range of one coordinate over every series' points.
+    let range = |coord: fn(&(f64, f64)) -> f64| {
+        padded(panel.series.iter().flat_map(|s| s.points.iter().map(coord)))
+            .ok_or_else(|| e(&"no finite point to draw"))
+    };
+    let xs = range(|p| p.0)?;
+    let ys = range(|p| p.1)?;
     // The x axis spans the data exactly (time starts where the session starts).
     let xs = {
         let pad = (xs.end - xs.start) / 1.1 * 0.05;
@@ -257,29 +285,20 @@ fn draw_panel(area: &DrawingArea<SVGBackend<'_>, Shift>, panel: &Panel) -> Resul
             xs
         }
     };
-    let mut chart = ChartBuilder::on(area)
-        .margin(8)
-        .caption(&panel.title, (FONT, 17))
-        .x_label_area_size(38)
-        .y_label_area_size(62)
-        .build_cartesian_2d(xs.clone(), ys.clone())
-        .map_err(|x| e(&x))?;
+    let mut chart = chart(area, &panel.title, 62, xs.clone(), ys.clone())?;
     let (x_ticks, x_desc) = axis_labels(&xs, &panel.x_label);
     let (y_ticks, y_desc) = axis_labels(&ys, &panel.y_label);
-    chart
-        .configure_mesh()
-        .x_desc(x_desc)
-        .y_desc(y_desc)
-        .x_labels(AXIS_LABELS)
-        .y_labels(AXIS_LABELS)
-        .x_label_formatter(&x_ticks)
-        .y_label_formatter(&y_ticks)
-        .label_style((FONT, 13))
-        .axis_desc_style((FONT, 14))
-        .light_line_style(RGBColor(238, 238, 238))
-        .bold_line_style(RGBColor(215, 215, 215))
-        .draw()
-        .map_err(|x| e(&x))?;
+    draw_mesh(
+        chart
+            .configure_mesh()
+            .x_desc(x_desc)
+            .y_desc(y_desc)
+            .x_labels(AXIS_LABELS)
+            .y_labels(AXIS_LABELS)
+            .x_label_formatter(&x_ticks)
+            .y_label_formatter(&y_ticks),
+        &panel.title,
+    )?;
     if let Some(from) = panel.shade_from.filter(|f| xs.contains(f)) {
         chart
             .draw_series(std::iter::once(Rectangle::new(
@@ -454,28 +473,19 @@ pub fn histogram(
     {
         let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
         root.fill(&WHITE).map_err(|x| err(title, x))?;
-        let mut chart = ChartBuilder::on(&root)
-            .margin(8)
-            .caption(title, (FONT, 17))
-            .x_label_area_size(38)
-            .y_label_area_size(62)
-            .build_cartesian_2d(xs.clone(), ys.clone())
-            .map_err(|x| err(title, x))?;
+        let mut chart = chart(&root, title, 62, xs.clone(), ys.clone())?;
         let (x_ticks, x_desc) = axis_labels(&xs, x_label);
-        chart
-            .configure_mesh()
-            .x_desc(x_desc)
-            .y_desc("share of samples (%)")
-            .x_labels(AXIS_LABELS)
-            .y_labels(AXIS_LABELS)
-            .x_label_formatter(&x_ticks)
-            .y_label_formatter(&tick_labels(&ys))
-            .label_style((FONT, 13))
-            .axis_desc_style((FONT, 14))
-            .light_line_style(RGBColor(238, 238, 238))
-            .bold_line_style(RGBColor(215, 215, 215))
-            .draw()
-            .map_err(|x| err(title, x))?;
+        draw_mesh(
+            chart
+                .configure_mesh()
+                .x_desc(x_desc)
+                .y_desc("share of samples (%)")
+                .x_labels(AXIS_LABELS)
+                .y_labels(AXIS_LABELS)
+                .x_label_formatter(&x_ticks)
+                .y_label_formatter(&tick_labels(&ys)),
+            title,
+        )?;
         for (s, c) in series.iter().zip(&counts) {
             let colour = s.colour;
             chart
@@ -541,38 +551,29 @@ pub fn bars(
     {
         let root = SVGBackend::with_string(&mut svg, size).into_drawing_area();
         root.fill(&WHITE).map_err(|x| err(title, x))?;
-        let mut chart = ChartBuilder::on(&root)
-            .margin(8)
-            .caption(title, (FONT, 17))
-            .x_label_area_size(38)
-            .y_label_area_size(70)
-            .build_cartesian_2d(0.0..100.0, 0.0..n as f64)
-            .map_err(|x| err(title, x))?;
+        let mut chart = chart(&root, title, 70, 0.0..100.0, 0.0..n as f64)?;
         let names = labels.to_vec();
-        chart
-            .configure_mesh()
-            .disable_y_mesh()
-            .x_desc("share of the joint's range visited (%)")
-            .x_labels(AXIS_LABELS)
-            .x_label_formatter(&tick_labels(&(0.0..100.0)))
-            .y_labels(n * 2 + 1)
-            .y_label_formatter(&|y: &f64| {
-                let k = y - 0.5;
-                if (k - k.round()).abs() < 1e-6 && k >= 0.0 {
-                    names
-                        .get(n - 1 - k.round() as usize)
-                        .cloned()
-                        .unwrap_or_default()
-                } else {
-                    String::new()
-                }
-            })
-            .label_style((FONT, 13))
-            .axis_desc_style((FONT, 14))
-            .light_line_style(RGBColor(238, 238, 238))
-            .bold_line_style(RGBColor(215, 215, 215))
-            .draw()
-            .map_err(|x| err(title, x))?;
+        draw_mesh(
+            chart
+                .configure_mesh()
+                .disable_y_mesh()
+                .x_desc("share of the joint's range visited (%)")
+                .x_labels(AXIS_LABELS)
+                .x_label_formatter(&tick_labels(&(0.0..100.0)))
+                .y_labels(n * 2 + 1)
+                .y_label_formatter(&|y: &f64| {
+                    let k = y - 0.5;
+                    if (k - k.round()).abs() < 1e-6 && k >= 0.0 {
+                        names
+                            .get(n - 1 - k.round() as usize)
+                            .cloned()
+                            .unwrap_or_default()
+                    } else {
+                        String::new()
+                    }
+                }),
+            title,
+        )?;
         chart
             .draw_series(values.iter().enumerate().map(|(i, &v)| {
                 let y = (n - 1 - i) as f64;

@@ -206,6 +206,19 @@ fn state(dir: &Path) -> PathBuf {
     state
 }
 
+/// `exocald --config <cfg> <args…>` with the test's credentials and state directories under
+/// `dir`, its stdin closed.
+fn keyed_exocald(dir: &Path, cfg: &Path, args: &[&str]) -> Command {
+    let mut c = Command::new(bin("exocald"));
+    c.arg("--config")
+        .arg(cfg)
+        .args(args)
+        .env("CREDENTIALS_DIRECTORY", credentials(dir))
+        .env("STATE_DIRECTORY", state(dir))
+        .stdin(Stdio::null());
+    c
+}
+
 struct Hil {
     child: Child,
     flash: PathBuf,
@@ -436,13 +449,7 @@ fn calibrate_on_vcan0_pushes_a_table_every_node_holds_and_logs_every_frame() {
     let hil = Hil::start(&dir, 400);
     let factory = hil.held_crcs();
     let started = Instant::now();
-    let daemon = Command::new(bin("exocald"))
-        .arg("--config")
-        .arg(&cfg)
-        .arg("calibrate")
-        .env("CREDENTIALS_DIRECTORY", credentials(&dir))
-        .env("STATE_DIRECTORY", state(&dir))
-        .stdin(Stdio::null())
+    let daemon = keyed_exocald(&dir, &cfg, &["calibrate"])
         .output()
         .expect("run exocald");
     let frames = capture.finish();
@@ -602,13 +609,7 @@ fn sigterm_during_collection_finishes_the_log_and_pushes_nothing() {
     let cfg = config(&dir, &out, 60.0);
     let hil = Hil::start(&dir, 120);
     let factory = hil.held_crcs();
-    let mut daemon = Command::new(bin("exocald"))
-        .arg("--config")
-        .arg(&cfg)
-        .arg("calibrate")
-        .env("CREDENTIALS_DIRECTORY", credentials(&dir))
-        .env("STATE_DIRECTORY", state(&dir))
-        .stdin(Stdio::null())
+    let mut daemon = keyed_exocald(&dir, &cfg, &["calibrate"])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -769,14 +770,7 @@ fn serve_runs_a_session_per_trigger_and_stops_on_sigterm() {
         assert_eq!(rc, 0);
     };
     let serve = || {
-        let mut child = Command::new(bin("exocald"))
-            .arg("--config")
-            .arg(&cfg)
-            .args(["run", "--dry-run"])
-            .env("CREDENTIALS_DIRECTORY", credentials(&dir))
-            .env("STATE_DIRECTORY", state(&dir))
-            .env("STATE_DIRECTORY", state(&dir))
-            .stdin(Stdio::null())
+        let mut child = keyed_exocald(&dir, &cfg, &["run", "--dry-run"])
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
             .spawn()

@@ -18,7 +18,7 @@
 //! with low IMU rates, and sessions are a few seconds long. Needs vcan0: run through
 //! `cargo xtask test`, or `cargo xtask vcan -- <test binary> --test-threads=1 --nocapture`.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use exocal_bus::SimClock;
@@ -31,7 +31,7 @@ use exocal_hil::scenario::{
 };
 use exocal_hil::trial::{new_tables, TransferMix};
 use exocal_hil::Hil;
-use exocald::cmd::demo::{session_against_suit, PushTally, RunningSuit};
+use exocald::cmd::demo::{session_against_suit, PushTally, RunningSuit, SuitSession};
 use exocald::config::{Config, PushPolicy};
 use exocald::push::{push_tables, Holds};
 use exocald::shell::runner::SessionSummary;
@@ -49,6 +49,37 @@ fn scratch(name: &str) -> PathBuf {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     dir
+}
+
+/// The rogue's runs on vcan0: the push after [`PUSH_AT_S`], slower answers than in process.
+const ROGUE_TIMING: rogue::Timing = rogue::Timing {
+    settle: Duration::from_millis((PUSH_AT_S * 1000.0) as u64),
+    backoff_initial_ms: 50,
+    timeout_ms: 200,
+    wait: Duration::from_millis(500),
+};
+
+/// A socket on vcan0 for `who` (the hil, the daemon, the rogue).
+fn open_vcan0(who: &str) -> SocketCan {
+    SocketCan::open("vcan0").unwrap_or_else(|e| panic!("{who} socket on vcan0: {e:?}"))
+}
+
+/// exocal-hil for `scenario`, its flash files in `flash` provisioned with `keys`.
+fn keyed_hil(scenario: Scenario, flash: &Path, keys: &KeySet) -> Hil {
+    exocal_hil::flash::provision(flash, keys).expect("key slots");
+    Hil::new(scenario, flash).expect("hil")
+}
+
+/// `hil` playing at real time on its own socket on vcan0.
+fn play_on_vcan0(hil: Hil) -> RunningSuit {
+    RunningSuit::start(hil, open_vcan0("hil"), SimClock::new(1.0).expect("speed"))
+}
+
+/// [`MIX`]'s suit for `seed`, without faults.
+fn calm_scenario(seed: u64) -> Scenario {
+    let mut scenario = MIX.scenario(seed);
+    scenario.faults = Default::default();
+    scenario
 }
 
 /// The faults a push trial draws from: milder than the in-process matrix's (real time in a
@@ -71,17 +102,11 @@ async fn push_run(seed: u64, tally: &mut PushTally) {
     let dir = scratch(&format!("push-{seed}"));
     let scenario = MIX.scenario(seed);
     let keys = KeySet::derived(seed);
-    exocal_hil::flash::provision(&dir, &keys).expect("key slots");
-    let hil = Hil::new(scenario.clone(), &dir).expect("hil");
+    let hil = keyed_hil(scenario.clone(), &dir, &keys);
     let trial = new_tables(hil.suit(), seed ^ 0xa5a5);
     let tables: Vec<(NodeId, Table)> = trial.iter().map(|(n, _, new)| (*n, *new)).collect();
-    let clock = SimClock::new(1.0).expect("speed");
-    let suit = RunningSuit::start(
-        hil,
-        SocketCan::open("vcan0").expect("hil socket on vcan0"),
-        clock,
-    );
-    let mut daemon_sock = SocketCan::open("vcan0").expect("daemon socket on vcan0");
+    let suit = play_on_vcan0(hil);
+    let mut daemon_sock = open_vcan0("daemon");
     tokio::time::sleep(Duration::from_secs_f64(PUSH_AT_S)).await;
     let policy = PushPolicy {
         retries: 3,
@@ -152,43 +177,14 @@ async fn a_rogue_sender_on_vcan0_changes_no_table_and_never_makes_the_daemon_rep
     exocal_tests::require_vcan("vcan0");
     let started = Instant::now();
     let dir = scratch("rogue");
-    let keys = KeySet::derived(20);
-    exocal_hil::flash::provision(&dir, &keys).expect("key slots");
-    let mut scenario = MIX.scenario(20);
-    scenario.faults = Default::default();
-    scenario.faults.transfer.push(TransferFault {
-        node: rogue::SILENT.raw(),
-        behaviour: TransferBehaviour::Silent,
-    });
-    let mut hil = Hil::new(scenario, &dir).expect("hil");
-    let clock = SimClock::new(1.0).expect("speed");
-    let mut hil_sock = SocketCan::open("vcan0").expect("hil socket on vcan0");
-    let mut daemon = SocketCan::open("vcan0").expect("daemon socket on vcan0");
-    let mut rogue_sock = SocketCan::open("vcan0").expect("rogue socket on vcan0");
-    let hil_task = tokio::spawn(async move { hil.run(&mut hil_sock, &clock).await });
-    tokio::time::sleep(Duration::from_secs_f64(PUSH_AT_S)).await;
-    let policy = PushPolicy {
-        retries: 1,
-        backoff_initial_ms: 50,
-        backoff_max_ms: 200,
-        timeout_ms: 200,
-        authenticate: true,
-        keys: keys.clone(),
-        state_dir: None,
-    };
-    let wait = Duration::from_millis(500);
-    let found = rogue::attacks(&mut daemon, &mut rogue_sock, &dir, &keys, &policy, wait).await;
-    hil_task.abort();
+    let found = rogue::run_attacks(calm_scenario(20), &dir, open_vcan0, &ROGUE_TIMING).await;
     let _ = std::fs::remove_dir_all(&dir);
-    for line in &found.lines {
-        println!("{line}");
-    }
+    found.print();
     println!(
         "rogue sender on vcan0: {:.1} s",
         started.elapsed().as_secs_f64()
     );
-    assert!(found.problems.is_empty(), "{}", found.problems.join("\n"));
-    assert_eq!(found.lines.len(), 6, "every attack ran");
+    found.assert_clean(6, "every attack ran");
 }
 
 /// Issue 34, item 1, on vcan0 (the in-process run is `rogue.rs`, same code): the rollback the
@@ -203,41 +199,17 @@ async fn rollback_by_an_inflated_freshness_never_lands_on_vcan0() {
     let dir = scratch("rollback");
     let state = dir.join("state");
     std::fs::create_dir_all(&state).unwrap();
-    let keys = KeySet::derived(34);
-    exocal_hil::flash::provision(&dir, &keys).expect("key slots");
-    let mut scenario = MIX.scenario(34);
-    scenario.faults = Default::default();
-    let mut hil = Hil::new(scenario, &dir).expect("hil");
-    let clock = SimClock::new(1.0).expect("speed");
-    let mut hil_sock = SocketCan::open("vcan0").expect("hil socket on vcan0");
-    let mut daemon = SocketCan::open("vcan0").expect("daemon socket on vcan0");
-    let mut rogue_sock = SocketCan::open("vcan0").expect("rogue socket on vcan0");
-    let hil_task = tokio::spawn(async move { hil.run(&mut hil_sock, &clock).await });
-    tokio::time::sleep(Duration::from_secs_f64(PUSH_AT_S)).await;
-    let policy = PushPolicy {
-        retries: 1,
-        backoff_initial_ms: 50,
-        backoff_max_ms: 200,
-        timeout_ms: 200,
-        authenticate: true,
-        keys,
-        state_dir: Some(state.clone()),
-    };
-    let wait = Duration::from_millis(500);
-    let found = rogue::rollback(&mut daemon, &mut rogue_sock, &dir, &policy, wait).await;
-    hil_task.abort();
+    let scenario = calm_scenario(34);
+    let found = rogue::run_rollback(scenario, &dir, &state, open_vcan0, &ROGUE_TIMING).await;
     let counters = std::fs::read_to_string(state.join("node-counters")).unwrap_or_default();
     let _ = std::fs::remove_dir_all(&dir);
-    for line in &found.lines {
-        println!("{line}");
-    }
+    found.print();
     println!("state directory's node-counters: {counters:?}");
     println!(
         "rollback on vcan0: {:.1} s",
         started.elapsed().as_secs_f64()
     );
-    assert!(found.problems.is_empty(), "{}", found.problems.join("\n"));
-    assert_eq!(found.lines.len(), 2, "the attack ran to its replay");
+    found.assert_clean(2, "the attack ran to its replay");
     assert!(counters.contains("Joint3"), "{counters:?}");
 }
 
@@ -392,6 +364,15 @@ fn short_session_config(dir: &std::path::Path) -> Config {
     config
 }
 
+/// `exocald calibrate`'s session with `config` on its own socket on vcan0, against `suit`, run
+/// to its end (no shutdown).
+async fn session_on_vcan0(suit: RunningSuit, config: &Config) -> SuitSession {
+    let mut daemon_sock = open_vcan0("daemon");
+    let (_stop, shutdown) = exocald::shell::shutdown::Shutdown::manual();
+    let clock = exocal_bus::Clock::Wall;
+    session_against_suit(suit, &mut daemon_sock, &clock, config, shutdown.wait()).await
+}
+
 async fn run_row(row: &Row) -> (Vec<String>, String) {
     let dir = scratch(&row.name.replace([' ', ',', '%', '(', ')', '/'], "_"));
     let flash_dir = dir.join("flash");
@@ -407,24 +388,8 @@ async fn run_row(row: &Row) -> (Vec<String>, String) {
     // the stream gate would drop every span a lost, duplicated or corrupted frame touches.
     // Stream authentication on vcan0 has its own test (a_rogue_in_the_sensor_streams_…).
     config.verify_streams = false;
-    exocal_hil::flash::provision(&flash_dir, &config.push.keys).expect("key slots");
-    let hil = Hil::new(scenario, &flash_dir).expect("hil");
-    let clock = SimClock::new(1.0).unwrap();
-    let suit = RunningSuit::start(
-        hil,
-        SocketCan::open("vcan0").expect("hil socket on vcan0"),
-        clock,
-    );
-    let mut daemon_sock = SocketCan::open("vcan0").expect("daemon socket on vcan0");
-    let (_stop, shutdown) = exocald::shell::shutdown::Shutdown::manual();
-    let o = session_against_suit(
-        suit,
-        &mut daemon_sock,
-        &exocal_bus::Clock::Wall,
-        &config,
-        shutdown.wait(),
-    )
-    .await;
+    let suit = play_on_vcan0(keyed_hil(scenario, &flash_dir, &config.push.keys));
+    let o = session_on_vcan0(suit, &config).await;
     let _ = std::fs::remove_dir_all(&dir);
     let wall_s = o.wall.as_secs_f64();
     let session = match &o.result {
@@ -544,15 +509,8 @@ async fn a_rogue_in_the_sensor_streams_on_vcan0_is_named_and_no_table_changes() 
     scenario.duration_s = 600.0;
     let config = short_session_config(&dir);
     assert!(config.push.authenticate && config.verify_streams);
-    exocal_hil::flash::provision(&flash_dir, &config.push.keys).expect("key slots");
-    let hil = Hil::new(scenario, &flash_dir).expect("hil");
-    let clock = SimClock::new(1.0).unwrap();
-    let suit = RunningSuit::start(
-        hil,
-        SocketCan::open("vcan0").expect("hil socket on vcan0"),
-        clock,
-    );
-    let mut rogue_sock = SocketCan::open("vcan0").expect("rogue socket on vcan0");
+    let suit = play_on_vcan0(keyed_hil(scenario, &flash_dir, &config.push.keys));
+    let mut rogue_sock = open_vcan0("rogue");
     let rogue = tokio::spawn(async move {
         let (mut seen, mut sent) = (0u64, 0u64);
         while let Ok(rx) = rogue_sock.recv().await {
@@ -580,16 +538,7 @@ async fn a_rogue_in_the_sensor_streams_on_vcan0_is_named_and_no_table_changes() 
         }
         sent
     });
-    let mut daemon_sock = SocketCan::open("vcan0").expect("daemon socket on vcan0");
-    let (_stop, shutdown) = exocald::shell::shutdown::Shutdown::manual();
-    let o = session_against_suit(
-        suit,
-        &mut daemon_sock,
-        &exocal_bus::Clock::Wall,
-        &config,
-        shutdown.wait(),
-    )
-    .await;
+    let o = session_on_vcan0(suit, &config).await;
     rogue.abort();
     let _ = std::fs::remove_dir_all(&dir);
     let s = o.summary().expect("a session summary");

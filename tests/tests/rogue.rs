@@ -3,65 +3,48 @@
 //! attacks and what they must not achieve are in `common/rogue.rs`; `reliability_vcan.rs` runs
 //! the same code on vcan0.
 
+use std::path::PathBuf;
 use std::time::Duration;
 
-use exocal_bus::{InProcessBus, SimClock};
-use exocal_dbc::auth::KeySet;
-use exocal_hil::scenario::{Scenario, TransferBehaviour, TransferFault};
-use exocal_hil::Hil;
-use exocald::config::PushPolicy;
+use exocal_bus::InProcessBus;
+use exocal_hil::scenario::Scenario;
 
 #[path = "common/rogue.rs"]
 mod rogue;
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_rogue_sender_changes_no_table_and_never_makes_the_daemon_report_new() {
-    let dir = std::env::temp_dir().join(format!("exocal-rogue-{}", std::process::id()));
+/// In process: the nodes boot within 200 ms, answers take well under 50 ms.
+const TIMING: rogue::Timing = rogue::Timing {
+    settle: Duration::from_millis(200),
+    backoff_initial_ms: 10,
+    timeout_ms: 50,
+    wait: Duration::from_millis(100),
+};
+
+/// A fresh flash directory for the test `name`.
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("exocal-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    let keys = KeySet::derived(20);
-    exocal_hil::flash::provision(&dir, &keys).expect("key slots");
+    dir
+}
+
+/// The paper's suit, its streams slowed to 1 Hz.
+fn quiet_scenario() -> Scenario {
     let mut scenario = Scenario::paper();
     scenario.duration_s = 600.0;
     scenario.rates.joint_state_hz = 1.0;
     scenario.rates.imu_hz = 1.0;
     scenario.rates.pose_hz = 1.0;
-    scenario.faults.transfer.push(TransferFault {
-        node: rogue::SILENT.raw(),
-        behaviour: TransferBehaviour::Silent,
-    });
-    let mut hil = Hil::new(scenario, &dir).expect("hil");
-    let clock = SimClock::new(1.0).expect("speed");
+    scenario
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_rogue_sender_changes_no_table_and_never_makes_the_daemon_report_new() {
+    let dir = scratch("rogue");
     let bus = InProcessBus::new();
-    let mut hil_end = bus.attach();
-    let mut daemon = bus.attach();
-    let mut rogue_end = bus.attach();
-    let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await });
-    tokio::time::sleep(Duration::from_millis(200)).await;
-    let policy = PushPolicy {
-        retries: 1,
-        backoff_initial_ms: 10,
-        backoff_max_ms: 50,
-        timeout_ms: 50,
-        authenticate: true,
-        keys: keys.clone(),
-        state_dir: None,
-    };
-    let found = rogue::attacks(
-        &mut daemon,
-        &mut rogue_end,
-        &dir,
-        &keys,
-        &policy,
-        Duration::from_millis(100),
-    )
-    .await;
-    hil_task.abort();
+    let found = rogue::run_attacks(quiet_scenario(), &dir, |_| bus.attach(), &TIMING).await;
     let _ = std::fs::remove_dir_all(&dir);
-    for line in &found.lines {
-        println!("{line}");
-    }
-    assert!(found.problems.is_empty(), "{}", found.problems.join("\n"));
-    assert_eq!(found.lines.len(), 6, "every attack ran");
+    found.print();
+    found.assert_clean(6, "every attack ran");
 }
 
 /// Issue 34, item 1: the rollback the review reproduced (an inflated, unsigned `Freshness`, a
@@ -70,50 +53,16 @@ async fn a_rogue_sender_changes_no_table_and_never_makes_the_daemon_report_new()
 /// state directory: the older table never lands (`common/rogue.rs`, [`rogue::rollback`]).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn rollback_by_an_inflated_freshness_never_lands_in_process() {
-    let dir = std::env::temp_dir().join(format!("exocal-rollback-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = scratch("rollback");
     let state = dir.join("state");
     std::fs::create_dir_all(&state).unwrap();
-    let keys = KeySet::derived(34);
-    exocal_hil::flash::provision(&dir, &keys).expect("key slots");
-    let mut scenario = Scenario::paper();
-    scenario.duration_s = 600.0;
-    scenario.rates.joint_state_hz = 1.0;
-    scenario.rates.imu_hz = 1.0;
-    scenario.rates.pose_hz = 1.0;
-    let mut hil = Hil::new(scenario, &dir).expect("hil");
-    let clock = SimClock::new(1.0).expect("speed");
     let bus = InProcessBus::new();
-    let mut hil_end = bus.attach();
-    let mut daemon = bus.attach();
-    let mut rogue_end = bus.attach();
-    let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await });
-    tokio::time::sleep(Duration::from_millis(200)).await;
-    let policy = PushPolicy {
-        retries: 1,
-        backoff_initial_ms: 10,
-        backoff_max_ms: 50,
-        timeout_ms: 50,
-        authenticate: true,
-        keys,
-        state_dir: Some(state.clone()),
-    };
-    let found = rogue::rollback(
-        &mut daemon,
-        &mut rogue_end,
-        &dir,
-        &policy,
-        Duration::from_millis(100),
-    )
-    .await;
-    hil_task.abort();
+    let found =
+        rogue::run_rollback(quiet_scenario(), &dir, &state, |_| bus.attach(), &TIMING).await;
     let counters = std::fs::read_to_string(state.join("node-counters")).unwrap_or_default();
     let _ = std::fs::remove_dir_all(&dir);
-    for line in &found.lines {
-        println!("{line}");
-    }
+    found.print();
     println!("state directory's node-counters: {counters:?}");
-    assert!(found.problems.is_empty(), "{}", found.problems.join("\n"));
-    assert_eq!(found.lines.len(), 2, "the attack ran to its replay");
+    found.assert_clean(2, "the attack ran to its replay");
     assert!(counters.contains("Joint3"), "{counters:?}");
 }

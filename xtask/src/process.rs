@@ -1,4 +1,4 @@
-//! Running programs: a command's stdout or a clear error, exit statuses as the shell reports
+//! Running programs: a command's stdout, or its success, or a clear error, exit statuses as the shell reports
 //! them, quoting for `sh`.
 //!
 //! A leaf module: it imports no other xtask module.
@@ -21,6 +21,19 @@ pub fn output(cmd: &mut Command, what: &str) -> Result<String> {
         bail!("{what}: {} ({})", out.status, tail.join(" | "));
     }
     Ok(String::from_utf8_lossy(&out.stdout).into_owned())
+}
+
+/// Runs `cmd` with no stdin, its output passed through: an error naming `what` when it cannot
+/// start, `failed` when it exits non-zero.
+pub fn run(cmd: &mut Command, what: &str, failed: &str) -> Result<()> {
+    let status = cmd
+        .stdin(Stdio::null())
+        .status()
+        .with_context(|| what.to_string())?;
+    if !status.success() {
+        bail!("{failed}");
+    }
+    Ok(())
 }
 
 /// Exit status of a finished child as the shell reports it (128 + signal if a signal ended it).

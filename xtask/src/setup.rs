@@ -12,7 +12,7 @@
 //! Not root, or not Debian: nothing is installed and the error says what to install.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::Command;
 
 use anyhow::{bail, Context, Result};
 
@@ -397,38 +397,29 @@ pub fn python_env() -> Result<PathBuf> {
         if host::which("python3").is_none() {
             bail!("python3 is needed for the cantools and mcap cross-checks: install python3");
         }
-        let ok = Command::new("python3")
-            .args(["-m", "venv"])
-            .arg(&venv)
-            .stdin(Stdio::null())
-            .status()
-            .context("python3 -m venv")?
-            .success();
-        if !ok {
-            bail!("python3 -m venv failed: install python3-venv");
-        }
+        process::run(
+            Command::new("python3").args(["-m", "venv"]).arg(&venv),
+            "python3 -m venv",
+            "python3 -m venv failed: install python3-venv",
+        )?;
     }
     eprintln!(
         "[setup] pip install -r tests/requirements.txt into {}",
         venv.display()
     );
-    let ok = Command::new(&python)
-        .args([
-            "-m",
-            "pip",
-            "install",
-            "--quiet",
-            "--disable-pip-version-check",
-            "-r",
-        ])
-        .arg(&requirements)
-        .stdin(Stdio::null())
-        .status()
-        .context("pip install")?
-        .success();
-    if !ok {
-        bail!("pip install -r tests/requirements.txt failed (is PyPI reachable?)");
-    }
+    let pip = [
+        "-m",
+        "pip",
+        "install",
+        "--quiet",
+        "--disable-pip-version-check",
+        "-r",
+    ];
+    process::run(
+        Command::new(&python).args(pip).arg(&requirements),
+        "pip install",
+        "pip install -r tests/requirements.txt failed (is PyPI reachable?)",
+    )?;
     std::fs::write(&stamp, wanted)?;
     Ok(python)
 }

@@ -265,6 +265,13 @@ mod tests {
             .collect()
     }
 
+    /// Start and length of chunk `i` of a finished file, and the messages before it.
+    fn chunk(bytes: &[u8], i: usize) -> (usize, usize, usize) {
+        let c = chunks(bytes);
+        let (start, len, _) = c[i];
+        (start, len, c[..i].iter().map(|x| x.2).sum())
+    }
+
     /// Recovers `cut` and checks the result against the first `expect` messages of `all`: the
     /// same messages, a complete file with every channel and the right statistics.
     fn check(cut: &[u8], all: &[(String, u32, u64, Vec<u8>)], expect: usize) -> Recovery {
@@ -346,12 +353,10 @@ mod tests {
     fn the_open_chunk_of_a_killed_writer_is_dropped_and_named() {
         let bytes = session_log("open");
         let all = messages(&bytes);
-        let c = chunks(&bytes);
-        let (start, len, _) = c[7];
+        let (start, len, before) = chunk(&bytes, 7);
         // What the writer leaves for a chunk it never closed: the length placeholder.
         let mut cut = bytes[..start + len / 2].to_vec();
         cut[start + 1..start + 9].copy_from_slice(&u64::MAX.to_le_bytes());
-        let before: usize = c[..7].iter().map(|x| x.2).sum();
         let r = check(&cut, &all, before);
         assert!(matches!(r.end, End::Cut { need: None, .. }), "{r}");
         assert!(
@@ -364,9 +369,7 @@ mod tests {
     fn a_damaged_chunk_or_a_tail_of_zeroes_stops_the_scan_there() {
         let bytes = session_log("damaged");
         let all = messages(&bytes);
-        let c = chunks(&bytes);
-        let (start, len, _) = c[12];
-        let before: usize = c[..12].iter().map(|x| x.2).sum();
+        let (start, len, before) = chunk(&bytes, 12);
         let mut bad = bytes.clone();
         bad[start + len - 3] ^= 0x5a;
         let r = check(&bad, &all, before);

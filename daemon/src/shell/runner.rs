@@ -1112,7 +1112,7 @@ mod tests {
         std::fs::create_dir_all(&flash).unwrap();
         exocal_hil::flash::provision(&flash, &config.push.keys).unwrap();
         scenario.duration_s = 400.0;
-        let mut hil = Hil::new(scenario, &flash).unwrap();
+        let hil = Hil::new(scenario, &flash).unwrap();
         let crcs = |flash: &std::path::Path| -> Vec<Option<u32>> {
             NodeId::JOINTS
                 .iter()
@@ -1124,11 +1124,7 @@ mod tests {
                 .collect()
         };
         let before = crcs(&flash);
-        let clock = SimClock::new(1.0).unwrap();
-        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
-        let mut hil_end = bus.attach();
-        let mut daemon_end = bus.attach();
-        let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await });
+        let ([mut daemon_end], clock, hil_task) = play(hil);
         let (stop, shutdown) = Shutdown::manual();
         if let Some(s) = stop_after_s {
             tokio::spawn(async move {
@@ -1136,21 +1132,50 @@ mod tests {
                 let _ = stop.send(true);
             });
         }
-        let mut notifier = Notifier::disabled();
-        let mut reporter = Reporter::Plain { last_line: None };
-        let result = run_session(
-            &mut daemon_end,
-            &clock.bus_clock(),
-            &config,
-            false,
-            shutdown.wait(),
-            &mut notifier,
-            &mut reporter,
-        )
-        .await;
+        let result = run_plain(&mut daemon_end, &clock, &config, shutdown.wait()).await;
         hil_task.abort();
         let _ = hil_task.await;
         (result, before, crcs(&flash))
+    }
+
+    /// `hil` playing on a new in-process bus stamped with its simulated clock (the test
+    /// runtime's): `N` endpoints on it (attached before the hil starts), the clock and the
+    /// hil's task.
+    fn play<const N: usize>(
+        mut hil: Hil,
+    ) -> (
+        [exocal_bus::Endpoint; N],
+        SimClock,
+        tokio::task::JoinHandle<Result<exocal_hil::RunReport, exocal_hil::HilError>>,
+    ) {
+        let clock = SimClock::new(1.0).unwrap();
+        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
+        let mut hil_end = bus.attach();
+        let ends = std::array::from_fn(|_| bus.attach());
+        let task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await });
+        (ends, clock, task)
+    }
+
+    /// [`run_session`] on `clock`'s time without notifications, its progress in plain lines.
+    async fn run_plain(
+        daemon_end: &mut exocal_bus::Endpoint,
+        clock: &SimClock,
+        config: &Config,
+        shutdown: impl Future<Output = ()>,
+    ) -> Result<SessionSummary, SessionError> {
+        let mut notifier = Notifier::disabled();
+        let mut reporter = Reporter::Plain { last_line: None };
+        let bus_clock = clock.bus_clock();
+        run_session(
+            daemon_end,
+            &bus_clock,
+            config,
+            false,
+            shutdown,
+            &mut notifier,
+            &mut reporter,
+        )
+        .await
     }
 
     fn config(dir: &std::path::Path) -> Config {
@@ -1160,6 +1185,14 @@ mod tests {
         c.push.timeout_ms = 400;
         // Authenticated, as on a suit: the hil's nodes are provisioned with these keys.
         c.push.keys = exocal_dbc::auth::KeySet::derived(31);
+        c
+    }
+
+    /// [`config`] whose validation refuses every table: no minute of motion gives one to a
+    /// micrometre.
+    fn refusing_config(dir: &std::path::Path) -> Config {
+        let mut c = config(dir);
+        c.calibration.validation.max_expected_position_error_mm = 1e-3;
         c
     }
 
@@ -1213,10 +1246,7 @@ mod tests {
     #[tokio::test(start_paused = true)]
     async fn a_refused_calibration_pushes_nothing_and_says_why() {
         let dir = temp_dir("refused");
-        let mut c = config(&dir);
-        // No minute of motion gives a table to a micrometre: validation must refuse.
-        c.calibration.validation.max_expected_position_error_mm = 1e-3;
-        let (result, before, after) = session(c, &dir, None).await;
+        let (result, before, after) = session(refusing_config(&dir), &dir, None).await;
         let err = result.unwrap_err();
         match &err.error {
             DaemonError::Validation(reasons) => {
@@ -1304,9 +1334,8 @@ mod tests {
     async fn a_bus_stall_is_a_receiver_stall_and_a_reboot_is_that_nodes_jump() {
         use exocal_hil::scenario::{BusStall, Reboot};
         let dir = temp_dir("stall");
-        let mut c = config(&dir);
-        // Refused (no table is good to a micrometre): the alignment is what this test is about.
-        c.calibration.validation.max_expected_position_error_mm = 1e-3;
+        // Refused: the alignment is what this test is about.
+        let c = refusing_config(&dir);
         let mut scenario = Scenario::paper();
         // Every node's frames 400 ms late for 3 s, then Joint4 reboots.
         scenario.faults.bus_stalls.push(BusStall {
@@ -1362,7 +1391,7 @@ mod tests {
         config.push.keys = keys;
         let mut scenario = Scenario::paper();
         scenario.duration_s = 400.0;
-        let mut hil = Hil::new(scenario, &flash).unwrap();
+        let hil = Hil::new(scenario, &flash).unwrap();
         let tables = |flash: &std::path::Path| -> Vec<Table> {
             NodeId::JOINTS
                 .iter()
@@ -1370,12 +1399,7 @@ mod tests {
                 .collect()
         };
         let before = tables(&flash);
-        let clock = SimClock::new(1.0).unwrap();
-        let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
-        let mut hil_end = bus.attach();
-        let mut daemon_end = bus.attach();
-        let mut rogue_end = bus.attach();
-        let hil_task = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await });
+        let ([mut daemon_end, mut rogue_end], clock, hil_task) = play(hil);
         let rogue_task = tokio::spawn(async move {
             let mut seen = 0u64;
             if !rogue {
@@ -1409,19 +1433,8 @@ mod tests {
                 let _ = rogue_end.send(&biased.to_frame::<Frame>().unwrap()).await;
             }
         });
-        let mut notifier = Notifier::disabled();
-        let mut reporter = Reporter::Plain { last_line: None };
         let (_stop, shutdown) = Shutdown::manual();
-        let result = run_session(
-            &mut daemon_end,
-            &clock.bus_clock(),
-            &config,
-            false,
-            shutdown.wait(),
-            &mut notifier,
-            &mut reporter,
-        )
-        .await;
+        let result = run_plain(&mut daemon_end, &clock, &config, shutdown.wait()).await;
         hil_task.abort();
         rogue_task.abort();
         (result, before, tables(&flash))

@@ -19,15 +19,18 @@
 //! (NACK `BadMac` / `StaleCounter`) must be seen, so the attack is known to have reached it;
 //! the daemon must never report `New` for (d).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use exocal_bus::{Clock, Frame, Transport};
+use exocal_bus::{Clock, Frame, SimClock, Transport};
 use exocal_dbc::auth::{commit_mac, KeySet};
 use exocal_dbc::table::{Field, Table};
 use exocal_dbc::{CmdCode, Command, Message, NackReason, NodeId, Reply, TableCmd};
+use exocal_hil::flash::FlashImage;
+use exocal_hil::scenario::{TransferBehaviour, TransferFault};
+use exocal_hil::{Hil, Scenario};
 use exocald::config::PushPolicy;
-use exocald::push::{push_tables, Holds};
+use exocald::push::{push_tables, Holds, PushObserver};
 
 /// The node attacked by (a)–(c).
 pub const TARGET: NodeId = NodeId::JOINTS[2];
@@ -41,6 +44,157 @@ pub struct Findings {
     pub lines: Vec<String>,
     /// Violations (empty when every attack failed as it must).
     pub problems: Vec<String>,
+}
+
+impl Findings {
+    /// Prints every attack's line.
+    pub fn print(&self) {
+        for line in &self.lines {
+            println!("{line}");
+        }
+    }
+
+    /// Asserts that no attack got through and that `lines` attacks ran (`why` says which).
+    #[track_caller]
+    pub fn assert_clean(&self, lines: usize, why: &str) {
+        assert!(self.problems.is_empty(), "{}", self.problems.join("\n"));
+        assert_eq!(self.lines.len(), lines, "{why}");
+    }
+}
+
+/// How long things take on a transport.
+pub struct Timing {
+    /// From starting exocal-hil to the first push (the nodes boot and stream).
+    pub settle: Duration,
+    /// The daemon's push: the first backoff, up to the timeout (one retry).
+    pub backoff_initial_ms: u64,
+    /// The daemon's push: each exchange's timeout and the longest backoff.
+    pub timeout_ms: u64,
+    /// How long the rogue listens for an answer to each frame it sends.
+    pub wait: Duration,
+}
+
+impl Timing {
+    /// The daemon's authenticated push with `keys` (and its state in `state_dir`).
+    fn policy(&self, keys: KeySet, state_dir: Option<PathBuf>) -> PushPolicy {
+        PushPolicy {
+            retries: 1,
+            backoff_initial_ms: self.backoff_initial_ms,
+            backoff_max_ms: self.timeout_ms,
+            timeout_ms: self.timeout_ms,
+            authenticate: true,
+            keys,
+            state_dir,
+        }
+    }
+}
+
+/// A suit under attack: exocal-hil playing on the bus, the daemon's and the rogue's endpoints.
+struct Bed<T> {
+    daemon: T,
+    rogue: T,
+    hil: tokio::task::AbortHandle,
+}
+
+/// Provisions `keys` into the flash files in `flash`, starts exocal-hil playing `scenario` on
+/// them at real time, and returns after `settle`. `attach` opens one endpoint on the bus for
+/// `"hil"`, `"daemon"` and `"rogue"`, in that order.
+async fn start<T: Transport + Send + 'static>(
+    scenario: Scenario,
+    flash: &Path,
+    keys: &KeySet,
+    mut attach: impl FnMut(&str) -> T,
+    settle: Duration,
+) -> Bed<T> {
+    exocal_hil::flash::provision(flash, keys).expect("key slots");
+    let mut hil = Hil::new(scenario, flash).expect("hil");
+    let clock = SimClock::new(1.0).expect("speed");
+    let mut hil_end = attach("hil");
+    let (daemon, rogue) = (attach("daemon"), attach("rogue"));
+    let hil = tokio::spawn(async move { hil.run(&mut hil_end, &clock).await }).abort_handle();
+    tokio::time::sleep(settle).await;
+    Bed { daemon, rogue, hil }
+}
+
+/// [`attacks`] on a suit playing `scenario` (with [`SILENT`] made silent to transfers, the
+/// nodes keyed with `KeySet::derived(20)`), its flash files in `flash`, on the bus `attach`
+/// opens endpoints on (see [`start`]).
+pub async fn run_attacks<T: Transport + Send + 'static>(
+    mut scenario: Scenario,
+    flash: &Path,
+    attach: impl FnMut(&str) -> T,
+    timing: &Timing,
+) -> Findings {
+    scenario.faults.transfer.push(TransferFault {
+        node: SILENT.raw(),
+        behaviour: TransferBehaviour::Silent,
+    });
+    let keys = KeySet::derived(20);
+    let mut bed = start(scenario, flash, &keys, attach, timing.settle).await;
+    let policy = timing.policy(keys.clone(), None);
+    let found = attacks(
+        &mut bed.daemon,
+        &mut bed.rogue,
+        flash,
+        &keys,
+        &policy,
+        timing.wait,
+    )
+    .await;
+    bed.hil.abort();
+    found
+}
+
+/// [`rollback`] on a suit playing `scenario` (the nodes keyed with `KeySet::derived(34)`), its
+/// flash files in `flash`, the daemon's state in `state`, on the bus `attach` opens endpoints
+/// on (see [`start`]).
+pub async fn run_rollback<T: Transport + Send + 'static>(
+    scenario: Scenario,
+    flash: &Path,
+    state: &Path,
+    attach: impl FnMut(&str) -> T,
+    timing: &Timing,
+) -> Findings {
+    let keys = KeySet::derived(34);
+    let mut bed = start(scenario, flash, &keys, attach, timing.settle).await;
+    let policy = timing.policy(keys, Some(state.to_path_buf()));
+    let found = rollback(&mut bed.daemon, &mut bed.rogue, flash, &policy, timing.wait).await;
+    bed.hil.abort();
+    found
+}
+
+/// Pushes `t` to [`TARGET`] from the daemon (sessions from `session`): a problem unless the
+/// report says `New` and the node's flash (in `flash`) holds `t`.
+async fn genuine_push<T: Transport>(
+    daemon: &mut T,
+    flash: &Path,
+    policy: &PushPolicy,
+    t: Table,
+    session: u8,
+    observer: &mut dyn PushObserver,
+) -> Result<(), String> {
+    let report = push_tables(
+        daemon,
+        &Clock::Wall,
+        &[(TARGET, t)],
+        policy,
+        session,
+        observer,
+    )
+    .await
+    .expect("bus");
+    let r = &report.nodes[0];
+    if r.holds != Holds::New || flash_crc(flash, TARGET).0 != Some(t.crc()) {
+        return Err(format!("genuine push of {:#010x} failed: {r:?}", t.crc()));
+    }
+    Ok(())
+}
+
+/// [`TARGET`]'s image in the flash files in `dir` (it holds one from the factory).
+fn target_image(dir: &Path) -> FlashImage {
+    exocal_hil::flash::read(dir, TARGET)
+        .expect("flash readable")
+        .expect("a factory table")
 }
 
 /// A table near `t`, every field moved by `k` raw units (kept in range).
@@ -130,10 +284,7 @@ pub async fn attacks<T: Transport>(
 ) -> Findings {
     let mut out = Findings::default();
     let clock = Clock::Wall;
-    let factory = exocal_hil::flash::read(flash, TARGET)
-        .expect("flash readable")
-        .expect("a factory table")
-        .table;
+    let factory = target_image(flash).table;
     // Two genuine pushes; the first one's /can/tx is recorded for (b).
     let (t1, t2) = (moved(&factory, 101), moved(&factory, 202));
     let mut tx1 = Vec::new();
@@ -143,20 +294,11 @@ pub async fn attacks<T: Transport>(
         }
     };
     for (t, session, observer) in [
-        (
-            t1,
-            10u8,
-            &mut record as &mut dyn exocald::push::PushObserver,
-        ),
+        (t1, 10u8, &mut record as &mut dyn PushObserver),
         (t2, 20, &mut |_: bool, _: &Frame, _: Duration| {}),
     ] {
-        let report = push_tables(daemon, &clock, &[(TARGET, t)], policy, session, observer)
-            .await
-            .expect("bus");
-        let r = &report.nodes[0];
-        if r.holds != Holds::New || flash_crc(flash, TARGET).0 != Some(t.crc()) {
-            out.problems
-                .push(format!("genuine push of {:#010x} failed: {r:?}", t.crc()));
+        if let Err(problem) = genuine_push(daemon, flash, policy, t, session, observer).await {
+            out.problems.push(problem);
             return out;
         }
     }
@@ -324,9 +466,7 @@ pub async fn rollback<T: Transport>(
 ) -> Findings {
     let mut out = Findings::default();
     let clock = Clock::Wall;
-    let image = exocal_hil::flash::read(flash, TARGET)
-        .expect("flash readable")
-        .expect("a factory table");
+    let image = target_image(flash);
     let record = exocal_hil::flash::read_counter(flash, TARGET).expect("counter record readable");
     // The node boots with the higher of its counter record and its table image's.
     let (factory, c0) = (image.table, image.counter.max(record.unwrap_or(0)));
@@ -422,13 +562,8 @@ pub async fn rollback<T: Transport>(
     out.lines.push(line);
     // Two later genuine pushes.
     for (t, session) in [(t2, 61u8), (t3, 62)] {
-        let report = push_tables(daemon, &clock, &[(TARGET, t)], policy, session, &mut ignore)
-            .await
-            .expect("bus");
-        let r = &report.nodes[0];
-        if r.holds != Holds::New || flash_crc(flash, TARGET).0 != Some(t.crc()) {
-            out.problems
-                .push(format!("genuine push of {:#010x} failed: {r:?}", t.crc()));
+        if let Err(problem) = genuine_push(daemon, flash, policy, t, session, &mut ignore).await {
+            out.problems.push(problem);
             return out;
         }
     }

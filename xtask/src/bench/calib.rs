@@ -14,9 +14,9 @@ use serde_json::Value;
 
 use super::ceres;
 use super::common::{
-    capture, f, json_lines, ms, pinned, run, s, show, venv_python, Ctx, Goal, Section,
+    capture, cargo_release, f, json, json_lines, ms, pinned, run, s, show, venv_python, Ctx, Goal,
+    Section,
 };
-use crate::paths;
 
 /// This part's section title in the report.
 pub const TITLE: &str = "Calibration: calib-core against scipy and Ceres";
@@ -32,15 +32,7 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
     } else {
         ("1000,6000,20000", "7", "3", "5")
     };
-    let mut build = Command::new(paths::cargo());
-    build.current_dir(&ctx.root).args([
-        "build",
-        "--release",
-        "-p",
-        "calib-core",
-        "--example",
-        "export_dataset",
-    ]);
+    let mut build = cargo_release(ctx, "build", "calib-core", &["--example", "export_dataset"]);
     let build_cmd = show(&build);
     run(&mut build)?;
     let data = ctx.target.join("bench/calib");
@@ -58,15 +50,12 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
     let rust_cmd = show(&rust);
     let rust_out = json_lines(&capture(&mut rust)?);
     // The multi-core figure: the daemon's parallel linearisation, not pinned (it needs cores).
-    let mut build_par = Command::new(paths::cargo());
-    build_par.current_dir(&ctx.root).args([
+    let mut build_par = cargo_release(
+        ctx,
         "build",
-        "--release",
-        "-p",
         "exocal-session",
-        "--example",
-        "parallel_ls",
-    ]);
+        &["--example", "parallel_ls"],
+    );
     let build_par_cmd = show(&build_par);
     run(&mut build_par)?;
     let mut par = Command::new(ctx.target.join("release/examples/parallel_ls"));
@@ -272,7 +261,7 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
             "| {k} | {} | {} | {} | {} | {:.2}× | {:.10e} | {} |",
             s(v, "variant"),
             ms(f(v, "median_s")),
-            v.get("nfev").map(Value::to_string).unwrap_or_default(),
+            json(v, "nfev"),
             v.get("njev")
                 .filter(|n| !n.is_null())
                 .map_or("—".to_string(), Value::to_string),
@@ -283,44 +272,32 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
     }
     let _ = writeln!(body, "\nParameter errors against Table 4 (largest per kind; the drift, not the solver, limits them: both sides reach the same least-squares optimum):\n");
     let _ = writeln!(body, "| K | solver | max\\|Δa\\| (m) | max\\|Δd\\| (m) | max\\|Δα\\| (rad) | max\\|Δθ\\| (rad) |\n|---|---|---|---|---|---|");
-    for r in &ls {
+    // One row of parameter errors: `v`'s, solved by `solver`.
+    let error_row = |body: &mut String, v: &Value, solver: &str| {
         let _ = writeln!(
             body,
-            "| {} | calib-core {} | {:.3e} | {:.3e} | {:.3e} | {:.3e} |",
-            f(r, "k"),
-            if s(r, "solver") == "ls" {
-                "LS"
-            } else {
-                "LS + our EM"
-            },
-            f(r, "err_a"),
-            f(r, "err_d"),
-            f(r, "err_alpha"),
-            f(r, "err_theta")
-        );
-    }
-    for v in scipy.iter().filter(|v| s(v, "variant") == "lm-analytic") {
-        let _ = writeln!(
-            body,
-            "| {} | scipy lm-analytic | {:.3e} | {:.3e} | {:.3e} | {:.3e} |",
+            "| {} | {solver} | {:.3e} | {:.3e} | {:.3e} | {:.3e} |",
             f(v, "k"),
             f(v, "err_a"),
             f(v, "err_d"),
             f(v, "err_alpha"),
             f(v, "err_theta")
         );
+    };
+    for r in &ls {
+        let solver = if s(r, "solver") == "ls" {
+            "calib-core LS"
+        } else {
+            "calib-core LS + our EM"
+        };
+        error_row(&mut body, r, solver);
+    }
+    for v in scipy.iter().filter(|v| s(v, "variant") == "lm-analytic") {
+        error_row(&mut body, v, "scipy lm-analytic");
     }
     let ceres_rows = by(&cer_out, "ceres");
     for v in ceres_rows.iter().filter(|v| s(v, "variant") == "analytic") {
-        let _ = writeln!(
-            body,
-            "| {} | Ceres analytic | {:.3e} | {:.3e} | {:.3e} | {:.3e} |",
-            f(v, "k"),
-            f(v, "err_a"),
-            f(v, "err_d"),
-            f(v, "err_alpha"),
-            f(v, "err_theta")
-        );
+        error_row(&mut body, v, "Ceres analytic");
     }
     let ceres_accuracy_ok = ceres_tables(&mut body, &ls, &ceres_checks, &ceres_rows, py_repeats);
     // LS + EM.
@@ -338,16 +315,10 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
             ms(f(r, "median_s")),
             ms(f(r, "wall_median_s")),
             ms(f(r, "em_median_s")),
-            r.get("em_iterations")
-                .map(Value::to_string)
-                .unwrap_or_default(),
-            r.get("em_stride").map(Value::to_string).unwrap_or_default(),
-            r.get("em_informations")
-                .map(Value::to_string)
-                .unwrap_or_default(),
-            r.get("em_converged")
-                .map(Value::to_string)
-                .unwrap_or_default(),
+            json(r, "em_iterations"),
+            json(r, "em_stride"),
+            json(r, "em_informations"),
+            json(r, "em_converged"),
             f(r, "y"),
             f(r, "table_error_mm"),
             f(r, "table_error_mrad")

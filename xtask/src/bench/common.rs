@@ -13,6 +13,8 @@ use serde_json::Value;
 
 /// What the parts share.
 pub struct Ctx {
+    /// The cargo that runs us.
+    pub cargo: String,
     pub root: PathBuf,
     pub target: PathBuf,
     pub quick: bool,
@@ -67,6 +69,15 @@ pub fn show(cmd: &Command) -> String {
     s
 }
 
+/// `cargo <verb> --release -p <package> <more…>`, run in the workspace root.
+pub fn cargo_release(ctx: &Ctx, verb: &str, package: &str, more: &[&str]) -> Command {
+    let mut c = Command::new(&ctx.cargo);
+    c.current_dir(&ctx.root)
+        .args([verb, "--release", "-p", package])
+        .args(more);
+    c
+}
+
 /// Runs `cmd`, stderr passed through, and returns its stdout; fails on a non-zero status.
 pub fn capture(cmd: &mut Command) -> Result<String> {
     eprintln!("    $ {}", show(cmd));
@@ -114,6 +125,11 @@ pub fn pinned(ctx: &Ctx, program: impl AsRef<std::ffi::OsStr>) -> Command {
 
 pub fn f(v: &Value, key: &str) -> f64 {
     v.get(key).and_then(Value::as_f64).unwrap_or(f64::NAN)
+}
+
+/// The value at `key` as JSON text (empty when missing).
+pub fn json(v: &Value, key: &str) -> String {
+    v.get(key).map(Value::to_string).unwrap_or_default()
 }
 
 pub fn s<'a>(v: &'a Value, key: &str) -> &'a str {

@@ -14,8 +14,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 
-use super::common::{capture, pinned, run, show, Ctx, Goal, Section};
-use crate::paths;
+use super::common::{capture, cargo_release, pinned, run, show, Ctx, Goal, Section};
 
 /// This part's section title in the report.
 pub const TITLE: &str = "The daemon natively: power-up latency and offline CPU";
@@ -64,17 +63,8 @@ fn median(mut v: Vec<f64>) -> f64 {
 
 pub fn measure(ctx: &Ctx) -> Result<Section> {
     let (seeds, repeats) = if ctx.quick { (3, 3) } else { (5, 7) };
-    let mut build = Command::new(paths::cargo());
-    build.current_dir(&ctx.root).args([
-        "build",
-        "--release",
-        "-p",
-        "exocald",
-        "--bin",
-        "exocald",
-        "--example",
-        "scenario_csv",
-    ]);
+    let more = ["--bin", "exocald", "--example", "scenario_csv"];
+    let mut build = cargo_release(ctx, "build", "exocald", &more);
     let build_cmd = show(&build);
     run(&mut build)?;
     let exocald = ctx.target.join("release/exocald");

@@ -4,12 +4,11 @@
 use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::path::Path;
-use std::process::Command;
 
 use anyhow::{bail, Context, Result};
 
-use super::common::{capture, pinned, run, show, venv_python, Ctx, Goal, Section};
-use crate::{harness, paths};
+use super::common::{capture, cargo_release, pinned, run, show, venv_python, Ctx, Goal, Section};
+use crate::harness;
 
 /// `key=value` fields of a result line.
 pub fn fields(line: &str) -> HashMap<String, String> {
@@ -61,21 +60,10 @@ pub fn in_harness(ctx: &Ctx, args: &[String], python: &Path) -> Result<(String, 
 pub const TITLE: &str = "Ingest, daemon RSS and power-up latency (vcan)";
 
 pub fn measure(ctx: &Ctx) -> Result<Section> {
-    let mut build = Command::new(paths::cargo());
-    build
-        .current_dir(&ctx.root)
-        .args(["build", "--release", "-p", "exocald", "-p", "exocal-hil"]);
+    let mut build = cargo_release(ctx, "build", "exocald", &["-p", "exocal-hil"]);
     let build_cmd = show(&build);
     run(&mut build).context("building exocald and exocal-hil")?;
-    let mut build_ref = Command::new(paths::cargo());
-    build_ref.current_dir(&ctx.root).args([
-        "build",
-        "--release",
-        "-p",
-        "calib-core",
-        "--example",
-        "export_dataset",
-    ]);
+    let mut build_ref = cargo_release(ctx, "build", "calib-core", &["--example", "export_dataset"]);
     run(&mut build_ref).context("building the CPU reference (export_dataset)")?;
     let (python, _) = venv_python(ctx)?;
     let bin = ctx.target.join("release").to_string_lossy().into_owned();

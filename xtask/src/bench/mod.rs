@@ -140,6 +140,7 @@ pub fn run(args: Args) -> Result<u8> {
         Vec::new()
     };
     let ctx = Ctx {
+        cargo: paths::cargo(),
         root,
         target,
         quick,

@@ -242,6 +242,7 @@ mod tests {
 
     fn ctx() -> Ctx {
         Ctx {
+            cargo: "cargo".into(),
             root: "/r".into(),
             target: "/r/target".into(),
             quick: false,
