@@ -956,8 +956,6 @@ mod tests {
         crate::auth::KeySet::derived(3).node(NODE).unwrap().clone()
     }
 
-    /// A node booted from `flash`, holding [`key`], its counter the higher of the record and
-    /// the image's.
     /// Flash holding `t`, its image's counter at `counter` and its counter record at `record`.
     fn holding(t: Table, counter: u32, record: u32) -> Flash {
         Flash {
@@ -968,6 +966,8 @@ mod tests {
         }
     }
 
+    /// A node booted from `flash`, holding [`key`], its counter the higher of the record and
+    /// the image's.
     fn boot(flash: &Flash) -> NodeTransfer {
         NodeTransfer::new(NODE, flash.table).with_key(key(), flash.counter.max(flash.record))
     }

@@ -116,17 +116,22 @@ pub fn run_with(
         ))
         .into());
     }
-    let runtime = tokio::runtime::Builder::new_current_thread()
+    let runtime = paused_runtime()?;
+    runtime
+        .block_on(session(config, opts, live))
+        .map_err(Box::new)
+}
+
+/// A single-threaded tokio runtime on a paused clock: simulated time (see the module docs).
+fn paused_runtime() -> Result<tokio::runtime::Runtime, DaemonError> {
+    tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .start_paused(true)
         .build()
         .map_err(|source| DaemonError::Io {
             what: "starting the async runtime".into(),
             source,
-        })?;
-    runtime
-        .block_on(session(config, opts, live))
-        .map_err(Box::new)
+        })
 }
 
 /// Simulated time between two looks at the pace.
@@ -506,14 +511,7 @@ pub fn ask_nodes(
         name: "in-process hil".into(),
         reason: e.to_string(),
     })?;
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .start_paused(true)
-        .build()
-        .map_err(|source| DaemonError::Io {
-            what: "starting the async runtime".into(),
-            source,
-        })?;
+    let runtime = paused_runtime()?;
     runtime.block_on(async {
         let clock = SimClock::new(1.0).expect("1.0 is a valid speed");
         let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
