@@ -33,7 +33,7 @@ fn pass(frames: &[exocal_bus::Received], log: bool, dir: &std::path::Path) -> (D
     let t0 = frames.first().map_or(0, |f| f.timestamp.as_nanos() as u64);
     let mut session = if log {
         let log = SessionLog::create_in(dir, t0, 500_000_000).expect("log").1;
-        Some(Recorder::new(log, None))
+        Some(Recorder::new(log, &[]))
     } else {
         None
     };

@@ -28,7 +28,7 @@ use parking_lot::Mutex;
 use prost::Message as _;
 
 use crate::config::{Config, JOINTS};
-use crate::log::records::{arm_transforms, Record};
+use crate::log::records::{arm_transforms, Observer, Record};
 use crate::log::{mcaplog, records};
 
 /// Most messages per second of log time on the streaming channels (`/joint_states`, `/tf`,
@@ -249,9 +249,11 @@ impl LiveView {
     pub fn port(&self) -> u16 {
         self.server.as_ref().map_or(0, WebSocketServerHandle::port)
     }
+}
 
+impl Observer for LiveView {
     /// Publishes what `record` (at log time `log_ns`) shows (see the module docs).
-    pub fn observe(&self, log_ns: u64, record: &Record<'_>) {
+    fn observe(&self, log_ns: u64, record: &Record<'_>) {
         let c = &self.shared.channels;
         let at = PartialMetadata::with_log_time(log_ns);
         let mut state = self.shared.state.lock();
@@ -304,7 +306,9 @@ impl LiveView {
             | Record::CollectionEnd(_) => {}
         }
     }
+}
 
+impl LiveView {
     /// The streaming channels, at most [`LIVE_HZ`] of log time.
     fn stream(&self, state: &mut State, log_ns: u64) {
         let mut last = state.last_sent_ns;

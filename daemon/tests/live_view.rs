@@ -152,6 +152,7 @@ fn a_foxglove_client_watches_the_demo_and_gets_the_calibration() {
         speed: 1e6,
         output: dir.clone(),
         hold: false,
+        wearer: Default::default(),
     };
     let (got, demo) = std::thread::scope(|s| {
         let (started_tx, started_rx) = std::sync::mpsc::channel();

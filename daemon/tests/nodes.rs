@@ -29,6 +29,7 @@ fn pushed_session(dir: &Path) -> (Config, SessionSummary) {
         speed: 1e6,
         output: dir.to_path_buf(),
         hold: false,
+        wearer: Default::default(),
     };
     let mut config = exocald::cmd::demo::demo_config(Config::default_config(), dir, 1.0);
     config.calibration.window.min_duration_s = 20.0;

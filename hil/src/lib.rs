@@ -37,9 +37,11 @@ pub mod scenario;
 pub mod sim;
 pub mod stream;
 pub mod trial;
+pub mod wearer;
 
 pub use scenario::{Scenario, ScenarioError};
 pub use sim::{Kind, Stats, Suit};
+pub use wearer::{Voice, Wearer};
 
 use exocal_bus::{BusError, SimClock, Transport};
 use exocal_dbc::NodeId;
@@ -163,6 +165,8 @@ pub struct Hil {
     started: Option<Instant>,
     /// Frames received from the bus over all phases.
     received: u64,
+    /// What the wearer is told, when anyone speaks to them.
+    voice: Option<Voice>,
 }
 
 impl Hil {
@@ -172,7 +176,15 @@ impl Hil {
             suit: Suit::new(scenario, flash_dir)?,
             started: None,
             received: 0,
+            voice: None,
         })
+    }
+
+    /// The wearer hears `voice` while the suit plays: what it says, they may follow
+    /// ([`wearer`]: the scenario's `[wearer]` says how).
+    pub fn listening(mut self, voice: Voice) -> Hil {
+        self.voice = Some(voice);
+        self
     }
 
     /// The emulated suit (truth, held tables, counters).
@@ -252,6 +264,9 @@ impl Hil {
         loop {
             let now = clock.now_s().min(end);
             let frames = self.suit.advance(now);
+            if let Some(joint) = self.voice.as_ref().and_then(Voice::heard) {
+                self.suit.heed(joint);
+            }
             if !frames.is_empty() {
                 bus.send_all(&frames).await.map_err(HilError::Bus)?;
             }

@@ -9,6 +9,8 @@ use calib_core::{DhRow, DhTable, Discretisation, GaussMarkov, JointRanges};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
+use crate::wearer::Wearer;
+
 const DEG: f64 = std::f64::consts::PI / 180.0;
 
 /// A complete scenario.
@@ -42,6 +44,9 @@ pub struct Scenario {
     /// What the nodes' flash holds when no flash file exists yet.
     #[serde(default)]
     pub factory: Factory,
+    /// How the wearer moves and follows guidance (default: the whole range, no one listening).
+    #[serde(default)]
+    pub wearer: Wearer,
 }
 
 /// D-H table presets.
@@ -564,6 +569,27 @@ impl Scenario {
             }
         };
         pos("duration_s", self.duration_s)?;
+        let w = &self.wearer;
+        for (j, &r) in w.reach.iter().enumerate() {
+            if !(r > 0.0 && r <= 1.0) {
+                return Err(invalid(
+                    format!("wearer.reach[{j}]"),
+                    format!("must be in (0, 1], got {r}"),
+                ));
+            }
+        }
+        prob("wearer.compliance", w.compliance)?;
+        nonneg("wearer.reaction_s", w.reaction_s)?;
+        if !(w.follow_s.is_finite() && w.follow_s >= 2.0 * crate::wearer::RAMP_S) {
+            return Err(invalid(
+                "wearer.follow_s",
+                format!(
+                    "must be finite and at least {} s, got {}",
+                    2.0 * crate::wearer::RAMP_S,
+                    w.follow_s
+                ),
+            ));
+        }
         for (k, v) in [
             ("rates.joint_state_hz", self.rates.joint_state_hz),
             ("rates.imu_hz", self.rates.imu_hz),
@@ -720,6 +746,28 @@ impl Scenario {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_wearer_is_read_and_checked() {
+        let base = PAPER_TOML;
+        let s = Scenario::from_toml(&format!(
+            "{base}\n[wearer]\nreach = [1, 1, 1, 1, 1, 1, 0.3]\ncompliance = 0.7\n"
+        ))
+        .unwrap();
+        assert_eq!(s.wearer.reach[6], 0.3);
+        assert_eq!((s.wearer.compliance, s.wearer.follow_s), (0.7, 10.0));
+        assert_eq!(Scenario::paper().wearer, Wearer::default());
+        for (bad, key) in [
+            ("reach = [1, 1, 1, 1, 1, 1, 0]", "wearer.reach[6]"),
+            ("compliance = 1.5", "wearer.compliance"),
+            ("follow_s = 1", "wearer.follow_s"),
+        ] {
+            match Scenario::from_toml(&format!("{base}\n[wearer]\n{bad}\n")) {
+                Err(ScenarioError::Invalid { key: k, .. }) => assert_eq!(k, key),
+                other => panic!("{bad}: {other:?}"),
+            }
+        }
+    }
 
     #[test]
     fn paper_scenario_loads_and_is_section_4() {

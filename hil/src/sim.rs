@@ -27,6 +27,7 @@ use crate::flash::{self, FlashImage, NodeFlash};
 use crate::motion::{Chain, Motion};
 use crate::scenario::{Scenario, TransferBehaviour};
 use crate::stream::{self, Signer};
+use crate::wearer::Attention;
 use crate::HilError;
 use calib_core::{DhTable, Discretisation, GaussMarkov, Rng};
 use exocal_bus::embedded_can::{ExtendedId, Frame as _, StandardId};
@@ -199,6 +200,7 @@ pub struct Suit {
     arm: DhTable<7>,
     chain: Chain,
     motion: Motion,
+    attention: Attention,
     nodes: Vec<Node>,
     events: Vec<(f64, Event)>,
     next_event: usize,
@@ -223,7 +225,9 @@ impl Suit {
     pub fn new(scenario: Scenario, flash_dir: &Path) -> Result<Suit, HilError> {
         scenario.validate().map_err(HilError::Scenario)?;
         let arm = scenario.arm.table();
-        let motion = Motion::random(&scenario.arm.ranges(), &mut seeded(scenario.seed, 1));
+        let motion = Motion::random(&scenario.arm.ranges(), &mut seeded(scenario.seed, 1))
+            .with_reach(scenario.wearer.reach);
+        let attention = Attention::new(scenario.wearer.clone(), seeded(scenario.seed, 5));
         let mut clock_rng = seeded(scenario.seed, 2);
         let factory_table = scenario.factory.preset.table();
         let mut stats = Stats::default();
@@ -339,6 +343,7 @@ impl Suit {
             chain: Chain::new(&arm),
             arm,
             motion,
+            attention,
             nodes,
             events,
             next_event: 0,
@@ -368,6 +373,17 @@ impl Suit {
     /// True joint angles at simulated time `t_s`.
     pub fn true_joints(&self, t_s: f64) -> [f64; 7] {
         self.motion.at(t_s)
+    }
+
+    /// The wearer is told, at the suit's time now, to move `joint` (0-based): they may follow
+    /// ([`crate::wearer`]; the frames already sent are unchanged).
+    pub fn heed(&mut self, joint: usize) {
+        self.attention.heed(joint, self.now_s, &mut self.motion);
+    }
+
+    /// The wearer's attention so far (advice considered and followed).
+    pub fn attention(&self) -> &Attention {
+        &self.attention
     }
 
     /// Current drift Δθ of joint `j` (0-based).

@@ -278,9 +278,10 @@ impl Progress {
         s
     }
 
-    /// The joint whose motion would most reduce the expected table error and the error after
-    /// it as a fraction of now's, when that gains at least [`GUIDANCE_MIN_GAIN`].
-    fn best_move(&self) -> Option<(usize, f64)> {
+    /// The joint (0-based) whose motion would most reduce the expected table error and the
+    /// error after it as a fraction of now's, when that gains at least [`GUIDANCE_MIN_GAIN`]:
+    /// what [`Progress::advice`] says.
+    pub fn best_move(&self) -> Option<(usize, f64)> {
         let (j, r) = self
             .guidance?
             .iter()

@@ -35,12 +35,13 @@ use exocal_bus::{Clock, InProcessBus, SimClock, Transport};
 use exocal_dbc::NodeId;
 use exocal_hil::flash::FlashError;
 use exocal_hil::scenario::{TransferBehaviour, TransferFault};
-use exocal_hil::{Hil, HilError, Linger, Scenario};
+use exocal_hil::{Hil, HilError, Linger, Scenario, Voice, Wearer};
 
 use crate::cmd::nodes;
 use crate::config::Config;
 use crate::exit::DaemonError;
 use crate::live::LiveView;
+use crate::log::records::{Observer, Record};
 use crate::push::Holds;
 use crate::shell::notify::{Notifier, Reporter};
 use crate::shell::runner::{run_session_with, SessionError, SessionSummary};
@@ -57,6 +58,21 @@ pub struct DemoOptions {
     pub output: PathBuf,
     /// With the live view: keep serving after the session until SIGTERM or SIGINT.
     pub hold: bool,
+    /// How the emulated wearer moves and follows the session's guidance (the scenario's
+    /// `[wearer]`; by default the paper's motion, no one listening).
+    pub wearer: Wearer,
+}
+
+/// The emulated wearer's ear: the advice of each progress record (the joint the progress line
+/// says to move) is said to the suit ([`Hil::listening`]).
+struct Ear(Voice);
+
+impl Observer for Ear {
+    fn observe(&self, _log_ns: u64, record: &Record<'_>) {
+        if let Record::Progress(p) = record {
+            self.0.say(p.best_move().map(|(joint, _)| joint));
+        }
+    }
 }
 
 /// The demo's result: the session, and per joint node the CRC of its flash after the run.
@@ -164,6 +180,7 @@ async fn session(
     })?;
     let mut scenario = Scenario::paper();
     scenario.seed = opts.seed;
+    scenario.wearer = opts.wearer.clone();
     // Long enough for collection, calibration and push; the hil is stopped when we are done.
     scenario.duration_s = scenario
         .duration_s
@@ -187,10 +204,16 @@ async fn session(
         source,
     })?;
     let config = &config;
-    let hil = Hil::new(scenario, &flash_dir).map_err(|e| DaemonError::Interface {
-        name: "in-process hil".into(),
-        reason: e.to_string(),
-    })?;
+    let voice = Voice::default();
+    let hil = Hil::new(scenario, &flash_dir)
+        .map_err(|e| DaemonError::Interface {
+            name: "in-process hil".into(),
+            reason: e.to_string(),
+        })?
+        .listening(voice.clone());
+    let ear = Ear(voice);
+    let mut observers: Vec<&dyn Observer> = vec![&ear];
+    observers.extend(live.map(|l| l as &dyn Observer));
     // Speed 1 on the paused runtime's virtual clock.
     let clock = SimClock::new(1.0).expect("a positive speed");
     let bus = InProcessBus::with_clock(InProcessBus::DEFAULT_CAPACITY, clock.bus_clock());
@@ -205,7 +228,7 @@ async fn session(
         &clock.bus_clock(),
         config,
         shutdown.wait(),
-        live,
+        &observers,
     )
     .await;
     pacer.abort();
@@ -360,17 +383,18 @@ pub async fn session_against_suit<D: Transport>(
     config: &Config,
     shutdown: impl Future<Output = ()>,
 ) -> SuitSession {
-    session_against_suit_with(suit, daemon_end, clock, config, shutdown, None).await
+    session_against_suit_with(suit, daemon_end, clock, config, shutdown, &[]).await
 }
 
-/// [`session_against_suit`], the session served on the live view `live` too.
+/// [`session_against_suit`], its records handed to `observers` too (the live view, the
+/// emulated wearer's ear).
 pub async fn session_against_suit_with<D: Transport>(
     suit: RunningSuit,
     daemon_end: &mut D,
     clock: &Clock,
     config: &Config,
     shutdown: impl Future<Output = ()>,
-    live: Option<&LiveView>,
+    observers: &[&dyn Observer],
 ) -> SuitSession {
     let mut notifier = Notifier::disabled();
     let mut reporter = Reporter::detect(&notifier);
@@ -383,7 +407,7 @@ pub async fn session_against_suit_with<D: Transport>(
         shutdown,
         &mut notifier,
         &mut reporter,
-        live,
+        observers,
     )
     .await;
     let wall = started.elapsed();
@@ -559,6 +583,73 @@ mod tests {
     use super::*;
     use prost::Message as _;
 
+    /// A wearer whose wrist keeps to a third of its range: the progress line tells them to move
+    /// it; one who follows (compliance 1) gets the session calibrated and pushed at the minute,
+    /// one who does not is refused at the maximum, naming the wrist's coverage.
+    #[test]
+    fn a_lazy_wrist_is_told_to_move_and_a_wearer_who_follows_is_calibrated() {
+        let mut reach = [1.0; 7];
+        reach[6] = 0.3;
+        let mut outcomes = Vec::new();
+        for compliance in [0.0, 1.0] {
+            let dir = std::env::temp_dir().join(format!(
+                "exocald-demo-guided-{compliance}-{}",
+                std::process::id()
+            ));
+            let _ = std::fs::remove_dir_all(&dir);
+            let opts = DemoOptions {
+                seed: 7,
+                speed: 1e6,
+                output: dir.clone(),
+                hold: false,
+                wearer: Wearer {
+                    reach,
+                    compliance,
+                    ..Wearer::default()
+                },
+            };
+            let mut config = demo_config(Config::default_config(), &dir, 1.0);
+            config.calibration.window.max_duration_s = 90.0;
+            let run = run(&config, &opts).map_err(|e| *e);
+            // What the progress said: joint 7 is the one to move, from the first guidance on.
+            let bytes = std::fs::read(match &run {
+                Ok(r) => &r.summary.log_path,
+                Err(e) => &e.summary.as_ref().expect("a summary").log_path,
+            })
+            .unwrap();
+            let advised: Vec<u32> = mcap::MessageStream::new(&bytes)
+                .unwrap()
+                .map(Result::unwrap)
+                .filter(|m| m.channel.topic == "/progress")
+                .filter_map(|m| {
+                    let p = exocal_log::proto::Progress::decode(&*m.data).unwrap();
+                    let g = p.guidance;
+                    (!g.is_empty()).then(|| {
+                        (0..g.len()).min_by(|&a, &b| g[a].total_cmp(&g[b])).unwrap() as u32 + 1
+                    })
+                })
+                .collect();
+            assert!(!advised.is_empty());
+            assert_eq!(advised[0], 7, "compliance {compliance}: {advised:?}");
+            outcomes.push(run);
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+        match &outcomes[0] {
+            Err(SessionError { error, .. }) => {
+                let why = error.to_string();
+                assert!(why.contains("joint 7"), "{why}");
+            }
+            Ok(r) => panic!("a lazy wrist calibrated: {:?}", r.summary.outcome),
+        }
+        match &outcomes[1] {
+            Ok(r) => {
+                check_flash(r).unwrap();
+                assert!(r.summary.aligned_samples as f64 <= 61.0 * 100.0);
+            }
+            Err(e) => panic!("{}", e.error),
+        }
+    }
+
     #[test]
     fn the_paper_scenario_calibrates_pushes_and_persists() {
         let dir = std::env::temp_dir().join(format!("exocald-demo-{}", std::process::id()));
@@ -568,6 +659,7 @@ mod tests {
             speed: 1e6,
             output: dir.clone(),
             hold: false,
+            wearer: Default::default(),
         };
         let config = demo_config(Config::default_config(), &dir, 1.0);
         let result = match run(&config, &opts).map_err(|e| *e) {

@@ -186,6 +186,7 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
                 speed: args.speed,
                 output: args.output.clone(),
                 hold: args.live,
+                wearer: Default::default(),
             };
             match crate::cmd::demo::run(&config, &opts).map_err(|e| *e) {
                 Ok(result) => {

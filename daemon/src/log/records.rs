@@ -22,6 +22,13 @@ use exocal_session::ingest::ClockReport;
 use exocal_session::pipeline::{NodeRow, Outcome};
 use exocal_session::window::Progress;
 
+/// Whoever takes a session's records besides its log (the live view; in a demo, the emulated
+/// wearer's ear): called with each record and its log time, it never fails the session.
+pub trait Observer {
+    /// Takes `record`, logged at `log_ns`.
+    fn observe(&self, log_ns: u64, record: &Record<'_>);
+}
+
 /// The root of the arm's frames (frame 0 of the D-H table), as in the exported URDF.
 pub const BASE_FRAME: &str = "base_link";
 /// The tool frame (after the last row), as in the exported URDF.

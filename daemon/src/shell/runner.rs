@@ -31,7 +31,7 @@ use crate::config::Config;
 use crate::exit::DaemonError;
 use crate::live::LiveView;
 use crate::log::mcaplog::{CollectionEnd, Counts, Level, LogError, SessionLog};
-use crate::log::records;
+use crate::log::records::{self, Observer};
 use crate::push::{push_tables, PushObserver, PushReport};
 use crate::shell::notify::{Notifier, Reporter};
 use crate::shell::tee::Recorder;
@@ -343,20 +343,15 @@ pub async fn run_session<T: Transport>(
             live.port()
         ));
     }
+    let observers: Vec<&dyn Observer> = live.iter().map(|l| l as &dyn Observer).collect();
     run_session_with(
-        bus,
-        clock,
-        config,
-        dry_run,
-        shutdown,
-        notifier,
-        reporter,
-        live.as_ref(),
+        bus, clock, config, dry_run, shutdown, notifier, reporter, &observers,
     )
     .await
 }
 
-/// [`run_session`] with the live view `live` (whoever started it keeps it after the session).
+/// [`run_session`] with `observers` of its records besides its log (the live view, whoever
+/// started it keeps it after the session).
 #[allow(clippy::too_many_arguments)]
 pub async fn run_session_with<T: Transport>(
     bus: &mut T,
@@ -366,7 +361,7 @@ pub async fn run_session_with<T: Transport>(
     shutdown: impl Future<Output = ()>,
     notifier: &mut Notifier,
     reporter: &mut Reporter,
-    live: Option<&LiveView>,
+    observers: &[&dyn Observer],
 ) -> Result<SessionSummary, SessionError> {
     let start = clock.now();
     let flush_ns = (config.output.flush_interval_s * 1e9) as u64;
@@ -378,7 +373,7 @@ pub async fn run_session_with<T: Transport>(
             )
         })?;
     let mut io = Io {
-        log: Recorder::new(log, live),
+        log: Recorder::new(log, observers),
         notifier,
         reporter,
         started: Instant::now(),

@@ -1,5 +1,6 @@
 //! The session's observers, fed once: [`Recorder`] hands every [`Record`] a session makes to
-//! its MCAP log ([`SessionLog`]) and, when enabled, to the live view ([`LiveView`]).
+//! its MCAP log ([`SessionLog`]) and to its other [`Observer`]s (the live view, when enabled;
+//! in a demo, the emulated wearer's ear).
 //!
 //! Contract: the log's errors are the session's ([`Recorder::record`] returns them); the live
 //! view never fails a session.
@@ -8,31 +9,30 @@ use std::io::{BufWriter, Write};
 
 use exocal_log::{proto, CanFrameRecord, CollectionEnd, Level};
 
-use crate::live::LiveView;
 use crate::log::mcaplog::{Counts, LogError, SessionLog};
-use crate::log::records::{Link, Record, Transform};
+use crate::log::records::{Link, Observer, Record, Transform};
 use exocal_session::align::AlignedSample;
 use exocal_session::ingest::Reading;
 use exocal_session::stream::{Column, STREAMS};
 use exocal_session::window::Progress;
 
-/// The session's observers: its log, and the live view when enabled. The methods are the
-/// records a session writes (see [`Record`]).
+/// The session's observers: its log and the others. The methods are the records a session
+/// writes (see [`Record`]).
 pub struct Recorder<'a, W: Write + std::io::Seek = BufWriter<std::fs::File>> {
     log: SessionLog<W>,
-    live: Option<&'a LiveView>,
+    observers: &'a [&'a dyn Observer],
 }
 
 impl<'a, W: Write + std::io::Seek> Recorder<'a, W> {
-    /// A recorder writing to `log` and, when given, to the live view `live`.
-    pub fn new(log: SessionLog<W>, live: Option<&'a LiveView>) -> Self {
-        Recorder { log, live }
+    /// A recorder writing to `log` and handing every record to `observers` too.
+    pub fn new(log: SessionLog<W>, observers: &'a [&'a dyn Observer]) -> Self {
+        Recorder { log, observers }
     }
 
     /// Hands `record` at log time `log_ns` to every observer.
     pub fn record(&mut self, log_ns: u64, record: Record<'_>) -> Result<(), LogError> {
-        if let Some(live) = self.live {
-            live.observe(log_ns, &record);
+        for o in self.observers {
+            o.observe(log_ns, &record);
         }
         self.log.write_record(log_ns, &record)
     }
