@@ -1267,7 +1267,7 @@ mod tests {
                 "directory = 'C:\\odd \"dir\"'",
             ),
             (
-                "# stop_at_expected_error = [2.0, 6.0]",
+                "stop_at_expected_error = [2.0, 6.0]",
                 "stop_at_expected_error = [2.5, 7.0]",
             ),
         ];
@@ -1294,28 +1294,28 @@ mod tests {
     }
 
     #[test]
-    fn stop_when_good_enough_is_off_unless_set_and_its_limits_are_checked() {
+    fn stop_when_good_enough_is_on_by_default_off_when_commented_out_and_checked() {
         assert_eq!(
             Config::default_config()
                 .calibration
                 .window
                 .stop_at_expected_error,
-            None
+            Some((2.0, 6.0))
         );
-        let on = edited(
-            "# stop_at_expected_error = [2.0, 6.0]",
+        let off = edited(
             "stop_at_expected_error = [2.0, 6.0]",
+            "# stop_at_expected_error = [2.0, 6.0]",
         );
         assert_eq!(
-            Config::parse(&on)
+            Config::parse(&off)
                 .unwrap()
                 .calibration
                 .window
                 .stop_at_expected_error,
-            Some((2.0, 6.0))
+            None
         );
         let bad = edited(
-            "# stop_at_expected_error = [2.0, 6.0]",
+            "stop_at_expected_error = [2.0, 6.0]",
             "stop_at_expected_error = [2.0, -6.0]",
         );
         let (key, line, _) = invalid(&bad);
@@ -1353,7 +1353,7 @@ mod tests {
 
     #[test]
     fn a_wrong_type_is_named_with_its_line() {
-        let text = edited("min_duration_s = 60.0", "min_duration_s = \"sixty\"");
+        let text = edited("min_duration_s = 20.0", "min_duration_s = \"sixty\"");
         let (key, line, _) = invalid(&text);
         assert_eq!(key, "session.min_duration_s");
         assert_eq!(line, Some(line_containing(&text, "min_duration_s =")));
@@ -1544,7 +1544,7 @@ mod tests {
     fn every_numeric_key_has_an_upper_bound() {
         let cases = [
             (
-                "min_duration_s = 60.0",
+                "min_duration_s = 20.0",
                 "min_duration_s = 90000.0",
                 "session.min_duration_s",
             ),
@@ -1654,7 +1654,7 @@ mod tests {
         // enough for the memory budget).
         let at = edited("grid_hz = 100.0", "grid_hz = 1000.0");
         let at = at.replace("max_duration_s = 180.0", "max_duration_s = 36.0");
-        let at = at.replace("min_duration_s = 60.0", "min_duration_s = 30.0");
+        let at = at.replace("min_duration_s = 20.0", "min_duration_s = 30.0");
         let at = at.replace("retries = 3", "retries = 100");
         let at = at.replace("timeout_ms = 500", "timeout_ms = 60000");
         assert!(Config::parse(&at).is_ok());

@@ -309,7 +309,7 @@ fn a_log_beyond_one_session_is_exit_65_at_its_first_frame_beyond() {
     let cfg = config(
         &dir,
         &[
-            ("min_duration_s = 60.0", "min_duration_s = 1.0"),
+            ("min_duration_s = 20.0", "min_duration_s = 1.0"),
             ("max_duration_s = 180.0", "max_duration_s = 2.0"),
             ("min_samples = 1000", "min_samples = 100"),
         ],

@@ -15,7 +15,10 @@ use calib_core::{DhTable, Frame, JointRanges, Rng};
 use nalgebra::{Matrix3, Vector3};
 use std::f64::consts::TAU;
 
-use crate::wearer::{RAMP_S, SWEEP_HZ};
+/// Full-range sweeps per second of a joint the wearer moves as advised ([`Motion::sweep`]).
+pub const SWEEP_HZ: f64 = 0.25;
+/// Seconds a joint takes to blend into an advised sweep, and back.
+pub const RAMP_S: f64 = 1.0;
 
 /// Sinusoids per joint.
 pub const HARMONICS: usize = 4;

@@ -18,11 +18,7 @@ use calib_core::Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::motion::Motion;
-
-/// Full-range sweeps per second of a joint the wearer moves as advised.
-pub const SWEEP_HZ: f64 = 0.25;
-/// Seconds the wearer takes to blend into the advised motion, and back.
-pub const RAMP_S: f64 = 1.0;
+pub use crate::motion::{RAMP_S, SWEEP_HZ};
 
 /// How the wearer moves and listens (a scenario's `[wearer]` table).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

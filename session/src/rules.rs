@@ -324,13 +324,13 @@ impl Settings {
                 joint_range: JointRanges::paper(),
             },
             window: WindowRules {
-                min_duration_s: 60.0,
+                min_duration_s: 20.0,
                 max_duration_s: 180.0,
                 excitation_required: 0.5,
                 min_samples: 1000,
                 grid_hz: 100.0,
                 max_gap_s: 0.05,
-                stop_at_expected_error: None,
+                stop_at_expected_error: Some((2.0, 6.0)),
             },
             validation: ValidationRules {
                 max_condition_number: 1.0e4,

@@ -559,6 +559,7 @@ mod tests {
         let rules = WindowRules {
             min_duration_s: 20.0,
             max_duration_s: 120.0,
+            stop_at_expected_error: None,
             ..c.window
         };
         Window::new(rules, c.bounds.joint_range)

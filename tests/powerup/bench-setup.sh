@@ -34,11 +34,14 @@ systemctl enable systemd-networkd.service
 # The daemon listens on vcan0. 45 s of motion on a 50 Hz grid: floating point in the
 # software-emulated (TCG) guest is ~200x slower than native, so the grid is coarse, and the
 # window long enough that the table's expected error is well within the shipped 3 mm limit
-# (30 s gave ±3.0-3.3 mm: refused as often as not).
+# (30 s gave ±3.0-3.3 mm: refused as often as not). A fixed window: the shipped
+# stop-when-good-enough runs LS + EM every 5 s, which would take the guest's emulated CPU.
 sed -i -e 's/^interface = .*/interface = "vcan0"/' -e 's/^min_duration_s = .*/min_duration_s = 45.0/' \
-    -e 's/^grid_hz = .*/grid_hz = 50.0/' /etc/exocal/exocald.toml
+    -e 's/^grid_hz = .*/grid_hz = 50.0/' -e 's/^stop_at_expected_error/# stop_at_expected_error/' \
+    /etc/exocal/exocald.toml
 grep -q '^min_duration_s = 45.0' /etc/exocal/exocald.toml
 grep -q '^grid_hz = 50.0' /etc/exocal/exocald.toml
+grep -q '^# stop_at_expected_error' /etc/exocal/exocald.toml
 
 # The emulated suit, at 1x real time, its raw IMU channels at 10 Hz so the TCG guest keeps up.
 sed 's/^imu_hz = 100.0/imu_hz = 10.0/' /usr/share/exocal/scenarios/paper.toml \

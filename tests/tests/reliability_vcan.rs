@@ -347,6 +347,7 @@ fn short_session_config(dir: &std::path::Path) -> Config {
     config.interface = "vcan0".into();
     config.output.directory = dir.join("out");
     config.calibration.window.min_duration_s = 6.0;
+    config.calibration.window.stop_at_expected_error = None;
     config.calibration.window.max_duration_s = 12.0;
     config.calibration.window.min_samples = 300;
     config.calibration.window.excitation_required = 0.1;

@@ -1380,6 +1380,9 @@ mod tests {
         exocal_hil::flash::provision(&flash, &keys).unwrap();
         // The demo's window (the fixed minute): a 15-s session is refused on this suit.
         let mut config = Config::default_config();
+        // A fixed window: the stream gate is judged over a whole minute.
+        config.calibration.window.min_duration_s = 60.0;
+        config.calibration.window.stop_at_expected_error = None;
         config.output.directory = dir.clone();
         config.push.timeout_ms = 400;
         config.push.authenticate = true;
