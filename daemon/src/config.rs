@@ -42,6 +42,10 @@ pub mod limits {
     /// [`MAX_DURATION_S`], the figure the memory budget was measured at; a faster grid
     /// shortens the longest window accordingly.
     pub const MAX_GRID_POINTS: f64 = 100.0 * MAX_DURATION_S;
+    /// Most grid points with `session.stop_at_expected_error`: half of [`MAX_GRID_POINTS`], as
+    /// each estimate works on a copy of the collection (`exocald demo --speed 1000000` over a
+    /// 180 s window: 110 MiB peak with the estimates, 67 MiB without).
+    pub const MAX_GRID_POINTS_ESTIMATING: f64 = MAX_GRID_POINTS / 2.0;
     /// Fastest resampling grid, Hz: a 1 Mbit/s bus carries at most about 1 kHz per node.
     pub const MAX_GRID_HZ: f64 = 1_000.0;
     /// Longest tolerated hole in a stream, s.
@@ -732,12 +736,19 @@ impl Checker<'_> {
                 ),
             ));
         }
-        if session.grid_hz * session.max_duration_s > MAX_GRID_POINTS {
+        let (limit, why) = match session.stop_at_expected_error {
+            Some(_) => (
+                MAX_GRID_POINTS_ESTIMATING,
+                " with session.stop_at_expected_error (each estimate copies the collection)",
+            ),
+            None => (MAX_GRID_POINTS, ""),
+        };
+        if session.grid_hz * session.max_duration_s > limit {
             return Err(self.err(
                 "session.max_duration_s",
                 format!(
                     "{} s at session.grid_hz = {} Hz is {:.0} grid points, above the limit \
-                     {MAX_GRID_POINTS:.0}: a session that long would not fit the unit's \
+                     {limit:.0}{why}: a session that long would not fit the unit's \
                      {MEMORY_MAX} with margin; shorten it or slow the grid",
                     session.max_duration_s,
                     session.grid_hz,
@@ -1517,12 +1528,31 @@ mod tests {
         assert_eq!(key, "session.max_duration_s");
         assert!(
             message.contains(
-                "180 s at session.grid_hz = 500 Hz is 90000 grid points, above the limit 36000"
+                "180 s at session.grid_hz = 500 Hz is 90000 grid points, above the limit 18000 \
+                 with session.stop_at_expected_error"
+            ),
+            "{message}"
+        );
+        // Stopping when good enough, the estimates' copies halve the budget: 360 s is refused
+        // with it and accepted without it.
+        let (key, _, message) =
+            invalid(&edited("max_duration_s = 180.0", "max_duration_s = 360.0"));
+        assert_eq!(key, "session.max_duration_s");
+        assert!(message.contains("above the limit 18000"), "{message}");
+        let fixed = edited(
+            "stop_at_expected_error = [2.0, 6.0]",
+            "# stop_at_expected_error = [2.0, 6.0]",
+        );
+        let text = edited_in(&fixed, "grid_hz = 100.0", "grid_hz = 500.0");
+        let (_, _, message) = invalid(&text);
+        assert!(
+            message.contains(
+                "180 s at session.grid_hz = 500 Hz is 90000 grid points, above the limit 36000:"
             ),
             "{message}"
         );
         // At the limit, and a faster grid over a shorter window, are accepted.
-        let at = edited("max_duration_s = 180.0", "max_duration_s = 360.0");
+        let at = edited_in(&fixed, "max_duration_s = 180.0", "max_duration_s = 360.0");
         assert_eq!(
             Config::parse(&at)
                 .unwrap()
@@ -1534,7 +1564,7 @@ mod tests {
         let fast = edited_in(
             &edited("grid_hz = 100.0", "grid_hz = 500.0"),
             "max_duration_s = 180.0",
-            "max_duration_s = 72.0",
+            "max_duration_s = 36.0",
         );
         assert!(Config::parse(&fast).is_ok());
     }
@@ -1653,8 +1683,8 @@ mod tests {
         // At the limits themselves the file is valid (the fastest grid over a window short
         // enough for the memory budget).
         let at = edited("grid_hz = 100.0", "grid_hz = 1000.0");
-        let at = at.replace("max_duration_s = 180.0", "max_duration_s = 36.0");
-        let at = at.replace("min_duration_s = 20.0", "min_duration_s = 30.0");
+        let at = at.replace("max_duration_s = 180.0", "max_duration_s = 18.0");
+        let at = at.replace("min_duration_s = 20.0", "min_duration_s = 15.0");
         let at = at.replace("retries = 3", "retries = 100");
         let at = at.replace("timeout_ms = 500", "timeout_ms = 60000");
         assert!(Config::parse(&at).is_ok());
