@@ -1,5 +1,6 @@
 //! Stop when good enough, measured (issues 18.5 and 32): demo sessions of the paper's scenario on
-//! the in-process bus, seeds 1..=N, each run as the fixed minute (the default configuration),
+//! the in-process bus, seeds 1..=N, each run as the fixed minute (`min_duration_s = 60`, the
+//! rule off),
 //! as `[session] stop_at_expected_error = [MM, MRAD]` with `min_duration_s = 15`, and — with
 //! `--compliance P` — stopping so with an emulated wearer who follows the progress line's
 //! guidance (`exocal_hil::wearer`: each piece of advice considered at most every 10 s, followed
@@ -22,14 +23,10 @@ use exocald::cmd::demo::{demo_config, run, DemoOptions};
 use exocald::config::Config;
 
 fn arg(name: &str, default: f64) -> f64 {
-    let args: Vec<String> = std::env::args().collect();
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
-        .map_or(default, |v| {
-            v.parse()
-                .unwrap_or_else(|_| panic!("{name} needs a number, got {v}"))
-        })
+    text(name).map_or(default, |v| {
+        v.parse()
+            .unwrap_or_else(|_| panic!("{name} needs a number, got {v}"))
+    })
 }
 
 /// The value after `name`, as text.
@@ -123,10 +120,11 @@ fn main() {
         for (k, kind) in kinds.iter_mut().enumerate() {
             let output = root.join(format!("seed{seed}-{k}"));
             let mut config = demo_config(Config::default_config(), &output, 1.0);
-            if kind.stop.is_some() {
-                config.calibration.window.min_duration_s = 15.0;
-                config.calibration.window.stop_at_expected_error = kind.stop;
-            }
+            config.calibration.window.min_duration_s = match kind.stop {
+                Some(_) => 15.0,
+                None => 60.0,
+            };
+            config.calibration.window.stop_at_expected_error = kind.stop;
             let opts = DemoOptions {
                 seed,
                 speed: 1_000.0,

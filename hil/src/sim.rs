@@ -381,11 +381,6 @@ impl Suit {
         self.attention.heed(joint, self.now_s, &mut self.motion);
     }
 
-    /// The wearer's attention so far (advice considered and followed).
-    pub fn attention(&self) -> &Attention {
-        &self.attention
-    }
-
     /// Current drift Δθ of joint `j` (0-based).
     pub fn drift(&self, j: usize) -> f64 {
         self.nodes[j].drift

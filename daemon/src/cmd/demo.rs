@@ -584,8 +584,8 @@ mod tests {
     use prost::Message as _;
 
     /// A wearer whose wrist keeps to a third of its range: the progress line tells them to move
-    /// it; one who follows (compliance 1) gets the session calibrated and pushed at the minute,
-    /// one who does not is refused at the maximum, naming the wrist's coverage.
+    /// it; one who follows (compliance 1) gets the session calibrated and pushed within the
+    /// minute, one who does not is refused at the maximum, naming the wrist's coverage.
     #[test]
     fn a_lazy_wrist_is_told_to_move_and_a_wearer_who_follows_is_calibrated() {
         let mut reach = [1.0; 7];
