@@ -123,7 +123,7 @@ use crate::kalman::{
 pub use crate::kalman::{DriftSlot, Trend, RATE_BIAS_TERMS};
 use crate::linalg::{Analysis, QrAccumulator};
 use crate::ls::{positive, validate_samples, InputChecks};
-use crate::metrics::{expected_table_error, TableError};
+use crate::metrics::{expected_table_error, ErrorPoses, TableError};
 use crate::model::{DhTable, Sample};
 
 const M: usize = RATE_BIAS_TERMS;
@@ -260,6 +260,11 @@ pub struct DriftEmOptions<const N: usize> {
     /// standard deviations (a standard normal under the model: above 6 about once in 10⁹
     /// samples).
     pub max_jump: f64,
+    /// The poses [`DriftEmResult::expected_error`], [`DriftEmResult::stated_error`] and
+    /// [`DriftEmResult::allowance`] are averaged over: the session's own
+    /// ([`ErrorPoses::Session`], the default) or the joints' ranges, which a session that
+    /// left part of a range unvisited is honest only over ([`ErrorPoses::Ranges`]).
+    pub error_poses: ErrorPoses<N>,
 }
 
 impl<const N: usize> DriftEmOptions<N> {
@@ -289,6 +294,7 @@ impl<const N: usize> DriftEmOptions<N> {
             max_discounted_share: 0.1,
             max_inconsistency: 9.0,
             max_jump: 6.0,
+            error_poses: ErrorPoses::Session,
         }
     }
 
@@ -547,8 +553,8 @@ pub struct DriftEmResult<const N: usize> {
     /// model, `std_errors[kind][joint]` (m, rad): the inverse of the exact Fisher information
     /// of the static parameters with the drift integrated out (from the two-stage filter).
     pub std_errors: [[f64; N]; 4],
-    /// Expected table error (1σ) of [`DriftEmResult::table`] under that bound: the RMS over the
-    /// session's own poses (at most [`EXPECTED_ERROR_POSES`], evenly spread) of the position and
+    /// Expected table error (1σ) of [`DriftEmResult::table`] under that bound: the RMS over
+    /// [`DriftEmOptions::error_poses`] ([`EXPECTED_ERROR_POSES`] of them) of the position and
     /// rotation error its FK would have against the true table ([`crate::metrics`]).
     pub expected_error: TableError,
     /// The expected table error to state (1σ): [`DriftEmResult::expected_error`] with the
@@ -596,7 +602,8 @@ impl<const N: usize> DriftEmResult<N> {
     }
 }
 
-/// Most poses of the session [`DriftEmResult::expected_error`] is averaged over.
+/// Poses [`DriftEmResult::expected_error`] is averaged over ([`ErrorPoses`]; a session with fewer
+/// samples: all of its own).
 pub const EXPECTED_ERROR_POSES: usize = 256;
 
 fn degenerate(what: &'static str) -> CalibError {
@@ -1683,8 +1690,7 @@ fn finish<const N: usize, const P: usize>(
         blocks: inn.blocks,
     };
 
-    let pose_stride = kn.div_ceil(EXPECTED_ERROR_POSES);
-    let poses = || samples.iter().step_by(pose_stride).map(|s| &s.joints);
+    let poses = || opts.error_poses.of(samples);
     let expected_error = expected_table_error::<N, P>(&table, poses(), |u| info.an.variance_along(u));
     // The consider allowance, where the chosen model leaves the rate bias out (at that model's
     // weight where the other one is mixed in).

@@ -29,25 +29,6 @@ pub const GUIDANCE_CONFIGS: usize = 100;
 /// Poses (spread over the joint ranges) the expected error is averaged over.
 pub const GUIDANCE_POSES: usize = 200;
 
-/// Irrational steps (fractional parts of √2, √3, √5, …) of the additive recurrence that spreads
-/// points evenly over a box: joint `j` of point `i` at `frac((i + ½) · SPREAD[j])`.
-const SPREAD: [f64; 8] = [
-    0.414_213_562_373_095,
-    0.732_050_807_568_877,
-    0.236_067_977_499_790,
-    0.645_751_311_064_591,
-    0.316_624_790_355_400,
-    0.605_551_275_463_989,
-    0.123_105_625_617_661,
-    0.358_898_943_540_674,
-];
-
-/// Point `i` of the recurrence, coordinate `j`, in `[0, 1)`.
-fn spread(i: usize, j: usize) -> f64 {
-    let x = (i as f64 + 0.5) * SPREAD[j % SPREAD.len()] + (j / SPREAD.len()) as f64 * 0.5;
-    x - libm::floor(x)
-}
-
 /// The expected table error now, and after more motion of each joint.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Guidance<const N: usize> {
@@ -138,26 +119,18 @@ pub fn guidance<const N: usize, const P: usize>(
         absorb::<N, P>(&mut h, table, q, &inv_var, per_config);
     }
     let every = |n: usize| visited.len().div_ceil(n).max(1);
-    let poses: heapless::Vec<[f64; N], GUIDANCE_POSES> = (0..GUIDANCE_POSES)
-        .map(|i| {
-            core::array::from_fn(|j| {
-                let (lo, hi) = ranges.limits[j];
-                lo + (hi - lo) * spread(i, j)
-            })
-        })
-        .collect();
+    let poses: heapless::Vec<[f64; N], GUIDANCE_POSES> = (0..GUIDANCE_POSES).map(|i| ranges.spread(i)).collect();
     let now = expected::<N, P>(table, h, &poses)?;
     let m = visited.len().min(GUIDANCE_CONFIGS);
     let base: heapless::Vec<[f64; N], GUIDANCE_CONFIGS> = visited.iter().step_by(every(m)).take(m).copied().collect();
     let mut after = [now; N];
     for (j, out) in after.iter_mut().enumerate() {
-        let (lo, hi) = ranges.limits[j];
         let mut hj = h;
         let weight = added_samples / base.len() as f64;
         for (i, q) in base.iter().enumerate() {
             let mut q = *q;
             // The range swept evenly, in an order uncorrelated with the other joints'.
-            q[j] = lo + (hi - lo) * spread(i, j);
+            q[j] = ranges.spread_joint(i, j);
             absorb::<N, P>(&mut hj, table, &q, &inv_var, weight);
         }
         *out = expected::<N, P>(table, hj, &poses)?;

@@ -106,7 +106,7 @@ pub use ls::{
 };
 pub use metrics::{
     expected_table_error, ls_expected_table_error, ls_white_expected_error, objective_y, objective_y_corrected, table_error,
-    ParamErrors, TableError,
+    ErrorPoses, ParamErrors, TableError,
 };
 pub use model::{
     bound_violations, check_bounds, clamp_to_bounds, pose_error, BoundViolation, Bounds, DhRow, DhTable, Frame, JointRanges,

@@ -11,8 +11,10 @@
 //! and rotation vector in radians, summed as the paper does). Its value does not depend on the
 //! frame the error is expressed in.
 
+use core::borrow::Borrow;
+
 use crate::linalg::GramAccumulator;
-use crate::model::{pose_error, DhTable, ParamKind, Sample};
+use crate::model::{pose_error, DhTable, JointRanges, ParamKind, Sample};
 
 /// RMS position and rotation difference between two tables' FK over a set of poses (see the
 /// module docs), or its expectation.
@@ -25,13 +27,14 @@ pub struct TableError {
 }
 
 /// Table error of `table` against `truth` over `poses` (joint angles, rad). Zero for no poses.
-pub fn table_error<'a, const N: usize>(
+pub fn table_error<const N: usize>(
     table: &DhTable<N>,
     truth: &DhTable<N>,
-    poses: impl IntoIterator<Item = &'a [f64; N]>,
+    poses: impl IntoIterator<Item = impl Borrow<[f64; N]>>,
 ) -> TableError {
     let (mut pos, mut rot, mut n) = (0.0, 0.0, 0usize);
     for q in poses {
+        let q = q.borrow();
         let e = pose_error(&table.fk(q), &truth.fk(q));
         pos += e.fixed_rows::<3>(0).norm_squared();
         rot += e.fixed_rows::<3>(3).norm_squared();
@@ -44,15 +47,15 @@ pub fn table_error<'a, const N: usize>(
 /// has covariance `C`, given as `variance(u) = uᵀ C u` over the `P = 4N` parameters in
 /// [`DhTable::param`] order (e.g. [`crate::linalg::Analysis::variance_along`]). Linearised:
 /// the FK difference at pose q is `J(q) Δ` with `J` the tool-frame FK Jacobian.
-pub fn expected_table_error<'a, const N: usize, const P: usize>(
+pub fn expected_table_error<const N: usize, const P: usize>(
     table: &DhTable<N>,
-    poses: impl IntoIterator<Item = &'a [f64; N]>,
+    poses: impl IntoIterator<Item = impl Borrow<[f64; N]>>,
     variance: impl Fn(&[f64; P]) -> f64,
 ) -> TableError {
     const { assert!(P == 4 * N, "P must be 4N") };
     let (mut pos, mut rot, mut n) = (0.0, 0.0, 0usize);
     for q in poses {
-        let (_, cols) = table.fk_jacobian(q);
+        let (_, cols) = table.fk_jacobian(q.borrow());
         // Row r of the 6 × P FK Jacobian: one output (position x, y, z, rotation x, y, z).
         let rows: [[f64; P]; 6] = core::array::from_fn(|r| core::array::from_fn(|p| cols[p / N][p % N][r]));
         for (r, u) in rows.iter().enumerate() {
@@ -81,13 +84,13 @@ pub fn expected_table_error<'a, const N: usize, const P: usize>(
 /// `σⱼ² Σₜₛ φⱼ^|t−s| gₜⱼ gₛⱼᵀ`, summed in one pass with `hₜ = φ (hₜ₋₁ + gₜ₋₁)` as
 /// `(g + h)(g + h)ᵀ − h hᵀ` per sample. `None` if `A` is too ill-conditioned for its normal
 /// equations (see [`GramAccumulator::analyse`]).
-pub fn ls_expected_table_error<'a, const N: usize, const P: usize>(
+pub fn ls_expected_table_error<const N: usize, const P: usize>(
     table: &DhTable<N>,
     samples: &[Sample<N>],
     phi: &[f64; N],
     drift_var: &[f64; N],
     noise_var: &[f64; 6],
-    poses: impl IntoIterator<Item = &'a [f64; N]>,
+    poses: impl IntoIterator<Item = impl Borrow<[f64; N]>>,
 ) -> Option<TableError> {
     const { assert!(P == 4 * N, "P must be 4N") };
     let prepared = table.prepare();
@@ -128,13 +131,17 @@ pub fn ls_expected_table_error<'a, const N: usize, const P: usize>(
     }))
 }
 
-/// The expected table error (1σ, RMS over up to [`crate::EXPECTED_ERROR_POSES`] of the
-/// session's poses) of the least-squares table `table` on `samples` when its residuals are white:
-/// [`ls_expected_table_error`] with no drift and each pose component's noise variance taken as its
-/// residual variance at `table`. What LS alone is worth where the drift EM has no figure to give
-/// (it failed, or the session has no drift to speak of): honest for white residuals, optimistic
-/// by the drift's colour otherwise. `None` as for [`ls_expected_table_error`].
-pub fn ls_white_expected_error<const N: usize, const P: usize>(table: &DhTable<N>, samples: &[Sample<N>]) -> Option<TableError> {
+/// The expected table error (1σ, RMS over `poses`) of the least-squares table `table` on
+/// `samples` when its residuals are white: [`ls_expected_table_error`] with no drift and each
+/// pose component's noise variance taken as its residual variance at `table`. What LS alone is
+/// worth where the drift EM has no figure to give (it failed, or the session has no drift to
+/// speak of): honest for white residuals, optimistic by the drift's colour otherwise. `None` as
+/// for [`ls_expected_table_error`].
+pub fn ls_white_expected_error<const N: usize, const P: usize>(
+    table: &DhTable<N>,
+    samples: &[Sample<N>],
+    poses: &ErrorPoses<N>,
+) -> Option<TableError> {
     let mut var = [0.0; 6];
     for s in samples {
         let e = pose_error(&table.fk(&s.joints), &s.pose);
@@ -144,15 +151,39 @@ pub fn ls_white_expected_error<const N: usize, const P: usize>(table: &DhTable<N
     }
     let dof = samples.len().saturating_sub(P / 6 + 1).max(1) as f64;
     let var = var.map(|v| v / dof);
-    let stride = samples.len().div_ceil(crate::EXPECTED_ERROR_POSES).max(1);
-    ls_expected_table_error::<N, P>(
-        table,
-        samples,
-        &[0.0; N],
-        &[0.0; N],
-        &var,
-        samples.iter().step_by(stride).map(|s| &s.joints),
-    )
+    ls_expected_table_error::<N, P>(table, samples, &[0.0; N], &[0.0; N], &var, poses.of(samples))
+}
+
+/// The poses an expected table error is averaged over (RMS): [`crate::EXPECTED_ERROR_POSES`] of
+/// them.
+///
+/// A table is used over the joints' whole ranges, not only where its session went: a session
+/// whose wrist moved through a third of its range identifies the wrist's parameters well
+/// there and poorly at the ends, and its error over its own poses says nothing of the ends.
+/// [`ErrorPoses::Ranges`] states what the table is worth over the ranges, whatever the session
+/// covered; [`ErrorPoses::Session`] what it is worth where the session went (equal in
+/// expectation when the session's motion is the wearer's whole-range motion).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ErrorPoses<const N: usize> {
+    /// The session's own poses, evenly spread over it.
+    Session,
+    /// Poses spread evenly over the joint ranges ([`JointRanges::spread`]): the same set for
+    /// every session with these ranges.
+    Ranges(JointRanges<N>),
+}
+
+impl<const N: usize> ErrorPoses<N> {
+    /// The poses, for a session of `samples`.
+    pub fn of<'a>(&self, samples: &'a [Sample<N>]) -> impl Iterator<Item = [f64; N]> + 'a {
+        let (session, spread) = match *self {
+            ErrorPoses::Session => {
+                let stride = samples.len().div_ceil(crate::EXPECTED_ERROR_POSES).max(1);
+                (Some(samples.iter().step_by(stride).map(|s| s.joints)), None)
+            }
+            ErrorPoses::Ranges(ranges) => (None, Some((0..crate::EXPECTED_ERROR_POSES).map(move |i| ranges.spread(i)))),
+        };
+        session.into_iter().flatten().chain(spread.into_iter().flatten())
+    }
 }
 
 fn rms(pos: f64, rot: f64, n: usize) -> TableError {

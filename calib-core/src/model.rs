@@ -579,6 +579,41 @@ pub struct JointRanges<const N: usize> {
     pub limits: [(f64, f64); N],
 }
 
+/// Irrational steps (fractional parts of √2, √3, √5, …) of the additive recurrence that spreads
+/// points evenly over a box: joint `j` of point `i` at `frac((i + ½) · SPREAD[j])`.
+const SPREAD: [f64; 8] = [
+    0.414_213_562_373_095,
+    0.732_050_807_568_877,
+    0.236_067_977_499_790,
+    0.645_751_311_064_591,
+    0.316_624_790_355_400,
+    0.605_551_275_463_989,
+    0.123_105_625_617_661,
+    0.358_898_943_540_674,
+];
+
+/// Point `i` of the recurrence, coordinate `j`, in `[0, 1)`.
+fn spread(i: usize, j: usize) -> f64 {
+    let x = (i as f64 + 0.5) * SPREAD[j % SPREAD.len()] + (j / SPREAD.len()) as f64 * 0.5;
+    x - libm::floor(x)
+}
+
+impl<const N: usize> JointRanges<N> {
+    /// Point `i` of a set spread evenly over the ranges (joint `j` at `frac((i + ½) · s_j)` of
+    /// its range, `s_j` the fractional parts of √2, √3, √5, …: an additive recurrence, so any
+    /// first `n` points cover the box about evenly). What "the poses a wearer will take" means
+    /// where a session's own poses are not enough ([`crate::ErrorPoses::Ranges`], guidance).
+    pub fn spread(&self, i: usize) -> [f64; N] {
+        core::array::from_fn(|j| self.spread_joint(i, j))
+    }
+
+    /// Joint `j`'s angle in point `i` of [`JointRanges::spread`].
+    pub fn spread_joint(&self, i: usize, j: usize) -> f64 {
+        let (lo, hi) = self.limits[j];
+        lo + (hi - lo) * spread(i, j)
+    }
+}
+
 impl JointRanges<7> {
     /// The paper's Table 3, with paper note 5 (θ5 ∈ [−20°, 30°], θ6 ∈ [−30°, 40°]).
     pub fn paper() -> Self {

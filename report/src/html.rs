@@ -982,7 +982,7 @@ fn ls_against_em(out: &mut String, em: &EmDetail) {
     });
     let _ = write!(
         out,
-        "</tbody></table><p class=\"note\">Both under the drift (τ, σ per joint) and pose noise the EM fitted, over the session's poses{apart}. \
+        "</tbody></table><p class=\"note\">Both under the drift (τ, σ per joint) and pose noise the EM fitted, over poses spread over the joint ranges{apart}. \
          The calibrate-many-sessions view of the same comparison (LS, our EM and the bound against known true tables) is calib-core's sweep.</p>"
     );
 }

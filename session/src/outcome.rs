@@ -70,7 +70,8 @@ pub struct EmDetail {
     pub drift_confidence: Option<[DriftConfidence; JOINTS]>,
     /// Cramér-Rao 1σ of every parameter under the drift model, `kind·7 + joint`.
     pub std_errors: [f64; PARAMS],
-    /// Expected table error (1σ) under that bound, over the session's poses.
+    /// Expected table error (1σ) under that bound, over poses spread over the joint ranges
+    /// (calib-core's `ErrorPoses::Ranges`).
     pub expected_error: TableError,
     /// The expected table error to state and validate with (1σ): the bound with the
     /// uncertainty of the drift-model choice (calib-core's `stated_error`).

@@ -30,8 +30,8 @@ use crate::parallel::Parallel;
 use calib_core::drift_conf::Z_95;
 use calib_core::{
     drift_confidence, em_drift, identify_ls_with, ls_expected_table_error, ls_white_expected_error,
-    separate, table_error, DhTable, DriftEmOptions, DriftSlot, InputChecks, JointDrift, LsOptions,
-    RateBias, Sample, SeparationSlot, EXPECTED_ERROR_POSES,
+    separate, table_error, DhTable, DriftEmOptions, DriftSlot, ErrorPoses, InputChecks, JointDrift,
+    LsOptions, RateBias, Sample, SeparationSlot,
 };
 use nalgebra::{DMatrix, SMatrix};
 use serde::Serialize;
@@ -124,7 +124,7 @@ pub struct EmSummary {
 pub struct UnmodelledRateBias {
     /// The rate bias weighed (°/s, a ramp from the session's start).
     pub rate_deg_s: f64,
-    /// What it adds to the position error (mm, RMS over the session's poses).
+    /// What it adds to the position error (mm, RMS over the joint ranges).
     pub position_mm: f64,
     /// What it adds to the rotation error (mrad).
     pub rotation_mrad: f64,
@@ -495,7 +495,7 @@ pub fn separate_readings(samples: &mut [Sample<JOINTS>], settings: &Settings) ->
 }
 
 /// The LS and EM options the daemon calibrates with: input checks against the configured
-/// joint ranges, the EM step `1 / window.grid_hz`, the sensors' rate-bias spec.
+/// joint ranges (the error stated over them), the EM step `1 / window.grid_hz`, the sensors' rate-bias spec.
 pub fn options(settings: &Settings) -> (LsOptions<JOINTS>, DriftEmOptions<JOINTS>) {
     let checks = InputChecks::new(Some(settings.bounds.joint_range));
     let ls_opts = LsOptions {
@@ -515,6 +515,9 @@ pub fn options(settings: &Settings) -> (LsOptions<JOINTS>, DriftEmOptions<JOINTS
         } else {
             RateBias::NONE
         },
+        // A table is worn over the joints' whole ranges, however much of them its session went
+        // through: its error is stated there.
+        error_poses: ErrorPoses::Ranges(settings.bounds.joint_range),
         ..DriftEmOptions::new(1.0 / settings.window.grid_hz)
     };
     (ls_opts, em_opts)
@@ -553,9 +556,8 @@ pub fn ls_then_em(
                 std::array::from_fn(|j| drift[j] + trend[j])
             })
             .collect();
-        // The session's poses the EM's expected error is averaged over, for the LS figures.
-        let stride = fit.len().div_ceil(EXPECTED_ERROR_POSES).max(1);
-        let poses = || fit.iter().step_by(stride).map(|s| &s.joints);
+        // The poses the EM's expected error is averaged over, for the LS figures.
+        let poses = || em_opts.error_poses.of(fit);
         let drift_var: [f64; JOINTS] =
             std::array::from_fn(|j| r.process_variance[j] / (1.0 - r.phi[j] * r.phi[j]));
         EmDetail {
@@ -595,7 +597,7 @@ pub fn ls_then_em(
         Ok(em) => (em.table, Some(em.stated_error)),
         Err(_) => (
             ls.table,
-            ls_white_expected_error::<JOINTS, PARAMS>(&ls.table, fit),
+            ls_white_expected_error::<JOINTS, PARAMS>(&ls.table, fit, &em_opts.error_poses),
         ),
     };
     let correlations = strongest_correlations(&calibrated, fit, TOP_CORRELATIONS);

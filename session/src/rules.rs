@@ -258,7 +258,7 @@ pub struct ValidationRules {
     pub max_condition_number: f64,
     /// Fraction (0, 1) of the session, at its end, kept out of the fit.
     pub holdout_fraction: f64,
-    /// Largest expected table error (1σ, RMS position over the session's poses, mm) a pushed
+    /// Largest expected table error (1σ, RMS position over the joint ranges, mm) a pushed
     /// table may have, from the drift EM's Cramér-Rao bound.
     pub max_expected_position_error_mm: f64,
     /// The same for rotation (mrad).
