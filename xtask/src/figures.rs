@@ -74,6 +74,10 @@ enum Source {
     /// Peak RSS of `exocald demo` (release build, at full speed) for the shipped configuration's
     /// shortest and longest collection windows.
     Memory,
+    /// The block of this name in BENCHMARKS.md, where a figure no quick or repeatable command
+    /// regenerates is recorded by hand with its date and commands (a session killed mid-way:
+    /// what it recovers depends on when the kill lands).
+    Quoted(&'static str),
 }
 
 impl Source {
@@ -103,6 +107,16 @@ const BLOCKS: &[(&str, &str, Source)] = &[
     ("README.md", "bench-goals", Source::BenchGoals),
     ("README.md", "report-shot", Source::ReportShot),
     ("README.md", "nodes", Source::Nodes),
+    (
+        "README.md",
+        "killed-session",
+        Source::Quoted("killed-session"),
+    ),
+    (
+        "docs/recover-mcap.md",
+        "killed-offline",
+        Source::Quoted("killed-offline"),
+    ),
 ];
 
 /// Where the README's screenshot of the demo's report lives, and the window Chromium draws it in.
@@ -565,6 +579,11 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
             lines.push("$ echo $?");
             lines.push("78");
             Ok(fenced(&lines))
+        }
+        Source::Quoted(name) => {
+            let bench = std::fs::read_to_string(root.join("BENCHMARKS.md"))?;
+            let (start, end) = block_span(&bench, name).context("BENCHMARKS.md")?;
+            Ok(bench[start..end].to_string())
         }
         Source::BenchGoals => {
             let bench = std::fs::read_to_string(root.join("BENCHMARKS.md"))?;
