@@ -110,7 +110,7 @@ pub use metrics::{
 };
 pub use model::{
     bound_violations, check_bounds, clamp_to_bounds, pose_error, BoundViolation, Bounds, DhRow, DhTable, Frame, JointRanges,
-    ParamKind, Sample, SUIT_JOINTS, SUIT_PARAMS,
+    ParamKind, PreparedTable, Sample, SUIT_JOINTS, SUIT_PARAMS,
 };
 #[cfg(any(test, feature = "research"))]
 pub use paper_em::{paper_em, PaperEmForm, PaperEmOptions, PaperEmResult};

@@ -325,8 +325,9 @@ impl<const N: usize> DhTable<N> {
     }
 
     /// The table with `sin α`, `cos α` of every row evaluated once, for kinematics over many
-    /// samples (the results are bit-identical to [`DhTable::fk_jacobian`]).
-    pub(crate) fn prepare(&self) -> PreparedTable<N> {
+    /// samples (the results are bit-identical to [`DhTable::fk_jacobian`] and, for
+    /// [`PreparedTable::frames`], to [`DhTable::fk`]).
+    pub fn prepare(&self) -> PreparedTable<N> {
         PreparedTable {
             rows: self.rows,
             trig: core::array::from_fn(|i| libm::sincos(self.rows[i].alpha)),
@@ -350,14 +351,29 @@ impl<const N: usize> DhTable<N> {
 
 /// A [`DhTable`] with the trigonometry of its constant twists `α` precomputed (see
 /// [`DhTable::prepare`]): per sample only `sin`/`cos` of the joint angles remain.
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct PreparedTable<const N: usize> {
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PreparedTable<const N: usize> {
     rows: [DhRow; N],
     /// `(sin α_i, cos α_i)`.
     trig: [(f64, f64); N],
 }
 
 impl<const N: usize> PreparedTable<N> {
+    /// The frames after joints 1..=`n` in the base frame (index `i`: after joint `i + 1`) for
+    /// the angles `joints[..n]`, composed from the base as [`DhTable::fk`] does (bit-identical
+    /// to it for `n = N`); the frames past `n` are the identity. What an IMU on link `i` sees,
+    /// without the links past it.
+    pub fn frames(&self, joints: &[f64], n: usize) -> [Frame; N] {
+        let mut out = [Frame::identity(); N];
+        let mut t = Frame::identity();
+        for i in 0..n.min(N).min(joints.len()) {
+            let (sa, ca) = self.trig[i];
+            t = t.compose(&self.rows[i].transform_with(joints[i], sa, ca));
+            out[i] = t;
+        }
+        out
+    }
+
     /// The tool pose, composed from the tool backwards like [`PreparedTable::fk_jacobian`]
     /// does (so bit-identical to its pose, which [`DhTable::fk`] is not), without the Jacobian.
     pub(crate) fn pose(&self, joints: &[f64; N]) -> Frame {
@@ -799,6 +815,22 @@ mod tests {
             let (k, j) = ParamKind::of_index(p, 7);
             let an = -(m * cols[k as usize][j]);
             assert!((fd - an).norm() < 1e-7, "param {p}: {fd:?} vs {an:?}");
+        }
+    }
+
+    #[test]
+    fn frames_end_at_fk_bit_for_bit_and_stop_where_asked() {
+        let table = DhTable::paper_actual();
+        let prepared = table.prepare();
+        for seed in 0..20 {
+            let q = rand_joints(seed);
+            let frames = prepared.frames(&q, 7);
+            assert_eq!(frames[6], table.fk(&q));
+            let first: [f64; 3] = [q[0], q[1], q[2]];
+            let head = prepared.frames(&first, 7);
+            assert_eq!(head[..3], frames[..3]);
+            assert_eq!(head[3], Frame::identity());
+            assert_eq!(prepared.frames(&q, 2)[2], Frame::identity());
         }
     }
 

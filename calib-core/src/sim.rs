@@ -34,8 +34,9 @@ use crate::rng::Rng;
 /// Number of sinusoids per joint in the random motion.
 pub const MOTION_HARMONICS: usize = 4;
 
-/// Smooth random joint motion inside given ranges.
-#[derive(Clone, Debug)]
+/// Smooth random joint motion inside given ranges: the suit's motion, here and in the emulated
+/// suit (`exocal-hil`).
+#[derive(Clone, Debug, PartialEq)]
 pub struct Motion<const N: usize> {
     freq: [[f64; MOTION_HARMONICS]; N],
     phase: [[f64; MOTION_HARMONICS]; N],
@@ -60,6 +61,26 @@ impl<const N: usize> Motion<N> {
             }
         }
         m
+    }
+
+    /// The joints' ranges the motion keeps inside.
+    pub fn ranges(&self) -> &JointRanges<N> {
+        &self.ranges
+    }
+
+    /// Joint `j`'s motion at time `t` (s) normalised into `[−1, 1]`, and its rate (1/s), in
+    /// closed form: [`Motion::at`] is `mid + 0.49 (max − min) ·` it, joint by joint. For a
+    /// caller that evaluates one joint at a time, or needs the rate (an emulated gyro).
+    pub fn unit(&self, j: usize, t: f64) -> (f64, f64) {
+        let (mut s, mut ds, mut norm) = (0.0, 0.0, 0.0);
+        for h in 0..MOTION_HARMONICS {
+            let omega = 2.0 * core::f64::consts::PI * self.freq[j][h];
+            let (sn, cs) = libm::sincos(omega * t + self.phase[j][h]);
+            s += self.amp[j][h] * sn;
+            ds += self.amp[j][h] * omega * cs;
+            norm += self.amp[j][h];
+        }
+        (s / norm, ds / norm)
     }
 
     /// Joint angles at time `t` (s).
@@ -310,6 +331,25 @@ impl<const N: usize> Iterator for Scenario<N> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_joint_alone_is_the_motion_and_its_rate_the_derivative() {
+        let ranges = JointRanges::paper();
+        let m = Motion::random(&ranges, &mut Rng::new(9));
+        for k in 0..500 {
+            let t = k as f64 * 0.137;
+            let q = m.at(t);
+            for (j, &qj) in q.iter().enumerate() {
+                let (lo, hi) = ranges.limits[j];
+                let (u, du) = m.unit(j, t);
+                assert!(u.abs() <= 1.0);
+                assert!((0.5 * (lo + hi) + 0.49 * (hi - lo) * u - qj).abs() < 1e-12);
+                let h = 1e-6;
+                let fd = (m.unit(j, t + h).0 - m.unit(j, t - h).0) / (2.0 * h);
+                assert!((fd - du).abs() < 1e-7, "{fd} vs {du}");
+            }
+        }
+    }
 
     #[test]
     fn motion_stays_in_range_moves_and_is_seeded() {

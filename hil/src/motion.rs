@@ -1,37 +1,26 @@
-//! Smooth random joint motion with analytic rates, and a D-H chain with cached link constants.
+//! The suit's motion: calib-core's motion generator ([`calib_core::Motion`], the one its
+//! simulation and sweep use), evaluated joint by joint with its rate in closed form, as the
+//! wearer shapes it.
 //!
-//! Contract: like calib-core's `Motion` (a sum of [`HARMONICS`] random sinusoids per joint,
-//! 0.05–0.6 Hz, normalised into `[−1, 1]` and mapped into 98 % of the joint's range, so it is
-//! smooth and never leaves the range), but each joint is evaluated on its own, with its rate in
-//! closed form: a node samples only what it needs. This matters in slow environments (the vcan
-//! harness runs under QEMU's software floating point).
+//! Contract: [`Motion::random`] draws calib-core's motion (a sum of
+//! [`calib_core::sim::MOTION_HARMONICS`] random sinusoids per joint, 0.05–0.6 Hz, normalised into
+//! `[−1, 1]` and mapped into 98 % of the joint's range), so a seed gives the same motion here and
+//! there. Each joint is evaluated on its own, with its rate: a node samples only what it needs
+//! (this matters in slow environments: the vcan harness runs under QEMU's software floating
+//! point). Kinematics are calib-core's too ([`calib_core::PreparedTable::frames`]).
 //!
 //! The wearer ([`crate::wearer`]) shapes it: each joint's free motion uses a fraction of its
 //! range (`reach`, about the middle), and a joint the wearer moves as advised blends from its
 //! free motion into sweeps of its whole range ([`Motion::sweep`]) and back, smoothly, its rate
 //! still in closed form.
 
-use calib_core::{DhTable, Frame, JointRanges, Rng};
-use nalgebra::{Matrix3, Vector3};
+use calib_core::{JointRanges, Rng};
 use std::f64::consts::TAU;
 
 /// Full-range sweeps per second of a joint the wearer moves as advised ([`Motion::sweep`]).
 pub const SWEEP_HZ: f64 = 0.25;
 /// Seconds a joint takes to blend into an advised sweep, and back.
 pub const RAMP_S: f64 = 1.0;
-
-/// Sinusoids per joint.
-pub const HARMONICS: usize = 4;
-
-/// One joint's motion.
-#[derive(Clone, Copy, Debug, PartialEq)]
-struct Joint {
-    omega: [f64; HARMONICS],
-    phase: [f64; HARMONICS],
-    amp: [f64; HARMONICS],
-    mid: f64,
-    half: f64,
-}
 
 /// A joint the wearer moves as advised, over `[from, until]` (s).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -45,7 +34,7 @@ struct Sweep {
 /// Smooth random motion of seven joints.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Motion {
-    joints: [Joint; 7],
+    free: calib_core::Motion<7>,
     /// Fraction of each joint's half-range the free motion uses.
     reach: [f64; 7],
     /// Advised sweeps, in the order heard.
@@ -64,31 +53,10 @@ fn smoothstep(x: f64) -> (f64, f64) {
 }
 
 impl Motion {
-    /// Draws a motion inside `ranges`.
+    /// Draws a motion inside `ranges`: calib-core's for the same generator state.
     pub fn random(ranges: &JointRanges<7>, rng: &mut Rng) -> Motion {
         Motion {
-            joints: std::array::from_fn(|j| {
-                let mut m = Joint {
-                    omega: [0.0; HARMONICS],
-                    phase: [0.0; HARMONICS],
-                    amp: [0.0; HARMONICS],
-                    mid: 0.0,
-                    half: 0.0,
-                };
-                for h in 0..HARMONICS {
-                    m.omega[h] = TAU * (0.05 + 0.55 * rng.uniform());
-                    m.phase[h] = TAU * rng.uniform();
-                    m.amp[h] = 0.2 + rng.uniform();
-                }
-                let norm: f64 = m.amp.iter().sum();
-                let (lo, hi) = ranges.limits[j];
-                m.mid = 0.5 * (lo + hi);
-                m.half = 0.49 * (hi - lo);
-                for a in m.amp.iter_mut() {
-                    *a /= norm;
-                }
-                m
-            }),
+            free: calib_core::Motion::random(ranges, rng),
             reach: [1.0; 7],
             sweeps: Vec::new(),
         }
@@ -114,13 +82,7 @@ impl Motion {
 
     /// Angle (rad) and rate (rad/s) of joint `j` at time `t` (s).
     pub fn joint(&self, j: usize, t: f64) -> (f64, f64) {
-        let m = &self.joints[j];
-        let (mut s, mut ds) = (0.0, 0.0);
-        for h in 0..HARMONICS {
-            let (sn, cs) = (m.omega[h] * t + m.phase[h]).sin_cos();
-            s += m.amp[h] * sn;
-            ds += m.amp[h] * m.omega[h] * cs;
-        }
+        let (s, ds) = self.free.unit(j, t);
         let (mut u, mut du) = (self.reach[j] * s, self.reach[j] * ds);
         if let Some(w) = self
             .sweeps
@@ -138,7 +100,9 @@ impl Motion {
                 (1.0 - g) * du - dg * u + dg * sn + g * omega * cs,
             );
         }
-        (m.mid + m.half * u, m.half * du)
+        let (lo, hi) = self.free.ranges().limits[j];
+        let (mid, half) = (0.5 * (lo + hi), 0.49 * (hi - lo));
+        (mid + half * u, half * du)
     }
 
     /// All seven angles at `t`.
@@ -147,45 +111,22 @@ impl Motion {
     }
 }
 
-/// A D-H chain with sin/cos of every α precomputed (same convention as calib-core, eq. 1).
-#[derive(Clone, Debug, PartialEq)]
-pub struct Chain {
-    rows: [(f64, f64, f64, f64, f64); 7],
-}
-
-impl Chain {
-    /// From a table.
-    pub fn new(table: &DhTable<7>) -> Chain {
-        Chain {
-            rows: std::array::from_fn(|i| {
-                let r = table.rows[i];
-                let (sa, ca) = r.alpha.sin_cos();
-                (r.a, r.d, r.theta_offset, sa, ca)
-            }),
-        }
-    }
-
-    /// Frames after joints 1..=`n` (index i = frame after joint i+1), for angles `q[..n]`.
-    pub fn frames(&self, q: &[f64], n: usize) -> [Frame; 7] {
-        let mut out = [Frame::identity(); 7];
-        let mut t = Frame::identity();
-        for i in 0..n {
-            let (a, d, off, sa, ca) = self.rows[i];
-            let (st, ct) = (q[i] + off).sin_cos();
-            let link = Frame {
-                r: Matrix3::new(ct, -st * ca, st * sa, st, ct * ca, -ct * sa, 0.0, sa, ca),
-                p: Vector3::new(a * ct, a * st, d),
-            };
-            t = t.compose(&link);
-            out[i] = t;
-        }
-        out
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_free_motion_is_calib_cores() {
+        let ranges = JointRanges::paper();
+        let ours = Motion::random(&ranges, &mut Rng::new(5));
+        let theirs = calib_core::Motion::random(&ranges, &mut Rng::new(5));
+        for k in 0..1000 {
+            let t = k as f64 * 0.071;
+            for (a, b) in ours.at(t).iter().zip(theirs.at(t)) {
+                assert!((a - b).abs() < 1e-12, "{a} vs {b} at {t}");
+            }
+        }
+    }
 
     #[test]
     fn stays_in_range_and_the_rate_is_the_derivative() {
@@ -239,15 +180,5 @@ mod tests {
             min < lo + 0.03 * (hi - lo) && max > hi - 0.03 * (hi - lo),
             "{min} {max}"
         );
-    }
-
-    #[test]
-    fn chain_matches_calib_core_fk() {
-        let table = DhTable::paper_actual();
-        let chain = Chain::new(&table);
-        let q = [0.1, -0.5, 0.7, 1.2, -0.2, 0.3, 0.9];
-        let fk = table.fk(&q);
-        let ours = chain.frames(&q, 7)[6];
-        assert!((fk.r - ours.r).norm() < 1e-14 && (fk.p - ours.p).norm() < 1e-14);
     }
 }

@@ -24,12 +24,12 @@
 //! µs, wrapping at 2^32, and samples every `1/rate` of *its own* clock.
 
 use crate::flash::{self, FlashImage, NodeFlash};
-use crate::motion::{Chain, Motion};
+use crate::motion::Motion;
 use crate::scenario::{Scenario, TransferBehaviour};
 use crate::stream::{self, Signer};
 use crate::wearer::Attention;
 use crate::HilError;
-use calib_core::{DhTable, Discretisation, GaussMarkov, Rng};
+use calib_core::{DhTable, Discretisation, GaussMarkov, PreparedTable, Rng};
 use exocal_bus::embedded_can::{ExtendedId, Frame as _, StandardId};
 use exocal_bus::fault::{Fate, Faults};
 use exocal_bus::Frame;
@@ -198,7 +198,7 @@ impl Ord for Pending {
 pub struct Suit {
     scenario: Scenario,
     arm: DhTable<7>,
-    chain: Chain,
+    chain: PreparedTable<7>,
     motion: Motion,
     attention: Attention,
     nodes: Vec<Node>,
@@ -340,7 +340,7 @@ impl Suit {
         };
         let babble_next = scenario.faults.babble.iter().map(|b| b.from_s).collect();
         Ok(Suit {
-            chain: Chain::new(&arm),
+            chain: arm.prepare(),
             arm,
             motion,
             attention,
