@@ -35,9 +35,9 @@ use std::time::Instant;
 use std::cell::Cell;
 
 use calib_core::{
-    em_drift_vec, identify_ls, identify_ls_with, normal_equations, objective_y, pose_error, table_error, DhTable, DriftEmOptions,
-    GramAccumulator, Linearise, LsOptions, LsResult, ParamErrors, ParamKind, Sample, Scenario, ScenarioConfig, Sequential,
-    SUIT_PARAMS,
+    em_drift_vec, identify_ls, identify_ls_with, median, normal_equations, objective_y, pose_error, table_error, DhTable,
+    DriftEmOptions, GramAccumulator, Linearise, LsOptions, LsResult, ParamErrors, ParamKind, Sample, Scenario, ScenarioConfig,
+    Sequential, SUIT_PARAMS,
 };
 
 struct Args {
@@ -111,17 +111,6 @@ fn write_dataset(dir: &Path, samples: &[Sample<7>]) -> std::io::Result<()> {
         )?;
     }
     t.flush()
-}
-
-fn median(xs: &[f64]) -> f64 {
-    let mut v = xs.to_vec();
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
 }
 
 fn json_list(xs: &[f64]) -> String {
@@ -245,9 +234,9 @@ fn bench(args: &Args) -> Result<(), String> {
             "{{\"bench\":\"calib-core\",\"solver\":\"ls\",\"k\":{k},\"seed\":{},\"dir\":\"{}\",\"median_s\":{:e},\"runs_s\":{},\"wall_median_s\":{:e},\"iterations\":{},\"linearisations\":{linearisations},\"cost_passes\":{cost_passes},\"condition\":{:e},\"cost_start\":{:e},\"y_start\":{:e},{}}}",
             args.seed,
             dir.display(),
-            median(&times),
+            median(&mut times.clone()),
             json_list(&times),
-            median(&walls),
+            median(&mut walls.clone()),
             r.iterations,
             r.condition,
             samples
@@ -285,10 +274,10 @@ fn bench(args: &Args) -> Result<(), String> {
         println!(
             "{{\"bench\":\"calib-core\",\"solver\":\"ls+em\",\"k\":{k},\"seed\":{},\"median_s\":{:e},\"runs_s\":{},\"wall_median_s\":{:e},\"em_median_s\":{:e},\"em_iterations\":{},\"em_stride\":{},\"em_informations\":{},\"em_converged\":{},\"table_error_mm\":{:e},\"table_error_mrad\":{:e},{}}}",
             args.seed,
-            median(&times),
+            median(&mut times.clone()),
             json_list(&times),
-            median(&walls),
-            median(&em_times),
+            median(&mut walls.clone()),
+            median(&mut em_times.clone()),
             em.iterations,
             em.stride,
             em.information_passes,
@@ -303,7 +292,7 @@ fn bench(args: &Args) -> Result<(), String> {
 
 /// Median CPU time (s) of one call of `f`, over `reps` batches of `n` calls.
 fn time_per_call(reps: usize, n: usize, mut f: impl FnMut()) -> f64 {
-    let times: Vec<f64> = (0..reps)
+    let mut times: Vec<f64> = (0..reps)
         .map(|_| {
             let t0 = Stopwatch::start();
             for _ in 0..n {
@@ -312,7 +301,7 @@ fn time_per_call(reps: usize, n: usize, mut f: impl FnMut()) -> f64 {
             t0.read().0 / n as f64
         })
         .collect();
-    median(&times)
+    median(&mut times)
 }
 
 /// Least CPU time (s) of one call of `f`, over `reps` batches of `n` calls.

@@ -105,8 +105,8 @@ pub use ls::{
     LsOptions, LsResult, NullDirection, Sequential,
 };
 pub use metrics::{
-    expected_table_error, ls_expected_table_error, ls_white_expected_error, objective_y, objective_y_corrected, table_error,
-    ErrorPoses, ParamErrors, TableError,
+    expected_table_error, ls_expected_table_error, ls_white_expected_error, median, objective_y, objective_y_corrected,
+    table_error, ErrorPoses, ParamErrors, TableError,
 };
 pub use model::{
     bound_violations, check_bounds, clamp_to_bounds, pose_error, BoundViolation, Bounds, DhRow, DhTable, Frame, JointRanges,

@@ -186,6 +186,18 @@ impl<const N: usize> ErrorPoses<N> {
     }
 }
 
+/// The median of `v` (sorted in place, by `f64::total_cmp`; the mean of the middle two for an
+/// even count), NaN for none.
+pub fn median(v: &mut [f64]) -> f64 {
+    v.sort_unstable_by(f64::total_cmp);
+    let n = v.len();
+    match n {
+        0 => f64::NAN,
+        _ if n % 2 == 1 => v[n / 2],
+        _ => 0.5 * (v[n / 2 - 1] + v[n / 2]),
+    }
+}
+
 fn rms(pos: f64, rot: f64, n: usize) -> TableError {
     if n == 0 {
         return TableError::default();
@@ -253,6 +265,13 @@ impl ParamErrors {
 mod tests {
     use super::*;
     use crate::sim::{Scenario, ScenarioConfig};
+
+    #[test]
+    fn the_median_is_the_middle_or_the_mean_of_the_middle_two() {
+        assert_eq!(median(&mut [3.0, -1.0, 2.0]), 2.0);
+        assert_eq!(median(&mut [4.0, 1.0, 3.0, 2.0]), 2.5);
+        assert!(median(&mut []).is_nan());
+    }
 
     #[test]
     fn y_is_zero_for_the_truth_and_positive_for_nominal() {

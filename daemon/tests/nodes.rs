@@ -9,6 +9,8 @@
 //! - the same through a log cut short (`--log` on a killed session's file: the push is in the
 //!   part that was flushed).
 
+mod common;
+
 use std::path::Path;
 
 use exocal_dbc::table::{Field, Table};
@@ -24,24 +26,13 @@ const SEED: u64 = 2;
 /// and validation limits wide enough that it pushes (what is pushed does not matter here; seed
 /// 3 at 20 s fits joint 4's a 6.7 mm above its true value, 3 mm from the bound, and is refused).
 fn pushed_session(dir: &Path) -> (Config, SessionSummary) {
-    let opts = exocald::cmd::demo::DemoOptions {
-        seed: SEED,
-        speed: 1e6,
-        output: dir.to_path_buf(),
-        hold: false,
-        wearer: Default::default(),
-    };
-    let mut config = exocald::cmd::demo::demo_config(Config::default_config(), dir, 1.0);
-    config.calibration.window.min_duration_s = 20.0;
-    config.calibration.validation.max_expected_position_error_mm = 1e3;
-    config
-        .calibration
-        .validation
-        .max_expected_rotation_error_mrad = 1e3;
-    match exocald::cmd::demo::run(&config, &opts) {
-        Ok(r) => (config, r.summary),
-        Err(e) => panic!("{}\n{:#?}", e.error, e.summary),
-    }
+    let (config, summary) = common::live_session_with(dir, SEED, |config| {
+        let limits = &mut config.calibration.validation;
+        limits.max_expected_position_error_mm = 1e3;
+        limits.max_expected_rotation_error_mrad = 1e3;
+    });
+    assert!(summary.push.is_some(), "the session pushed: {summary:#?}");
+    (config, summary)
 }
 
 /// The emulated suit powered up from the flash in `flash`, with `silent` nodes that never

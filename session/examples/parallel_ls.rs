@@ -9,7 +9,7 @@ use std::num::NonZeroUsize;
 use std::time::Instant;
 
 use calib_core::{
-    em_drift_vec, identify_ls_with, DhTable, DriftEmOptions, LsOptions, Sample, Scenario,
+    em_drift_vec, identify_ls_with, median, DhTable, DriftEmOptions, LsOptions, Sample, Scenario,
     ScenarioConfig, SUIT_PARAMS,
 };
 use exocal_session::parallel::Parallel;
@@ -40,11 +40,6 @@ fn process_cpu() -> f64 {
     f.iter().sum::<f64>() / 100.0
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
 fn main() {
     let repeats = arg("--repeats", 7).max(1);
     let k = arg("--k", 6000);
@@ -69,8 +64,8 @@ fn main() {
         let cpu = (process_cpu() - cpu0) / repeats as f64;
         println!(
             "{{\"bench\":\"calib-parallel\",\"k\":{k},\"threads\":{threads},\"ls_wall_median_s\":{:e},\"ls_em_wall_median_s\":{:e},\"cpu_per_run_s\":{cpu:e},\"cost\":{cost:e}}}",
-            median(ls_wall),
-            median(all_wall)
+            median(&mut ls_wall),
+            median(&mut all_wall)
         );
     }
 }

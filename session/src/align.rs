@@ -33,6 +33,7 @@
 //!   grid points where every stream has a value; the others are counted as gaps.
 
 use crate::JOINTS;
+use calib_core::median;
 
 /// Tuning of the clock tracker.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -123,17 +124,6 @@ impl ClockFit {
     /// Host time of node time `node` (s).
     pub fn to_host(&self, node: f64) -> f64 {
         self.host_ref + (1.0 + self.skew) * (node - self.node_ref)
-    }
-}
-
-fn median(v: &mut [f64]) -> f64 {
-    debug_assert!(!v.is_empty());
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
     }
 }
 
