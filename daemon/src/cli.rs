@@ -13,10 +13,11 @@ use clap::{Args, Parser, Subcommand};
 /// Where the packaged configuration lives; used when `--config` is not given and it exists.
 pub const SYSTEM_CONFIG: &str = "/etc/exocal/exocald.toml";
 
-/// exocald: calibrates the exoskeleton's kinematic table from a minute of free motion.
+/// exocald: calibrates the exoskeleton's kinematic table from free arm motion.
 ///
 /// At power-up (`exocald calibrate`, run by systemd) the daemon listens to the IMU nodes on CAN,
-/// aligns their clocks, collects free arm motion until every joint has moved enough, identifies
+/// aligns their clocks, collects free arm motion until the table is expected within the limits
+/// (every joint moved enough, at least `min_duration_s`, at most `max_duration_s`), identifies
 /// the D-H table (least squares, then EM over the joint-angle drift), checks the result against
 /// the anatomical bounds and on a held-out slice of the session, and only then pushes it to every
 /// node. Every session is logged to an MCAP file you can open in Foxglove.

@@ -76,7 +76,8 @@ enum Source {
     Memory,
     /// The block of this name in BENCHMARKS.md, where a figure no quick or repeatable command
     /// regenerates is recorded by hand with its date and commands (a session killed mid-way:
-    /// what it recovers depends on when the kill lands).
+    /// what it recovers depends on when the kill lands; the motion window's runs: minutes of
+    /// sessions).
     Quoted(&'static str),
 }
 
@@ -116,6 +117,21 @@ const BLOCKS: &[(&str, &str, Source)] = &[
         "docs/recover-mcap.md",
         "killed-offline",
         Source::Quoted("killed-offline"),
+    ),
+    (
+        "daemon/README.md",
+        "good-enough-paper",
+        Source::Quoted("good-enough-paper"),
+    ),
+    (
+        "daemon/README.md",
+        "window-stated-over",
+        Source::Quoted("window-stated-over"),
+    ),
+    (
+        "daemon/README.md",
+        "good-enough-lazy",
+        Source::Quoted("good-enough-lazy"),
     ),
 ];
 
