@@ -161,8 +161,9 @@ pub fn ls_white_expected_error<const N: usize, const P: usize>(
 /// whose wrist moved through a third of its range identifies the wrist's parameters well
 /// there and poorly at the ends, and its error over its own poses says nothing of the ends.
 /// [`ErrorPoses::Ranges`] states what the table is worth over the ranges, whatever the session
-/// covered; [`ErrorPoses::Session`] what it is worth where the session went (equal in
-/// expectation when the session's motion is the wearer's whole-range motion).
+/// covered; [`ErrorPoses::Session`] what it is worth where the session went. The two are close
+/// when the session swept every joint's range; the even spread weighs the ends of the ranges
+/// more than a wearer's motion does, so it is the more cautious of the two there.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum ErrorPoses<const N: usize> {
     /// The session's own poses, evenly spread over it.
