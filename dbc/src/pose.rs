@@ -2,8 +2,11 @@
 //!
 //! Contract: the four pages of a pose share `seq` (mod 64); page 0 carries the node timestamp.
 //! [`PoseAssembler`] emits a [`Pose`] once all four pages of one `seq` arrived (in any order,
-//! duplicates tolerated); a page with a new `seq` starts over, dropping an incomplete pose. A
-//! quaternion whose norm is off by more than [`UNIT_TOLERANCE`] is reported as an error.
+//! duplicates tolerated, interleaved with the pages of up to [`IN_PROGRESS`] − 1 other poses: a
+//! page held back in transit lands among later poses' pages and still completes its own). An
+//! incomplete pose is dropped once [`IN_PROGRESS`] newer ones have started, long before its
+//! `seq` comes round again. A quaternion whose norm is off by more than [`UNIT_TOLERANCE`] is
+//! reported as an error.
 
 use crate::message::{PoseFrame, PosePage};
 
@@ -68,11 +71,26 @@ impl core::fmt::Display for PoseError {
     }
 }
 
+/// Poses the assembler keeps in progress at once. A reordered or delayed frame arrives after
+/// the pages of the poses sent after it (a 50 ms delay at 100 Hz: five of them); one that
+/// arrives later than this many poses is lost with its pose. Eight poses are 80 ms at 100 Hz and
+/// an eighth of `seq`'s 64-pose wrap, so two poses of one `seq` are never in progress together.
+pub const IN_PROGRESS: usize = 8;
+
+/// The pages of one pose so far.
+#[derive(Clone, Copy, Debug)]
+struct Partial {
+    seq: u8,
+    /// The assembler's count of poses started when this one started.
+    started: u64,
+    pages: [Option<PosePage>; 4],
+}
+
 /// Joins pages into poses.
 #[derive(Clone, Debug, Default)]
 pub struct PoseAssembler {
-    seq: Option<u8>,
-    pages: [Option<PosePage>; 4],
+    partial: [Option<Partial>; IN_PROGRESS],
+    started: u64,
     dropped: u64,
 }
 
@@ -89,19 +107,38 @@ impl PoseAssembler {
 
     /// Feeds one page; returns a pose when this page completes one.
     pub fn push(&mut self, frame: PoseFrame) -> Option<Result<Pose, PoseError>> {
-        if self.seq != Some(frame.seq) {
-            if self.pages.iter().any(Option::is_some) {
-                self.dropped += 1;
+        let at = match self
+            .partial
+            .iter()
+            .position(|p| p.is_some_and(|p| p.seq == frame.seq))
+        {
+            Some(at) => at,
+            None => {
+                // A new pose: the ones that started IN_PROGRESS poses ago are given up.
+                self.started += 1;
+                for slot in &mut self.partial {
+                    if slot.is_some_and(|p| self.started - p.started >= IN_PROGRESS as u64) {
+                        *slot = None;
+                        self.dropped += 1;
+                    }
+                }
+                // The others started within the last IN_PROGRESS − 1 poses: a slot is free.
+                let at = self.partial.iter().position(Option::is_none)?;
+                self.partial[at] = Some(Partial {
+                    seq: frame.seq,
+                    started: self.started,
+                    pages: [None; 4],
+                });
+                at
             }
-            self.seq = Some(frame.seq);
-            self.pages = [None; 4];
-        }
-        self.pages[usize::from(frame.page.number())] = Some(frame.page);
-        let [Some(p0), Some(p1), Some(p2), Some(p3)] = self.pages else {
+        };
+        let slot = &mut self.partial[at];
+        let partial = slot.as_mut()?;
+        partial.pages[usize::from(frame.page.number())] = Some(frame.page);
+        let [Some(p0), Some(p1), Some(p2), Some(p3)] = partial.pages else {
             return None;
         };
-        self.pages = [None; 4];
-        self.seq = None;
+        *slot = None;
         let (
             PosePage::TimePosX { timestamp_us, x },
             PosePage::PosYZ { y, z },
@@ -163,15 +200,73 @@ mod tests {
         assert_eq!(a.dropped(), 0);
     }
 
+    /// A page held back in transit (reordering, a delayed frame) arrives after the pages of
+    /// the poses sent after it: it still completes its own pose, and those poses come out too.
+    /// (Taking a new `seq` as the end of the last pose lost both this pose and the one the late
+    /// page interrupted: 10-17% of the poses under 5% reordering or delay, without a frame lost.)
     #[test]
-    fn a_new_seq_drops_the_incomplete_pose() {
+    fn a_page_held_back_behind_later_poses_still_completes_its_pose() {
         let mut a = PoseAssembler::new();
-        a.push(pose(1).pages()[0]);
-        let next = pose(2).pages();
-        for page in &next[..3] {
+        let late = pose(1).pages();
+        for i in [0, 2, 3] {
+            assert_eq!(a.push(late[i]), None);
+        }
+        // Five poses later (50 ms at 100 Hz), the held-back page lands inside the sixth pose.
+        for seq in 2..7 {
+            let pages = pose(seq).pages();
+            assert_eq!(pages[..3].iter().map(|p| a.push(*p)).find_map(|x| x), None);
+            assert_eq!(a.push(pages[3]), Some(Ok(pose(seq))));
+        }
+        let sixth = pose(7).pages();
+        assert_eq!(a.push(sixth[0]), None);
+        assert_eq!(a.push(late[1]), Some(Ok(pose(1))));
+        for page in &sixth[1..3] {
             assert_eq!(a.push(*page), None);
         }
-        assert_eq!(a.push(next[3]), Some(Ok(pose(2))));
+        assert_eq!(a.push(sixth[3]), Some(Ok(pose(7))));
+        assert_eq!(a.dropped(), 0);
+    }
+
+    #[test]
+    fn an_incomplete_pose_is_dropped_once_in_progress_newer_ones_started() {
+        let mut a = PoseAssembler::new();
+        a.push(pose(1).pages()[0]);
+        for seq in 2..=IN_PROGRESS as u8 {
+            let next = pose(seq).pages();
+            for page in &next[..3] {
+                assert_eq!(a.push(*page), None);
+            }
+            assert_eq!(a.push(next[3]), Some(Ok(pose(seq))));
+        }
+        assert_eq!(a.dropped(), 0, "pose 1 is still in progress");
+        a.push(pose(IN_PROGRESS as u8 + 1).pages()[0]);
+        assert_eq!(a.dropped(), 1);
+        // Its other pages no longer complete it.
+        for page in &pose(1).pages()[1..] {
+            assert_eq!(a.push(*page), None);
+        }
+    }
+
+    /// An incomplete pose never takes the pages of the pose that has its `seq` 64 poses later.
+    #[test]
+    fn an_incomplete_pose_is_gone_before_its_seq_comes_round() {
+        let mut a = PoseAssembler::new();
+        let mut old = pose(5);
+        old.position = [9.0, 9.0, 9.0];
+        for page in &old.pages()[..3] {
+            assert_eq!(a.push(*page), None);
+        }
+        for k in 6..69u8 {
+            for page in pose(k % 64).pages() {
+                a.push(page);
+            }
+        }
+        let new = pose(5).pages();
+        assert_eq!(a.push(new[3]), None);
+        for page in &new[..2] {
+            assert_eq!(a.push(*page), None);
+        }
+        assert_eq!(a.push(new[2]), Some(Ok(pose(5))));
         assert_eq!(a.dropped(), 1);
     }
 
