@@ -33,6 +33,9 @@ use crate::rng::Rng;
 
 /// Number of sinusoids per joint in the random motion.
 pub const MOTION_HARMONICS: usize = 4;
+/// The motion's swing about the middle of each joint's range, as a share of the range: it
+/// sweeps 98 % of it and never reaches the ends.
+pub const MOTION_SWING: f64 = 0.49;
 
 /// Smooth random joint motion inside given ranges: the suit's motion, here and in the emulated
 /// suit (`exocal-hil`).
@@ -63,13 +66,15 @@ impl<const N: usize> Motion<N> {
         m
     }
 
-    /// The joints' ranges the motion keeps inside.
-    pub fn ranges(&self) -> &JointRanges<N> {
-        &self.ranges
+    /// Joint `j`'s middle and swing (rad): its angle is `middle + swing · u` for the normalised
+    /// motion `u` of [`Motion::unit`].
+    pub fn middle_and_swing(&self, j: usize) -> (f64, f64) {
+        let (lo, hi) = self.ranges.limits[j];
+        (0.5 * (lo + hi), MOTION_SWING * (hi - lo))
     }
 
     /// Joint `j`'s motion at time `t` (s) normalised into `[−1, 1]`, and its rate (1/s), in
-    /// closed form: [`Motion::at`] is `mid + 0.49 (max − min) ·` it, joint by joint. For a
+    /// closed form: [`Motion::at`] is it through [`Motion::middle_and_swing`], joint by joint. For a
     /// caller that evaluates one joint at a time, or needs the rate (an emulated gyro).
     pub fn unit(&self, j: usize, t: f64) -> (f64, f64) {
         let (mut s, mut ds, mut norm) = (0.0, 0.0, 0.0);
@@ -92,7 +97,7 @@ impl<const N: usize> Motion<N> {
                 norm += self.amp[j][h];
             }
             let (lo, hi) = self.ranges.limits[j];
-            0.5 * (lo + hi) + 0.49 * (hi - lo) * s / norm
+            0.5 * (lo + hi) + MOTION_SWING * (hi - lo) * s / norm
         })
     }
 }
@@ -340,10 +345,10 @@ mod tests {
             let t = k as f64 * 0.137;
             let q = m.at(t);
             for (j, &qj) in q.iter().enumerate() {
-                let (lo, hi) = ranges.limits[j];
                 let (u, du) = m.unit(j, t);
                 assert!(u.abs() <= 1.0);
-                assert!((0.5 * (lo + hi) + 0.49 * (hi - lo) * u - qj).abs() < 1e-12);
+                let (middle, swing) = m.middle_and_swing(j);
+                assert!((middle + swing * u - qj).abs() < 1e-12);
                 let h = 1e-6;
                 let fd = (m.unit(j, t + h).0 - m.unit(j, t - h).0) / (2.0 * h);
                 assert!((fd - du).abs() < 1e-7, "{fd} vs {du}");

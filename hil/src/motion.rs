@@ -100,9 +100,8 @@ impl Motion {
                 (1.0 - g) * du - dg * u + dg * sn + g * omega * cs,
             );
         }
-        let (lo, hi) = self.free.ranges().limits[j];
-        let (mid, half) = (0.5 * (lo + hi), 0.49 * (hi - lo));
-        (mid + half * u, half * du)
+        let (middle, swing) = self.free.middle_and_swing(j);
+        (middle + swing * u, swing * du)
     }
 
     /// All seven angles at `t`.

@@ -91,6 +91,11 @@ impl Source {
     }
 }
 
+/// A block quoted from BENCHMARKS.md's block of the same name ([`Source::Quoted`]).
+const fn quoted(file: &'static str, name: &'static str) -> (&'static str, &'static str, Source) {
+    (file, name, Source::Quoted(name))
+}
+
 /// Where each block is quoted: file (from the workspace root), block name, what it quotes.
 const BLOCKS: &[(&str, &str, Source)] = &[
     ("README.md", "demo-2024", Source::Demo(2024)),
@@ -108,31 +113,11 @@ const BLOCKS: &[(&str, &str, Source)] = &[
     ("README.md", "bench-goals", Source::BenchGoals),
     ("README.md", "report-shot", Source::ReportShot),
     ("README.md", "nodes", Source::Nodes),
-    (
-        "README.md",
-        "killed-session",
-        Source::Quoted("killed-session"),
-    ),
-    (
-        "docs/recover-mcap.md",
-        "killed-offline",
-        Source::Quoted("killed-offline"),
-    ),
-    (
-        "daemon/README.md",
-        "good-enough-paper",
-        Source::Quoted("good-enough-paper"),
-    ),
-    (
-        "daemon/README.md",
-        "window-stated-over",
-        Source::Quoted("window-stated-over"),
-    ),
-    (
-        "daemon/README.md",
-        "good-enough-lazy",
-        Source::Quoted("good-enough-lazy"),
-    ),
+    quoted("README.md", "killed-session"),
+    quoted("docs/recover-mcap.md", "killed-offline"),
+    quoted("daemon/README.md", "good-enough-paper"),
+    quoted("daemon/README.md", "window-stated-over"),
+    quoted("daemon/README.md", "good-enough-lazy"),
 ];
 
 /// Where the README's screenshot of the demo's report lives, and the window Chromium draws it in.
