@@ -7,7 +7,9 @@
 //! - no table that fails validation pushed: if the verdict refuses, nothing is pushed and every
 //!   node's flash still holds its factory table; whatever a node's flash holds is its factory
 //!   table or exactly the table pushed to it;
-//! - with loss ≤ 10 %, the held-out mean pose error within 2× of the clean run's.
+//! - with loss ≤ 10 %, the held-out mean pose error within 2× of the clean run's;
+//! - loss bursts, reordering and delay accepted: they cost frames, which alignment bridges
+//!   (and the EM's jump test knows the fills), not the calibration.
 //!
 //! `cargo test -p exocald --test fault_matrix` runs the bounded CI subset. The whole matrix,
 //! which rewrites `docs/faults.md`:
@@ -35,6 +37,9 @@ const SESSION_S: f64 = 40.0;
 enum Expect {
     /// Nothing in particular (clean or loss-like faults).
     Nothing,
+    /// The fault costs frames, not the calibration: the session is accepted (a loss burst, a
+    /// page held back: alignment bridges the holes, and the EM's jump test knows the fills).
+    Accepted,
     /// Clock discontinuities on this node (reboot, jump).
     ClockJump(u8),
     /// Frames refused as malformed or unknown.
@@ -96,9 +101,9 @@ fn cases() -> Vec<Case> {
         },
         Case {
             name: "loss bursts (0.5% start, 20 frames)",
-            ci: false,
+            ci: true,
             accuracy_bound: true,
-            expect: Expect::Nothing,
+            expect: Expect::Accepted,
             apply: |s| {
                 s.faults.burst_start = 0.005;
                 s.faults.burst_len = 20;
@@ -115,7 +120,7 @@ fn cases() -> Vec<Case> {
             name: "reordering 5% ≤ 20 ms",
             ci: false,
             accuracy_bound: true,
-            expect: Expect::Nothing,
+            expect: Expect::Accepted,
             apply: |s| {
                 s.faults.reorder = 0.05;
                 s.faults.reorder_max_ms = 20.0;
@@ -125,7 +130,7 @@ fn cases() -> Vec<Case> {
             name: "delay 5% × 50 ms",
             ci: false,
             accuracy_bound: true,
-            expect: Expect::Nothing,
+            expect: Expect::Accepted,
             apply: |s| {
                 s.faults.delay = 0.05;
                 s.faults.delay_ms = 50.0;
@@ -314,6 +319,18 @@ fn check(case: &Case, o: &SuitSession, clean_err: Option<f64>) -> (Vec<String>, 
     let noticed = match (case.expect, s) {
         (_, None) => "no summary".to_string(),
         (Expect::Nothing, _) => "-".to_string(),
+        (Expect::Accepted, Some(s)) => match s.outcome.as_ref() {
+            Some(c) if c.verdict.accepted() => "-".to_string(),
+            Some(c) => {
+                let why = lines(&c.verdict.reasons);
+                bad.push(format!("refused for frames the fault cost: {why}"));
+                format!("refused: {why}")
+            }
+            None => {
+                bad.push("not calibrated".into());
+                "not calibrated".into()
+            }
+        },
         (Expect::ClockJump(n), Some(s)) => {
             let name = NodeId::ALL[usize::from(n) - 1].name();
             let j = s
@@ -500,7 +517,8 @@ fn write_doc(path: &Path, rows: &[String]) -> std::io::Result<()> {
          Checks per row: no panic; the degraded node noticed (column *noticed*); no table \
          failing validation pushed; every node's flash holds its factory table or exactly the \
          table pushed to it, and agrees with the push report; for loss-like faults the held-out \
-         mean pose error (candidate table) within 2× of the clean run.\n\n\
+         mean pose error (candidate table) within 2× of the clean run; loss bursts, reordering and \
+         delay accepted (the frames they cost are bridged, not a reason to refuse).\n\n\
          | fault | session | verdict | held-out error (vs clean) | push | noticed | wall | check |\n\
          |---|---|---|---|---|---|---|---|\n",
     );

@@ -30,7 +30,10 @@
 //!   interpolation for angles, slerp (shortest arc) for unit quaternions. A grid point is a gap
 //!   (`None`) unless it is bracketed by two samples at most `max_gap` apart (or hits a sample).
 //! - [`align`] puts the seven joint streams and the pose stream on one grid and keeps only the
-//!   grid points where every stream has a value; the others are counted as gaps.
+//!   grid points where every stream has a value; the others are counted as gaps. A kept point
+//!   interpolated across readings that were lost (a hole in a stream shorter than `max_gap`)
+//!   says how long its stream went unseen there ([`AlignedSample::unseen_s`], [`unseen`]): a
+//!   fill is not a measurement, and the jump test judges it as it judges a gap.
 
 use crate::JOINTS;
 use calib_core::median;
@@ -812,6 +815,10 @@ pub struct AlignedSample {
     pub joints: [f64; JOINTS],
     /// Measured end-effector pose at `t`.
     pub pose: Pose,
+    /// How long the stream with the longest hole around `t` went unseen beyond its usual
+    /// interval (s): 0 when every stream was interpolated between consecutive readings, 0.03 s
+    /// across three lost readings at 100 Hz. Samples that do not come from [`align`] are 0.
+    pub unseen_s: f64,
 }
 
 impl AlignedSample {
@@ -825,6 +832,7 @@ impl AlignedSample {
                 position: sample.pose.p.into(),
                 orientation: [q.w, q.i, q.j, q.k],
             },
+            unseen_s: 0.0,
         }
     }
 
@@ -840,6 +848,32 @@ impl AlignedSample {
             },
         }
     }
+}
+
+/// Per grid time, how long a time-sorted stream went unseen around it beyond its usual
+/// interval (its median): a grid time between two readings `h` apart, where `h` is more than
+/// 1.5 usual intervals `p`, is `h − p` unseen (0.03 s across three lost readings at 100 Hz);
+/// everywhere else 0. Whether the point is interpolated at all is [`resample_scalar`]'s call
+/// (`max_gap`); this says what the interpolation bridged.
+pub fn unseen(times: &[f64], grid: &[f64]) -> Vec<f64> {
+    let mut out = vec![0.0; grid.len()];
+    let mut steps: Vec<f64> = times.windows(2).map(|w| w[1] - w[0]).collect();
+    let usual = median(&mut steps);
+    if !(usual > 0.0) {
+        return out;
+    }
+    for w in times.windows(2) {
+        let (t0, t1) = (w[0], w[1]);
+        if t1 - t0 <= 1.5 * usual {
+            continue;
+        }
+        let from = grid.partition_point(|&t| t <= t0);
+        let to = grid.partition_point(|&t| t < t1);
+        for u in &mut out[from..to.max(from)] {
+            *u = u.max(t1 - t0 - usual);
+        }
+    }
+    out
 }
 
 /// The result of [`align`].
@@ -891,6 +925,14 @@ pub fn align(
         .map(|s| resample_scalar(s, &g, max_gap))
         .collect();
     let poses = resample_pose(pose, &g, max_gap);
+    let pose_times: Vec<f64> = pose.iter().map(|s| s.0).collect();
+    let mut unseen_s = unseen(&pose_times, &g);
+    for s in joints {
+        let times: Vec<f64> = s.iter().map(|s| s.0).collect();
+        for (u, v) in unseen_s.iter_mut().zip(unseen(&times, &g)) {
+            *u = u.max(v);
+        }
+    }
     let mut samples = Vec::with_capacity(g.len());
     for (k, &t) in g.iter().enumerate() {
         let Some(p) = poses[k] else { continue };
@@ -904,6 +946,7 @@ pub fn align(
                 t,
                 joints: q,
                 pose: p,
+                unseen_s: unseen_s[k],
             });
         }
     }
@@ -1337,6 +1380,56 @@ mod tests {
         assert!((r[6].unwrap() - 50.2).abs() < 1e-9);
         assert_eq!(r[7], Some(50.4)); // the last sample, hit exactly
         assert_eq!(r[8], None); // after the stream
+    }
+
+    #[test]
+    fn a_fill_across_lost_readings_says_how_long_its_stream_was_unseen() {
+        // 100 Hz readings at 3 ms phase; readings 10, 11 and 12 lost.
+        let times: Vec<f64> = (0..30)
+            .filter(|k| !(10..13).contains(k))
+            .map(|k| 0.003 + k as f64 * 0.01)
+            .collect();
+        let g: Vec<f64> = (0..30).map(|k| k as f64 * 0.01).collect();
+        let u = unseen(&times, &g);
+        for (k, &v) in u.iter().enumerate() {
+            // Readings 9 (0.093 s) and 13 (0.133 s) bracket grid points 10..=13.
+            let want = if (10..=13).contains(&k) { 0.03 } else { 0.0 };
+            assert!((v - want).abs() < 1e-9, "grid point {k}: {v}");
+        }
+        // Through align: the fills are kept (40 ms < max_gap) and marked.
+        let joints: [Vec<(f64, f64)>; JOINTS] = core::array::from_fn(|j| {
+            (0..32)
+                .map(|k| (0.001 * j as f64 + k as f64 * 0.01, 0.0))
+                .collect()
+        });
+        let pose: Vec<(f64, Pose)> = times
+            .iter()
+            .map(|&t| {
+                let p = Pose {
+                    position: [t, 0.0, 0.0],
+                    orientation: [1.0, 0.0, 0.0, 0.0],
+                };
+                (t, p)
+            })
+            .collect();
+        let a = align(&joints, &pose, 100.0, 0.05, usize::MAX);
+        assert_eq!(a.gaps, 0);
+        let marked: Vec<f64> = a
+            .samples
+            .iter()
+            .filter(|s| s.unseen_s > 0.0)
+            .map(|s| s.t)
+            .collect();
+        assert_eq!(marked.len(), 4, "{marked:?}");
+        assert!(a
+            .samples
+            .iter()
+            .all(|s| s.unseen_s == 0.0 || (s.unseen_s - 0.03).abs() < 1e-9));
+        // A steady stream is never unseen, whatever its phase or jitter.
+        let jittered: Vec<f64> = (0..50)
+            .map(|k| k as f64 * 0.01 + 0.002 * ((k * 7) % 3) as f64)
+            .collect();
+        assert!(unseen(&jittered, &g).iter().all(|&v| v == 0.0));
     }
 
     fn quat_about_z(angle: f64) -> Quat {

@@ -23,7 +23,10 @@
 //! gaps are skipped, so a gap shortens the step sequence slightly (gaps are rare and short: a
 //! session with many is refused earlier for lack of samples). A drift step the EM calls a jump
 //! right after a gap is judged at the gap's length ([`jump_beyond_gap`]): the drift moved for
-//! that long.
+//! that long. A point alignment kept by interpolating across lost readings (a fill,
+//! [`AlignedSample::unseen_s`]) counts as a gap of that length ([`unobserved_steps`]): across
+//! it the drift was not observed either, and the fill's own error, when the arm moves fast,
+//! is what the EM then sees as a step.
 
 use crate::outcome::{Calibration, Correlation, EmDetail, LsDetail, TimedSample};
 use crate::parallel::Parallel;
@@ -327,15 +330,34 @@ fn rows_of(table: &DhTable<JOINTS>, tau: [f64; JOINTS], sigma: [f64; JOINTS]) ->
 /// spreads a gap's step over the samples after it (measured: up to 7 at 100 Hz).
 pub const GAP_REACH: usize = 10;
 
-/// Whether calib-core's jump of `sigma` (a normalised drift innovation, at sample `k` of
-/// samples at `times`) is one still, once a gap before it is counted. The EM steps the drift
-/// one grid step `dt` from sample to sample; across a gap of `m` steps (grid points dropped by
-/// alignment: a stalled node, frames lost) the drift of time constant `tau` moves as in `m`
-/// steps, its variance `(1 − φ^{2m}) / (1 − φ²)` times one step's (φ = e^{−dt/τ}): a 0.2 s gap
-/// at τ = 1.2 s is 4.2σ of a step, often "6σ" on one of seven joints. Judged at that variance,
-/// the step is a jump only beyond `max_jump` still.
+/// Grid steps over which each sample's drift went unobserved since the sample before it:
+/// 1 normally; `m` after a gap of `m − 1` dropped grid points; `1 + unseen / dt` for a fill
+/// across lost readings ([`AlignedSample::unseen_s`]). What [`jump_beyond_gap`] judges by.
+pub fn unobserved_steps(samples: &[AlignedSample], dt: f64) -> Vec<f64> {
+    samples
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            let gap = match i {
+                0 => 1.0,
+                _ => (s.t - samples[i - 1].t) / dt,
+            };
+            let fill = 1.0 + s.unseen_s / dt;
+            gap.max(fill).round().max(1.0)
+        })
+        .collect()
+}
+
+/// Whether calib-core's jump of `sigma` (a normalised drift innovation, at sample `k`) is one
+/// still, once a gap or fill before it is counted (`steps`: [`unobserved_steps`]). The EM
+/// steps the drift one grid step `dt` from sample to sample; across `m` unobserved steps (grid
+/// points dropped by alignment or filled across lost readings: a stalled node, frames lost)
+/// the drift of time constant `tau` moves as in `m` steps, its variance
+/// `(1 − φ^{2m}) / (1 − φ²)` times one step's (φ = e^{−dt/τ}): a 0.2 s gap at τ = 1.2 s is
+/// 4.2σ of a step, often "6σ" on one of seven joints. Judged at that variance, the step is a
+/// jump only beyond `max_jump` still.
 pub fn jump_beyond_gap(
-    times: &[f64],
+    steps: &[f64],
     k: usize,
     sigma: f64,
     dt: f64,
@@ -343,8 +365,7 @@ pub fn jump_beyond_gap(
     max_jump: f64,
 ) -> bool {
     let steps = (k.saturating_sub(GAP_REACH - 1)..=k)
-        .filter(|&i| i > 0 && i < times.len())
-        .map(|i| ((times[i] - times[i - 1]) / dt).round().max(1.0))
+        .filter_map(|i| steps.get(i).copied())
         .fold(1.0f64, f64::max);
     if steps <= 1.0 || tau.is_nan() || tau <= 0.0 {
         return true;
@@ -434,8 +455,8 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
     let mut verdict = validate(&table, ls.condition, expected, heldout, settings);
     if let Ok(em) = &detail.em {
         let at = |k: usize| all.get(k).map(|s| s.t);
-        let times: Vec<f64> = all.iter().map(|s| s.t).collect();
         let dt = 1.0 / settings.window.grid_hz;
+        let steps = unobserved_steps(samples, dt);
         verdict.reasons.extend(
             em.refusals
                 .iter()
@@ -446,7 +467,7 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
                         sigma,
                     } => {
                         let tau = em.drift[joint].tau;
-                        jump_beyond_gap(&times, sample, sigma, dt, tau, em_opts.max_jump)
+                        jump_beyond_gap(&steps, sample, sigma, dt, tau, em_opts.max_jump)
                     }
                     _ => true,
                 })
@@ -716,10 +737,21 @@ mod tests {
     #[test]
     fn a_jump_after_a_gap_is_judged_over_the_gap() {
         let dt = 0.01;
-        let mut times: Vec<f64> = (0..100).map(|k| k as f64 * dt).collect();
-        for t in &mut times[50..] {
-            *t += 0.21;
+        let at = |t: f64| AlignedSample {
+            t,
+            joints: [0.0; JOINTS],
+            pose: crate::align::Pose {
+                position: [0.0; 3],
+                orientation: [1.0, 0.0, 0.0, 0.0],
+            },
+            unseen_s: 0.0,
+        };
+        let mut samples: Vec<AlignedSample> = (0..100).map(|k| at(k as f64 * dt)).collect();
+        for s in &mut samples[50..] {
+            s.t += 0.21;
         }
+        let times = unobserved_steps(&samples, dt);
+        assert_eq!(times[50], 22.0);
         assert!(!jump_beyond_gap(&times, 50, 7.0, dt, 1.2, 6.0));
         assert!(!jump_beyond_gap(&times, 59, 7.0, dt, 1.2, 6.0));
         assert!(
@@ -731,6 +763,57 @@ mod tests {
             jump_beyond_gap(&times, 50, 30.0, dt, 1.2, 6.0),
             "a slip across a gap"
         );
+        // A fill across three lost readings is judged as a gap of four steps.
+        samples[30].unseen_s = 0.03;
+        let steps = unobserved_steps(&samples, dt);
+        assert_eq!(steps[30], 4.0);
+        assert!(!jump_beyond_gap(&steps, 30, 7.0, dt, 1.2, 6.0));
+        assert!(!jump_beyond_gap(&steps, 39, 7.0, dt, 1.2, 6.0));
+        assert!(
+            jump_beyond_gap(&steps, 40, 7.0, dt, 1.2, 6.0),
+            "past its reach"
+        );
+        assert!(
+            jump_beyond_gap(&steps, 30, 30.0, dt, 1.2, 6.0),
+            "a slip at a fill"
+        );
+    }
+
+    /// Every stream loses `lost` readings from sample `from` on: alignment interpolates the
+    /// samples between the readings either side (linear angles and position, slerp), as
+    /// [`crate::align::align`] does for a hole shorter than `max_gap`, and marks them.
+    fn fill(samples: &mut [AlignedSample], from: usize, lost: usize, dt: f64) {
+        let (a, b) = (samples[from - 1], samples[from + lost]);
+        for (i, s) in samples[from..from + lost].iter_mut().enumerate() {
+            let u = (i + 1) as f64 / (lost + 1) as f64;
+            let lerp = |x: f64, y: f64| x + u * (y - x);
+            s.joints = std::array::from_fn(|j| lerp(a.joints[j], b.joints[j]));
+            s.pose.position = std::array::from_fn(|j| lerp(a.pose.position[j], b.pose.position[j]));
+            s.pose.orientation = crate::align::slerp(a.pose.orientation, b.pose.orientation, u);
+            s.unseen_s = lost as f64 * dt;
+        }
+    }
+
+    /// End to end, the fault matrix's loss bursts: every stream loses three readings at once,
+    /// 39 times in 40 s, and the fills (off by their interpolation error while the arm turns)
+    /// are not sensors that jumped; calib-core's EM, taking the fills as readings, does call
+    /// some of them jumps.
+    #[test]
+    fn fills_across_lost_readings_are_not_sensors_that_jumped() {
+        let cfg = ScenarioConfig::paper();
+        let dt = cfg.drift.dt;
+        let mut samples = drift_in_the_reading(cfg, 40.0, 11);
+        for burst in 1..40 {
+            fill(&mut samples, burst * 100 + 37, 3, dt);
+        }
+        let out = super::run(&samples, &settings()).unwrap();
+        let raw = jumps(&out.detail.em.as_ref().unwrap().refusals);
+        let judged = judged_jumps(&out.outcome.verdict.reasons);
+        assert!(
+            raw > 0,
+            "no jump at the fills to judge: the test tests nothing"
+        );
+        assert!(judged.is_empty(), "{judged:?}");
     }
 
     /// End to end: a session whose alignment dropped grid points (a node starved for 0.2 s,
@@ -747,20 +830,25 @@ mod tests {
             .map(|(_, s)| *s)
             .collect();
         let out = super::run(&samples, &settings()).unwrap();
-        let jumps = |r: &[calib_core::Refusal]| {
-            r.iter()
-                .filter(|w| matches!(w, calib_core::Refusal::Jump { .. }))
-                .count()
-        };
         let raw = jumps(&out.detail.em.as_ref().unwrap().refusals);
         assert!(
             raw > 0,
             "no jump at the gaps to judge: the test tests nothing"
         );
-        let judged: Vec<_> = out
-            .outcome
-            .verdict
-            .reasons
+        let judged = judged_jumps(&out.outcome.verdict.reasons);
+        assert!(judged.is_empty(), "{judged:?}");
+    }
+
+    /// The drift steps calib-core's EM calls jumps.
+    fn jumps(r: &[calib_core::Refusal]) -> usize {
+        r.iter()
+            .filter(|w| matches!(w, calib_core::Refusal::Jump { .. }))
+            .count()
+    }
+
+    /// The jumps the session refuses for, once gaps and fills are counted.
+    fn judged_jumps(reasons: &[Refusal]) -> Vec<&Refusal> {
+        reasons
             .iter()
             .filter(|r| {
                 matches!(
@@ -771,8 +859,7 @@ mod tests {
                     }
                 )
             })
-            .collect();
-        assert!(judged.is_empty(), "{judged:?}");
+            .collect()
     }
 
     #[test]

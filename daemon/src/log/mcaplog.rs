@@ -202,6 +202,7 @@ pub fn aligned_sample(s: &exocal_session::align::AlignedSample) -> proto::Aligne
         joints: s.joints.to_vec(),
         position: s.pose.position.to_vec(),
         orientation_wxyz: s.pose.orientation.to_vec(),
+        unseen_s: s.unseen_s,
     }
 }
 
@@ -546,6 +547,7 @@ mod tests {
                 position: [0.1, 0.2, t],
                 orientation: [1.0, 0.0, 0.0, 0.0],
             },
+            unseen_s: 0.0,
         }
     }
 
