@@ -261,6 +261,20 @@ impl Simulation {
     pub fn table_error(&self, table: &DhTable<7>) -> TableError {
         table_error(table, &self.truth, &self.fresh)
     }
+
+    /// The Cramér-Rao bound of the table error on the fresh poses for `samples` (a prefix of
+    /// this session), at the true table, drift and pose noise: what no unbiased calibration
+    /// of those samples beats, in the paper's model.
+    pub fn bound(&self, samples: &[Sample<7>]) -> Result<TableError, crate::CalibError> {
+        // No drift: the bound of white pose noise alone (a drift too small to matter).
+        let q = self.drift.process_variance().max(1e-30);
+        let (pn, rn) = (self.noise.0 * self.noise.0, self.noise.1 * self.noise.1);
+        let noise = [pn, pn, pn, rn, rn, rn];
+        let crb = cramer_rao::<7, SUIT_PARAMS>(&self.truth, samples, [self.drift.phi(); 7], [q; 7], noise, 1e-14)?;
+        Ok(expected_table_error::<7, SUIT_PARAMS>(&self.truth, &self.fresh, |u| {
+            crb.variance_along(u)
+        }))
+    }
 }
 
 /// Runs one session of `cell` for `seed`.
@@ -275,16 +289,14 @@ pub fn session_with(
     options: impl Fn(DriftEmOptions<7>) -> DriftEmOptions<7>,
 ) -> Result<Session, crate::CalibError> {
     let sim = Simulation::new(cell, seed);
-    let (truth, drift, samples, fresh) = (&sim.truth, sim.drift, &sim.samples, &sim.fresh);
+    let (drift, samples, fresh) = (sim.drift, &sim.samples, &sim.fresh);
     let (ls, em) = sim.fit_with(samples, &options(DriftEmOptions::new(drift.dt)))?;
-    // No drift: the bound of white pose noise alone (a drift too small to matter).
     let q = drift.process_variance().max(1e-30);
     let (pn, rn) = (cell.noise.0 * cell.noise.0, cell.noise.1 * cell.noise.1);
-    let crb = cramer_rao::<7, SUIT_PARAMS>(truth, samples, [drift.phi(); 7], [q; 7], [pn, pn, pn, rn, rn, rn], 1e-14)?;
     Ok(Session {
         ls: sim.table_error(&ls.table),
         em: sim.table_error(&em.table),
-        bound: expected_table_error::<7, SUIT_PARAMS>(truth, fresh, |u| crb.variance_along(u)),
+        bound: sim.bound(samples)?,
         reported: em.expected_error,
         stated: em.stated_error,
         allowed: em.stated_with_allowance(),

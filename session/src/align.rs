@@ -859,7 +859,7 @@ pub fn unseen(times: &[f64], grid: &[f64]) -> Vec<f64> {
     let mut out = vec![0.0; grid.len()];
     let mut steps: Vec<f64> = times.windows(2).map(|w| w[1] - w[0]).collect();
     let usual = median(&mut steps);
-    if !(usual > 0.0) {
+    if usual.is_nan() || usual <= 0.0 {
         return out;
     }
     for w in times.windows(2) {
