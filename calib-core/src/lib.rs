@@ -86,6 +86,7 @@ mod scenario_tests;
 pub mod sim;
 #[cfg(any(test, feature = "research"))]
 pub mod sweep;
+pub mod versus_ls;
 
 pub use drift::{Discretisation, DriftParams, GaussMarkov, RateBias};
 pub use drift_conf::{drift_confidence, DriftConfidence};
@@ -117,3 +118,4 @@ pub use paper_em::{paper_em, PaperEmForm, PaperEmOptions, PaperEmResult};
 pub use reading::{separate, JointSeparation, SeparationSlot};
 pub use rng::Rng;
 pub use sim::{DriftSite, Motion, Outliers, Scenario, ScenarioConfig, SimSample, Slip};
+pub use versus_ls::{em_versus_ls, EmVersusLs, MAX_EM_LS_STATISTIC};

@@ -674,9 +674,10 @@ mod tests {
 
     /// The bound cross-checked by Monte Carlo (issue 18, item 1): 50 sessions of 10 s, each
     /// with its own true table around Table 1, τ = 1 s, σ = 1, 1 mm / 2 mrad pose noise.
-    /// Measured 2026-11-23 over 40 seeds: EM / bound 1.01 (position) and 1.01 (rotation), LS /
-    /// bound 1.60 and 1.32; what the EM reports (its bound at its own estimates) is 0.83 and
-    /// 0.78 of the bound at the truth: optimistic by about a fifth on sessions this short.
+    /// Measured 2026-11-27 (the test's 50 sessions, printed): EM / bound 1.06 (position) and
+    /// 1.03 (rotation), LS / bound 1.56 and 1.29; what the EM reports (its bound at its own
+    /// estimates) is 1.04 and 0.96 of the bound at the truth (0.83 / 0.78 before issue 30's
+    /// EM: optimistic by a fifth then); LS / its sandwich expectation 1.03 and 0.97.
     #[test]
     fn monte_carlo_agrees_with_the_bound_and_ls_does_not_reach_it() {
         let cell = paper_cell(1.0, 1.0, 10.0);

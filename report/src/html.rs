@@ -953,15 +953,21 @@ fn ls_against_em(out: &mut String, em: &EmDetail) {
     out.push_str(
         "<table class=\"drift\"><thead><tr><th>this session</th><th>expected table error (1σ)</th></tr></thead><tbody>",
     );
+    let versus = em.versus_ls;
+    let kept = versus.is_some_and(|v| !v.agrees());
     let _ = write!(
         out,
-        "<tr><td>LS alone (weighs the drift as white noise)</td><td>{}</td></tr>",
-        em.ls_expected_error
-            .map_or("— (normal equations too ill-conditioned)".to_string(), fmt)
+        "<tr><td>LS alone (weighs the drift as white noise){}</td><td>{}</td></tr>",
+        if kept { ", pushed" } else { "" },
+        versus.map_or(
+            "— (normal equations too ill-conditioned)".to_string(),
+            |v| fmt(v.ls_expected)
+        )
     );
     let _ = write!(
         out,
-        "<tr><td>our EM, pushed (stated: its Cramér-Rao bound with the drift-model choice)</td><td>{}</td></tr>",
+        "<tr><td>our EM{} (stated: its Cramér-Rao bound with the drift-model choice)</td><td>{}</td></tr>",
+        if kept { ", not pushed: its table disagrees with LS's" } else { ", pushed" },
         fmt(em.stated_error)
     );
     if em.allowance.position_m > 0.0 {
@@ -973,11 +979,16 @@ fn ls_against_em(out: &mut String, em: &EmDetail) {
             fmt(em.allowance)
         );
     }
-    let apart = em.ls_em_difference.map_or(String::new(), |d| {
+    let apart = versus.map_or(String::new(), |v| {
         format!(
-            "; the LS table's FK differs from the EM table's by {:.2} mm, {:.2} mrad RMS there",
-            d.position_m * 1e3,
-            d.rotation_rad * 1e3
+            "; the LS table's FK differs from the EM table's by {:.2} mm, {:.2} mrad RMS there \
+             ({:.1} times what the EM's model lets it be, squared: {}; above {} the EM's model \
+             does not hold for the session and LS's table is the one pushed)",
+            v.difference.position_m * 1e3,
+            v.difference.rotation_rad * 1e3,
+            v.statistic,
+            if kept { "disagreeing" } else { "agreeing" },
+            calib_core::MAX_EM_LS_STATISTIC
         )
     });
     let _ = write!(

@@ -89,13 +89,12 @@ pub struct EmDetail {
     /// Where the data contradict the model (a sensor that jumped, too many glitches, a drift
     /// grossly off its model): each refuses the session.
     pub refusals: Vec<calib_core::Refusal>,
-    /// What the LS table alone is expected to reach (1σ) under the drift and noise the EM
-    /// fitted, over the same poses (calib-core's `ls_expected_table_error`); `None` when its
-    /// normal equations were too ill-conditioned to say, or it was not asked for.
-    pub ls_expected_error: Option<TableError>,
-    /// RMS FK difference between the LS and the EM table over the same poses (`None` when not
-    /// asked for).
-    pub ls_em_difference: Option<TableError>,
+    /// The EM's table against LS's over the same poses (calib-core's `em_versus_ls`): their RMS
+    /// FK difference, what the LS table alone is expected to reach (1σ) under the drift and
+    /// noise the EM fitted, and whether the two agree (where not, LS's table is the result,
+    /// [`Calibration::ls_kept`]); `None` when LS's normal equations were too ill-conditioned
+    /// to say.
+    pub versus_ls: Option<calib_core::EmVersusLs>,
     /// Smoothed angle error (rad) per fitted sample: the Gauss-Markov drift plus, where the
     /// model has one, the integrated rate bias.
     pub drift_series: Vec<[f64; JOINTS]>,
@@ -126,15 +125,27 @@ pub struct Calibration {
     pub ls: LsDetail,
     /// The EM, or why it failed (the LS table is then the result).
     pub em: Result<EmDetail, calib_core::CalibError>,
-    /// The resulting table: the EM's, or the LS's when the EM failed.
+    /// The resulting table: the EM's; the LS's when the EM failed or its table disagrees with
+    /// LS's ([`Calibration::ls_kept`]).
     pub calibrated: DhTable<JOINTS>,
-    /// The expected table error (1σ) of `calibrated` to state: the EM's stated error, or where
-    /// the EM failed, what LS alone is worth with white residuals (calib-core's
+    /// The expected table error (1σ) of `calibrated` to state: the EM's stated error; where
+    /// LS's table was kept for disagreeing, LS's expected error under the drift the EM fitted;
+    /// where the EM failed, what LS alone is worth with white residuals (calib-core's
     /// `ls_white_expected_error`): a session always has one unless LS's normal equations are
     /// too ill-conditioned to say.
     pub stated: Option<TableError>,
     /// Strongest parameter correlations at the calibrated table, strongest first.
     pub correlations: Vec<Correlation>,
+}
+
+impl Calibration {
+    /// Whether LS's table is the result because the EM's disagrees with it beyond LS's own
+    /// error (calib-core's `EmVersusLs::agrees`): the EM's model does not hold for the session.
+    pub fn ls_kept(&self) -> bool {
+        self.em
+            .as_ref()
+            .is_ok_and(|em| em.versus_ls.is_some_and(|v| !v.agrees()))
+    }
 }
 
 /// One data stream (a node) of the session.

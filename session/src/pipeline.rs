@@ -32,9 +32,9 @@ use crate::outcome::{Calibration, Correlation, EmDetail, LsDetail, TimedSample};
 use crate::parallel::Parallel;
 use calib_core::drift_conf::Z_95;
 use calib_core::{
-    drift_confidence, em_drift, identify_ls_with, ls_expected_table_error, ls_white_expected_error,
-    separate, table_error, DhTable, DriftEmOptions, DriftSlot, ErrorPoses, InputChecks, JointDrift,
-    LsOptions, RateBias, Sample, SeparationSlot,
+    drift_confidence, em_drift, em_versus_ls, identify_ls_with, ls_white_expected_error, separate,
+    DhTable, DriftEmOptions, DriftSlot, ErrorPoses, InputChecks, JointDrift, LsOptions, RateBias,
+    Sample, SeparationSlot,
 };
 use nalgebra::{DMatrix, SMatrix};
 use serde::Serialize;
@@ -120,6 +120,42 @@ pub struct EmSummary {
     /// would add to the table error (1σ, not part of the stated error); `None` with the spec,
     /// or where the drift model has the rate bias.
     pub unmodelled_rate_bias: Option<UnmodelledRateBias>,
+    /// The EM's table against LS's; `None` when LS's normal equations were too
+    /// ill-conditioned to say.
+    pub versus_ls: Option<VersusLs>,
+}
+
+/// The EM's table against LS's (calib-core's `em_versus_ls`, a Hausman test): where they
+/// disagree beyond LS's own error, the EM's model does not hold for the session and LS's table
+/// is the result, stated by LS's expected error.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct VersusLs {
+    /// RMS FK difference of the two tables over the poses the error is stated on (mm).
+    pub difference_mm: f64,
+    /// The same in rotation (mrad).
+    pub difference_mrad: f64,
+    /// LS's expected table error there, under the drift and noise the EM fitted (mm, 1σ).
+    pub ls_expected_mm: f64,
+    /// The same in rotation (mrad).
+    pub ls_expected_mrad: f64,
+    /// The squared difference over what the EM's model lets it be (about 1 where it holds).
+    pub statistic: f64,
+    /// Whether LS's table is the result (the statistic above calib-core's
+    /// `MAX_EM_LS_STATISTIC`).
+    pub ls_kept: bool,
+}
+
+impl VersusLs {
+    fn of(v: calib_core::EmVersusLs) -> VersusLs {
+        VersusLs {
+            difference_mm: v.difference.position_m * 1e3,
+            difference_mrad: v.difference.rotation_rad * 1e3,
+            ls_expected_mm: v.ls_expected.position_m * 1e3,
+            ls_expected_mrad: v.ls_expected.rotation_rad * 1e3,
+            statistic: v.statistic,
+            ls_kept: !v.agrees(),
+        }
+    }
 }
 
 /// What an unmodelled rate bias of `rate_deg_s` would add to the table error (1σ).
@@ -441,6 +477,7 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
                         rotation_mrad: r.allowance.rotation_rad * 1e3,
                     },
                 ),
+                versus_ls: r.versus_ls.map(VersusLs::of),
             };
             (Some(summary), None, tau, sigma)
         }
@@ -577,10 +614,9 @@ pub fn ls_then_em(
                 std::array::from_fn(|j| drift[j] + trend[j])
             })
             .collect();
-        // The poses the EM's expected error is averaged over, for the LS figures.
-        let poses = || em_opts.error_poses.of(fit);
-        let drift_var: [f64; JOINTS] =
-            std::array::from_fn(|j| r.process_variance[j] / (1.0 - r.phi[j] * r.phi[j]));
+        // Against LS's table, over the poses the EM stated its error on (the report's LS
+        // figures, and whether the EM's table is to be believed).
+        let versus_ls = em_versus_ls::<JOINTS, PARAMS>(&ls.table, &r, fit, &em_opts.error_poses);
         EmDetail {
             table: r.table,
             iterations: r.iterations,
@@ -598,24 +634,17 @@ pub fn ls_then_em(
             discounted: r.discounted.clone(),
             consistency: r.consistency,
             refusals: r.refusals.to_vec(),
-            ls_expected_error: detail
-                .then(|| {
-                    ls_expected_table_error::<JOINTS, PARAMS>(
-                        &ls.table,
-                        fit,
-                        &r.phi,
-                        &drift_var,
-                        &r.measurement_variance,
-                        poses(),
-                    )
-                })
-                .flatten(),
-            ls_em_difference: detail.then(|| table_error(&ls.table, &r.table, poses())),
+            versus_ls,
             drift_series,
         }
     });
     let (calibrated, stated) = match &em {
-        Ok(em) => (em.table, Some(em.stated_error)),
+        // The EM's table where it agrees with LS's; where not, its model does not hold for
+        // this session and LS's table is kept, stated by LS's own expected error.
+        Ok(em) => match em.versus_ls {
+            Some(v) if !v.agrees() => (ls.table, Some(v.ls_expected)),
+            _ => (em.table, Some(em.stated_error)),
+        },
         Err(_) => (
             ls.table,
             ls_white_expected_error::<JOINTS, PARAMS>(&ls.table, fit, &em_opts.error_poses),
@@ -938,8 +967,9 @@ mod tests {
             .detail
             .em
             .unwrap();
-        let ls = em.ls_expected_error.expect("well conditioned");
-        let (e, d) = (em.expected_error, em.ls_em_difference.unwrap());
+        let v = em.versus_ls.expect("well conditioned");
+        let (ls, e, d) = (v.ls_expected, em.expected_error, v.difference);
+        assert!(v.agrees(), "the paper's model holds: {v:?}");
         assert!(ls.position_m > 1.1 * e.position_m, "LS {ls:?}, EM {e:?}");
         assert!(ls.rotation_rad > e.rotation_rad, "LS {ls:?}, EM {e:?}");
         assert!(

@@ -74,6 +74,9 @@ pub fn print_summary(summary: &SessionSummary) {
                 println!("{line}");
             }
             println!("{}", discounted_line(em));
+            if let Some(line) = ls_kept_line(em) {
+                println!("{line}");
+            }
         }
         println!(
             "held-out mean pose error: nominal {:.4e}, calibrated {:.4e} ({:.1}% better); condition number {:.3e}",
@@ -160,6 +163,24 @@ pub fn rate_bias_line(em: &exocal_session::pipeline::EmSummary) -> Option<String
                 .to_string()
         }
     })
+}
+
+/// Where LS's table is the result because the EM's disagrees with it beyond LS's own error
+/// (the EM's drift model does not hold for the session); `None` where they agree.
+pub fn ls_kept_line(em: &exocal_session::pipeline::EmSummary) -> Option<String> {
+    let v = em.versus_ls.filter(|v| v.ls_kept)?;
+    Some(format!(
+        "our EM's table disagrees with LS's: they differ by {:.2} mm, {:.2} mrad where LS alone \
+         is expected within ±{:.2} mm, ±{:.2} mrad (statistic {:.1} > {}): the EM's drift model \
+         does not hold for this session, so LS's table is the result, stated by LS's own \
+         expected error",
+        v.difference_mm,
+        v.difference_mrad,
+        v.ls_expected_mm,
+        v.ls_expected_mrad,
+        v.statistic,
+        calib_core::MAX_EM_LS_STATISTIC
+    ))
 }
 
 /// The reference samples the EM discounted as glitches, and when: `reference glitches

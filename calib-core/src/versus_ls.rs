@@ -1,0 +1,150 @@
+//! Our EM's table against LS's: a Hausman test in the table-error metric.
+//!
+//! Contract: LS from nominal is consistent whatever the drift does (it weighs the drift as
+//! white noise; its error is the sandwich [`ls_expected_table_error`] at the drift and noise the
+//! EM fitted), our EM is consistent and the more efficient only while its model holds. Where
+//! both hold, the two tables differ by about `√(L² − S²)` (RMS over the poses the error is
+//! stated on; `L` LS's expected error, `S` the EM's stated one): [`EmVersusLs::statistic`] is
+//! the squared difference over that, about 1, in position and rotation (the larger counts).
+//! Above [`MAX_EM_LS_STATISTIC`] the EM's model does not hold for the session where LS does not
+//! need it, and its stated error is not to be believed: the caller keeps LS's table, stated by
+//! `L`.
+//!
+//! What it catches (measured through the daemon, a wrist kept to 60 % of its range, the drift
+//! in the reading, no pose noise, seed 13 of `good_enough`): the EM's table 4.7 mm off with
+//! ±1.3 mm stated (its linearisation about the reported angles lets two joints' drift stand in
+//! for the wrist's geometry: τ 1.9 and 2.7 s fitted where the drift has 1 s), LS's 1.0 mm off
+//! with `L` = 2.4 mm; the statistic is 16. Where the EM's model holds it was 0.66–2.95 (24
+//! simulated sessions, `where_the_model_holds_the_em_agrees_with_ls`).
+//! Under the model the statistic is a weighted sum of χ² variables of mean 1; 4 is beyond its
+//! 95th percentile for any number of them.
+
+use crate::drift_em::DriftEmResult;
+use crate::metrics::{ls_expected_table_error, table_error, ErrorPoses, TableError};
+use crate::model::{DhTable, Sample};
+
+/// Above this [`EmVersusLs::statistic`], the EM's table is not consistent with LS's.
+pub const MAX_EM_LS_STATISTIC: f64 = 4.0;
+
+/// The EM's table against LS's ([`em_versus_ls`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EmVersusLs {
+    /// RMS difference of the two tables over the poses.
+    pub difference: TableError,
+    /// LS's expected table error over the same poses (the sandwich at the EM's drift and noise).
+    pub ls_expected: TableError,
+    /// The squared difference over what the model lets it be, `D² / max(L² − S², L²/4)`, the
+    /// larger of position and rotation.
+    pub statistic: f64,
+}
+
+impl EmVersusLs {
+    /// Whether the EM's table is consistent with LS's ([`MAX_EM_LS_STATISTIC`]).
+    pub fn agrees(&self) -> bool {
+        self.statistic <= MAX_EM_LS_STATISTIC
+    }
+}
+
+/// Our EM's result `em` against the LS table `ls`, both fitted on `samples`, over `poses` (the
+/// ones `em` stated its error on: `DriftEmOptions::error_poses`). `None` when LS's expected
+/// error cannot be computed (its normal equations too ill-conditioned).
+pub fn em_versus_ls<const N: usize, const P: usize>(
+    ls: &DhTable<N>,
+    em: &DriftEmResult<N>,
+    samples: &[Sample<N>],
+    poses: &ErrorPoses<N>,
+) -> Option<EmVersusLs> {
+    let drift_var: [f64; N] = core::array::from_fn(|j| em.process_variance[j] / (1.0 - em.phi[j] * em.phi[j]));
+    let l = ls_expected_table_error::<N, P>(ls, samples, &em.phi, &drift_var, &em.measurement_variance, poses.of(samples))?;
+    let d = table_error(ls, &em.table, poses.of(samples));
+    let s = em.stated_error;
+    let ratio = |d: f64, l: f64, s: f64| d * d / (l * l - s * s).max(0.25 * l * l);
+    Some(EmVersusLs {
+        difference: d,
+        ls_expected: l,
+        statistic: ratio(d.position_m, l.position_m, s.position_m).max(ratio(d.rotation_rad, l.rotation_rad, s.rotation_rad)),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::JointRanges;
+    use crate::sweep::{field_cell, Simulation};
+    use crate::{em_drift_vec, identify_ls, DriftEmOptions, LsOptions, SUIT_PARAMS};
+
+    const SEEDS: u64 = 8;
+    const LAZY: [f64; 7] = [1.0, 1.0, 1.0, 1.0, 0.6, 0.6, 0.6];
+
+    /// The EM's and LS's tables of `sim`'s session, the readings separated first as the daemon
+    /// does (`separated`) or not, and the test of one against the other; with the real error
+    /// of each.
+    fn session(sim: &Simulation, separated: bool) -> (EmVersusLs, TableError, TableError) {
+        let opts = DriftEmOptions {
+            error_poses: ErrorPoses::Ranges(JointRanges::paper()),
+            ..DriftEmOptions::new(sim.drift.dt)
+        };
+        let mut samples = sim.samples.clone();
+        if separated {
+            let mut slots = std::vec![crate::SeparationSlot::default(); samples.len()];
+            crate::separate(
+                &mut samples,
+                &DhTable::paper_nominal(),
+                sim.drift.dt,
+                opts.initial_tau,
+                &mut slots,
+            );
+        }
+        let ls = identify_ls::<7, SUIT_PARAMS>(&DhTable::paper_nominal(), &samples, &LsOptions::new())
+            .unwrap()
+            .table;
+        let (em, _) = em_drift_vec::<7, SUIT_PARAMS>(&ls, &samples, &opts).unwrap();
+        let v = em_versus_ls::<7, SUIT_PARAMS>(&ls, &em, &samples, &opts.error_poses).unwrap();
+        let ratio = |real: TableError, stated: TableError| TableError {
+            position_m: real.position_m / stated.position_m,
+            rotation_rad: real.rotation_rad / stated.rotation_rad,
+        };
+        (
+            v,
+            ratio(sim.table_error(&em.table), em.stated_error),
+            ratio(sim.table_error(&ls), v.ls_expected),
+        )
+    }
+
+    /// Where the EM's model holds (the drift in the reading separated first, as the daemon
+    /// does; full reach and a lazy wrist, 8 seeds each) its table agrees with LS's: measured
+    /// 2026-11-27, statistic 0.80–2.95 over these 16 sessions (0.66–2.95 over seeds
+    /// 1–12), against the limit of 4.
+    #[test]
+    fn where_the_model_holds_the_em_agrees_with_ls() {
+        let cell = field_cell("drift in the reading (60 s)").unwrap();
+        for reach in [LAZY, [1.0; 7]] {
+            for seed in 1..=SEEDS {
+                let (v, _, _) = session(&Simulation::reaching(&cell, seed, reach), true);
+                assert!(v.agrees(), "reach {reach:?} seed {seed}: statistic {:.2}", v.statistic);
+            }
+        }
+    }
+
+    /// Where it does not (the same sessions' readings fitted as they come: the drift in the
+    /// reading is then not the EM's model, and on a lazy wrist its table is 2.6–3.9× the error
+    /// it states), the test says so in most sessions (measured: 6 of 8 above 4, the other two
+    /// at 3.98 and 4.0), and LS's table is within what LS's sandwich states (RMS over the
+    /// sessions).
+    #[test]
+    fn where_it_does_not_the_em_disagrees_with_ls_and_ls_is_stated_honestly() {
+        let cell = field_cell("drift in the reading (60 s)").unwrap();
+        let (mut flagged, mut em, mut ls) = (0, (0.0, 0.0), (0.0, 0.0));
+        for seed in 1..=SEEDS {
+            let (v, e, l) = session(&Simulation::reaching(&cell, seed, LAZY), false);
+            flagged += usize::from(!v.agrees());
+            em = (em.0 + e.position_m.powi(2), em.1 + e.rotation_rad.powi(2));
+            ls = (ls.0 + l.position_m.powi(2), ls.1 + l.rotation_rad.powi(2));
+        }
+        let n = SEEDS as f64;
+        let (em, ls) = ((em.0 / n).sqrt(), ((ls.0 / n).sqrt(), (ls.1 / n).sqrt()));
+        assert!(em > 2.0, "the EM's model fails here: real ÷ stated {em:.2}");
+        assert!(flagged >= 5, "{flagged} of {SEEDS} flagged");
+        assert!(ls.0 <= 1.0 && ls.1 <= 1.0, "LS real ÷ its sandwich {:.2} / {:.2}", ls.0, ls.1);
+    }
+}
