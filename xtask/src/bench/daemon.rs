@@ -156,8 +156,8 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
         body,
         "What the figure leaves out, bounded: the in-process bus has no bit rate and the \
          emulated nodes write their flash at once. On a 1 Mbit/s bus each node's authenticated \
-         transfer is 28 frames, stop-and-wait (10 commands, 18 replies; ≤ 130 bits each: \
-         ≈ 3.6 ms of wire time a node, ≈ 25 ms for seven), plus each node's response times; a \
+         transfer is 29 frames, stop-and-wait (10 commands, 19 replies; ≤ 130 bits each: \
+         ≈ 3.8 ms of wire time a node, ≈ 26 ms for seven), plus each node's response times; a \
          real node's flash erase and write is not modelled. A controller-class core \
          several times slower than this one multiplies the computing column.\n"
     );
@@ -184,7 +184,7 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
                 "{total:.3} s median over {seeds} demo sessions on one pinned core (worst \
                  {worst:.3} s): {computing:.3} s computing + {bus:.3} s of emulated bus and \
                  nodes. Bounded by the computing (LS + our EM, report); a real 1 Mbit/s bus adds \
-                 ≈ 25 ms of frames, a real node's flash write is not modelled"
+                 ≈ 26 ms of frames, a real node's flash write is not modelled"
             ),
         },
         Goal {
