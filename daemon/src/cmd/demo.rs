@@ -583,6 +583,65 @@ mod tests {
     use super::*;
     use prost::Message as _;
 
+    /// Replays what the EM-against-LS check was built for (found 2026-11-27): a wearer whose
+    /// wrist keeps to 60 % of its range, seed 13, the fixed minute (the window runs to 122 s
+    /// for the wrist's coverage). The EM's table was 4.7 mm off the arm's true one with ±1.3 mm
+    /// stated; its disagreement with LS's is now beyond what LS's own error allows, so LS's
+    /// table is pushed, stated by LS's expected error, and that statement holds.
+    #[test]
+    fn an_em_that_disagrees_with_ls_leaves_the_ls_table_stated_honestly() {
+        let dir =
+            std::env::temp_dir().join(format!("exocald-demo-versus-ls-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let wearer = Wearer {
+            reach: [1.0, 1.0, 1.0, 1.0, 0.6, 0.6, 0.6],
+            ..Wearer::default()
+        };
+        let opts = DemoOptions {
+            seed: 13,
+            speed: 1e6,
+            output: dir.join("out"),
+            hold: false,
+            wearer,
+        };
+        let mut config = demo_config(Config::default_config(), &opts.output, 1.0);
+        config.calibration.window.min_duration_s = 60.0;
+        config.calibration.window.stop_at_expected_error = None;
+        let r = run(&config, &opts).map_err(|e| e.error).unwrap();
+        check_flash(&r).unwrap();
+        let outcome = r.summary.outcome.as_ref().expect("calibrated");
+        let v = outcome
+            .em
+            .as_ref()
+            .and_then(|em| em.versus_ls)
+            .expect("compared");
+        assert!(v.ls_kept, "{v:?}");
+        let stated = outcome.verdict.expected.expect("stated");
+        assert_eq!(
+            (stated.position_mm, stated.rotation_mrad),
+            (v.ls_expected_mm, v.ls_expected_mrad)
+        );
+        // The pushed table against the emulated arm's true one, on poses of another motion.
+        let mut scenario = Scenario::paper();
+        scenario.seed = 13;
+        let truth = *exocal_hil::Suit::new(scenario, &dir.join("truth"))
+            .unwrap()
+            .true_table();
+        let mut other = Scenario::paper();
+        other.seed = 0xF2E5_4000;
+        let fresh_suit = exocal_hil::Suit::new(other, &dir.join("fresh")).unwrap();
+        let fresh: Vec<[f64; 7]> = (0..2_000)
+            .map(|k| fresh_suit.true_joints(k as f64 * 0.1))
+            .collect();
+        let real = calib_core::table_error(&outcome.table(), &truth, &fresh);
+        assert!(
+            real.position_m * 1e3 <= stated.position_mm
+                && real.rotation_rad * 1e3 <= stated.rotation_mrad,
+            "real {real:?} against stated {stated:?}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
     /// A wearer whose wrist keeps to a third of its range: the progress line tells them to move
     /// it; one who follows (compliance 1) gets the session calibrated and pushed within the
     /// minute, one who does not is refused at the maximum, naming the wrist's coverage.
