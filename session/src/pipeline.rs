@@ -582,10 +582,12 @@ pub fn options(settings: &Settings) -> (LsOptions<JOINTS>, DriftEmOptions<JOINTS
 }
 
 /// LS from `nominal` on `fit`, then the drift EM from the LS table, keeping the detail the
-/// report shows. When the EM fails, the LS table is the result and the EM's error is kept as
-/// text. With `detail` (the pushed table's pass, the one summaries show), also what the LS
-/// table alone is expected to be worth (the report's LS-against-EM figures) and the confidence
-/// of every joint's τ and σ: `6N + 1` more filter passes, skipped where nobody shows them.
+/// report shows, and the EM's table checked against LS's (calib-core's `em_versus_ls`). When
+/// the EM fails, the LS table is the result and the EM's error is kept as text; when its table
+/// disagrees with LS's beyond LS's own error, LS's table is the result, stated by LS's
+/// expected error ([`Calibration::ls_kept`]). With `detail` (the pushed table's pass, the one
+/// summaries show), also the confidence of every joint's τ and σ: `6N + 1` more filter passes,
+/// skipped where nobody shows them.
 pub fn ls_then_em(
     nominal: &DhTable<JOINTS>,
     fit: &[Sample<JOINTS>],
@@ -779,17 +781,17 @@ mod tests {
         for s in &mut samples[50..] {
             s.t += 0.21;
         }
-        let times = unobserved_steps(&samples, dt);
-        assert_eq!(times[50], 22.0);
-        assert!(!jump_beyond_gap(&times, 50, 7.0, dt, 1.2, 6.0));
-        assert!(!jump_beyond_gap(&times, 59, 7.0, dt, 1.2, 6.0));
+        let steps = unobserved_steps(&samples, dt);
+        assert_eq!(steps[50], 22.0);
+        assert!(!jump_beyond_gap(&steps, 50, 7.0, dt, 1.2, 6.0));
+        assert!(!jump_beyond_gap(&steps, 59, 7.0, dt, 1.2, 6.0));
         assert!(
-            jump_beyond_gap(&times, 60, 7.0, dt, 1.2, 6.0),
+            jump_beyond_gap(&steps, 60, 7.0, dt, 1.2, 6.0),
             "past the gap's reach"
         );
-        assert!(jump_beyond_gap(&times, 30, 7.0, dt, 1.2, 6.0), "no gap");
+        assert!(jump_beyond_gap(&steps, 30, 7.0, dt, 1.2, 6.0), "no gap");
         assert!(
-            jump_beyond_gap(&times, 50, 30.0, dt, 1.2, 6.0),
+            jump_beyond_gap(&steps, 50, 30.0, dt, 1.2, 6.0),
             "a slip across a gap"
         );
         // A fill across three lost readings is judged as a gap of four steps.

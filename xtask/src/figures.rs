@@ -33,8 +33,8 @@ use crate::paths::{self, workspace_root};
 /// Regenerate every figure the READMEs quote (the demo's summary for its seeds, its `nodes`
 /// listing and the screenshot of its report, the paper example's tables, the config-error
 /// example, the unit's security deductions, the peak memory of the shortest and longest
-/// window, BENCHMARKS.md's goals) from the command that prints it, and fail naming each block
-/// that differs.
+/// window, BENCHMARKS.md's goals, the figures calib-core's Monte Carlo tests print) from the
+/// command that prints it, and fail naming each block that differs.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Rewrite the stale blocks in place.
@@ -74,6 +74,9 @@ enum Source {
     /// Peak RSS of `exocald demo` (release build, at full speed) for the shipped configuration's
     /// shortest and longest collection windows.
     Memory,
+    /// The lines a calib-core unit test prints that start with the prefix (the test by its path
+    /// in the crate; ignored tests too): a Monte Carlo check's figures, seeded, repeat exactly.
+    CalibTest(&'static str, &'static str),
     /// The block of this name in BENCHMARKS.md, where a figure no quick or repeatable command
     /// regenerates is recorded by hand with its date and commands (a session killed mid-way:
     /// what it recovers depends on when the kill lands; the motion window's runs: minutes of
@@ -113,6 +116,19 @@ const BLOCKS: &[(&str, &str, Source)] = &[
     ("README.md", "bench-goals", Source::BenchGoals),
     ("README.md", "report-shot", Source::ReportShot),
     ("README.md", "nodes", Source::Nodes),
+    (
+        "calib-core/README.md",
+        "monte-carlo",
+        Source::CalibTest(
+            "sweep::tests::monte_carlo_agrees_with_the_bound_and_ls_does_not_reach_it",
+            "EM/bound",
+        ),
+    ),
+    (
+        "calib-core/README.md",
+        "drift-intervals",
+        Source::CalibTest("drift_conf::tests::cost_at_k_6000", "τ = "),
+    ),
     quoted("README.md", "killed-session"),
     quoted("docs/recover-mcap.md", "killed-offline"),
     quoted("daemon/README.md", "good-enough-paper"),
@@ -504,6 +520,27 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
                 .collect();
             if kept.len() != 27 {
                 bail!("the demo's summary lacks its aligned/expected/drift/model/sensors/glitch/held-out/push lines:\n{out}");
+            }
+            Ok(fenced(&kept))
+        }
+        Source::CalibTest(test, prefix) => {
+            // The dev profile, as `cargo xtask test` builds calib-core's tests (opt-level 2).
+            let (out, err) = output(
+                Command::new(paths::cargo())
+                    .current_dir(root)
+                    .args(["test", "-q", "-p", "calib-core", "--lib", test])
+                    .args(["--", "--exact", "--nocapture", "--include-ignored"]),
+                0,
+            )?;
+            let kept: Vec<&str> = out
+                .lines()
+                .chain(err.lines())
+                .filter(|l| l.starts_with(prefix))
+                .collect();
+            if kept.is_empty() {
+                bail!(
+                    "calib-core's {test} printed no line starting with `{prefix}`:\n{out}\n{err}"
+                );
             }
             Ok(fenced(&kept))
         }
