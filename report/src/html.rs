@@ -954,7 +954,7 @@ fn ls_against_em(out: &mut String, em: &EmDetail) {
         "<table class=\"drift\"><thead><tr><th>this session</th><th>expected table error (1σ)</th></tr></thead><tbody>",
     );
     let versus = em.versus_ls;
-    let kept = versus.is_some_and(|v| !v.agrees());
+    let kept = em.ls_kept();
     let _ = write!(
         out,
         "<tr><td>LS alone (weighs the drift as white noise){}</td><td>{}</td></tr>",

@@ -101,6 +101,13 @@ pub struct EmDetail {
 }
 
 impl EmDetail {
+    /// Whether its table disagrees with LS's beyond LS's own error (calib-core's
+    /// `EmVersusLs::agrees`), so LS's table is the result: the EM's model does not hold for the
+    /// session.
+    pub fn ls_kept(&self) -> bool {
+        self.versus_ls.is_some_and(|v| !v.agrees())
+    }
+
     /// The log-likelihoods of the final objective: never decreasing.
     pub fn last_objective(&self) -> &[f64] {
         &self.log_likelihood[self.objectives.last().copied().unwrap_or(0)..]
@@ -142,9 +149,7 @@ impl Calibration {
     /// Whether LS's table is the result because the EM's disagrees with it beyond LS's own
     /// error (calib-core's `EmVersusLs::agrees`): the EM's model does not hold for the session.
     pub fn ls_kept(&self) -> bool {
-        self.em
-            .as_ref()
-            .is_ok_and(|em| em.versus_ls.is_some_and(|v| !v.agrees()))
+        self.em.as_ref().is_ok_and(EmDetail::ls_kept)
     }
 }
 
