@@ -61,13 +61,14 @@ pub enum Command {
     /// Exit status: 0 pushed and every emulated node persisted the table; 64 a bad option value
     /// (e.g. --speed 0); 65 calibration refused by validation (nothing pushed); 66 the session
     /// never had enough motion; 69 a node did not take the table, or its flash disagrees; 74
-    /// I/O error; 78 bad configuration.
+    /// I/O error; 75 interrupted by SIGTERM/SIGINT (nothing pushed, the log finished); 78 bad
+    /// configuration.
     #[cfg(feature = "demo")]
     Demo(DemoArgs),
     /// Check a configuration file: print what was understood, or the error.
     ///
-    /// Exit status: 0 the file is valid (or the default was printed); 74 it cannot be read;
-    /// 78 it is invalid (the key and the reason named).
+    /// Exit status: 0 the file is valid (or the default was printed); 78 it cannot be read, or
+    /// it is invalid (the key and the reason named).
     CheckConfig(CheckConfigArgs),
     /// Recalibrate from a recorded session (MCAP log, candump log or CSV samples), no bus.
     ///

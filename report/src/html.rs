@@ -479,6 +479,7 @@ figcaption { color:var(--muted); font-size:13px; margin-top:4px; }
 .pair { display:flex; gap:10px; flex-wrap:wrap; align-items:flex-start; }
 .missing { padding:30px; border:2px dashed var(--bad); color:var(--bad); border-radius:8px; }
 table { border-collapse:collapse; font-size:13.5px; margin:8px 0; }
+caption { text-align:left; font-weight:600; margin-bottom:4px; }
 th, td { padding:4px 10px; border-bottom:1px solid var(--line); text-align:right; }
 th:first-child, td:first-child { text-align:left; }
 thead th { background:#f7f8fa; }
@@ -951,7 +952,7 @@ fn ls_against_em(out: &mut String, em: &EmDetail) {
         )
     };
     out.push_str(
-        "<table class=\"drift\"><thead><tr><th>this session</th><th>expected table error (1σ)</th></tr></thead><tbody>",
+        "<table class=\"drift\"><caption>LS against our EM</caption><thead><tr><th>this session</th><th>expected table error (1σ)</th></tr></thead><tbody>",
     );
     let versus = em.versus_ls;
     let kept = em.ls_kept();

@@ -87,8 +87,9 @@ const README_DEBIAN: &str = "exocal for Debian
 
 exocald.service calibrates at every boot and pushes the table to the suit's nodes over
 authenticated transfers (AES-128-CMAC, one key per node). It needs the node keys, as the
-systemd credential `exocal-keys`; without them it exits 78 (bad configuration) and is not
-restarted.
+systemd credential `exocal-keys`, loaded from /etc/credstore/exocal-keys: without that file
+systemd does not start the unit (status 243/CREDENTIALS, the journal names the file); with a
+node's key missing from it exocald exits 78 (bad configuration) and is not restarted.
 
 Provision the keys (as root):
 

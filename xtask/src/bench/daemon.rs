@@ -135,7 +135,7 @@ pub fn measure(ctx: &Ctx) -> Result<Section> {
         body,
         "**Power-up latency** (end of the collection window → every node's table verified by \
          CRC read-back), from the daemon's own summary line over {seeds} demo sessions (seeds \
-         1–{seeds}, the paper's scenario, 60 s window, authenticated push): this machine's real \
+         1–{seeds}, the paper's scenario, the shipped collection window, authenticated push): this machine's real \
          time computing — alignment, LS, our EM, validation, the refit on all samples, the HTML \
          report, the push — plus the simulated time the in-process bus and the emulated nodes \
          took (the session clock stands still while the daemon computes).\n"

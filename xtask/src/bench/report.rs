@@ -132,9 +132,8 @@ pub fn render(
     );
     let _ = writeln!(
         md,
-        "`target/` in the commands below is the cargo target directory (`CARGO_TARGET_DIR`, \
-         here `{}`); commands run from the repository's root.\n",
-        ctx.target.display()
+        "`target/` in the commands below is the cargo target directory (`CARGO_TARGET_DIR` when \
+         set); commands run from the repository's root.\n"
     );
     let _ = writeln!(
         md,
