@@ -20,8 +20,8 @@
 //! an AR(1)+white decomposition of the *effective* drift δ_k = m(t_k) − reported_k per joint
 //! (from its lag-0/1/2 autocovariances: φ = γ2/γ1, s² = γ1/φ, white w = γ0 − s²).
 //!
-//! Measured 2026-11-25 (100 seeds, 60 s; real / stated on fresh poses, pooled RMS ratio,
-//! position / rotation): a 1.01 / 1.04, a0 1.88 / 1.20, a1 (same m, d as a0, drift in the arm)
+//! Measured 2026-11-25 with the EM before issue 30 (100 seeds, 60 s; real / stated on fresh
+//! poses, pooled RMS ratio, position / rotation): a 1.01 / 1.04, a0 1.88 / 1.20, a1 (same m, d as a0, drift in the arm)
 //! 1.06 / 1.05, a2 (Scenario's m, d, drift in the reading) 1.80 / 1.17, b = c 1.55 / 1.11,
 //! d 1.88 / 1.20. The excess comes from where the drift sits (the HIL suit reads
 //! `angle = q − drift`, pose = FK(q): the reported angle carries the drift, so it is not
@@ -31,10 +31,9 @@
 //! the Jacobians at θ + δ̂ (`--relin`) changes nothing (1.81 → 1.79 over 20 seeds).
 //!
 //! With `--separate`, every variant's samples go through `calib_core::separate` first, as the
-//! daemon's do. Measured 2026-11-25 (20 seeds, 60 s; pooled real / stated, position /
-//! rotation; EM alone → separated first): a0 1.63 / 1.10 → 1.05 / 1.00, b 1.34 / 1.03 →
-//! 1.06 / 0.99, a1 1.03 / 0.99 unchanged; the stated errors unchanged, the real ones down to
-//! them (a0 2.06 → 1.33 mm). calib-core/README.md, "The drift in the reading".
+//! daemon's do. The summaries of `--seeds 20` with and without it, with today's EM, are
+//! recorded in BENCHMARKS.md (rerun by `cargo xtask figures --slow`) and quoted in
+//! calib-core/README.md, "The drift in the reading".
 //!
 //! `cargo run -p calib-core --release --example chain_interp -- [--seeds N] [--seconds S]
 //! [--sigma S] [--tau T] [--only PREFIX] [--relin] [--separate]` (`--only a` runs a, a0, a1, a2).
@@ -341,8 +340,13 @@ fn main() {
         cell.tau, cell.sigma
     );
     println!(
-        "{:<28} | {:^20} | {:^20} | {:^20} | {:^20} | pooled pos, rot | √r pos (m) | √r rot (rad) | δ white (mrad) | relin pos | relin rot",
-        "variant", "pos (fresh)", "rot (fresh)", "pos (own poses)", "rot (own poses)"
+        "{:<28} | {:^20} | {:^20} | {:^20} | {:^20} | pooled pos, rot | √r pos (m) | √r rot (rad) | δ white (mrad){}",
+        "variant",
+        "pos (fresh)",
+        "rot (fresh)",
+        "pos (own poses)",
+        "rot (own poses)",
+        if relin { " | relin pos | relin rot" } else { "" }
     );
     for (vi, v) in variants.iter().enumerate() {
         let rs = &rows[vi];
@@ -359,7 +363,7 @@ fn main() {
         };
         let mean = |f: &dyn Fn(&Row) -> f64| rs.iter().map(f).sum::<f64>() / rs.len() as f64;
         println!(
-            "{:<28} | {:^20} | {:^20} | {:^20} | {:^20} | {:.2} {:.2} | {:.1e} | {:.1e} | {:.3} | {} | {}",
+            "{:<28} | {:^20} | {:^20} | {:^20} | {:^20} | {:.2} {:.2} | {:.1e} | {:.1e} | {:.3}{}",
             v.name(),
             stat(&|r| r.fresh.0),
             stat(&|r| r.fresh.1),
@@ -370,8 +374,11 @@ fn main() {
             mean(&|r| (r.sqrt_r[0] + r.sqrt_r[1] + r.sqrt_r[2]) / 3.0),
             mean(&|r| (r.sqrt_r[3] + r.sqrt_r[4] + r.sqrt_r[5]) / 3.0),
             mean(&|r| r.white * 1e3),
-            stat(&|r| r.relin.0),
-            stat(&|r| r.relin.1),
+            if relin {
+                format!(" | {} | {}", stat(&|r| r.relin.0), stat(&|r| r.relin.1))
+            } else {
+                String::new()
+            },
         );
     }
 }

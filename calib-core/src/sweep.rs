@@ -648,8 +648,8 @@ mod tests {
     }
 
     /// The reduced sweep (issue 18): three 20 s cells with pose noise, where the sweep shows the
-    /// EM at the bound (`cargo run -p calib-core --release --example sweep`: EM / bound 0.78–0.98
-    /// there over 5 seeds). Over 4 seeds each, the EM's RMS table error stays within 1.10 × the
+    /// EM at the bound (BENCHMARKS.md's record of `cargo run -p calib-core --release --example
+    /// sweep -- --seconds 20`, 5 seeds). Over 4 seeds each, the EM's RMS table error stays within 1.10 × the
     /// bound's and below LS's, in position and rotation.
     #[test]
     fn reduced_sweep_em_at_the_bound_and_better_than_ls() {

@@ -18,7 +18,11 @@
 //!   checked like any block; `--write` takes the screenshot again (headless Chromium) whenever
 //!   that text is stale, so the picture and the text are of one demo;
 //! - a figure that no quick command regenerates (the benchmarks, minutes to hours on a quiet
-//!   machine) is quoted from the BENCHMARKS.md section that states it, and compared with it.
+//!   machine) is quoted from the BENCHMARKS.md section that states it, and compared with it;
+//! - calib-core's Monte Carlo sweeps (seeded, so they repeat exactly, but minutes each) are
+//!   recorded in BENCHMARKS.md as blocks of their example's output ([`Source::Example`]) and
+//!   quoted from there: `--slow` reruns the examples and checks (or, with `--write`, rewrites)
+//!   the records too; without it the records are the reference the quotes are compared with.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -40,6 +44,10 @@ pub struct Args {
     /// Rewrite the stale blocks in place.
     #[arg(long)]
     pub write: bool,
+    /// Also rerun calib-core's Monte Carlo sweeps that BENCHMARKS.md records (the `field`,
+    /// `stop_rule`, `sweep` and `chain_interp` examples: about half an hour on one core).
+    #[arg(long)]
+    pub slow: bool,
 }
 
 /// What a block quotes.
@@ -74,29 +82,63 @@ enum Source {
     /// Peak RSS of `exocald demo` (release build, at full speed) for the shipped configuration's
     /// shortest and longest collection windows.
     Memory,
-    /// The lines a calib-core unit test prints that start with the prefix (the test by its path
-    /// in the crate; ignored tests too): a Monte Carlo check's figures, seeded, repeat exactly.
-    CalibTest(&'static str, &'static str),
+    /// The lines a test prints that start with the prefix: `cargo test ARGS TEST -- --exact`
+    /// (ignored tests too) in the dev profile, as `cargo xtask test` builds it, with the
+    /// environment given: a Monte Carlo check's or a seeded campaign's figures, which repeat
+    /// exactly. Cargo's arguments, the test by its path, the environment, the prefix.
+    Test {
+        cargo: &'static [&'static str],
+        test: &'static str,
+        env: &'static [(&'static str, &'static str)],
+        prefix: &'static str,
+    },
+    /// Peak RSS of `exocald demo` (release build, at full speed) for collection windows of each
+    /// length (s), stop-when-good-enough off: how memory grows with the session.
+    MemoryTable(&'static [u32]),
     /// The block of this name in BENCHMARKS.md, where a figure no quick or repeatable command
     /// regenerates is recorded by hand with its date and commands (a session killed mid-way:
     /// what it recovers depends on when the kill lands; the motion window's runs: minutes of
     /// sessions).
     Quoted(&'static str),
+    /// A calib-core example's stdout (release build, seeded: it repeats exactly) from its first
+    /// line that starts with the prefix: example, arguments, prefix. A markdown table is quoted
+    /// as a table, other text fenced. Minutes of Monte Carlo: rerun only by `--slow`.
+    Example(&'static str, &'static [&'static str], &'static str),
 }
 
 impl Source {
     /// For a measured figure, the share by which each number may differ from the measurement.
     fn tolerance(self) -> Option<f64> {
         match self {
-            Source::Memory => Some(0.15),
+            Source::Memory | Source::MemoryTable(_) => Some(0.15),
             _ => None,
         }
+    }
+}
+
+/// The lines calib-core's unit test `test` prints that start with `prefix`.
+const fn calib_test(test: &'static str, prefix: &'static str) -> Source {
+    Source::Test {
+        cargo: &["-p", "calib-core", "--lib"],
+        test,
+        env: &[],
+        prefix,
     }
 }
 
 /// A block quoted from BENCHMARKS.md's block of the same name ([`Source::Quoted`]).
 const fn quoted(file: &'static str, name: &'static str) -> (&'static str, &'static str, Source) {
     (file, name, Source::Quoted(name))
+}
+
+/// BENCHMARKS.md's record of a calib-core example's output ([`Source::Example`]).
+const fn example(
+    name: &'static str,
+    example: &'static str,
+    args: &'static [&'static str],
+    from: &'static str,
+) -> (&'static str, &'static str, Source) {
+    ("BENCHMARKS.md", name, Source::Example(example, args, from))
 }
 
 /// Where each block is quoted: file (from the workspace root), block name, what it quotes.
@@ -119,7 +161,7 @@ const BLOCKS: &[(&str, &str, Source)] = &[
     (
         "calib-core/README.md",
         "monte-carlo",
-        Source::CalibTest(
+        calib_test(
             "sweep::tests::monte_carlo_agrees_with_the_bound_and_ls_does_not_reach_it",
             "EM/bound",
         ),
@@ -127,14 +169,144 @@ const BLOCKS: &[(&str, &str, Source)] = &[
     (
         "calib-core/README.md",
         "drift-intervals",
-        Source::CalibTest("drift_conf::tests::cost_at_k_6000", "τ = "),
+        calib_test("drift_conf::tests::cost_at_k_6000", "τ = "),
     ),
+    (
+        "calib-core/README.md",
+        "drift-coverage",
+        calib_test(
+            "drift_conf::tests::monte_carlo_standard_errors_match_the_spread",
+            "ln ",
+        ),
+    ),
+    ("docs/reliability.md", "atomic-push", atomic_push(&[])),
+    (
+        "docs/reliability.md",
+        "atomic-push-1000",
+        atomic_push(&[("EXOCAL_PUSH_RUNS", "1000")]),
+    ),
+    (
+        "docs/reliability.md",
+        "memory-table",
+        Source::MemoryTable(&[60, 180, 360]),
+    ),
+    example("field-sweep", "field", &["--seeds", "24"], "|"),
+    example(
+        "field-spec",
+        "field",
+        &["--seeds", "24", "--spec", "--only", "bias,ramp"],
+        "|",
+    ),
+    example(
+        "field-plain",
+        "field",
+        &["--seeds", "24", "--without", "all"],
+        "|",
+    ),
+    example(
+        "field-consider",
+        "field",
+        &[
+            "--seeds",
+            "24",
+            "--consider",
+            "simulated",
+            "--only",
+            "bias,ramp",
+        ],
+        "|",
+    ),
+    example(
+        "field-without-restricted",
+        "field",
+        &["--seeds", "24", "--without", "restricted"],
+        "|",
+    ),
+    example(
+        "field-without-robust",
+        "field",
+        &["--seeds", "24", "--without", "robust", "--only", "glitch"],
+        "|",
+    ),
+    example(
+        "field-relinearise",
+        "field",
+        &[
+            "--seeds",
+            "24",
+            "--without",
+            "+relinearise",
+            "--only",
+            "Section",
+        ],
+        "|",
+    ),
+    example(
+        "sweep-20",
+        "sweep",
+        &["--seeds", "5", "--seconds", "20"],
+        "|",
+    ),
+    example(
+        "sweep-60",
+        "sweep",
+        &["--seeds", "5", "--seconds", "60"],
+        "|",
+    ),
+    example(
+        "sweep-120",
+        "sweep",
+        &["--seeds", "3", "--seconds", "120"],
+        "|",
+    ),
+    example("stop-rule", "stop_rule", &[], "|"),
+    example(
+        "chain-interp",
+        "chain_interp",
+        &["--seeds", "20"],
+        "Summary over",
+    ),
+    example(
+        "chain-interp-separated",
+        "chain_interp",
+        &["--seeds", "20", "--separate"],
+        "Summary over",
+    ),
+    quoted("calib-core/README.md", "field-sweep"),
+    quoted("calib-core/README.md", "field-spec"),
+    quoted("calib-core/README.md", "field-plain"),
+    quoted("calib-core/README.md", "field-consider"),
+    quoted("calib-core/README.md", "field-without-restricted"),
+    quoted("calib-core/README.md", "field-without-robust"),
+    quoted("calib-core/README.md", "field-relinearise"),
+    quoted("calib-core/README.md", "sweep-20"),
+    quoted("calib-core/README.md", "sweep-60"),
+    quoted("calib-core/README.md", "sweep-120"),
+    quoted("calib-core/README.md", "stop-rule"),
+    quoted("calib-core/README.md", "chain-interp"),
+    quoted("calib-core/README.md", "chain-interp-separated"),
+    quoted("calib-core/README.md", "em-cost"),
+    quoted("calib-core/README.md", "drift-confidence-cost"),
+    quoted("docs/reliability.md", "push-cost"),
+    quoted("docs/reliability.md", "crash-mcap"),
     quoted("README.md", "killed-session"),
     quoted("docs/recover-mcap.md", "killed-offline"),
     quoted("daemon/README.md", "good-enough-paper"),
     quoted("daemon/README.md", "window-stated-over"),
     quoted("daemon/README.md", "good-enough-lazy"),
 ];
+
+/// The atomic-push campaign's tally (`daemon/tests/atomic_push.rs`: seeded runs on a paused
+/// runtime, so the counts repeat exactly), in the environment `env` (its size: 40 runs unless
+/// `EXOCAL_PUSH_RUNS` says otherwise).
+const fn atomic_push(env: &'static [(&'static str, &'static str)]) -> Source {
+    Source::Test {
+        cargo: &["-p", "exocald", "--test", "atomic_push"],
+        test: "no_node_ever_holds_a_mixed_table_and_the_report_matches_flash",
+        env,
+        prefix: "atomic push:",
+    }
+}
 
 /// Where the README's screenshot of the demo's report lives, and the window Chromium draws it in.
 const SCREENSHOT: &str = "docs/report-demo.png";
@@ -144,7 +316,7 @@ const SCREENSHOT_WINDOW: &str = "--window-size=1200,1240";
 pub fn run(args: Args) -> Result<u8> {
     let write = args.write;
     let root = workspace_root();
-    let stale = regenerate(&root, write)?;
+    let stale = regenerate(&root, write, args.slow)?;
     if stale.is_empty() {
         println!("figures: every quoted block matches its command's output");
         Ok(0)
@@ -160,10 +332,10 @@ pub fn run(args: Args) -> Result<u8> {
     }
 }
 
-/// Regenerates every block; returns the `file#block` names that differed (and, with `write`,
-/// were rewritten).
-pub fn regenerate(root: &Path, write: bool) -> Result<Vec<String>> {
-    build(root)?;
+/// Regenerates every block (with `slow`, calib-core's sweeps too); returns the `file#block`
+/// names that differed (and, with `write`, were rewritten).
+pub fn regenerate(root: &Path, write: bool, slow: bool) -> Result<Vec<String>> {
+    build(root, slow)?;
     let scratch = root.join("target/xtask/figures");
     let _ = std::fs::remove_dir_all(&scratch);
     std::fs::create_dir_all(&scratch).with_context(|| scratch.display().to_string())?;
@@ -176,8 +348,12 @@ pub fn regenerate(root: &Path, write: bool) -> Result<Vec<String>> {
             None => std::fs::read_to_string(root.join(file))
                 .with_context(|| format!("reading {file}"))?,
         };
+        let (start, end) = block_span(&text, name).with_context(|| file.to_string())?;
+        let have = &text[start..end];
         let want = match cache.get(&source) {
             Some(w) => w.clone(),
+            // The record stands for the sweep until `--slow` reruns it.
+            None if matches!(source, Source::Example(..)) && !slow => have.to_string(),
             None => {
                 let w = generate(root, &scratch, source)
                     .with_context(|| format!("{file}, block {name} ({source:?})"))?;
@@ -185,8 +361,6 @@ pub fn regenerate(root: &Path, write: bool) -> Result<Vec<String>> {
                 w
             }
         };
-        let (start, end) = block_span(&text, name).with_context(|| file.to_string())?;
-        let have = &text[start..end];
         let agrees = match source.tolerance() {
             Some(tolerance) => within(have, &want, tolerance),
             None => have == want,
@@ -209,7 +383,13 @@ pub fn regenerate(root: &Path, write: bool) -> Result<Vec<String>> {
     }
     for (file, text) in &files {
         for name in markers(text) {
-            if !BLOCKS.iter().any(|&(f, n, _)| f == *file && n == name) {
+            // BENCHMARKS.md's by-hand records are defined by the blocks that quote them.
+            let defined = BLOCKS.iter().any(|&(f, n, source)| {
+                (f == *file && n == name)
+                    || (*file == "BENCHMARKS.md"
+                        && matches!(source, Source::Quoted(n) if n == name))
+            });
+            if !defined {
                 bail!("{file}: block `{name}` has markers but no definition in xtask figures");
             }
         }
@@ -293,12 +473,18 @@ fn markers(text: &str) -> Vec<&str> {
         .collect()
 }
 
-/// Release builds of what the blocks run.
-fn build(root: &Path) -> Result<()> {
+/// Release builds of what the blocks run (with `slow`, every calib-core example).
+fn build(root: &Path, slow: bool) -> Result<()> {
+    let examples: &[&str] = if slow {
+        &["--examples"]
+    } else {
+        &["--example", "paper"]
+    };
     let status = Command::new(paths::cargo())
         .current_dir(root)
         .args(["build", "--release", "-p", "exocald", "--bins"])
-        .args(["-p", "calib-core", "--example", "paper"])
+        .args(["-p", "calib-core"])
+        .args(examples)
         .stdin(Stdio::null())
         .status()
         .context("cargo build")?;
@@ -466,6 +652,46 @@ fn first_sentence(text: &str) -> &str {
     text.trim_end_matches('.')
 }
 
+/// Peak RSS of `exocald demo --speed 1000000` (KiB) under the shipped configuration with a
+/// collection window of exactly `window` seconds, stop-when-good-enough on or off; run in
+/// `scratch/memory-WINDOW-STOP_RULE`, whose `stdout` keeps the demo's output.
+fn window_peak_rss_kib(
+    bin: &Path,
+    scratch: &Path,
+    shipped: &str,
+    window: f64,
+    stop_rule: bool,
+) -> Result<u64> {
+    let config: String = shipped
+        .lines()
+        .map(|l| {
+            if l.starts_with("min_duration_s") {
+                format!("min_duration_s = {window:.1}\n")
+            } else if l.starts_with("max_duration_s") {
+                format!("max_duration_s = {window:.1}\n")
+            } else if l.starts_with("stop_at_expected_error") && !stop_rule {
+                format!("# {l}\n")
+            } else {
+                format!("{l}\n")
+            }
+        })
+        .collect();
+    let dir = scratch.join(format!("memory-{window}-{stop_rule}"));
+    std::fs::create_dir_all(&dir)?;
+    std::fs::write(dir.join("exocald.toml"), config)?;
+    let mut cmd = Command::new(bin.join("exocald"));
+    cmd.current_dir(&dir).args([
+        "--config",
+        "exocald.toml",
+        "demo",
+        "--speed",
+        "1000000",
+        "-o",
+        "out",
+    ]);
+    peak_rss_kib(&mut cmd, &dir)
+}
+
 /// Runs `cmd` in `dir` (its output in `dir/stdout` and `dir/stderr`), which must exit 0; the
 /// peak resident set size of that process alone (`wait4`'s `ru_maxrss`), in KiB.
 fn peak_rss_kib(cmd: &mut Command, dir: &Path) -> Result<u64> {
@@ -523,13 +749,20 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
             }
             Ok(fenced(&kept))
         }
-        Source::CalibTest(test, prefix) => {
-            // The dev profile, as `cargo xtask test` builds calib-core's tests (opt-level 2).
+        Source::Test {
+            cargo,
+            test,
+            env,
+            prefix,
+        } => {
+            // The dev profile, as `cargo xtask test` builds the tests.
             let (out, err) = output(
                 Command::new(paths::cargo())
                     .current_dir(root)
-                    .args(["test", "-q", "-p", "calib-core", "--lib", test])
-                    .args(["--", "--exact", "--nocapture", "--include-ignored"]),
+                    .envs(env.iter().copied())
+                    .args(["test", "-q"])
+                    .args(cargo)
+                    .args([test, "--", "--exact", "--nocapture", "--include-ignored"]),
                 0,
             )?;
             let kept: Vec<&str> = out
@@ -538,9 +771,7 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
                 .filter(|l| l.starts_with(prefix))
                 .collect();
             if kept.is_empty() {
-                bail!(
-                    "calib-core's {test} printed no line starting with `{prefix}`:\n{out}\n{err}"
-                );
+                bail!("{cargo:?} {test} printed no line starting with `{prefix}`:\n{out}\n{err}");
             }
             Ok(fenced(&kept))
         }
@@ -617,6 +848,18 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
             lines.push("$ echo $?");
             lines.push("78");
             Ok(fenced(&lines))
+        }
+        Source::Example(example, args, from) => {
+            let exe = release(root).join("examples").join(example);
+            let (out, _) = output(Command::new(exe).args(args), 0)?;
+            let kept: Vec<&str> = out.lines().skip_while(|l| !l.starts_with(from)).collect();
+            match kept.first() {
+                None => {
+                    bail!("the {example} example printed no line starting with `{from}`:\n{out}")
+                }
+                Some(l) if l.starts_with('|') => Ok(format!("{}\n", kept.join("\n"))),
+                Some(_) => Ok(fenced(&kept)),
+            }
         }
         Source::Quoted(name) => {
             let bench = std::fs::read_to_string(root.join("BENCHMARKS.md"))?;
@@ -711,34 +954,32 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
             // would run on), the longest with it as shipped (it cannot close the window before
             // its minimum, now the maximum, and its estimates copy the collection: the peak).
             for (window, which) in [(shortest, "min_duration_s"), (longest, "max_duration_s")] {
-                let config: String = shipped
-                    .lines()
-                    .map(|l| {
-                        if l.starts_with("min_duration_s") {
-                            format!("min_duration_s = {window:.1}\n")
-                        } else if l.starts_with("stop_at_expected_error") && window == shortest {
-                            format!("# {l}\n")
-                        } else {
-                            format!("{l}\n")
-                        }
-                    })
-                    .collect();
-                let dir = scratch.join(format!("memory-{window}"));
-                std::fs::create_dir_all(&dir)?;
-                std::fs::write(dir.join("exocald.toml"), config)?;
-                let mut cmd = Command::new(bin.join("exocald"));
-                cmd.current_dir(&dir).args([
-                    "--config",
-                    "exocald.toml",
-                    "demo",
-                    "--speed",
-                    "1000000",
-                    "-o",
-                    "out",
-                ]);
-                let kib = peak_rss_kib(&mut cmd, &dir)?;
+                let stop_rule = window != shortest;
+                let kib = window_peak_rss_kib(&bin, scratch, &shipped, window, stop_rule)?;
                 rows.push(format!(
                     "| {window:.0} s (the shipped `{which}`) | {:.1} MiB |",
+                    kib as f64 / 1024.0
+                ));
+            }
+            Ok(format!("{}\n", rows.join("\n")))
+        }
+        Source::MemoryTable(windows) => {
+            let shipped = std::fs::read_to_string(root.join("daemon/exocald.toml"))?;
+            let mut rows = vec![
+                "| collection window | frames received | peak RSS |".to_string(),
+                "|---|---|---|".to_string(),
+            ];
+            for &window in windows {
+                let window = f64::from(window);
+                let kib = window_peak_rss_kib(&bin, scratch, &shipped, window, false)?;
+                let dir = scratch.join(format!("memory-{window}-false"));
+                let out = std::fs::read_to_string(dir.join("stdout"))?;
+                let frames = out
+                    .lines()
+                    .find_map(|l| l.strip_prefix("frames: ")?.split(' ').next())
+                    .with_context(|| format!("the {window}-s demo printed no `frames:` line"))?;
+                rows.push(format!(
+                    "| {window:.0} s | {frames} | {:.1} MiB |",
                     kib as f64 / 1024.0
                 ));
             }

@@ -138,7 +138,10 @@ mod cli {
         ));
         assert!(matches!(
             parse("figures --write"),
-            Cmd::Figures(figures::Args { write: true })
+            Cmd::Figures(figures::Args {
+                write: true,
+                slow: false
+            })
         ));
         for line in [
             "test",

@@ -170,7 +170,7 @@ pub fn run(args: Args) -> Result<u8> {
     println!("==> [5/5] every figure the READMEs quote, from its command (cargo xtask figures)");
     let mut figures = Counts::default();
     let figures_started = Instant::now();
-    let figures_line = match figures::regenerate(&paths::workspace_root(), false) {
+    let figures_line = match figures::regenerate(&paths::workspace_root(), false, false) {
         Ok(stale) if stale.is_empty() => {
             figures.passed = 1;
             "every quoted block matches its command's output".to_string()
