@@ -653,15 +653,15 @@ fn first_sentence(text: &str) -> &str {
 }
 
 /// Peak RSS of `exocald demo --speed 1000000` (KiB) under the shipped configuration with a
-/// collection window of exactly `window` seconds, stop-when-good-enough on or off; run in
-/// `scratch/memory-WINDOW-STOP_RULE`, whose `stdout` keeps the demo's output.
+/// collection window of exactly `window` seconds, stop-when-good-enough on or off, and the
+/// demo's stdout (run in `scratch/memory-WINDOW-STOP_RULE`).
 fn window_peak_rss_kib(
     bin: &Path,
     scratch: &Path,
     shipped: &str,
     window: f64,
     stop_rule: bool,
-) -> Result<u64> {
+) -> Result<(u64, String)> {
     let config: String = shipped
         .lines()
         .map(|l| {
@@ -689,7 +689,8 @@ fn window_peak_rss_kib(
         "-o",
         "out",
     ]);
-    peak_rss_kib(&mut cmd, &dir)
+    let kib = peak_rss_kib(&mut cmd, &dir)?;
+    Ok((kib, std::fs::read_to_string(dir.join("stdout"))?))
 }
 
 /// Runs `cmd` in `dir` (its output in `dir/stdout` and `dir/stderr`), which must exit 0; the
@@ -955,7 +956,7 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
             // its minimum, now the maximum, and its estimates copy the collection: the peak).
             for (window, which) in [(shortest, "min_duration_s"), (longest, "max_duration_s")] {
                 let stop_rule = window != shortest;
-                let kib = window_peak_rss_kib(&bin, scratch, &shipped, window, stop_rule)?;
+                let (kib, _) = window_peak_rss_kib(&bin, scratch, &shipped, window, stop_rule)?;
                 rows.push(format!(
                     "| {window:.0} s (the shipped `{which}`) | {:.1} MiB |",
                     kib as f64 / 1024.0
@@ -971,9 +972,7 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
             ];
             for &window in windows {
                 let window = f64::from(window);
-                let kib = window_peak_rss_kib(&bin, scratch, &shipped, window, false)?;
-                let dir = scratch.join(format!("memory-{window}-false"));
-                let out = std::fs::read_to_string(dir.join("stdout"))?;
+                let (kib, out) = window_peak_rss_kib(&bin, scratch, &shipped, window, false)?;
                 let frames = out
                     .lines()
                     .find_map(|l| l.strip_prefix("frames: ")?.split(' ').next())
