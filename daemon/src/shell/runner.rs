@@ -527,11 +527,6 @@ impl<T: Transport> Running<'_, '_, T> {
                 _ = self.tick.tick() => {
                     self.io.housekeeping();
                     let elapsed = self.clock.monotonic().saturating_sub(started).as_secs_f64();
-                    if estimate_job.is_none() && elapsed - last_estimate_s >= every {
-                        last_estimate_s = elapsed;
-                        let job = EstimateJob::of(&self.collector, &self.config.calibration);
-                        estimate_job = Some(tokio::task::spawn_blocking(|| job.run()));
-                    }
                     let session = &self.collector.window;
                     let progress = session.progress(elapsed);
                     self.io.reporter.update(&progress, required, self.io.notifier);
@@ -547,7 +542,15 @@ impl<T: Transport> Running<'_, '_, T> {
                         p => p,
                     };
                     match phase {
-                        Phase::Collecting => {}
+                        // An estimate only while collecting: one started on the tick the
+                        // window closes would run beside the calibration for nothing.
+                        Phase::Collecting => {
+                            if estimate_job.is_none() && elapsed - last_estimate_s >= every {
+                                last_estimate_s = elapsed;
+                                let job = EstimateJob::of(&self.collector, &self.config.calibration);
+                                estimate_job = Some(tokio::task::spawn_blocking(|| job.run()));
+                            }
+                        }
                         Phase::Ready => break,
                         Phase::Failed(mut why) => {
                             if !why.iter().any(|w| {
@@ -588,9 +591,6 @@ impl<T: Transport> Running<'_, '_, T> {
                 }
             }
             self.io.log_failed()?;
-        }
-        if let Some(job) = estimate_job {
-            job.abort();
         }
         let s = self.collector.ingest.stats().clone();
         let now = self.clock.now();
@@ -663,6 +663,15 @@ impl<T: Transport> Running<'_, '_, T> {
                 Level::Warning,
                 &format!("{node} is babbling: {repeats} frames repeated verbatim"),
             );
+        }
+        // An estimate still running: a blocking task cannot be aborted, and left to run it
+        // would hold its copy of the collection and a core beside the calibration (the peak
+        // memory, and the latency on a one-core controller, would depend on when it ends).
+        // Its result is of no use any more; it is waited for as any step off the loop is.
+        if let Some(job) = estimate_job {
+            let _ = self
+                .wait_off_loop("last estimate", shutdown.as_mut(), job)
+                .await?;
         }
         Ok(())
     }
@@ -793,10 +802,20 @@ impl<T: Transport> Running<'_, '_, T> {
     async fn off_loop<R: Send + 'static, S: Future<Output = ()>>(
         &mut self,
         what: &str,
-        mut shutdown: Pin<&mut S>,
+        shutdown: Pin<&mut S>,
         job: impl FnOnce() -> R + Send + 'static,
     ) -> Result<R, DaemonError> {
         let job = tokio::task::spawn_blocking(job);
+        self.wait_off_loop(what, shutdown, job).await
+    }
+
+    /// Waits for `job`, on tokio's blocking pool, as [`Self::off_loop`] does.
+    async fn wait_off_loop<R: Send + 'static, S: Future<Output = ()>>(
+        &mut self,
+        what: &str,
+        mut shutdown: Pin<&mut S>,
+        job: tokio::task::JoinHandle<R>,
+    ) -> Result<R, DaemonError> {
         tokio::pin!(job);
         let done = loop {
             tokio::select! {
