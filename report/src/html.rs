@@ -560,6 +560,13 @@ pub fn render(input: &ReportInput) -> String {
             out.push_str("<div class=\"verdict none\">Not validated (offline analysis).</div>\n")
         }
     }
+    for moved in input.verdict.iter().flat_map(|v| &v.onto_bounds) {
+        let _ = writeln!(
+            out,
+            "<p class=\"note\">Onto its bound: {} (the expected table error includes the move).</p>",
+            esc(moved)
+        );
+    }
 
     // Key numbers.
     let eval = if input.held_out.is_empty() {

@@ -19,6 +19,9 @@ pub struct VerdictSummary {
     pub accepted: bool,
     /// Every reason to refuse (empty when accepted).
     pub reasons: Vec<String>,
+    /// Parameters estimated just outside their bounds and moved onto them, one line each
+    /// (the session crate's `OntoBound`; empty: none).
+    pub onto_bounds: Vec<String>,
 }
 
 /// Everything a report shows.

@@ -90,6 +90,7 @@ fn input() -> ReportInput {
             longest_stall_ms: None,
         },
         verdict: Some(VerdictSummary {
+            onto_bounds: Vec::new(),
             accepted: false,
             reasons: vec!["a test reason".into()],
         }),
@@ -231,6 +232,7 @@ fn dump_dom(dir: &std::path::Path, name: &str, html: &str) -> String {
 fn the_report_shows_the_push_per_node() {
     let mut input = input();
     input.verdict = Some(VerdictSummary {
+        onto_bounds: Vec::new(),
         accepted: true,
         reasons: Vec::new(),
     });

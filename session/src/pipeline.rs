@@ -33,15 +33,15 @@ use crate::parallel::Parallel;
 use calib_core::drift_conf::Z_95;
 use calib_core::{
     drift_confidence, em_drift, em_versus_ls, identify_ls_with, ls_white_expected_error, separate,
-    DhTable, DriftEmOptions, DriftSlot, ErrorPoses, InputChecks, JointDrift, LsOptions, RateBias,
-    Sample, SeparationSlot,
+    table_error, DhTable, DriftEmOptions, DriftSlot, ErrorPoses, InputChecks, JointDrift,
+    LsOptions, RateBias, Sample, SeparationSlot, TableError,
 };
 use nalgebra::{DMatrix, SMatrix};
 use serde::Serialize;
 
 use crate::align::AlignedSample;
 use crate::rules::UNCONFIGURED_RATE_BIAS_DEG_S;
-use crate::validate::{split_holdout, validate, HeldOut, Refusal, Verdict};
+use crate::validate::{onto_bounds, split_holdout, validate, HeldOut, OntoBound, Refusal, Verdict};
 use crate::{Settings, JOINTS};
 
 /// D-H parameters of the suit (`4 × JOINTS`).
@@ -239,6 +239,9 @@ pub struct Outcome {
     pub node_rows: [NodeRow; JOINTS],
     /// Whether validation accepts the table, and why not.
     pub verdict: Verdict,
+    /// The parameters estimated just outside their bounds and moved onto them before
+    /// validation (the node rows hold the moved values; empty: none).
+    pub onto_bounds: Vec<OntoBound>,
     /// Per joint, the RMS of the rough drift taken out of its reading (rad; 0 where the
     /// reading is smooth).
     pub reading_drift_rms: [f64; JOINTS],
@@ -438,7 +441,22 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
     };
     let judged = ls_then_em(&settings.nominal, &fit, &ls_opts, &judged_opts, false)?.calibrated;
     let every: Vec<Sample<JOINTS>> = all.iter().map(|s| s.sample).collect();
-    let detail = ls_then_em(&judged, &every, &ls_opts, &em_opts, true)?;
+    let mut detail = ls_then_em(&judged, &every, &ls_opts, &em_opts, true)?;
+    // A parameter just outside its bound, by chance, goes onto it (validate's `onto_bounds`),
+    // by the standard errors of the table kept; the stated error grows by the move.
+    let sigmas = match &detail.em {
+        Ok(em) if !em.ls_kept() => em.std_errors,
+        _ => detail.ls.std_errors,
+    };
+    let (inside, onto_bounds) = onto_bounds(&detail.calibrated, &sigmas, settings);
+    if !onto_bounds.is_empty() {
+        let moved = table_error(&inside, &detail.calibrated, em_opts.error_poses.of(&every));
+        detail.stated = detail.stated.map(|s| TableError {
+            position_m: s.position_m + moved.position_m,
+            rotation_rad: s.rotation_rad + moved.rotation_rad,
+        });
+        detail.calibrated = inside;
+    }
     let ls = &detail.ls;
     let ls_summary = LsSummary {
         iterations: ls.iterations,
@@ -526,6 +544,7 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
         before: rows_of(&settings.nominal, [0.0; JOINTS], [0.0; JOINTS]),
         node_rows: rows_of(&table, tau, sigma),
         verdict,
+        onto_bounds,
         reading_drift_rms,
     };
     Ok(Calibrated {
@@ -956,6 +975,64 @@ mod tests {
         // The round trip through quaternions keeps the poses.
         let s = samples[3].sample();
         assert!((s.pose.p.x - samples[3].pose.position[0]).abs() < 1e-15);
+    }
+
+    /// An arm whose `a_4` lies right at its bound (the paper's lies 3 mm inside it): a session
+    /// estimating it just outside, by chance, pushes the table with `a_4` on the bound and its
+    /// stated error grown by the move; one estimating it outside by more than
+    /// [`crate::validate::BOUND_SLACK_SIGMAS`] is refused, naming the bound.
+    #[test]
+    fn a_table_just_outside_a_bound_is_moved_onto_it_and_one_further_out_refused() {
+        let samples = scenario(30.0, 7);
+        let free = super::run(&samples, &settings()).unwrap();
+        assert!(free.outcome.onto_bounds.is_empty());
+        let (a4, sigma) = (
+            free.outcome.node_rows[3].a,
+            free.detail.em.as_ref().unwrap().std_errors[3],
+        );
+        let stated = free.detail.stated.unwrap();
+
+        let mut config = settings();
+        config.bounds.a[3].1 = a4 - 0.5 * sigma;
+        let near = super::run(&samples, &config).unwrap();
+        let out = &near.outcome;
+        assert!(out.verdict.accepted(), "{:?}", out.verdict.reasons);
+        assert_eq!(out.onto_bounds.len(), 1, "{:?}", out.onto_bounds);
+        assert!(
+            (out.onto_bounds[0].sigmas - 0.5).abs() < 0.05,
+            "{:?}",
+            out.onto_bounds
+        );
+        assert!((out.node_rows[3].a - config.bounds.a[3].1).abs() < 1e-9);
+        assert_eq!(
+            near.detail.calibrated,
+            out.table(),
+            "the report shows what is pushed"
+        );
+        // The same EM, stated by the same bound plus the move (0.5σ of a_4, through FK).
+        let grown = near.detail.stated.unwrap();
+        let added = grown.position_m - stated.position_m;
+        // a_4 is a length along the link: every pose moves by it.
+        assert!(
+            (added - 0.5 * sigma).abs() < 1e-9,
+            "{added} for a move of {}",
+            0.5 * sigma
+        );
+        assert!(grown.rotation_rad >= stated.rotation_rad);
+
+        config.bounds.a[3].1 = a4 - 2.0 * sigma;
+        let far = super::run(&samples, &config).unwrap().outcome;
+        assert!(far.onto_bounds.is_empty());
+        let reasons: Vec<String> = far
+            .verdict
+            .reasons
+            .iter()
+            .map(ToString::to_string)
+            .collect();
+        assert!(
+            reasons.iter().any(|r| r.starts_with("joint 4: a = ")),
+            "{reasons:?}"
+        );
     }
 
     /// The report's LS-against-EM figures for one session: under the drift the EM fitted, LS

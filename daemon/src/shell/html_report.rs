@@ -46,6 +46,9 @@ pub fn report_input(
         verdict: Some(VerdictSummary {
             accepted: verdict.accepted(),
             reasons: verdict.reasons.iter().map(ToString::to_string).collect(),
+            onto_bounds: (calibrated.outcome.onto_bounds.iter())
+                .map(ToString::to_string)
+                .collect(),
         }),
         push,
     }

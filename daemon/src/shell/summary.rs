@@ -97,6 +97,9 @@ pub fn print_summary(summary: &SessionSummary) {
             v.nominal.mean_rotation_rad * 1e3,
             v.candidate.mean_rotation_rad * 1e3
         );
+        for moved in &o.onto_bounds {
+            println!("onto its bound: {moved} (the expected table error includes the move)");
+        }
         for reason in &v.reasons {
             println!("refused: {reason}");
         }
