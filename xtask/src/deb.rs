@@ -252,9 +252,10 @@ Section: misc
 Priority: optional
 Homepage: https://example.invalid/exocal
 Description: kinematic calibration for the exocal exoskeleton
- exocald collects a minute of free arm motion from the suit's IMU nodes over
- SocketCAN, identifies the D-H table by least squares and EM, validates it,
- pushes it to every node with CRC readback and logs the session as MCAP.
+ exocald collects free arm motion (until the table is good enough, 20 s to 3
+ min) from the suit's IMU nodes over SocketCAN, identifies the D-H table by
+ least squares and EM, validates it, pushes it to every node with CRC
+ readback and logs the session as MCAP.
  exocal-hil emulates the nodes for benches without hardware.
 ",
         version = package_version(),
