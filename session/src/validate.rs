@@ -326,8 +326,9 @@ impl fmt::Display for OntoBound {
         } else {
             write!(
                 f,
-                "joint {j}: {name} = {:.4} m outside [{}, {}] by {s:.2}σ, moved onto it ({:.4} m)",
-                v.value, v.min, v.max, self.to
+                "{} by {s:.2}σ, moved onto it ({:.4} m)",
+                bound_reason(v),
+                self.to
             )
         }
     }
