@@ -311,6 +311,11 @@ pub struct OntoBound {
     pub sigmas: f64,
 }
 
+impl OntoBound {
+    /// What follows every move where it is told (the summary, the log, the report).
+    pub const NOTE: &'static str = "the expected table error includes the move";
+}
+
 impl fmt::Display for OntoBound {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let v = &self.violation;

@@ -289,6 +289,11 @@ pub fn calibration_record(
             .em
             .as_ref()
             .map_or_else(Vec::new, |em| em.consistency.to_vec()),
+        onto_bounds: outcome
+            .onto_bounds
+            .iter()
+            .map(ToString::to_string)
+            .collect(),
         push: push.map_or_else(Vec::new, push_records),
     }
 }
@@ -379,6 +384,25 @@ mod tests {
         assert_eq!(record.discounted, em.discounted as u64);
         assert_eq!(record.discounted_s.len(), 2 * em.discounted_s.len());
         assert_eq!(record.drift_consistency.len(), JOINTS);
+        // A parameter moved onto its bound is in the record, worded as the summary words it.
+        assert!(record.onto_bounds.is_empty());
+        let mut moved = c.outcome.clone();
+        moved.onto_bounds.push(exocal_session::validate::OntoBound {
+            violation: calib_core::BoundViolation {
+                kind: calib_core::ParamKind::A,
+                joint: 3,
+                value: 0.2672,
+                min: 0.211,
+                max: 0.267,
+            },
+            to: 0.267,
+            sigmas: 0.13,
+        });
+        let record = calibration_record(&moved, &[], 0, 0, None);
+        assert_eq!(
+            record.onto_bounds,
+            ["joint 4: a = 0.2672 m outside [0.211, 0.267] by 0.13σ, moved onto it (0.2670 m)"]
+        );
         // The report shows them too.
         let html = exocal_report::html::render(&crate::shell::html_report::report_input(
             "t".into(),

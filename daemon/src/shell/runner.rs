@@ -40,6 +40,7 @@ use exocal_session::collect::{Collected, Collector};
 use exocal_session::estimate::{Estimate, EstimateJob};
 use exocal_session::ingest::{ClockReport, Event, FrameStats, StallReport};
 use exocal_session::pipeline::{self, Calibrated, Outcome};
+use exocal_session::validate::OntoBound;
 use exocal_session::verify::{GateStats, StreamGate};
 use exocal_session::window::{Phase, Shortfall};
 
@@ -900,6 +901,10 @@ impl<T: Transport> Running<'_, '_, T> {
         if let Some(urdf) = records::urdf(&table, limits) {
             let r = self.io.log.robot_description(ns(now), &urdf);
             self.io.check(r);
+        }
+        for moved in &calibrated.outcome.onto_bounds {
+            let line = format!("onto its bound: {moved} ({})", OntoBound::NOTE);
+            self.io.event(now, Level::Info, &line);
         }
         let v = &calibrated.outcome.verdict;
         self.io.event(

@@ -4,6 +4,7 @@
 
 use crate::exit::DaemonError;
 use crate::shell::runner::{SessionError, SessionSummary};
+use exocal_session::validate::OntoBound;
 
 /// Prints what a session did, to stdout (one line per fact).
 pub fn print_summary(summary: &SessionSummary) {
@@ -98,7 +99,7 @@ pub fn print_summary(summary: &SessionSummary) {
             v.candidate.mean_rotation_rad * 1e3
         );
         for moved in &o.onto_bounds {
-            println!("onto its bound: {moved} (the expected table error includes the move)");
+            println!("onto its bound: {moved} ({})", OntoBound::NOTE);
         }
         for reason in &v.reasons {
             println!("refused: {reason}");
