@@ -172,6 +172,28 @@ impl Reporter {
         }
     }
 
+    /// The window closed at `progress`: its line, unless this tick's was printed (the estimate
+    /// that closed it, stopping when good enough, is in no line before). The bar shows it
+    /// already.
+    pub fn closed(&mut self, progress: &Progress, required: f64) {
+        if let Reporter::Systemd { last_line } | Reporter::Plain { last_line } = self {
+            if let Some(line) = Self::closing_line(last_line, progress, required) {
+                eprintln!("exocald: {line}");
+            }
+        }
+    }
+
+    /// The line [`Reporter::closed`] prints, unless `last_line` was this tick's.
+    fn closing_line(
+        last_line: &mut Option<f64>,
+        progress: &Progress,
+        required: f64,
+    ) -> Option<String> {
+        let printed = *last_line == Some(progress.elapsed_s);
+        *last_line = Some(progress.elapsed_s);
+        (!printed).then(|| progress.line(required))
+    }
+
     /// The session moved on to `phase` (`calibrating`, `pushing`): the bar says so in place of
     /// `collecting`, with `detail` beside it; otherwise `phase: detail` is printed.
     pub fn phase(&self, phase: &str, detail: &str) {
@@ -212,6 +234,41 @@ mod tests {
             .map(|&t| Reporter::line_due(&mut last, t))
             .collect();
         assert_eq!(due, [true, false, false, true, false, true]);
+    }
+
+    #[test]
+    fn the_closing_tick_has_its_line_once() {
+        let progress = |elapsed_s, mm| Progress {
+            elapsed_s,
+            samples: 5_500,
+            coverage: [0.9; 7],
+            condition_number: Some(25.0),
+            expected: Some(exocal_session::validate::Expected {
+                position_mm: mm,
+                rotation_mrad: 5.0,
+            }),
+            guidance: None,
+            readiness: 1.0,
+        };
+        // Lines at 50 and 55 s; the estimate that closes the window lands after 55 s.
+        let mut last = None;
+        assert!(Reporter::line_due(&mut last, 50.0));
+        assert!(Reporter::line_due(&mut last, 55.0));
+        assert!(!Reporter::line_due(&mut last, 55.01));
+        let line = Reporter::closing_line(&mut last, &progress(55.01, 1.66), 0.5);
+        assert!(
+            line.as_deref().is_some_and(
+                |l| l.starts_with("collecting 55.0 s") && l.contains("expected ±1.66 mm")
+            ),
+            "{line:?}"
+        );
+        // A window closing on a tick whose line was printed: not twice.
+        let mut last = None;
+        assert!(Reporter::line_due(&mut last, 60.0));
+        assert_eq!(
+            Reporter::closing_line(&mut last, &progress(60.0, 1.3), 0.5),
+            None
+        );
     }
 
     #[test]

@@ -552,7 +552,10 @@ impl<T: Transport> Running<'_, '_, T> {
                                 estimate_job = Some(tokio::task::spawn_blocking(|| job.run()));
                             }
                         }
-                        Phase::Ready => break,
+                        Phase::Ready => {
+                            self.io.reporter.closed(&progress, required);
+                            break;
+                        }
                         Phase::Failed(mut why) => {
                             if !why.iter().any(|w| {
                                 matches!(w, Shortfall::Unverified { .. } | Shortfall::SecondSender { .. })
