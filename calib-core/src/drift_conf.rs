@@ -47,14 +47,16 @@
 //!
 //! | | empirical sd / mean reported se | 95% interval coverage | bias of the estimate |
 //! |---|---|---|---|
-//! | ln τ | 1.16 | 86.6% | −0.086 |
-//! | ln σ | 1.16 | 86.3% | −0.044 |
+//! | ln τ | 1.14 | 90.3% | −0.060 |
+//! | ln σ | 1.14 | 88.9% | −0.031 |
 //!
-//! The reported standard errors are about a sixth too small and the bias takes the rest of
-//! the coverage. Both grow on shorter sessions: at 30 τ (15 s, τ = 0.5 s) the ratios were 1.27
-//! and 1.29, the coverage 75%, the biases −0.26 and −0.12; at 120 τ with τ = 0.5 s (60 s) 1.17
-//! and 1.13, 87% and 88%. Read the intervals as honest to about 15% when the session is
-//! ≳ 100 τ, and as optimistic below that.
+//! (What the test printed on 2026-11-27; calib-core/README.md quotes its output, checked
+//! against a fresh run by `cargo xtask figures`.) The reported standard errors are about a
+//! seventh too small and the bias takes the rest of the coverage. Both grow on shorter
+//! sessions: at 30 τ (15 s, τ = 0.5 s) the ratios were 1.27 and 1.29, the coverage 75%, the
+//! biases −0.26 and −0.12; at 120 τ with τ = 0.5 s (60 s) 1.17 and 1.13, 87% and 88%
+//! (measured on 2026-11-24, with the EM before issue 30). Read the intervals as honest to
+//! about 15% when the session is ≳ 100 τ, and as optimistic below that.
 
 use crate::drift_em::DriftEmResult;
 use crate::error::CalibError;
@@ -145,7 +147,7 @@ pub(crate) fn moved<const N: usize>(par: &Params<N>, d: &[(usize, f64)]) -> Para
 /// contract, method, what it leaves out). `slots` are the workspace slots of the session
 /// `em_drift` returned `result` for, `&workspace[..samples.len()]`; they are not modified.
 ///
-/// Cost: `6N + 1` filter passes over the K samples (43 for the suit). Empirical spread over reported se ≈ 1.16 and 95% coverage ≈ 86%
+/// Cost: `6N + 1` filter passes over the K samples (43 for the suit). Empirical spread over reported se ≈ 1.14 and 95% coverage ≈ 90%
 /// on 120-τ sessions (module docs: Monte Carlo check, and how short sessions fare).
 ///
 /// Errors: [`CalibError::InvalidInput`] when the slots do not reproduce the result's

@@ -42,9 +42,10 @@ pub enum Command {
     /// Collect one session, calibrate, validate, push to every node, then exit.
     ///
     /// This is what the systemd unit runs at power-up. Exit status: 0 pushed; 65 calibration
-    /// refused by validation (nothing pushed); 66 the session never had enough motion; 69 CAN
-    /// interface missing or a node unreachable; 74 I/O error; 75 interrupted (nothing pushed);
-    /// 78 bad configuration.
+    /// refused by validation (nothing pushed), or a second sender on a node's identifiers; 66
+    /// the session never had enough motion, or too much of the sensor streams failed
+    /// authentication; 69 CAN interface missing or a node unreachable; 74 I/O error; 75
+    /// interrupted (nothing pushed); 78 bad configuration.
     Calibrate(SessionArgs),
     /// Serve: keep listening, and run a session on each CAN Trigger frame or SIGUSR1.
     ///

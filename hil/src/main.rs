@@ -47,11 +47,11 @@ struct Cli {
     /// Directory of the node flash files (node<N>.flash) and key slots (node<N>.key).
     #[arg(long, default_value = "hil-flash")]
     flash_dir: PathBuf,
-    /// Provision the nodes' key slots from this key file before they boot (one `JointN HEX`
-    /// line per node, 32 hex digits; exocald reads the same file as its `exocal-keys`
-    /// credential). Default: the systemd credential $CREDENTIALS_DIRECTORY/exocal-keys, when
-    /// the unit has one. A node with a key installs only authenticated tables; one without
-    /// accepts any (protocol version 1).
+    /// Provision the nodes' key slots from this key file before they boot (one `NAME HEX`
+    /// line per node, `Joint1`…`Joint7` and `EndEffector`, 32 hex digits; exocald reads the
+    /// same file as its `exocal-keys` credential). Default: the systemd credential
+    /// $CREDENTIALS_DIRECTORY/exocal-keys, when the unit has one. A node with a key installs
+    /// only authenticated tables; one without installs nothing (fail closed).
     #[arg(long, value_name = "FILE")]
     keys: Option<PathBuf>,
     /// Print the scenario (after overrides) as TOML and exit.

@@ -112,9 +112,10 @@ with a drop-in /etc/systemd/system/exocald.service.d/keys.conf:
     LoadCredential=
     LoadCredentialEncrypted=exocal-keys:/etc/credstore.encrypted/exocal-keys
 
-A bench whose nodes hold no keys may set `authenticate = false` in the [push] section of
-/etc/exocal/exocald.toml instead: then anyone on the CAN bus can change a node's table, and
-exocald says so in the journal at every start.
+With `authenticate = false` in the [push] section of /etc/exocal/exocald.toml, exocald
+sends plain transfers, which every exocal-3 node refuses (keyed or not): nothing can be
+pushed that way, and exocald warns in the journal at every start that the nodes' answers
+and the sensor streams are unauthenticated.
 ";
 
 const COPYRIGHT: &str = "Format: https://www.debian.org/doc/packaging-manuals/copyright-format/1.0/
