@@ -336,7 +336,8 @@ pub struct TableSi {
     pub theta_offset_rad: f64,
     /// Drift correlation time τ (s).
     pub tau_s: f64,
-    /// Drift deviation σ (rad/s).
+    /// Drift σ as the paper defines it (eq. 8, rad/s, on the session's grid Δt); the
+    /// stationary deviation of the angle error is σ·Δt/√(1+e^(−Δt/τ)).
     pub sigma_rad_s: f64,
 }
 
