@@ -312,8 +312,10 @@ pub struct OntoBound {
 }
 
 impl OntoBound {
-    /// What follows every move where it is told (the summary, the log, the report).
-    pub const NOTE: &'static str = "the expected table error includes the move";
+    /// The move as the summary and the session log tell it.
+    pub fn line(&self) -> String {
+        format!("onto its bound: {self} (the expected table error includes the move)")
+    }
 }
 
 impl fmt::Display for OntoBound {

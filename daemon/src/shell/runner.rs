@@ -40,7 +40,6 @@ use exocal_session::collect::{Collected, Collector};
 use exocal_session::estimate::{Estimate, EstimateJob};
 use exocal_session::ingest::{ClockReport, Event, FrameStats, StallReport};
 use exocal_session::pipeline::{self, Calibrated, Outcome};
-use exocal_session::validate::OntoBound;
 use exocal_session::verify::{GateStats, StreamGate};
 use exocal_session::window::{Phase, Shortfall};
 
@@ -906,8 +905,7 @@ impl<T: Transport> Running<'_, '_, T> {
             self.io.check(r);
         }
         for moved in &calibrated.outcome.onto_bounds {
-            let line = format!("onto its bound: {moved} ({})", OntoBound::NOTE);
-            self.io.event(now, Level::Info, &line);
+            self.io.event(now, Level::Info, &moved.line());
         }
         let v = &calibrated.outcome.verdict;
         self.io.event(

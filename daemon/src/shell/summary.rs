@@ -4,7 +4,6 @@
 
 use crate::exit::DaemonError;
 use crate::shell::runner::{SessionError, SessionSummary};
-use exocal_session::validate::OntoBound;
 
 /// Prints what a session did, to stdout (one line per fact).
 pub fn print_summary(summary: &SessionSummary) {
@@ -99,7 +98,7 @@ pub fn print_summary(summary: &SessionSummary) {
             v.candidate.mean_rotation_rad * 1e3
         );
         for moved in &o.onto_bounds {
-            println!("onto its bound: {moved} ({})", OntoBound::NOTE);
+            println!("{}", moved.line());
         }
         for reason in &v.reasons {
             println!("refused: {reason}");
