@@ -82,12 +82,15 @@ enum Source {
     /// Peak RSS of `exocald demo` (release build, at full speed) for the shipped configuration's
     /// shortest and longest collection windows.
     Memory,
-    /// The lines a test prints that start with the prefix: `cargo test ARGS TEST -- --exact`
-    /// (ignored tests too) in the dev profile, as `cargo xtask test` builds it, with the
-    /// environment given: a Monte Carlo check's or a seeded campaign's figures, which repeat
-    /// exactly. Cargo's arguments, the test by its path, the environment, the prefix.
+    /// The lines a test prints that start with the prefix: the test binary `cargo test
+    /// --workspace` built (the one `cargo xtask test` runs; found, not rebuilt, by
+    /// [`test_binary`]) run as `BINARY TEST --exact` (ignored tests too) with the environment
+    /// given: a Monte Carlo check's or a seeded campaign's figures, which repeat exactly. The
+    /// package and its test target (`None`: the library's unit tests), the test by its path, the
+    /// environment, the prefix.
     Test {
-        cargo: &'static [&'static str],
+        package: &'static str,
+        target: Option<&'static str>,
         test: &'static str,
         env: &'static [(&'static str, &'static str)],
         prefix: &'static str,
@@ -119,7 +122,8 @@ impl Source {
 /// The lines calib-core's unit test `test` prints that start with `prefix`.
 const fn calib_test(test: &'static str, prefix: &'static str) -> Source {
     Source::Test {
-        cargo: &["-p", "calib-core", "--lib"],
+        package: "calib-core",
+        target: None,
         test,
         env: &[],
         prefix,
@@ -301,7 +305,8 @@ const BLOCKS: &[(&str, &str, Source)] = &[
 /// `EXOCAL_PUSH_RUNS` says otherwise).
 const fn atomic_push(env: &'static [(&'static str, &'static str)]) -> Source {
     Source::Test {
-        cargo: &["-p", "exocald", "--test", "atomic_push"],
+        package: "exocald",
+        target: Some("atomic_push"),
         test: "no_node_ever_holds_a_mixed_table_and_the_report_matches_flash",
         env,
         prefix: "atomic push:",
@@ -335,7 +340,12 @@ pub fn run(args: Args) -> Result<u8> {
 /// Regenerates every block (with `slow`, calib-core's sweeps too); returns the `file#block`
 /// names that differed (and, with `write`, were rewritten).
 pub fn regenerate(root: &Path, write: bool, slow: bool) -> Result<Vec<String>> {
+    let started = std::time::Instant::now();
     build(root, slow)?;
+    println!(
+        "figures: release build in {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
     let scratch = root.join("target/xtask/figures");
     let _ = std::fs::remove_dir_all(&scratch);
     std::fs::create_dir_all(&scratch).with_context(|| scratch.display().to_string())?;
@@ -355,8 +365,14 @@ pub fn regenerate(root: &Path, write: bool, slow: bool) -> Result<Vec<String>> {
             // The record stands for the sweep until `--slow` reruns it.
             None if matches!(source, Source::Example(..)) && !slow => have.to_string(),
             None => {
+                let started = std::time::Instant::now();
                 let w = generate(root, &scratch, source)
                     .with_context(|| format!("{file}, block {name} ({source:?})"))?;
+                // Where the step's time goes (CONTRIBUTING.md's breakdown).
+                println!(
+                    "figures: {file}#{name} generated in {:.1} s",
+                    started.elapsed().as_secs_f64()
+                );
                 cache.insert(source, w.clone());
                 w
             }
@@ -473,23 +489,32 @@ fn markers(text: &str) -> Vec<&str> {
         .collect()
 }
 
-/// Release builds of what the blocks run (with `slow`, every calib-core example).
+/// Release builds of what the blocks run (with `slow`, every calib-core example): the daemon as
+/// the README's demo command builds it (`cargo xtask test` has built it already), then
+/// calib-core's examples in a cargo invocation of their own. One invocation for both would
+/// resolve calib-core's `research` feature (its examples') for the daemon too, and compile every
+/// crate above calib-core a second time.
 fn build(root: &Path, slow: bool) -> Result<()> {
     let examples: &[&str] = if slow {
         &["--examples"]
     } else {
         &["--example", "paper"]
     };
+    build_release(root, &["-p", "exocald", "--bin", "exocald"])?;
+    build_release(root, &[&["-p", "calib-core"], examples].concat())
+}
+
+/// `cargo build --release ARGS`.
+fn build_release(root: &Path, args: &[&str]) -> Result<()> {
     let status = Command::new(paths::cargo())
         .current_dir(root)
-        .args(["build", "--release", "-p", "exocald", "--bins"])
-        .args(["-p", "calib-core"])
-        .args(examples)
+        .args(["build", "--release"])
+        .args(args)
         .stdin(Stdio::null())
         .status()
         .context("cargo build")?;
     if !status.success() {
-        bail!("release build of exocald and the paper example failed");
+        bail!("cargo build --release {} failed", args.join(" "));
     }
     Ok(())
 }
@@ -521,6 +546,73 @@ fn output(cmd: &mut Command, ok_code: i32) -> Result<(String, String)> {
 
 fn fenced(lines: &[&str]) -> String {
     format!("```text\n{}\n```\n", lines.join("\n"))
+}
+
+/// The test binary of `package` (its library's unit tests, or the integration test `target`)
+/// that `cargo test --workspace` builds, as `cargo xtask test` runs it, and the directory cargo
+/// runs it in (the package's): found from cargo's artifact messages, built only if it is not.
+/// Not `cargo test -p PACKAGE`: features resolved for one package differ from the workspace's,
+/// and it would compile the package and its dependencies a second time.
+fn test_binary(root: &Path, package: &str, target: Option<&str>) -> Result<(PathBuf, PathBuf)> {
+    let manifest = package_manifest(root, package)?;
+    let out = Command::new(paths::cargo())
+        .current_dir(root)
+        .args(["test", "--workspace", "--no-run", "--message-format=json"])
+        .stdin(Stdio::null())
+        .stderr(Stdio::inherit())
+        .output()
+        .context("cargo test --workspace --no-run")?;
+    if !out.status.success() {
+        bail!("building the workspace's tests failed");
+    }
+    for line in String::from_utf8_lossy(&out.stdout).lines() {
+        let Ok(msg) = serde_json::from_str::<serde_json::Value>(line) else {
+            continue;
+        };
+        let kind_ok = match target {
+            None => msg["target"]["kind"]
+                .as_array()
+                .is_some_and(|k| k.iter().any(|k| k == "lib")),
+            Some(name) => {
+                msg["target"]["kind"] == serde_json::json!(["test"])
+                    && msg["target"]["name"] == name
+            }
+        };
+        let ours = msg["reason"] == "compiler-artifact"
+            && msg["profile"]["test"] == true
+            && kind_ok
+            && msg["manifest_path"].as_str() == Some(manifest.as_str());
+        if let (true, Some(exe)) = (ours, msg["executable"].as_str()) {
+            let dir = Path::new(&manifest)
+                .parent()
+                .context("manifest directory")?
+                .to_path_buf();
+            return Ok((PathBuf::from(exe), dir));
+        }
+    }
+    bail!(
+        "cargo test --workspace built no test binary for {package} ({})",
+        target.unwrap_or("lib")
+    )
+}
+
+/// The manifest path of the workspace's package `name` (`cargo metadata`).
+fn package_manifest(root: &Path, name: &str) -> Result<String> {
+    let out = Command::new(paths::cargo())
+        .current_dir(root)
+        .args(["metadata", "--no-deps", "--format-version", "1"])
+        .stdin(Stdio::null())
+        .stderr(Stdio::inherit())
+        .output()
+        .context("cargo metadata")?;
+    let meta: serde_json::Value =
+        serde_json::from_slice(&out.stdout).context("cargo metadata's output")?;
+    meta["packages"]
+        .as_array()
+        .and_then(|ps| ps.iter().find(|p| p["name"] == name))
+        .and_then(|p| p["manifest_path"].as_str())
+        .map(str::to_string)
+        .with_context(|| format!("no package {name} in the workspace"))
 }
 
 /// The `paper` example's output for `seed`, 60 s, with `extra` arguments.
@@ -751,19 +843,18 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
             Ok(fenced(&kept))
         }
         Source::Test {
-            cargo,
+            package,
+            target,
             test,
             env,
             prefix,
         } => {
-            // The dev profile, as `cargo xtask test` builds the tests.
+            let (binary, dir) = test_binary(root, package, target)?;
             let (out, err) = output(
-                Command::new(paths::cargo())
-                    .current_dir(root)
+                Command::new(&binary)
+                    .current_dir(dir)
                     .envs(env.iter().copied())
-                    .args(["test", "-q"])
-                    .args(cargo)
-                    .args([test, "--", "--exact", "--nocapture", "--include-ignored"]),
+                    .args([test, "--exact", "--nocapture", "--include-ignored"]),
                 0,
             )?;
             let kept: Vec<&str> = out
@@ -772,7 +863,10 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
                 .filter(|l| l.starts_with(prefix))
                 .collect();
             if kept.is_empty() {
-                bail!("{cargo:?} {test} printed no line starting with `{prefix}`:\n{out}\n{err}");
+                bail!(
+                    "{} {test} printed no line starting with `{prefix}`:\n{out}\n{err}",
+                    binary.display()
+                );
             }
             Ok(fenced(&kept))
         }

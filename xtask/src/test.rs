@@ -35,6 +35,50 @@ pub struct Args {
     /// test: the suites must pass on a loaded machine).
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub load: usize,
+    /// For development: the host suites as plain `cargo test --workspace` runs them (not the
+    /// ignored ones), without setup, release builds, vcan, power-up, cross-builds or figures.
+    /// Not what CI runs.
+    #[arg(long)]
+    pub quick: bool,
+}
+
+/// `cargo test --workspace --no-fail-fast [-- --include-ignored]`, counted into `host` (a failure
+/// of cargo itself with no failed test counts as broken).
+fn workspace_tests(cargo: &str, include_ignored: bool, host: &mut Counts) -> Result<()> {
+    let mut cmd = Command::new(cargo);
+    // `--no-fail-fast`: a failing crate does not hide the results of the others.
+    cmd.args(["test", "--workspace", "--no-fail-fast", "--color", "never"]);
+    if include_ignored {
+        // The tests plain `cargo test` ignores: those that need the project's Python venv
+        // (EXOCAL_PYTHON) and the slow cost checks.
+        cmd.args(["--", "--include-ignored"]);
+    }
+    let ok = libtest::run_teed(&mut cmd, host)?;
+    if !ok && host.failed == 0 {
+        host.broken += 1;
+    }
+    Ok(())
+}
+
+/// `cargo xtask test --quick`: the host suites as plain `cargo test` runs them.
+fn quick() -> Result<u8> {
+    let started = Instant::now();
+    let mut host = Counts::default();
+    workspace_tests(&paths::cargo(), false, &mut host)?;
+    println!(
+        "host suites ({:.0} s): {} passed, {} failed, {} ignored (the full run includes them)",
+        started.elapsed().as_secs_f64(),
+        host.passed,
+        host.failed,
+        host.ignored
+    );
+    println!(
+        "exocal: {} passed, {} failed, {} skipped",
+        host.passed,
+        host.failed + host.broken,
+        host.ignored
+    );
+    Ok(if host.failed + host.broken == 0 { 0 } else { 1 })
 }
 
 /// Wall time per step, for the summary (where CI's time goes).
@@ -62,6 +106,9 @@ impl Steps {
 }
 
 pub fn run(args: Args) -> Result<u8> {
+    if args.quick {
+        return quick();
+    }
     let opts = &args.harness;
     let cargo = paths::cargo();
     let mut host = Counts::default();
@@ -90,26 +137,9 @@ pub fn run(args: Args) -> Result<u8> {
     println!(
         "==> [1/5] cargo test --workspace -- --include-ignored (unit, integration and doc tests)"
     );
-    let ok_host = steps.time("[1/5] workspace tests", || {
-        libtest::run_teed(
-            // `--no-fail-fast`: a failing crate does not hide the results of the others.
-            // `--include-ignored`: tests ignored for plain `cargo test` because they need the
-            // project's Python venv (EXOCAL_PYTHON, made above) run here.
-            Command::new(&cargo).args([
-                "test",
-                "--workspace",
-                "--no-fail-fast",
-                "--color",
-                "never",
-                "--",
-                "--include-ignored",
-            ]),
-            &mut host,
-        )
+    steps.time("[1/5] workspace tests", || {
+        workspace_tests(&cargo, true, &mut host)
     })?;
-    if !ok_host && host.failed == 0 {
-        host.broken += 1;
-    }
 
     println!("==> [2/5] vcan suites (exocal-tests --features vcan) in the vcan harness");
     let started = Instant::now();
