@@ -238,7 +238,7 @@ fn run_bad(dir: &Path, name: &str, bytes: &[u8], format: Option<Format>) -> Daem
 fn bad_inputs_are_errors_naming_the_file_line_and_problem() {
     let dir = temp_dir("bad");
     let header = CSV_HEADER;
-    let cases: [(&str, Vec<u8>, Option<Format>, &str); 6] = [
+    let cases: [(&str, Vec<u8>, Option<Format>, &str); 9] = [
         (
             "s.csv",
             format!("{header}\n0.0,1,2,3,4,5,6,7,0,0,0,2,0,0,0\n").into_bytes(),
@@ -274,7 +274,26 @@ fn bad_inputs_are_errors_naming_the_file_line_and_problem() {
             "what.txt",
             b"hello\n".to_vec(),
             None,
-            "what.txt: cannot tell the format",
+            "what.txt: cannot tell the format (text, its first line \"hello\"",
+        ),
+        // The content decides, the extension only where the content is none of the formats.
+        (
+            "mcap.log",
+            b"\x89MCAP0\r\nnot really".to_vec(),
+            None,
+            "mcap.log: MCAP log:",
+        ),
+        (
+            "candump.csv",
+            b"(1.000000) can0 101#00\n(1.000100) can0 800#00\n".to_vec(),
+            None,
+            "candump.csv: candump log, line 2: bad identifier",
+        ),
+        (
+            "what.bin",
+            vec![0xff, 0xfe, 0x00, 0x01],
+            None,
+            "what.bin: cannot tell the format (binary, starting ff fe 00 01",
         ),
     ];
     for (name, bytes, format, want) in cases {

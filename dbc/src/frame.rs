@@ -121,8 +121,10 @@ pub struct Received {
 /// Why a `candump -L` line does not parse.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum CandumpError {
-    /// Not `(time) interface ID#DATA`.
+    /// Not `(time) interface ID#DATA`, optionally followed by a direction flag.
     Shape,
+    /// A fourth field other than the direction flag `R` (received) or `T` (transmitted).
+    Direction,
     /// The `(seconds.fraction)` timestamp (1 to 9 fraction digits).
     Timestamp,
     /// No `#` between identifier and data.
@@ -142,7 +144,12 @@ pub enum CandumpError {
 impl core::fmt::Display for CandumpError {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         f.write_str(match self {
-            CandumpError::Shape => "expected `(time) interface ID#DATA`",
+            CandumpError::Shape => {
+                "expected `(time) interface ID#DATA`, optionally followed by `R` or `T`"
+            }
+            CandumpError::Direction => {
+                "after `ID#DATA` only a direction flag may follow: `R` (received) or `T` (transmitted)"
+            }
             CandumpError::Timestamp => "bad timestamp: expected `(seconds.fraction)`",
             CandumpError::NoHash => "no `#` between identifier and data",
             CandumpError::Fd => "CAN FD frames (`##`) are not supported",
@@ -158,14 +165,24 @@ impl core::fmt::Display for CandumpError {
 
 impl Received {
     /// Parses one `candump -L` line, `(1700000000.123456) can0 123#DEADBEEF` (interface
-    /// ignored; remote frames `ID#R` or `ID#R<dlc>`; exact nanosecond times).
+    /// ignored; remote frames `ID#R` or `ID#R<dlc>`; exact nanosecond times). The line may end
+    /// in a direction flag, ` R` or ` T`, as can-utils' `asc2log` and python-can's
+    /// `CanutilsLogWriter` write them; it is ignored (a recorded frame is a frame on the bus,
+    /// whichever way it went).
     pub fn from_candump(line: &str) -> Result<Received, CandumpError> {
         let mut parts = line.split_whitespace();
-        let (Some(time), Some(_iface), Some(frame), None) =
-            (parts.next(), parts.next(), parts.next(), parts.next())
-        else {
+        let (Some(time), Some(_iface), Some(frame), direction, None) = (
+            parts.next(),
+            parts.next(),
+            parts.next(),
+            parts.next(),
+            parts.next(),
+        ) else {
             return Err(CandumpError::Shape);
         };
+        if !matches!(direction, None | Some("R" | "T")) {
+            return Err(CandumpError::Direction);
+        }
         let timestamp = time
             .strip_prefix('(')
             .and_then(|t| t.strip_suffix(')'))
@@ -311,12 +328,29 @@ mod tests {
         assert_eq!(empty.frame.data(), &[] as &[u8]);
     }
 
+    /// can-utils' `asc2log` and python-can's `CanutilsLogWriter` end each line with the
+    /// frame's direction; the frame is the one without it.
+    #[test]
+    fn a_direction_flag_is_read_and_ignored() {
+        extern crate std;
+        use std::format;
+        let plain = Received::from_candump("(1700000000.123456) vcan0 123#DEADBEEF").unwrap();
+        for flag in ["R", "T"] {
+            let line = format!("(1700000000.123456) vcan0 123#DEADBEEF {flag}");
+            assert_eq!(Received::from_candump(&line), Ok(plain), "{line}");
+        }
+        let remote = Received::from_candump("(1.5) can0 321#R R").unwrap();
+        assert!(remote.frame.is_remote_frame() && remote.frame.raw_id() == 0x321);
+    }
+
     #[test]
     fn a_bad_candump_line_says_what_is_wrong() {
         for (line, why) in [
             ("", CandumpError::Shape),
             ("(1.0) can0", CandumpError::Shape),
-            ("(1.0) can0 123#00 extra", CandumpError::Shape),
+            ("(1.0) can0 123#00 extra", CandumpError::Direction),
+            ("(1.0) can0 123#00 r", CandumpError::Direction),
+            ("(1.0) can0 123#00 R extra", CandumpError::Shape),
             ("1.0 can0 123#00", CandumpError::Timestamp),
             ("(1.0000000001) can0 123#00", CandumpError::Timestamp),
             ("(-1.0) can0 123#00", CandumpError::Timestamp),

@@ -83,7 +83,8 @@ impl fmt::Display for ReadError {
 
 impl std::error::Error for ReadError {}
 
-/// A `candump -L` log read line by line: `(seconds.fraction) iface ID#DATA` per line, blank
+/// A `candump -L` log read line by line: `(seconds.fraction) iface ID#DATA` per line, optionally
+/// followed by a direction flag `R` or `T` (as can-utils' `asc2log` and python-can write it), blank
 /// lines skipped; at most what one session under the window's rules can hold ([`Budget`]).
 #[derive(Debug, Clone)]
 pub struct CandumpReader {

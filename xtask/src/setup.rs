@@ -58,7 +58,7 @@ pub const PACKAGES: &[(&str, &str)] = &[
     ("iproute2", "`ip link` makes vcan0/vcan1 in the harness"),
     (
         "can-utils",
-        "candump -l, what the ingest bench (`cargo xtask bench --only ingest`) compares with",
+        "candump -l, what the ingest bench (`cargo xtask bench --only ingest`) compares with; log2asc and asc2log, which write the candump logs session/tests/candump_tools.rs reads",
     ),
     ("kmod", "modprobe vcan on a kernel that has CAN"),
     (

@@ -60,9 +60,25 @@ const MCAP_MAGIC: &[u8] = b"\x89MCAP";
 /// Bytes from the start of the input that [`detect_format`] looks at.
 const DETECT_BYTES: u64 = 4096;
 
-/// The format of `path`: by extension (`.mcap`, `.csv`, `.log`/`.candump`), else by content
-/// (the MCAP magic, a `(time)` candump line, the CSV header).
+/// The format of `path`: by content (the MCAP magic, a `(time)` candump line, the CSV header),
+/// the extension (`.mcap`, `.csv`, `.log`/`.candump`) only where the content is none of them
+/// (a damaged file then gets its format's own reader, and that reader's reason); else an error
+/// saying what the start of the file looks like.
 pub fn detect_format(path: &Path, bytes: &[u8]) -> Result<Format, DaemonError> {
+    if bytes.starts_with(MCAP_MAGIC) {
+        return Ok(Format::Mcap);
+    }
+    let head = &bytes[..bytes.len().min(DETECT_BYTES as usize)];
+    let text = String::from_utf8_lossy(head);
+    let first = text
+        .lines()
+        .map(str::trim)
+        .find(|l| !l.is_empty() && !l.starts_with('#'));
+    match first {
+        Some(l) if l.starts_with('(') => return Ok(Format::Candump),
+        Some(l) if l.starts_with("t,") => return Ok(Format::Csv),
+        _ => {}
+    }
     let ext = path
         .extension()
         .map(|e| e.to_string_lossy().to_ascii_lowercase());
@@ -72,23 +88,20 @@ pub fn detect_format(path: &Path, bytes: &[u8]) -> Result<Format, DaemonError> {
         Some("log" | "candump") => return Ok(Format::Candump),
         _ => {}
     }
-    if bytes.starts_with(MCAP_MAGIC) {
-        return Ok(Format::Mcap);
-    }
-    let text = String::from_utf8_lossy(&bytes[..bytes.len().min(DETECT_BYTES as usize)]);
-    let first = text
-        .lines()
-        .map(str::trim)
-        .find(|l| !l.is_empty() && !l.starts_with('#'));
-    match first {
-        Some(l) if l.starts_with('(') => Ok(Format::Candump),
-        Some(l) if l.starts_with("t,") => Ok(Format::Csv),
-        _ => Err(DaemonError::Input(format!(
-            "{}: cannot tell the format (not MCAP, no `(time) iface ID#DATA` line, no CSV \
-             header); pass --format mcap|candump|csv",
-            path.display()
-        ))),
-    }
+    let looks = if head.is_empty() {
+        "it is empty".to_string()
+    } else if std::str::from_utf8(head).is_err() {
+        let shown: Vec<String> = head.iter().take(8).map(|b| format!("{b:02x}")).collect();
+        format!("binary, starting {}", shown.join(" "))
+    } else {
+        let line: String = first.unwrap_or("").chars().take(60).collect();
+        format!("text, its first line {line:?}")
+    };
+    Err(DaemonError::Input(format!(
+        "{}: cannot tell the format ({looks}: not MCAP, no `(time) iface ID#DATA` line, no CSV \
+         header); pass --format mcap|candump|csv",
+        path.display()
+    )))
 }
 
 /// Longest line of a text input (bytes): a candump line is under 60, a CSV row under 500.
