@@ -133,7 +133,8 @@ pub struct OfflineArgs {
     /// The recorded session: an exocald MCAP log, a `candump -L` log, or CSV samples.
     #[arg(long, short = 'i', value_name = "FILE")]
     pub input: PathBuf,
-    /// Input format; detected from the extension or the content when omitted.
+    /// Input format; detected from the content when omitted (the extension only where the
+    /// content is none of the formats).
     #[arg(long, value_enum)]
     pub format: Option<Format>,
     /// HTML report. Default: `<input>.offline.html` next to the input.
