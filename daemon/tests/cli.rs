@@ -201,6 +201,14 @@ fn nodes_json_without_a_bus_prints_a_json_error() {
 
 /// `demo --speed -1` reaches the value parser (64, naming the value), not clap's
 /// "unexpected argument".
+/// An endless input named as MCAP is refused at once, not read for ever.
+#[test]
+fn dev_zero_as_mcap_is_refused_at_once() {
+    let (code, _, err) = exocald(&["offline", "-i", "/dev/zero", "--format", "mcap"]);
+    assert_eq!(code, 65, "{err}");
+    assert!(err.contains("not an MCAP file"), "{err}");
+}
+
 #[test]
 fn a_negative_speed_is_a_usage_error_naming_it() {
     let (code, _, err) = exocald(&["demo", "--speed", "-1"]);

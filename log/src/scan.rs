@@ -15,8 +15,10 @@
 //! - the scan stops at the data end (checking the data section's CRC when it has one), at the
 //!   first record cut short or at the first damaged one, and says which ([`End`]); [`Scan`]
 //!   counts what was handed out before. It then reads on to the end of the input, without
-//!   keeping it, to tell whether the file was finished ([`Scan::finished`]: it ends with the
-//!   MCAP magic);
+//!   keeping it and at most [`MAX_DRAIN_BYTES`] further, to tell whether the file was finished
+//!   ([`Scan::finished`]: it ends with the MCAP magic; an input longer than that is taken as
+//!   unfinished, so an endless or huge input, `/dev/zero` or a sparse file, ends the scan in
+//!   bounded time). An input without the MCAP magic is not read past it;
 //! - nothing here panics on any input, and only the caller's callback can fail the scan.
 
 use std::collections::{HashMap, HashSet};
@@ -24,6 +26,11 @@ use std::fmt;
 use std::io::Read;
 
 use mcap::records::op;
+
+/// Most bytes read past the point where a scan stopped, looking for the file's end magic. A
+/// session log is tens of MB (about 6 MB a minute); a file whose end lies further than this past
+/// its damage is taken as unfinished.
+pub const MAX_DRAIN_BYTES: u64 = 1 << 30;
 
 /// Longest record outside a chunk, and longest record inside one (bytes). Session logs hold
 /// protobuf schemas of a few kB and messages of a few hundred bytes.
@@ -153,7 +160,8 @@ pub struct Scan {
     pub log_times: Option<(u64, u64)>,
     /// Bytes of the input read as whole records (where what was handed out ends).
     pub kept_bytes: u64,
-    /// Size of the input.
+    /// Size of the input: what was read of it (not past its first bytes for an input that is
+    /// not MCAP, at most [`MAX_DRAIN_BYTES`] past where the scan stopped otherwise).
     pub file_bytes: u64,
     /// Whether the input ends with the MCAP magic (a writer finished it).
     pub finished: bool,
@@ -578,23 +586,31 @@ impl<R: Read> Input<R> {
         self.tail.drain(..extra);
     }
 
-    /// Reads the rest of the input without keeping it; returns how many bytes that was.
-    fn drain(&mut self) -> u64 {
+    /// Reads the rest of the input without keeping it, at most [`MAX_DRAIN_BYTES`]; returns how
+    /// many bytes that was, and whether the input ended within them.
+    fn drain(&mut self) -> (u64, bool) {
         let mut chunk = [0u8; 64 << 10];
         let mut total = 0u64;
-        loop {
+        let ended = loop {
+            if total >= MAX_DRAIN_BYTES {
+                break false;
+            }
             match self.inner.read(&mut chunk) {
-                Ok(0) => break,
+                Ok(0) => break true,
                 Ok(n) => {
                     total += n as u64;
                     self.keep_tail(&chunk[..n]);
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-                Err(_) => break,
+                Err(_) => break true,
             }
-        }
+        };
         self.pos += total;
-        total
+        if !ended {
+            // Whatever its last bytes, this is not where the input ends.
+            self.tail.clear();
+        }
+        (total, ended)
     }
 }
 
@@ -655,7 +671,7 @@ pub fn scan<R: Read, E>(
             if len > limit {
                 // Either the writer's placeholder for the chunk it had open (the file ends
                 // inside it) or a length no record of ours has.
-                let rest = input.drain();
+                let (rest, _) = input.drain();
                 break if rest < len {
                     End::Cut {
                         at,
@@ -718,12 +734,15 @@ pub fn scan<R: Read, E>(
     } else {
         End::NotMcap
     };
-    if let End::Cut { have, .. } = out.end {
+    match out.end {
         // Everything was read up to the end of the input already.
-        out.file_bytes = out.kept_bytes + have;
-    } else {
-        input.drain();
-        out.file_bytes = input.pos;
+        End::Cut { have, .. } => out.file_bytes = out.kept_bytes + have,
+        // Not an MCAP file: nothing past its first bytes tells anything more.
+        End::NotMcap => out.file_bytes = input.pos,
+        _ => {
+            input.drain();
+            out.file_bytes = input.pos;
+        }
     }
     out.finished = out.file_bytes >= 2 * mcap::MAGIC.len() as u64 && input.tail == mcap::MAGIC;
     Ok(out)
@@ -747,6 +766,32 @@ pub fn header(prefix: &[u8]) -> Option<(&str, &str)> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `/dev/zero`, or a sparse file's hole after a magic: the scan ends in bounded time.
+    #[test]
+    fn an_endless_input_ends_the_scan() {
+        let none = |_: &[Record<'_>]| Ok::<(), ()>(());
+        let s = scan(std::io::repeat(0), none).unwrap();
+        assert!(matches!(s.end, End::NotMcap));
+        assert_eq!(s.file_bytes, mcap::MAGIC.len() as u64);
+        let s = scan(mcap::MAGIC.chain(std::io::repeat(0)), none).unwrap();
+        assert!(
+            matches!(
+                s.end,
+                End::Damaged {
+                    at: 8,
+                    opcode: 0,
+                    ..
+                }
+            ),
+            "{}",
+            s.end
+        );
+        assert!(!s.finished);
+        let stopped = mcap::MAGIC.len() as u64 + RECORD_HEADER;
+        assert!(s.file_bytes >= stopped + MAX_DRAIN_BYTES);
+        assert!(s.file_bytes <= stopped + MAX_DRAIN_BYTES + (64 << 10));
+    }
 
     /// A finished file of `chunks` chunks (compressed with `compression`) of 3 messages each on
     /// two channels, with a metadata record and an attachment between them.
