@@ -27,6 +27,7 @@ use crate::exit::DaemonError;
 use crate::shell::notify::{Notifier, Reporter};
 use crate::shell::runner::{run_session, TICK};
 use crate::shell::shutdown::Shutdown;
+use crate::shell::throttle::Throttle;
 
 /// What the gate makes of a start request.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -148,6 +149,8 @@ pub async fn serve<T: Transport>(
     let mut stats = ServeStats::default();
     let mut refused_since_note = 0u64;
     let mut last_note: Option<Duration> = None;
+    // Valid triggers during one cooldown ([`Throttle`]: a line each for the first few only).
+    let mut cooled_lines = Throttle::default();
     let started = std::time::Instant::now();
     let mut tick = tokio::time::interval(TICK);
     notifier.ready(IDLE);
@@ -187,16 +190,21 @@ pub async fn serve<T: Transport>(
         };
         let now = clock.monotonic();
         match verdict {
-            Verdict::Start => {}
+            Verdict::Start => cooled_lines = Throttle::default(),
             Verdict::NotAStart => continue,
             Verdict::Cooldown(left) => {
                 stats.cooled += 1;
-                reporter.message(&format!(
-                    "trigger ignored ({by}): the last session started less than \
-                     trigger.cooldown_s = {} s ago ({:.0} s to go)",
-                    config.trigger.cooldown_s,
-                    left.as_secs_f64()
-                ));
+                if let Some(n) = cooled_lines.occur() {
+                    reporter.message(&Throttle::line(
+                        &format!(
+                            "trigger ignored ({by}): the last session started less than \
+                             trigger.cooldown_s = {} s ago ({:.0} s to go)",
+                            config.trigger.cooldown_s,
+                            left.as_secs_f64()
+                        ),
+                        n,
+                    ));
+                }
                 continue;
             }
             Verdict::Forged | Verdict::Replayed => {

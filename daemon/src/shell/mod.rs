@@ -7,3 +7,4 @@ pub mod runner;
 pub mod shutdown;
 pub mod summary;
 pub mod tee;
+pub mod throttle;

@@ -35,6 +35,7 @@ use crate::log::records::{self, Observer};
 use crate::push::{push_tables, PushObserver, PushReport};
 use crate::shell::notify::{Notifier, Reporter};
 use crate::shell::tee::Recorder;
+use crate::shell::throttle::Throttle;
 use exocal_dbc::stream_auth;
 use exocal_session::collect::{Collected, Collector};
 use exocal_session::estimate::{Estimate, EstimateJob};
@@ -188,6 +189,8 @@ struct Io<'a> {
     reporter: &'a mut Reporter,
     started: Instant,
     log_error: Option<LogError>,
+    /// Trigger frames during the session ([`Throttle`]: a flood is not a line each).
+    ignored_triggers: Throttle,
 }
 
 impl Io<'_> {
@@ -284,11 +287,14 @@ impl Io<'_> {
             Event::Message(exocal_dbc::Message::Trigger(t))
                 if t.command == exocal_dbc::TriggerCommand::StartCalibration =>
             {
-                self.event(
-                    at,
-                    Level::Warning,
-                    "trigger ignored (CAN Trigger frame): a session is running",
-                );
+                // Anyone on the bus can send these: a line each for the first few only.
+                if let Some(n) = self.ignored_triggers.occur() {
+                    let line = Throttle::line(
+                        "trigger ignored (CAN Trigger frame): a session is running",
+                        n,
+                    );
+                    self.event(at, Level::Warning, &line);
+                }
             }
             Event::Message(_) | Event::Partial => {}
         }
@@ -378,6 +384,7 @@ pub async fn run_session_with<T: Transport>(
         reporter,
         started: Instant::now(),
         log_error: None,
+        ignored_triggers: Throttle::default(),
     };
     io.reporter
         .message(&format!("logging to {}", log_path.display()));
