@@ -30,6 +30,7 @@ use std::process::{Command, Stdio};
 
 use anyhow::{bail, Context, Result};
 
+use crate::libtest;
 use crate::paths::{self, workspace_root};
 
 /// Check (or regenerate) every figure the READMEs quote.
@@ -553,66 +554,39 @@ fn fenced(lines: &[&str]) -> String {
 /// runs it in (the package's): found from cargo's artifact messages, built only if it is not.
 /// Not `cargo test -p PACKAGE`: features resolved for one package differ from the workspace's,
 /// and it would compile the package and its dependencies a second time.
-fn test_binary(root: &Path, package: &str, target: Option<&str>) -> Result<(PathBuf, PathBuf)> {
-    let manifest = package_manifest(root, package)?;
-    let out = Command::new(paths::cargo())
-        .current_dir(root)
-        .args(["test", "--workspace", "--no-run", "--message-format=json"])
-        .stdin(Stdio::null())
-        .stderr(Stdio::inherit())
-        .output()
-        .context("cargo test --workspace --no-run")?;
-    if !out.status.success() {
-        bail!("building the workspace's tests failed");
-    }
-    for line in String::from_utf8_lossy(&out.stdout).lines() {
-        let Ok(msg) = serde_json::from_str::<serde_json::Value>(line) else {
-            continue;
-        };
-        let kind_ok = match target {
-            None => msg["target"]["kind"]
-                .as_array()
-                .is_some_and(|k| k.iter().any(|k| k == "lib")),
-            Some(name) => {
-                msg["target"]["kind"] == serde_json::json!(["test"])
-                    && msg["target"]["name"] == name
-            }
-        };
-        let ours = msg["reason"] == "compiler-artifact"
-            && msg["profile"]["test"] == true
-            && kind_ok
-            && msg["manifest_path"].as_str() == Some(manifest.as_str());
-        if let (true, Some(exe)) = (ours, msg["executable"].as_str()) {
-            let dir = Path::new(&manifest)
-                .parent()
-                .context("manifest directory")?
-                .to_path_buf();
-            return Ok((PathBuf::from(exe), dir));
-        }
-    }
-    bail!(
-        "cargo test --workspace built no test binary for {package} ({})",
-        target.unwrap_or("lib")
-    )
-}
-
-/// The manifest path of the workspace's package `name` (`cargo metadata`).
-fn package_manifest(root: &Path, name: &str) -> Result<String> {
-    let out = Command::new(paths::cargo())
-        .current_dir(root)
-        .args(["metadata", "--no-deps", "--format-version", "1"])
-        .stdin(Stdio::null())
-        .stderr(Stdio::inherit())
-        .output()
-        .context("cargo metadata")?;
-    let meta: serde_json::Value =
-        serde_json::from_slice(&out.stdout).context("cargo metadata's output")?;
-    meta["packages"]
+fn test_binary(package: &str, target: Option<&str>) -> Result<(PathBuf, PathBuf)> {
+    let cargo = paths::cargo();
+    let meta = libtest::metadata(&cargo)?;
+    let manifest = meta["packages"]
         .as_array()
-        .and_then(|ps| ps.iter().find(|p| p["name"] == name))
+        .and_then(|ps| ps.iter().find(|p| p["name"] == package))
         .and_then(|p| p["manifest_path"].as_str())
-        .map(str::to_string)
-        .with_context(|| format!("no package {name} in the workspace"))
+        .with_context(|| format!("no package {package} in the workspace"))?;
+    let dir = Path::new(manifest)
+        .parent()
+        .context("manifest directory")?
+        .to_path_buf();
+    let ours = |msg: &serde_json::Value| {
+        let kind = &msg["target"]["kind"];
+        msg["manifest_path"] == manifest
+            && match target {
+                None => kind
+                    .as_array()
+                    .is_some_and(|k| k.iter().any(|k| k == "lib")),
+                Some(name) => *kind == serde_json::json!(["test"]) && msg["target"]["name"] == name,
+            }
+    };
+    libtest::test_artifacts(&cargo, &[])?
+        .iter()
+        .find(|msg| ours(msg))
+        .and_then(|msg| msg["executable"].as_str())
+        .map(|exe| (PathBuf::from(exe), dir))
+        .with_context(|| {
+            format!(
+                "cargo test --workspace built no test binary for {package} ({})",
+                target.unwrap_or("lib")
+            )
+        })
 }
 
 /// The `paper` example's output for `seed`, 60 s, with `extra` arguments.
@@ -849,7 +823,7 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
             env,
             prefix,
         } => {
-            let (binary, dir) = test_binary(root, package, target)?;
+            let (binary, dir) = test_binary(package, target)?;
             let (out, err) = output(
                 Command::new(&binary)
                     .current_dir(dir)

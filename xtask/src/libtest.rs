@@ -78,38 +78,47 @@ pub fn build_suites(cargo: &str, feature: &str) -> Result<Vec<String>> {
         .iter()
         .map(|f| format!("{SUITE_PACKAGE}/{f}"))
         .collect();
+    let mut bins: Vec<String> = test_artifacts(cargo, &["--features", &features.join(",")])
+        .with_context(|| format!("building the {feature} suites"))?
+        .into_iter()
+        .filter(|msg| {
+            msg["target"]["name"]
+                .as_str()
+                .is_some_and(|n| names.iter().any(|s| s == n))
+        })
+        .filter_map(|msg| msg["executable"].as_str().map(str::to_string))
+        .collect();
+    bins.sort();
+    Ok(bins)
+}
+
+/// `cargo test --workspace --no-run ARGS`: builds (or finds built) every test binary, and
+/// returns cargo's artifact message for each (`target`, `manifest_path`, `executable`...).
+pub fn test_artifacts(cargo: &str, args: &[&str]) -> Result<Vec<serde_json::Value>> {
     let out = Command::new(cargo)
-        .args(["test", "--workspace", "--no-run", "--features"])
-        .arg(features.join(","))
+        .args(["test", "--workspace", "--no-run"])
+        .args(args)
         .arg("--message-format=json-render-diagnostics")
         .stdin(Stdio::null())
         .stderr(Stdio::inherit())
         .output()
         .context("cargo test --no-run")?;
     if !out.status.success() {
-        bail!("building the {feature} suites failed");
+        bail!("cargo test --workspace --no-run {} failed", args.join(" "));
     }
-    let mut bins = Vec::new();
-    for line in String::from_utf8_lossy(&out.stdout).lines() {
-        let Ok(msg) = serde_json::from_str::<serde_json::Value>(line) else {
-            continue;
-        };
-        let is_suite = msg["reason"] == "compiler-artifact"
-            && msg["profile"]["test"] == true
-            && msg["target"]["name"]
-                .as_str()
-                .is_some_and(|n| names.iter().any(|s| s == n));
-        if let (true, Some(exe)) = (is_suite, msg["executable"].as_str()) {
-            bins.push(exe.to_string());
-        }
-    }
-    bins.sort();
-    Ok(bins)
+    Ok(String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .filter_map(|line| serde_json::from_str::<serde_json::Value>(line).ok())
+        .filter(|msg| {
+            msg["reason"] == "compiler-artifact"
+                && msg["profile"]["test"] == true
+                && msg["executable"].is_string()
+        })
+        .collect())
 }
 
-/// The names of [`SUITE_PACKAGE`]'s test targets whose `required-features` include `feature`
-/// (from `cargo metadata`).
-fn suite_targets(cargo: &str, feature: &str) -> Result<Vec<String>> {
+/// `cargo metadata --no-deps` of the workspace.
+pub fn metadata(cargo: &str) -> Result<serde_json::Value> {
     let out = Command::new(cargo)
         .args(["metadata", "--no-deps", "--format-version", "1"])
         .stdin(Stdio::null())
@@ -119,8 +128,13 @@ fn suite_targets(cargo: &str, feature: &str) -> Result<Vec<String>> {
     if !out.status.success() {
         bail!("cargo metadata failed");
     }
-    let meta: serde_json::Value = serde_json::from_slice(&out.stdout).context("cargo metadata")?;
-    Ok(targets_needing(&meta, SUITE_PACKAGE, feature))
+    serde_json::from_slice(&out.stdout).context("cargo metadata's output")
+}
+
+/// The names of [`SUITE_PACKAGE`]'s test targets whose `required-features` include `feature`
+/// (from `cargo metadata`).
+fn suite_targets(cargo: &str, feature: &str) -> Result<Vec<String>> {
+    Ok(targets_needing(&metadata(cargo)?, SUITE_PACKAGE, feature))
 }
 
 /// The test targets of `package` in `cargo metadata` output that need `feature`.
