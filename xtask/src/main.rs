@@ -3,6 +3,7 @@
 //! ```text
 //! cargo xtask test                 everything: unit + doc tests, vcan suites, power-up, cross-builds,
 //!                                  README figures
+//! cargo xtask test --quick         the host suites only, as plain `cargo test` runs them
 //! cargo xtask vcan -- CMD [ARG..]  run CMD with real vcan0 and vcan1 up (native netns or QEMU guest)
 //! cargo xtask setup [--check]      install what `test` needs (root, Debian), then self-check
 //! cargo xtask clean-root           run `setup` in a freshly bootstrapped Debian root
@@ -143,6 +144,10 @@ mod cli {
                 slow: false
             })
         ));
+        let Cmd::Test(t) = parse("test --quick") else {
+            panic!()
+        };
+        assert!(t.quick);
         for line in [
             "test",
             "powerup --timeout 900",
