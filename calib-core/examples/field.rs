@@ -14,7 +14,7 @@ use std::time::Instant;
 
 use calib_core::sweep::{field_grid, pooled, session_with, Session};
 use calib_core::DriftEmOptions;
-use calib_core::TableError;
+use calib_core::{TableChoice, TableError};
 
 fn arg(name: &str) -> Option<String> {
     let a: Vec<String> = std::env::args().collect();
@@ -25,6 +25,12 @@ fn arg(name: &str) -> Option<String> {
 /// `robust`, `relinearise`, `restricted`, or `all` for the paper's model alone).
 fn variant(o: DriftEmOptions<7>, without: &str) -> DriftEmOptions<7> {
     let mut o = o;
+    if let Ok(v) = std::env::var("TAU0") {
+        o.initial_tau = v.parse().unwrap();
+    }
+    if let Ok(v) = std::env::var("STD0") {
+        o.initial_drift_std = v.parse().unwrap();
+    }
     for w in without.split(',') {
         match w {
             "rate-bias" => o.rate_bias = false,
@@ -62,8 +68,8 @@ fn main() {
     // (`DriftEmOptions::consider`), in every cell; real ÷ stated is then of the stated error with
     // that allowance (`DriftEmResult::stated_with_allowance`).
     let consider = arg("--consider");
-    println!("| cell | real ÷ stated (pos / rot) | our table vs LS | vs the bound | real (mm / mrad) | stated | refused |");
-    println!("|---|---|---|---|---|---|---|");
+    println!("| cell | real ÷ stated (pos / rot) | ours ÷ LS | ÷ the bound | real (mm / mrad) | stated | LS kept | refused | > 3× stated |");
+    println!("|---|---|---|---|---|---|---|---|---|");
     let t0 = Instant::now();
     for (name, cell) in field_grid() {
         if only.as_deref().is_some_and(|o| !o.split(',').any(|o| name.contains(o))) {
@@ -98,37 +104,33 @@ fn main() {
                 }
             }
         }
-        // A refused session states nothing: real ÷ stated is over the accepted ones.
-        let refused = sessions.iter().filter(|s| s.refused).count();
-        let accepted: Vec<Session> = sessions.iter().filter(|s| !s.refused).copied().collect();
-        let rs = pooled(&accepted, |s| s.em, |s| s.allowed);
-        let vl = pooled(&sessions, |s| s.em, |s| s.ls);
-        let vb = pooled(&sessions, |s| s.em, |s| s.bound);
-        let real = pooled(
-            &sessions,
-            |s| s.em,
-            |_| TableError {
-                position_m: 1e-3,
-                rotation_rad: 1e-3,
-            },
-        );
-        let st = pooled(
-            &sessions,
-            |s| s.allowed,
-            |_| TableError {
-                position_m: 1e-3,
-                rotation_rad: 1e-3,
-            },
-        );
-        // Every session refused: nothing stated, no ratio.
-        let rs = if accepted.is_empty() {
-            "–".to_string()
-        } else {
-            format!("{:.2} / {:.2}", rs.0, rs.1)
+        // What the daemon would push (the arbiter's table, or nothing where refused): a
+        // refused session states nothing, so the ratios are over the pushed ones.
+        let pushed: Vec<Session> = sessions.iter().filter(|s| s.pushed.is_some()).copied().collect();
+        let real = |s: &Session| s.pushed.expect("pushed").0;
+        let stated = |s: &Session| s.pushed.expect("pushed").1;
+        let mm = TableError {
+            position_m: 1e-3,
+            rotation_rad: 1e-3,
         };
+        let pair = |v: (f64, f64)| format!("{:.2} / {:.2}", v.0, v.1);
+        let ratios = |a: &dyn Fn(&Session) -> TableError, b: &dyn Fn(&Session) -> TableError| {
+            if pushed.is_empty() {
+                "–".to_string()
+            } else {
+                pair(pooled(&pushed, a, b))
+            }
+        };
+        let refused = sessions.len() - pushed.len();
+        let ls_kept = sessions.iter().filter(|s| s.choice == TableChoice::Ls).count();
+        let beyond = sessions.iter().filter(|s| s.pushed_beyond(3.0)).count();
         println!(
-            "| {name} | {rs} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {refused}+{failed}/{seeds} |",
-            vl.0, vl.1, vb.0, vb.1, real.0, real.1, st.0, st.1
+            "| {name} | {} | {} | {} | {} | {} | {ls_kept} | {refused}+{failed}/{seeds} | {beyond} |",
+            ratios(&real, &stated),
+            ratios(&real, &|s| s.ls),
+            ratios(&real, &|s| s.bound),
+            ratios(&real, &|_| mm),
+            ratios(&stated, &|_| mm),
         );
     }
     eprintln!("{:.0} s", t0.elapsed().as_secs_f64());

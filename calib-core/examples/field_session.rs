@@ -83,6 +83,7 @@ fn main() {
             actual: sim.truth,
             drift: calib_core::GaussMarkov { sigma: 0.0, ..sim.drift },
             bias: cell.field.bias,
+            heading: cell.field.heading,
             ..ScenarioConfig::paper()
         };
         let end = Scenario::new(no_gm, seed).nth(samples.len() - 1).expect("a sample").drift;

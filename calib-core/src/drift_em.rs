@@ -280,7 +280,7 @@ impl<const N: usize> DriftEmOptions<N> {
             max_stride: 4,
             require_convergence: false,
             initial_tau: 3.0,
-            initial_drift_std: 0.02,
+            initial_drift_std: 0.005,
             initial_noise_std: 1e-3,
             noise_floor: 1e-14,
             rank_tolerance: 1e-9,
@@ -467,6 +467,18 @@ pub enum Refusal {
         /// The jump's normalised innovation (standard deviations).
         sigma: f64,
     },
+    /// The EM found rate biases (`joints`, a bit per joint), and its model does not explain LS's
+    /// table ([`crate::EmVersusLs`]'s `statistic` above [`crate::MAX_EM_LS_STATISTIC`]): LS's
+    /// table is off by what it integrates of them and the EM's by what its model misses, so
+    /// neither is to be pushed ([`crate::TableChoice::Neither`]).
+    Unexplained {
+        /// The joints with a rate bias, bit `j` for joint `j` (0-based).
+        joints: u32,
+        /// The largest rate bias found (rad/s, signed).
+        rate: f64,
+        /// The statistic of the EM's table against LS's.
+        statistic: f64,
+    },
     /// A joint's drift does not follow its model (see [`JointConsistency::long_run`]).
     Inconsistent {
         /// The joint (0-based).
@@ -492,6 +504,19 @@ impl core::fmt::Display for Refusal {
                 "joint {}'s angle sensor jumped at sample {sample} (a {sigma:.1}σ step of its drift): a sensor that slipped or was re-zeroed; re-seat it and calibrate again",
                 joint + 1
             ),
+            Refusal::Unexplained { joints, rate, statistic } => {
+                write!(f, "the angle sensors of joint")?;
+                let mut sep = if joints.count_ones() > 1 { "s " } else { " " };
+                for j in (0..32).filter(|j| joints & (1 << j) != 0) {
+                    write!(f, "{sep}{}", j + 1)?;
+                    sep = ", ";
+                }
+                write!(
+                    f,
+                    " drift at a steady rate (up to {:.3} °/s) that neither the drift model nor LS accounts for: the two tables differ {statistic:.1}× beyond what either model allows; hold the suit still for the gyros' bias, or calibrate again",
+                    libm::fabs(rate).to_degrees()
+                )
+            }
             Refusal::Inconsistent { joint, long_run, limit } => write!(
                 f,
                 "joint {}'s drift does not follow its model (its innovations carry {long_run:.1}× their expected long-run variance, above {limit:.0}): its angle sensor drifts in a way the calibration cannot account for",

@@ -106,8 +106,8 @@ pub use ls::{
     LsOptions, LsResult, NullDirection, Sequential,
 };
 pub use metrics::{
-    expected_table_error, ls_expected_table_error, ls_white_expected_error, median, objective_y, objective_y_corrected,
-    table_error, ErrorPoses, ParamErrors, TableError,
+    expected_table_error, ls_expected_table_error, ls_response, ls_white_expected_error, median, objective_y,
+    objective_y_corrected, table_error, ErrorPoses, ParamErrors, TableError,
 };
 pub use model::{
     bound_violations, check_bounds, clamp_to_bounds, pose_error, BoundViolation, Bounds, DhRow, DhTable, Frame, JointRanges,
@@ -118,4 +118,4 @@ pub use paper_em::{paper_em, PaperEmForm, PaperEmOptions, PaperEmResult};
 pub use reading::{separate, JointSeparation, SeparationSlot};
 pub use rng::Rng;
 pub use sim::{DriftSite, Motion, Outliers, Scenario, ScenarioConfig, SimSample, Slip};
-pub use versus_ls::{em_versus_ls, EmVersusLs, MAX_EM_LS_STATISTIC};
+pub use versus_ls::{em_versus_ls, EmVersusLs, TableChoice, MAX_EM_LS_STATISTIC};

@@ -131,6 +131,37 @@ pub fn ls_expected_table_error<const N: usize, const P: usize>(
     }))
 }
 
+/// What an angle error `offset(k)` on every sample `k` moves a least-squares table by (in
+/// [`DhTable::param`] order, linearised at `table`): `A⁻¹ Σₖ Jₖᵀ Jₖ^θ offset(k)`, with `A` as in
+/// [`ls_expected_table_error`]. An angle error enters the pose as the joint's θ offset does, so
+/// LS takes a constant one into the offsets exactly and a ramp partly into the rest of the
+/// table: for the EM's fitted rate bias, what LS's table is expected to be off by, beside the
+/// noise [`ls_expected_table_error`] states. `None` as for [`ls_expected_table_error`].
+pub fn ls_response<const N: usize, const P: usize>(
+    table: &DhTable<N>,
+    samples: &[Sample<N>],
+    offset: impl Fn(usize) -> [f64; N],
+) -> Option<[f64; P]> {
+    const { assert!(P == 4 * N, "P must be 4N") };
+    let prepared = table.prepare();
+    let theta = ParamKind::Theta as usize * N;
+    let mut a = GramAccumulator::<P>::new();
+    let mut b = [0.0; P];
+    for (k, s) in samples.iter().enumerate() {
+        let (_, cols) = prepared.fk_jacobian(&s.joints);
+        let rows: [[f64; P]; 6] = core::array::from_fn(|r| core::array::from_fn(|p| cols[p / N][p % N][r]));
+        a.add_rows(&rows, &[0.0; 6], 0);
+        let c = offset(k);
+        for row in &rows {
+            let y: f64 = (0..N).map(|j| row[theta + j] * c[j]).sum();
+            for (bp, h) in b.iter_mut().zip(row) {
+                *bp += h * y;
+            }
+        }
+    }
+    Some(a.analyse(1e-9)?.solve(&b))
+}
+
 /// The expected table error (1σ, RMS over `poses`) of the least-squares table `table` on
 /// `samples` when its residuals are white: [`ls_expected_table_error`] with no drift and each
 /// pose component's noise variance taken as its residual variance at `table`. What LS alone is

@@ -162,6 +162,10 @@ pub struct ScenarioConfig<const N: usize> {
     pub drift: GaussMarkov,
     /// Rate bias integrated into every joint's angle error.
     pub bias: RateBias,
+    /// A constant rate bias per joint (rad/s) beside [`ScenarioConfig::bias`], integrated from the
+    /// session's start without bound: the heading drift of a joint whose angle no gravity
+    /// reference corrects (an IMU without magnetometer).
+    pub heading: [f64; N],
     /// Where the angle error acts.
     pub site: DriftSite,
     /// Standard deviation of white noise on every reported joint angle (rad); 0 = none.
@@ -185,6 +189,7 @@ impl ScenarioConfig<7> {
             ranges: JointRanges::paper(),
             drift: GaussMarkov::paper(),
             bias: RateBias::NONE,
+            heading: [0.0; 7],
             site: DriftSite::Arm,
             reading_noise: 0.0,
             position_noise: 0.0,
@@ -314,10 +319,10 @@ impl<const N: usize> Iterator for Scenario<N> {
         for x in self.drift.iter_mut() {
             *x = cfg.drift.step(*x, &mut self.rng);
         }
-        if !cfg.bias.is_none() {
+        if !cfg.bias.is_none() || cfg.heading.iter().any(|&h| h != 0.0) {
             let kick = cfg.bias.walk * libm::sqrt(cfg.drift.dt);
             for j in 0..N {
-                self.integrated[j] += cfg.drift.dt * self.rate[j];
+                self.integrated[j] += cfg.drift.dt * (self.rate[j] + cfg.heading[j]);
                 if kick > 0.0 {
                     self.rate[j] += kick * self.rng.normal();
                 }

@@ -37,6 +37,7 @@ use crate::model::{DhTable, JointRanges, ParamKind, Sample, SUIT_PARAMS};
 use crate::reading::{separate, SeparationSlot};
 use crate::rng::Rng;
 use crate::sim::{DriftSite, Motion, Outliers, RateBias, Scenario, ScenarioConfig, SimSample, Slip};
+use crate::versus_ls::{em_versus_ls, TableChoice};
 
 /// Fresh poses every table error is averaged over.
 pub const FRESH_POSES: usize = 200;
@@ -72,6 +73,9 @@ pub struct Field {
     pub site: DriftSite,
     /// Rate bias integrated into the angle error.
     pub bias: RateBias,
+    /// A constant rate bias (rad/s) per joint, its sign drawn per seed, integrated without
+    /// bound ([`ScenarioConfig::heading`]); zero where a gravity reference corrects the joint.
+    pub heading: [f64; 7],
     /// White noise on every reported angle (rad).
     pub reading_noise: f64,
     /// Glitches of the reference pose.
@@ -88,6 +92,7 @@ impl Field {
         discretisation: Discretisation::Paper,
         site: DriftSite::Arm,
         bias: RateBias::NONE,
+        heading: [0.0; 7],
         reading_noise: 0.0,
         outliers: Outliers::NONE,
         slip: None,
@@ -100,6 +105,7 @@ impl Field {
         discretisation: Discretisation::Exact,
         site: DriftSite::Reading,
         bias: RateBias::NONE,
+        heading: [0.0; 7],
         reading_noise: 2e-4,
         outliers: Outliers::NONE,
         slip: None,
@@ -128,6 +134,23 @@ pub struct Session {
     /// What LS is expected to reach under the true drift and noise
     /// ([`crate::metrics::ls_expected_table_error`]).
     pub ls_expected: TableError,
+    /// The arbiter's choice between the EM's table and LS's, as the daemon makes it
+    /// ([`crate::EmVersusLs::choice`]; the EM's where LS's expected error cannot be computed).
+    pub choice: TableChoice,
+    /// The table the daemon would push, against the truth, and what it states (the EM's stated
+    /// error with its allowance, or LS's expected one); `None` where the session is refused (by
+    /// the EM's refusals or the choice).
+    pub pushed: Option<(TableError, TableError)>,
+}
+
+impl Session {
+    /// Whether the pushed table is off by more than `times` its own stated error (position or
+    /// rotation).
+    pub fn pushed_beyond(&self, times: f64) -> bool {
+        self.pushed.is_some_and(|(real, stated)| {
+            real.position_m > times * stated.position_m || real.rotation_rad > times * stated.rotation_rad
+        })
+    }
 }
 
 /// A true table for `seed` (see the module docs).
@@ -184,6 +207,10 @@ impl Simulation {
             discretisation: f.discretisation,
         };
         let truth = true_table(seed);
+        // The heading's signs from a draw of their own: the other draws are the same with and
+        // without it.
+        let mut signs = Rng::new(seed ^ 0x4EAD_1460);
+        let heading = f.heading.map(|h| if signs.uniform() < 0.5 { -h } else { h });
         let whole = ScenarioConfig::paper().ranges;
         let ranges = JointRanges {
             limits: core::array::from_fn(|j| {
@@ -200,6 +227,7 @@ impl Simulation {
             actual: truth,
             drift,
             bias: f.bias,
+            heading,
             site: f.site,
             reading_noise: f.reading_noise,
             position_noise: cell.noise.0,
@@ -240,8 +268,15 @@ impl Simulation {
         samples: &[Sample<7>],
         opts: &DriftEmOptions<7>,
     ) -> Result<(LsResult<7, SUIT_PARAMS>, DriftEmResult<7>), crate::CalibError> {
-        // The daemon's step 0: each reading off the rough part of its drift (a no-op on smooth
-        // readings, e.g. the paper's cells).
+        let samples = self.separated(samples);
+        let ls = identify_ls::<7, SUIT_PARAMS>(&DhTable::paper_nominal(), &samples, &LsOptions::new())?;
+        let (em, _) = em_drift_vec::<7, SUIT_PARAMS>(&ls.table, &samples, opts)?;
+        Ok((ls, em))
+    }
+
+    /// The daemon's step 0 on `samples`: each reading off the rough part of its drift (a no-op
+    /// on smooth readings, e.g. the paper's cells). What [`Simulation::fit_with`] fits.
+    pub fn separated(&self, samples: &[Sample<7>]) -> Vec<Sample<7>> {
         let mut samples = samples.to_vec();
         let mut slots = std::vec![SeparationSlot::default(); samples.len()];
         separate(
@@ -251,10 +286,7 @@ impl Simulation {
             DriftEmOptions::<7>::new(self.drift.dt).initial_tau,
             &mut slots,
         );
-        let samples = &samples[..];
-        let ls = identify_ls::<7, SUIT_PARAMS>(&DhTable::paper_nominal(), samples, &LsOptions::new())?;
-        let (em, _) = em_drift_vec::<7, SUIT_PARAMS>(&ls.table, samples, opts)?;
-        Ok((ls, em))
+        samples
     }
 
     /// Table error of `table` against the truth on the fresh poses.
@@ -290,10 +322,22 @@ pub fn session_with(
 ) -> Result<Session, crate::CalibError> {
     let sim = Simulation::new(cell, seed);
     let (drift, samples, fresh) = (sim.drift, &sim.samples, &sim.fresh);
-    let (ls, em) = sim.fit_with(samples, &options(DriftEmOptions::new(drift.dt)))?;
+    let opts = options(DriftEmOptions::new(drift.dt));
+    let separated = sim.separated(samples);
+    let ls = identify_ls::<7, SUIT_PARAMS>(&DhTable::paper_nominal(), &separated, &LsOptions::new())?;
+    let (em, _) = em_drift_vec::<7, SUIT_PARAMS>(&ls.table, &separated, &opts)?;
+    let versus = em_versus_ls::<7, SUIT_PARAMS>(&ls.table, &em, &separated, &opts.error_poses);
+    let choice = versus.map_or(TableChoice::Em, |v| v.choice());
+    let pushed = match (em.refusals.is_empty(), choice, versus) {
+        (false, _, _) | (_, TableChoice::Neither, _) => None,
+        (true, TableChoice::Ls, Some(v)) => Some((sim.table_error(&ls.table), v.ls_expected)),
+        (true, _, _) => Some((sim.table_error(&em.table), em.stated_with_allowance())),
+    };
     let q = drift.process_variance().max(1e-30);
     let (pn, rn) = (cell.noise.0 * cell.noise.0, cell.noise.1 * cell.noise.1);
     Ok(Session {
+        choice,
+        pushed,
         ls: sim.table_error(&ls.table),
         em: sim.table_error(&em.table),
         bound: sim.bound(samples)?,
@@ -547,6 +591,18 @@ pub fn field_grid() -> Vec<(&'static str, Cell)> {
             ..Field::SENSOR
         })
     };
+    // A heading drift: a constant rate bias on the joints whose axis turns about the vertical
+    // (1, 3 and 5: no gravity reference corrects their angle), integrated without bound.
+    let heading = |deg_s: f64, seconds: f64| {
+        let h = deg_s.to_radians();
+        Cell {
+            seconds,
+            ..with(Field {
+                heading: [h, 0.0, h, 0.0, h, 0.0, 0.0],
+                ..Field::SENSOR
+            })
+        }
+    };
     let glitch = |probability: f64| {
         with(Field {
             outliers: Outliers {
@@ -599,6 +655,26 @@ pub fn field_grid() -> Vec<(&'static str, Cell)> {
         ("bias walk 2e-5 rad/s/√s", bias(0.0, 2e-5)),
         ("bias walk 1e-4 rad/s/√s", bias(0.0, 1e-4)),
         ("ramp 0.01 °/s + walk 5e-5", bias(0.01f64.to_radians(), 5e-5)),
+        ("heading 0.01 °/s on joints 1, 3, 5", heading(0.01, 30.0)),
+        ("heading 0.02 °/s on joints 1, 3, 5 (40 s)", heading(0.02, 40.0)),
+        ("heading 0.05 °/s on joints 1, 3, 5", heading(0.05, 30.0)),
+        ("heading 0.05 °/s on joints 1, 3, 5 (40 s)", heading(0.05, 40.0)),
+        ("heading 0.05 °/s on joints 1, 3, 5 (60 s)", heading(0.05, 60.0)),
+        (
+            "bias walk 1e-4 rad/s/√s (40 s)",
+            Cell {
+                seconds: 40.0,
+                ..bias(0.0, 1e-4)
+            }
+        ),
+        (
+            "slow drift τ 10 s (40 s)",
+            Cell {
+                tau: 10.0,
+                seconds: 40.0,
+                ..base
+            }
+        ),
         ("glitches 1% (2 cm, 20 mrad)", glitch(0.01)),
         ("glitches 5% (2 cm, 20 mrad)", glitch(0.05)),
         ("no drift", Cell { sigma: 0.0, ..base }),

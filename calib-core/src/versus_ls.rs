@@ -19,9 +19,22 @@
 //! Under the model the statistic is a weighted sum of χ² variables of mean 1; 4 is beyond its
 //! 95th percentile for any number of them.
 
-use crate::drift_em::DriftEmResult;
-use crate::metrics::{ls_expected_table_error, table_error, ErrorPoses, TableError};
+use crate::drift_em::{DriftEmResult, Refusal};
+use crate::metrics::{ls_expected_table_error, ls_response, table_error, ErrorPoses, TableError};
 use crate::model::{DhTable, Sample};
+
+/// What to push and state, of the EM's table and LS's ([`EmVersusLs::choice`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TableChoice {
+    /// The EM's table, stated by the EM: its model explains LS's table.
+    Em,
+    /// LS's table, stated by [`EmVersusLs::ls_expected`]: the EM's Gauss-Markov drift does not
+    /// hold for the session, and LS does not need it.
+    Ls,
+    /// Neither: the EM found a rate bias, which moves LS's table by what it integrates, and its
+    /// model does not explain LS's table either. Refuse ([`crate::Refusal::Unexplained`]).
+    Neither,
+}
 
 /// Above this [`EmVersusLs::statistic`], the EM's table is not consistent with LS's.
 pub const MAX_EM_LS_STATISTIC: f64 = 4.0;
@@ -29,19 +42,58 @@ pub const MAX_EM_LS_STATISTIC: f64 = 4.0;
 /// The EM's table against LS's ([`em_versus_ls`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct EmVersusLs {
-    /// RMS difference of the two tables over the poses.
+    /// RMS difference of LS's table from the one the EM's model predicts for it (the EM's
+    /// table moved by its fitted rate bias, [`EmVersusLs::rate_bias_shift`]) over the poses.
     pub difference: TableError,
+    /// What the EM's fitted rate bias moves LS's table by (zero without one): LS takes the
+    /// integrated bias into the table, the EM models it.
+    pub rate_bias_shift: TableError,
     /// LS's expected table error over the same poses (the sandwich at the EM's drift and noise).
     pub ls_expected: TableError,
-    /// The squared difference over what the model lets it be, `D² / max(L² − S², L²/4)`, the
-    /// larger of position and rotation.
+    /// The squared difference over what the model lets it be, `D² / max(L² − S², L²/4)` (`D² /
+    /// (L² + S²)` where the EM fitted a rate bias), the larger of position and rotation.
     pub statistic: f64,
+    /// Whether the EM's model has a rate bias (its table then predicts LS's moved by
+    /// [`EmVersusLs::rate_bias_shift`]).
+    pub rate_bias: bool,
 }
 
 impl EmVersusLs {
     /// Whether the EM's table is consistent with LS's ([`MAX_EM_LS_STATISTIC`]).
     pub fn agrees(&self) -> bool {
         self.statistic <= MAX_EM_LS_STATISTIC
+    }
+
+    /// Which table to push: the EM's where the two agree; where not, LS's unless the EM found a
+    /// rate bias, which LS's table carries unmodelled (then neither).
+    pub fn choice(&self) -> TableChoice {
+        match (self.agrees(), self.rate_bias) {
+            (true, _) => TableChoice::Em,
+            (false, false) => TableChoice::Ls,
+            (false, true) => TableChoice::Neither,
+        }
+    }
+
+    /// The refusal to give for [`TableChoice::Neither`]: the joints with a rate bias in `em`.
+    pub fn refusal<const N: usize>(&self, em: &DriftEmResult<N>) -> Option<Refusal> {
+        (self.choice() == TableChoice::Neither).then(|| {
+            let (mut joints, mut rate) = (0u32, 0.0f64);
+            for (j, t) in em.rate_bias.iter().enumerate() {
+                if t.iter().any(|c| *c != 0.0) {
+                    joints |= 1 << j;
+                }
+                for r in em.models[j].rate {
+                    if libm::fabs(r) > libm::fabs(rate) {
+                        rate = r;
+                    }
+                }
+            }
+            Refusal::Unexplained {
+                joints,
+                rate,
+                statistic: self.statistic,
+            }
+        })
     }
 }
 
@@ -56,13 +108,36 @@ pub fn em_versus_ls<const N: usize, const P: usize>(
 ) -> Option<EmVersusLs> {
     let drift_var: [f64; N] = core::array::from_fn(|j| em.process_variance[j] / (1.0 - em.phi[j] * em.phi[j]));
     let l = ls_expected_table_error::<N, P>(ls, samples, &em.phi, &drift_var, &em.measurement_variance, poses.of(samples))?;
-    let d = table_error(ls, &em.table, poses.of(samples));
+    // Where the EM fitted a rate bias, LS's table is expected where the EM's table moved by
+    // it lies: LS counts the integrated bias as part of the geometry.
+    let predicted = if em.rate_bias.iter().flatten().any(|c| *c != 0.0) {
+        let shift = ls_response::<N, P>(&em.table, samples, |k| em.rate_bias_at(k, samples.len()))?;
+        em.table.perturbed(&shift)
+    } else {
+        em.table
+    };
+    let d = table_error(ls, &predicted, poses.of(samples));
     let s = em.stated_error;
-    let ratio = |d: f64, l: f64, s: f64| d * d / (l * l - s * s).max(0.25 * l * l);
+    // Where both hold, LS's table is more variable than the EM's by `L² − S²` (the EM is the
+    // efficient one). Where the EM fitted a rate bias, its prediction of LS's table carries the
+    // rate bias's own error too, which neither figure holds, and the EM's stated error (the rate
+    // bias integrated out) may exceed LS's sandwich (the rate bias fixed): the two are then
+    // taken as independent, `L² + S²`.
+    let modelled = em.rate_bias.iter().flatten().any(|c| *c != 0.0);
+    let ratio = |d: f64, l: f64, s: f64| {
+        let spread = if modelled {
+            l * l + s * s
+        } else {
+            (l * l - s * s).max(0.25 * l * l)
+        };
+        d * d / spread
+    };
     Some(EmVersusLs {
         difference: d,
+        rate_bias_shift: table_error(&em.table, &predicted, poses.of(samples)),
         ls_expected: l,
         statistic: ratio(d.position_m, l.position_m, s.position_m).max(ratio(d.rotation_rad, l.rotation_rad, s.rotation_rad)),
+        rate_bias: modelled,
     })
 }
 

@@ -101,11 +101,12 @@ pub struct EmDetail {
 }
 
 impl EmDetail {
-    /// Whether its table disagrees with LS's beyond LS's own error (calib-core's
-    /// `EmVersusLs::agrees`), so LS's table is the result: the EM's model does not hold for the
-    /// session.
+    /// Whether LS's table is the result (calib-core's `EmVersusLs::choice`): the EM's table
+    /// disagrees with LS's beyond LS's own error, and the EM's Gauss-Markov model does not hold
+    /// for the session.
     pub fn ls_kept(&self) -> bool {
-        self.versus_ls.is_some_and(|v| !v.agrees())
+        self.versus_ls
+            .is_some_and(|v| v.choice() == calib_core::TableChoice::Ls)
     }
 
     /// The log-likelihoods of the final objective: never decreasing.

@@ -34,7 +34,7 @@ use calib_core::drift_conf::Z_95;
 use calib_core::{
     drift_confidence, em_drift, em_versus_ls, identify_ls_with, ls_white_expected_error, separate,
     table_error, DhTable, DriftEmOptions, DriftSlot, ErrorPoses, InputChecks, JointDrift,
-    LsOptions, RateBias, Sample, SeparationSlot, TableError,
+    LsOptions, RateBias, Sample, SeparationSlot, TableChoice, TableError,
 };
 use nalgebra::{DMatrix, SMatrix};
 use serde::Serialize;
@@ -153,7 +153,7 @@ impl VersusLs {
             ls_expected_mm: v.ls_expected.position_m * 1e3,
             ls_expected_mrad: v.ls_expected.rotation_rad * 1e3,
             statistic: v.statistic,
-            ls_kept: !v.agrees(),
+            ls_kept: v.choice() == TableChoice::Ls,
         }
     }
 }
@@ -654,16 +654,25 @@ pub fn ls_then_em(
             models: r.models,
             discounted: r.discounted.clone(),
             consistency: r.consistency,
-            refusals: r.refusals.to_vec(),
+            // The arbiter's refusal beside the EM's own: a rate bias the EM found that its model
+            // does not reconcile with LS's table.
+            refusals: r
+                .refusals
+                .iter()
+                .copied()
+                .chain(versus_ls.and_then(|v| v.refusal(&r)))
+                .collect(),
             versus_ls,
             drift_series,
         }
     });
     let (calibrated, stated) = match &em {
-        // The EM's table where it agrees with LS's; where not, its model does not hold for
-        // this session and LS's table is kept, stated by LS's own expected error.
-        Ok(em) => match em.versus_ls {
-            Some(v) if !v.agrees() => (ls.table, Some(v.ls_expected)),
+        // The EM's table where it agrees with LS's; where not, its Gauss-Markov model does not
+        // hold for this session and LS's table is kept, stated by LS's own expected error.
+        // Where the EM found a rate bias it does not reconcile with LS's table, neither is
+        // right: the refusal above stops the push, the EM's table is what an export gets.
+        Ok(em) => match em.versus_ls.map(|v| v.choice()) {
+            Some(TableChoice::Ls) => (ls.table, em.versus_ls.map(|v| v.ls_expected)),
             _ => (em.table, Some(em.stated_error)),
         },
         Err(_) => (
