@@ -182,11 +182,18 @@ pub const MAX_REFUSALS: usize = 8;
 pub const REML_ITERATIONS: usize = 4;
 
 /// The rate bias enters the model when `2 Δ ln L` of it against the Gauss-Markov drift exceeds
-/// BIC's penalty of its two intensities, `RATE_BIAS_TERMS · ln K` (K samples): measured, the
-/// likelihood-ratio test at 5% (5.99) took it on 1 in 8 short sessions without one, and the
-/// table was then worse than LS's.
-pub fn rate_bias_threshold(samples: usize) -> f64 {
-    RATE_BIAS_TERMS as f64 * libm::log(samples.max(2) as f64)
+/// BIC's penalty of the intensities it has, `terms · ln K` (K samples; `terms` those of the
+/// fitted intensities that are not zero, at least one, at most [`RATE_BIAS_TERMS`]): a steady
+/// rate bias (a heading that no gravity reference corrects) has one, a wandering one two.
+/// Measured, the likelihood-ratio test at 5% (5.99) took it on 1 in 8 short sessions without
+/// one, and the table was then worse than LS's.
+pub fn rate_bias_threshold(samples: usize, terms: usize) -> f64 {
+    terms.clamp(1, RATE_BIAS_TERMS) as f64 * libm::log(samples.max(2) as f64)
+}
+
+/// [`rate_bias_threshold`] for the intensities `prior`.
+fn threshold_of(samples: usize, prior: &TrendPrior) -> f64 {
+    rate_bias_threshold(samples, prior.iter().filter(|v| **v > 0.0).count())
 }
 
 /// Options of [`em_drift`].
@@ -848,7 +855,7 @@ fn information<const N: usize, const P: usize>(
 ) -> Result<(f64, Info<N, P>), CalibError> {
     let (ll, acc) = accumulate(slots, x, &[[0.0; M]; N], par, trend)?;
     if let (true, Some(floor)) = (trend, fit) {
-        if let Some((v, lr)) = acc.fit_prior(rank_tolerance, floor) {
+        if let Some((v, lr)) = acc.choose_prior(rank_tolerance, floor, libm::log(slots.len().max(2) as f64)) {
             *statistic = lr;
             *prior = v;
         }
@@ -1526,7 +1533,7 @@ pub fn em_drift<const N: usize, const P: usize>(
         // paper's Gauss-Markov and its parameters are fitted again without it.
         it.fitting = false;
         let spec = it.floor_prior.iter().any(|v| *v > 0.0);
-        let supported = it.statistic > rate_bias_threshold(kn) && it.prior.iter().any(|v| *v > 0.0);
+        let supported = it.statistic > threshold_of(kn, &it.prior) && it.prior.iter().any(|v| *v > 0.0);
         if !spec && !supported {
             let had = it.prior.iter().any(|v| *v > 0.0);
             it.prior = [0.0; M];
@@ -1623,17 +1630,18 @@ fn finish<const N: usize, const P: usize>(
     // The rate bias's columns where its model is in or could be (its weight as the other model
     // at least 1%): where the session's 2 Δ ln L was far below the threshold, the paper's model
     // is kept without them.
-    let threshold = rate_bias_threshold(kn);
-    let trend = opts.rate_bias && (it.prior.iter().any(|v| *v > 0.0) || it.statistic > threshold - 9.2);
+    let trend = opts.rate_bias && (it.prior.iter().any(|v| *v > 0.0) || it.statistic > rate_bias_threshold(kn, 1) - 9.2);
     // The consider allowance needs the rate bias's columns too (accumulated, not fitted).
     let considered = opts.consider.intensities(last * opts.dt);
     let considering = considered.iter().any(|v| *v > 0.0);
     let (_, acc) = accumulate(ws, &x0, &zero_t, &par, trend || considering)?;
     let spec = it.floor_prior.iter().any(|v| *v > 0.0);
-    let (fitted, statistic) = match trend.then(|| acc.fit_prior(opts.rank_tolerance, &it.floor_prior)).flatten() {
+    let ln_k = libm::log(kn.max(2) as f64);
+    let (fitted, statistic) = match trend.then(|| acc.choose_prior(opts.rank_tolerance, &it.floor_prior, ln_k)).flatten() {
         Some((v, lr)) => (v, lr),
         None => ([0.0; M], if opts.rate_bias { it.statistic } else { f64::NAN }),
     };
+    let threshold = threshold_of(kn, &fitted);
     let rich = (spec || statistic > threshold) && fitted.iter().any(|v| *v > 0.0);
     let prior = if rich { fitted } else { [0.0; M] };
     let info = match acc.analyse(&prior, opts.rank_tolerance) {

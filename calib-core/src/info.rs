@@ -138,6 +138,25 @@ impl<const N: usize, const P: usize> InfoAcc<N, P> {
     /// `2 Δ ln L` of them against `v = 0` (the Gauss-Markov model). `None` without rate-bias
     /// columns or when `A` declines.
     pub fn fit_prior(&self, rel_tol: f64, floor: &TrendPrior) -> Option<(TrendPrior, f64)> {
+        self.fit_terms(rel_tol, floor, [true; M])
+    }
+
+    /// The intensities BIC prefers, each model's `2 Δ ln L` less `terms · ln_k` (`ln_k` the log
+    /// of the sample count): every term fitted ([`InfoAcc::fit_prior`]) or the first alone
+    /// (a steady rate bias, the rest at their floor; only where the floor allows it at 0). Its
+    /// `2 Δ ln L` with it.
+    pub fn choose_prior(&self, rel_tol: f64, floor: &TrendPrior, ln_k: f64) -> Option<(TrendPrior, f64)> {
+        let every = self.fit_terms(rel_tol, floor, [true; M])?;
+        if floor[1..].iter().any(|v| *v > 0.0) {
+            return Some(every);
+        }
+        let steady = self.fit_terms(rel_tol, floor, core::array::from_fn(|m| m == 0))?;
+        let score = |(v, lr): &(TrendPrior, f64)| lr - v.iter().filter(|x| **x > 0.0).count().max(1) as f64 * ln_k;
+        Some(if score(&steady) >= score(&every) { steady } else { every })
+    }
+
+    /// [`InfoAcc::fit_prior`] with only the `active` terms searched (the others at their floor).
+    fn fit_terms(&self, rel_tol: f64, floor: &TrendPrior, active: [bool; M]) -> Option<(TrendPrior, f64)> {
         if !self.trend {
             return None;
         }
@@ -146,7 +165,7 @@ impl<const N: usize, const P: usize> InfoAcc<N, P> {
         let mut best = *floor;
         let mut best_ll = marginal.log_likelihood(&best)?;
         for _ in 0..2 {
-            for m in 0..M {
+            for m in (0..M).filter(|m| active[*m]) {
                 let at = |v: f64| {
                     let mut p = best;
                     p[m] = v;
