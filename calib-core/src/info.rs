@@ -4,7 +4,7 @@
 //!
 //! The geometry has a flat prior; the rate-bias coefficients are random effects: term m of every
 //! joint is `N(0, v_m)`, with the intensities `v` shared by the joints (the suit's sensors are
-//! of one kind) and estimated by maximising the marginal likelihood ([`InfoAcc::fit_prior`]).
+//! of one kind) and estimated by maximising the marginal likelihood ([`InfoAcc::choose_prior`]).
 //! `v_m = 0` takes the term out of the model; `v = 0` is the paper's Gauss-Markov drift.
 //!
 //! The geometry keeps its normal equations ([`GramAccumulator`], analysed by SVD as in LS); the
@@ -132,19 +132,14 @@ impl<const N: usize, const P: usize> InfoAcc<N, P> {
         v
     }
 
-    /// The intensities that maximise the marginal likelihood (the rate bias integrated out, the
-    /// geometry profiled, the drift parameters fixed), searched per term in ln v (golden section
-    /// over [max(1e-14, floor), 1] rad², two rounds) against the floor (0: the term out), and
-    /// `2 Δ ln L` of them against `v = 0` (the Gauss-Markov model). `None` without rate-bias
-    /// columns or when `A` declines.
-    pub fn fit_prior(&self, rel_tol: f64, floor: &TrendPrior) -> Option<(TrendPrior, f64)> {
-        self.fit_terms(rel_tol, floor, [true; M])
-    }
-
-    /// The intensities BIC prefers, each model's `2 Δ ln L` less `terms · ln_k` (`ln_k` the log
-    /// of the sample count): every term fitted ([`InfoAcc::fit_prior`]) or the first alone
-    /// (a steady rate bias, the rest at their floor; only where the floor allows it at 0). Its
-    /// `2 Δ ln L` with it.
+    /// The intensities BIC prefers, and their `2 Δ ln L` against `v = 0` (the Gauss-Markov
+    /// model): of every term fitted and the first alone (a steady rate bias, the rest at their
+    /// floor; only where the floor allows them 0), the one whose `2 Δ ln L` less `terms · ln_k`
+    /// is larger (`terms` its intensities that are not 0, `ln_k` the log of the sample count).
+    /// Each maximises the marginal likelihood (the rate bias integrated out, the geometry
+    /// profiled, the drift parameters fixed), searched per term in ln v (golden section over
+    /// [max(1e-14, floor), 1] rad², two rounds) against the floor (0: the term out). `None`
+    /// without rate-bias columns or when `A` declines.
     pub fn choose_prior(&self, rel_tol: f64, floor: &TrendPrior, ln_k: f64) -> Option<(TrendPrior, f64)> {
         let every = self.fit_terms(rel_tol, floor, [true; M])?;
         if floor[1..].iter().any(|v| *v > 0.0) {
@@ -155,7 +150,7 @@ impl<const N: usize, const P: usize> InfoAcc<N, P> {
         Some(if score(&steady) >= score(&every) { steady } else { every })
     }
 
-    /// [`InfoAcc::fit_prior`] with only the `active` terms searched (the others at their floor).
+    /// Those of the `active` terms searched (the others at their floor) and their `2 Δ ln L`.
     fn fit_terms(&self, rel_tol: f64, floor: &TrendPrior, active: [bool; M]) -> Option<(TrendPrior, f64)> {
         if !self.trend {
             return None;
@@ -481,7 +476,7 @@ mod tests {
             });
             plain.add(&rows, &trows, &rhs0);
         }
-        let (v, lr) = acc.fit_prior(1e-9, &[0.0; M]).unwrap();
+        let (v, lr) = acc.fit_terms(1e-9, &[0.0; M], [true; M]).unwrap();
         assert!(lr > 20.0, "2ΔlnL {lr}");
         for m in 0..M {
             assert!(v[m] > 0.2 * truth_v[m] && v[m] < 5.0 * truth_v[m], "{v:?}");
@@ -497,7 +492,7 @@ mod tests {
         let err_x = dx.iter().zip(&x).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
         assert!(err_t < 1.0 && err_x < 0.3, "t {err_t}, x {err_x}");
         // Without a rate bias in the rows, the intensities stay at (or near) zero.
-        let (v0, lr0) = plain.fit_prior(1e-9, &[0.0; M]).unwrap();
+        let (v0, lr0) = plain.fit_terms(1e-9, &[0.0; M], [true; M]).unwrap();
         assert!(lr0 < 6.0, "{v0:?} {lr0}");
     }
 }

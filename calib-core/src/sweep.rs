@@ -898,6 +898,69 @@ mod field_tests {
         }
     }
 
+    /// The reduced sweep of what the daemon pushes (issue 46's "done when"): where the gyro does
+    /// what gyros do (a heading of 0.05 °/s on joints 1, 3, 5 over 30 and 60 s, a bias that
+    /// wanders, 40 s) and on slow drift (τ 10 s, 40 s) and the paper-like cell, the table the
+    /// arbiter keeps holds its statement (real ÷ stated ≤ 1.25), is no worse than LS's, and no
+    /// session pushes a table more than 3× its own stated error. Measured (8 seeds; position /
+    /// rotation), in that order: real ÷ stated 1.09 / 0.95, 1.04 / 0.94, 0.96 / 0.91,
+    /// 0.59 / 0.80, 0.89 / 1.03; ours ÷ LS 0.39 / 0.39, 0.14 / 0.15, 0.62 / 0.47, 1.05 / 1.02
+    /// (τ 10 s: LS's white-noise model is nearly right there; the bound is met, 1.00 / 1.03),
+    /// 0.66 / 0.75. Before (the arbiter keeping LS's table wherever the tables disagreed, the EM
+    /// started from a 20 mrad drift): the 60-s heading pushed LS's table at 3.3 / 3.9× its
+    /// statement over the sessions, 7 of 8 beyond 3×.
+    #[test]
+    fn reduced_sweep_what_is_pushed_holds_its_statement() {
+        for name in [
+            "heading 0.05 °/s on joints 1, 3, 5",
+            "heading 0.05 °/s on joints 1, 3, 5 (60 s)",
+            "bias walk 1e-4 rad/s/√s (40 s)",
+            "slow drift τ 10 s (40 s)",
+            "paper-like (τ 1 s, σ 7 mrad)",
+        ] {
+            let cell = field_grid().into_iter().find(|(n, _)| *n == name).expect("a cell").1;
+            let all: Vec<Session> = (1..=SEEDS).map(|seed| session(&cell, seed).unwrap()).collect();
+            let pushed: Vec<Session> = all.iter().filter(|s| s.pushed.is_some()).copied().collect();
+            assert_eq!(pushed.len(), all.len(), "{name}: refused");
+            let (rp, rr) = pooled(&pushed, |s| s.pushed.unwrap().0, |s| s.pushed.unwrap().1);
+            let (lp, lr) = pooled(&pushed, |s| s.pushed.unwrap().0, |s| s.ls);
+            let beyond = all.iter().filter(|s| s.pushed_beyond(3.0)).count();
+            std::eprintln!("{name}: real / stated {rp:.2} / {rr:.2}, ours / LS {lp:.2} / {lr:.2}, beyond 3× {beyond}");
+            assert!(rp <= 1.25 && rr <= 1.25, "{name}: real / stated {rp:.2} / {rr:.2}");
+            // τ 10 s over 40 s: LS's white-noise model is nearly right, the two are level.
+            assert!(lp <= 1.1 && lr <= 1.1, "{name}: ours / LS {lp:.2} / {lr:.2}");
+            assert_eq!(beyond, 0, "{name}: pushed tables beyond 3× their statement");
+        }
+    }
+
+    /// A heading (a steady rate bias on joints 1, 3, 5, integrated without bound) is found from
+    /// the EM's default start: on seed 2 of the 60-s cell, started from a 20 mrad drift, τ and σ
+    /// grew to absorb the ramp first (τ 7–9 s, σ 18–20 mrad on those joints, `2 Δ ln L` 0.0) and
+    /// the table was 23.8 mm off with ±6.3 mm stated; from 5 mrad the rate bias is in the model
+    /// on every joint, and the angle it integrated on the heading joints more than half the
+    /// truth's and 3 standard errors (measured: 37–54 mrad of 52).
+    #[test]
+    fn a_heading_is_found_before_the_drift_absorbs_it() {
+        let cell = field_cell("heading 0.05 °/s on joints 1, 3, 5 (60 s)").unwrap();
+        let sim = Simulation::new(&cell, 2);
+        let (_, em) = sim.fit(&sim.samples).unwrap();
+        assert!(em.models.iter().all(|m| m.model == DriftModel::RateBias), "{}", em.models[0]);
+        // The angle it integrated by the end: 0.05 °/s for 60 s is 52 mrad.
+        let truth = 0.05f64.to_radians() * 60.0;
+        for j in [0, 2, 4] {
+            let m = em.models[j];
+            assert!(
+                m.angle.abs() > 0.5 * truth && m.angle.abs() > 3.0 * m.angle_se,
+                "joint {}: {:.1} ± {:.1} mrad",
+                j + 1,
+                m.angle * 1e3,
+                m.angle_se * 1e3
+            );
+        }
+        let (real, stated) = (sim.table_error(&em.table), em.stated_error);
+        assert!(real.position_m < 2.0 * stated.position_m, "{real:?} against {stated:?}");
+    }
+
     /// A lazy wrist (joints 5–7 through 60% of their ranges) on the paper's cell with the drift
     /// in the reading (60 s): the table is used over the whole ranges, where its error is larger
     /// than over the session's own poses. Stated over the session's poses the error is

@@ -898,6 +898,97 @@ mod tests {
         assert!(judged.is_empty(), "{judged:?}");
     }
 
+    /// Slow drift in the reading is not a sensor that jumped, a step is (issue 46, item 4): τ 3
+    /// and 10 s, 7 mrad, at 50 Hz with reading and pose noise, 60 s, 4 seeds each, none refused
+    /// for a jump (measured, with τ 5 s and 100 Hz too, 60 sessions: the largest normalised
+    /// drift innovation 5.4 against the limit of 6); the same session with joint 2's sensor
+    /// re-seated 20 mrad off at 30 s is refused for it, naming the joint and the time.
+    #[test]
+    fn slow_drift_in_the_reading_is_not_a_jump_and_a_step_is() {
+        use calib_core::{Discretisation, DriftSite, GaussMarkov, Slip};
+        let dt = 0.02;
+        let session = |tau: f64, seed: u64, slip: Option<Slip>| {
+            let cfg = ScenarioConfig {
+                drift: GaussMarkov {
+                    dt,
+                    tau,
+                    sigma: 7e-3,
+                    discretisation: Discretisation::Exact,
+                },
+                site: DriftSite::Reading,
+                reading_noise: 2e-4,
+                position_noise: 5e-4,
+                rotation_noise: 1e-3,
+                slip,
+                ..ScenarioConfig::paper()
+            };
+            let mut s = settings();
+            s.window.grid_hz = 1.0 / dt;
+            super::run(&scenario_of(cfg, 60.0, seed), &s).unwrap()
+        };
+        for tau in [3.0, 10.0] {
+            for seed in 1..=4 {
+                let out = session(tau, seed, None);
+                let judged = judged_jumps(&out.outcome.verdict.reasons);
+                assert!(judged.is_empty(), "τ {tau} s, seed {seed}: {judged:?}");
+            }
+        }
+        let slip = Slip {
+            joint: 1,
+            time: 30.0,
+            angle: 0.02,
+        };
+        let out = session(3.0, 1, Some(slip));
+        let judged = judged_jumps(&out.outcome.verdict.reasons);
+        let why = judged.first().map(|r| r.to_string()).unwrap_or_default();
+        assert!(why.contains("joint 2"), "{:?}", out.outcome.verdict.reasons);
+    }
+
+    /// A heading (0.05 °/s on joints 1, 3, 5, integrated without bound, 60 s at 50 Hz, the drift
+    /// in the reading) is the EM's to fit, not a reason to keep LS's table: LS's is tens of
+    /// millimetres off where the EM's holds its statement. Before issue 46 the session kept
+    /// LS's table and stated LS's sandwich (±2.7 mm for a table 17.6 mm off, reported).
+    #[test]
+    fn a_heading_keeps_the_ems_table_and_its_statement_holds() {
+        use calib_core::{Discretisation, DriftSite, GaussMarkov};
+        let (dt, h) = (0.02, 0.05f64.to_radians());
+        let cfg = ScenarioConfig {
+            drift: GaussMarkov {
+                dt,
+                tau: 1.0,
+                sigma: 7e-3,
+                discretisation: Discretisation::Exact,
+            },
+            heading: [h, 0.0, -h, 0.0, h, 0.0, 0.0],
+            site: DriftSite::Reading,
+            reading_noise: 2e-4,
+            position_noise: 5e-4,
+            rotation_noise: 1e-3,
+            ..ScenarioConfig::paper()
+        };
+        let mut s = settings();
+        s.window.grid_hz = 1.0 / dt;
+        let out = super::run(&scenario_of(cfg, 60.0, 3), &s).unwrap();
+        let ranges = calib_core::JointRanges::paper();
+        let poses: Vec<[f64; JOINTS]> = (0..256).map(|i| ranges.spread(i)).collect();
+        let real = |t: &DhTable<JOINTS>| table_error(t, &cfg.actual, poses.iter());
+        let em = out.detail.em.as_ref().unwrap();
+        let v = em.versus_ls.unwrap();
+        assert_eq!(v.choice(), TableChoice::Em, "{v:?}");
+        assert!(!out.detail.ls_kept());
+        let stated = out.detail.stated.unwrap();
+        let (ours, ls) = (real(&out.detail.calibrated), real(&out.detail.ls.table));
+        assert!(
+            ours.position_m < 2.0 * stated.position_m,
+            "{ours:?} stated {stated:?}"
+        );
+        assert!(
+            ls.position_m > 3.0 * v.ls_expected.position_m,
+            "LS {ls:?}, its sandwich {:?}",
+            v.ls_expected
+        );
+    }
+
     /// The drift steps calib-core's EM calls jumps.
     fn jumps(r: &[calib_core::Refusal]) -> usize {
         r.iter()
