@@ -657,6 +657,7 @@ pub fn field_grid() -> Vec<(&'static str, Cell)> {
         ("ramp 0.01 °/s + walk 5e-5", bias(0.01f64.to_radians(), 5e-5)),
         ("heading 0.01 °/s on joints 1, 3, 5", heading(0.01, 30.0)),
         ("heading 0.02 °/s on joints 1, 3, 5 (40 s)", heading(0.02, 40.0)),
+        ("heading 0.02 °/s on joints 1, 3, 5 (60 s)", heading(0.02, 60.0)),
         ("heading 0.05 °/s on joints 1, 3, 5", heading(0.05, 30.0)),
         ("heading 0.05 °/s on joints 1, 3, 5 (40 s)", heading(0.05, 40.0)),
         ("heading 0.05 °/s on joints 1, 3, 5 (60 s)", heading(0.05, 60.0)),
