@@ -106,7 +106,9 @@ fn session_log_chunked(
                 log_time: ns,
                 publish_time: ns,
             };
-            w.write_to_known_channel(&header(rx, i as u32), &record.to_proto().encode_to_vec())
+            // One frame per message (a batch of one), so that damage names its frame.
+            let batch = exocal_log::can_batch(std::slice::from_ref(&record));
+            w.write_to_known_channel(&header(rx, i as u32), &batch.encode_to_vec())
                 .unwrap();
             if end == Some(i + 1) {
                 let body = CollectionEnd {

@@ -4,7 +4,9 @@ every message with the protobuf schemas the file carries (`mcap-protobuf-support
 code, the same way Foxglove reads it).
 
 Usage: check_mcap.py FILE.mcap
-Prints a JSON object on stdout: {"counts": {topic: message count}, "samples": {...}} where
+Prints a JSON object on stdout: {"counts": {topic: record count}, "messages": {topic: message
+count}, "samples": {...}} (records: the frames of /can/rx and /can/tx, which are written in
+batches, one per message elsewhere) where
 samples are decoded values the Rust test compares with what it wrote (the first /can/rx frame,
 the first joint state, the first aligned sample, the collection end, the calibration's condition
 number); exits non-zero (with the reason on stderr) if the file is not a valid, finished MCAP, a
@@ -32,28 +34,53 @@ def main(path: str) -> int:
     # 2. Indexed read through the summary, chunk CRCs checked again, every message decoded
     #    with its channel's protobuf schema.
     counts = {}
+    messages = {}
     samples = {}
     with open(path, "rb") as f:
         reader = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
         summary = reader.get_summary()
         for channel in summary.channels.values():
             counts.setdefault(channel.topic, 0)
+            messages.setdefault(channel.topic, 0)
             if channel.message_encoding != "protobuf":
                 print(f"{path}: {channel.topic} is {channel.message_encoding}", file=sys.stderr)
                 return 1
-        for _schema, channel, message, proto in reader.iter_decoded_messages():
-            counts[channel.topic] += 1
-            if counts[channel.topic] != 1 and channel.topic != "/calibration":
+        for schema, channel, message, proto in reader.iter_decoded_messages():
+            messages[channel.topic] += 1
+            # A batch of raw frames (times relative to base_ns), or one (logs written before
+            # the batches); one record per message elsewhere.
+            if schema.name == "exocal.CanFrames":
+                frames = [
+                    {
+                        "id": f.id,
+                        "flags": f.flags & 3,
+                        "dlc": f.dlc,
+                        "data": list(f.data),
+                        "host_ns": proto.base_ns + f.host_offset_ns,
+                        "kernel_ns": proto.base_ns + f.host_offset_ns + f.kernel_offset_ns
+                        if f.flags & 4
+                        else 0,
+                    }
+                    for f in proto.frames
+                ]
+            elif schema.name == "exocal.CanFrame":
+                frames = [
+                    {
+                        "id": proto.id,
+                        "flags": proto.flags,
+                        "dlc": proto.dlc,
+                        "data": list(proto.data),
+                        "host_ns": proto.host_ns,
+                        "kernel_ns": proto.kernel_ns,
+                    }
+                ]
+            else:
+                frames = [None]
+            counts[channel.topic] += len(frames)
+            if messages[channel.topic] != 1 and channel.topic != "/calibration":
                 continue
             if channel.topic == "/can/rx":
-                samples["can_rx"] = {
-                    "id": proto.id,
-                    "flags": proto.flags,
-                    "dlc": proto.dlc,
-                    "data": list(proto.data),
-                    "kernel_ns": proto.kernel_ns,
-                    "host_ns": proto.host_ns,
-                }
+                samples["can_rx"] = frames[0]
             elif channel.topic == "/joint_states":
                 j = proto.joints[0]
                 samples["joint_state"] = {
@@ -73,13 +100,13 @@ def main(path: str) -> int:
             elif channel.topic == "/events":
                 samples["event"] = {"level": proto.level, "message": proto.message}
         stats = summary.statistics
-        if stats is not None and stats.message_count != sum(counts.values()):
+        if stats is not None and stats.message_count != sum(messages.values()):
             print(
-                f"{path}: statistics say {stats.message_count} messages, read {sum(counts.values())}",
+                f"{path}: statistics say {stats.message_count} messages, read {sum(messages.values())}",
                 file=sys.stderr,
             )
             return 1
-    print(json.dumps({"counts": counts, "samples": samples}, sort_keys=True))
+    print(json.dumps({"counts": counts, "messages": messages, "samples": samples}, sort_keys=True))
     return 0
 
 

@@ -9,8 +9,10 @@
 //!   a `FileDescriptorSet`), so Foxglove and any MCAP reader decode them without generated
 //!   code. Poses, transforms, joint states and events use Foxglove's well-known schemas
 //!   ([`fox`]); raw frames and the rest are ours ([`proto`], from `proto/exocal.proto`);
-//! - [`CanFrameRecord`] is a raw frame on `/can/rx` and `/can/tx` ([`proto::CanFrame`] in the
-//!   file);
+//! - [`CanFrameRecord`] is a raw frame on `/can/rx` and `/can/tx`, written in batches of a few
+//!   milliseconds ([`proto::CanFrames`], [`CAN_BATCH_NS`]); logs written before then have one
+//!   [`proto::CanFrame`] per message, and [`decode_can_frames`] reads either by the channel's
+//!   schema name;
 //! - [`CollectionEnd`] on `/collection` is written once, when the session stops collecting: a
 //!   replay calibrates on exactly the first [`CollectionEnd::frames`] frames of `/can/rx`, as
 //!   the live session did; a log without it never finished collecting;
@@ -28,6 +30,12 @@ use serde::{Deserialize, Serialize};
 
 /// The encoding of every message.
 pub const MESSAGE_ENCODING: &str = "protobuf";
+/// A batch of raw frames ([`proto::CanFrames`]) spans at most this long (ns, host time).
+pub const CAN_BATCH_NS: u64 = 10_000_000;
+/// A batch of raw frames holds at most this many.
+pub const CAN_BATCH_FRAMES: usize = 64;
+/// The schema name of a single raw frame per message, as logs were written before the batches.
+pub const SINGLE_FRAME_SCHEMA: &str = "exocal.CanFrame";
 /// The encoding of every schema (a serialized `google.protobuf.FileDescriptorSet`).
 pub const SCHEMA_ENCODING: &str = "protobuf";
 /// The message encoding of logs written before the log was binary (JSON with JSON Schemas).
@@ -45,6 +53,8 @@ pub mod proto {
     pub const FLAG_EXTENDED: u32 = 1;
     /// [`CanFrame::flags`] bit: a remote-transmission request.
     pub const FLAG_REMOTE: u32 = 2;
+    /// [`BatchedFrame::flags`] bit: the frame has a kernel receive time.
+    pub const FLAG_KERNEL_TIME: u32 = 4;
 
     /// The `FileDescriptorSet` of `exocal.proto`: the schema data of every `exocal.*` message.
     pub const DESCRIPTOR_SET: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/exocal.bin"));
@@ -161,7 +171,7 @@ impl Topic {
     /// The fully qualified name of the topic's message type.
     pub const fn message_type(self) -> &'static str {
         match self {
-            Topic::CanRx | Topic::CanTx => "exocal.CanFrame",
+            Topic::CanRx | Topic::CanTx => "exocal.CanFrames",
             Topic::JointStates => "foxglove.JointStates",
             Topic::EePose => "foxglove.PoseInFrame",
             Topic::EeGyro => "exocal.AngularRate",
@@ -268,6 +278,32 @@ impl CanFrameRecord {
     }
 }
 
+/// A batch of raw frames as written ([`proto::CanFrames`]): their times as offsets from the
+/// first frame's host time.
+pub fn can_batch(frames: &[CanFrameRecord]) -> proto::CanFrames {
+    let base_ns = frames.first().map_or(0, |f| f.host_ns);
+    proto::CanFrames {
+        base_ns,
+        frames: frames
+            .iter()
+            .map(|f| {
+                let mut flags = f.to_proto().flags;
+                if f.kernel_ns.is_some() {
+                    flags |= proto::FLAG_KERNEL_TIME;
+                }
+                proto::BatchedFrame {
+                    id: f.id,
+                    flags,
+                    dlc: u32::from(f.dlc),
+                    data: f.data.clone(),
+                    host_offset_ns: f.host_ns.saturating_sub(base_ns),
+                    kernel_offset_ns: f.kernel_ns.map_or(0, |k| k.wrapping_sub(f.host_ns) as i64),
+                }
+            })
+            .collect(),
+    }
+}
+
 /// Severity of an event (foxglove.Log levels).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Level {
@@ -344,6 +380,62 @@ pub fn decode_can_frame(encoding: &str, data: &[u8]) -> Result<CanFrameRecord, D
         encoding: encoding.to_string(),
         what: format!("DLC {dlc} (at most 15)"),
     })
+}
+
+/// The raw frames of a message of `/can/rx` or `/can/tx` whose channel's schema is `schema`
+/// and message encoding `encoding`: a batch ([`proto::CanFrames`]) as written now, one frame
+/// ([`decode_can_frame`]) as written before.
+pub fn decode_can_frames(
+    schema: &str,
+    encoding: &str,
+    data: &[u8],
+) -> Result<Vec<CanFrameRecord>, DecodeError> {
+    if schema == SINGLE_FRAME_SCHEMA || encoding == LEGACY_MESSAGE_ENCODING {
+        return decode_can_frame(encoding, data).map(|f| vec![f]);
+    }
+    let err = |what: String| DecodeError {
+        encoding: encoding.to_string(),
+        what,
+    };
+    if encoding != MESSAGE_ENCODING {
+        return Err(err(format!(
+            "unknown encoding {encoding:?} (expected {MESSAGE_ENCODING:?})"
+        )));
+    }
+    let batch =
+        <proto::CanFrames as prost::Message>::decode(data).map_err(|e| err(e.to_string()))?;
+    let base = batch.base_ns;
+    batch
+        .frames
+        .into_iter()
+        .enumerate()
+        .map(|(i, m)| {
+            let host_ns = base
+                .checked_add(m.host_offset_ns)
+                .ok_or_else(|| err(format!("frame {i}: host time beyond 2^64 ns")))?;
+            let kernel_ns = match m.flags & proto::FLAG_KERNEL_TIME {
+                0 => None,
+                _ => Some(
+                    host_ns
+                        .checked_add_signed(m.kernel_offset_ns)
+                        .ok_or_else(|| err(format!("frame {i}: kernel time out of range")))?,
+                ),
+            };
+            let dlc = u8::try_from(m.dlc)
+                .ok()
+                .filter(|&d| d <= 15)
+                .ok_or_else(|| err(format!("frame {i}: DLC {} (at most 15)", m.dlc)))?;
+            Ok(CanFrameRecord {
+                id: m.id,
+                extended: m.flags & proto::FLAG_EXTENDED != 0,
+                remote: m.flags & proto::FLAG_REMOTE != 0,
+                dlc,
+                data: m.data,
+                host_ns,
+                kernel_ns,
+            })
+        })
+        .collect()
 }
 
 /// The `/collection` record, in either encoding (see the crate docs).
@@ -427,6 +519,43 @@ mod tests {
             (f.id, f.remote, f.data, f.kernel_ns),
             (257, false, vec![1, 2], None)
         );
+    }
+
+    /// A batch reads back frame for frame (times, kernel time or none, extended and remote
+    /// frames), and a log's single-frame messages (before the batches) still read by their
+    /// schema's name.
+    #[test]
+    fn batches_read_back_as_written_and_single_frames_still_read() {
+        let frames = vec![
+            frame(),
+            CanFrameRecord {
+                id: 0x1abc_def0,
+                extended: true,
+                kernel_ns: None,
+                host_ns: frame().host_ns + 7_000_123,
+                ..frame()
+            },
+            CanFrameRecord {
+                remote: true,
+                data: vec![],
+                dlc: 4,
+                kernel_ns: Some(frame().host_ns + 9_000_000),
+                host_ns: frame().host_ns + 8_000_000,
+                ..frame()
+            },
+        ];
+        let bin = can_batch(&frames).encode_to_vec();
+        assert_eq!(
+            decode_can_frames("exocal.CanFrames", "protobuf", &bin).unwrap(),
+            frames
+        );
+        let single = frame().to_proto().encode_to_vec();
+        assert_eq!(
+            decode_can_frames(SINGLE_FRAME_SCHEMA, "protobuf", &single).unwrap(),
+            vec![frame()]
+        );
+        let e = decode_can_frames("exocal.CanFrames", "protobuf", &single).unwrap_err();
+        assert!(e.to_string().starts_with("protobuf message: "), "{e}");
     }
 
     #[test]

@@ -64,7 +64,8 @@ const RX: &str = Topic::CanRx.name();
 
 /// What a channel carries, for this reader.
 enum Carries {
-    Rx(String),
+    /// `/can/rx`: its schema's name and message encoding.
+    Rx(String, String),
     Collection(String),
     /// `/calibration` in protobuf (its push outcome).
     Calibration,
@@ -95,18 +96,27 @@ pub fn read_mcap_session(
     let mut gate = None;
     let mut seen_channel = false;
     let mut channels: HashMap<u16, Carries> = HashMap::new();
+    let mut schemas: HashMap<u16, String> = HashMap::new();
     let mut i = 0u64;
     let scanned = scan::scan(input, |records| {
         for r in records {
             let (channel_id, data) = match *r {
+                Record::Schema { id, name, .. } => {
+                    schemas.insert(id, name.to_string());
+                    continue;
+                }
                 Record::Channel {
                     id,
+                    schema_id,
                     topic,
                     encoding,
                     ..
                 } => {
                     let carries = match topic {
-                        RX => Carries::Rx(encoding.to_string()),
+                        RX => Carries::Rx(
+                            schemas.get(&schema_id).cloned().unwrap_or_default(),
+                            encoding.to_string(),
+                        ),
                         t if t == Topic::Collection.name() => {
                             Carries::Collection(encoding.to_string())
                         }
@@ -146,32 +156,34 @@ pub fn read_mcap_session(
                         push = c.push;
                     }
                 }
-                Some(Carries::Rx(encoding)) => {
+                Some(Carries::Rx(schema, encoding)) => {
                     seen_channel = true;
-                    let f = crate::decode_can_frame(encoding, data)
+                    let batch = crate::decode_can_frames(schema, encoding, data)
                         .map_err(|e| err(format!("message {n} on {RX}: {e}")))?;
-                    if f.data.len() > 8 {
-                        return Err(err(format!(
-                            "message {n} on {RX}: {} data bytes",
-                            f.data.len()
-                        )));
+                    for f in batch {
+                        if f.data.len() > 8 {
+                            return Err(err(format!(
+                                "message {n} on {RX}: {} data bytes",
+                                f.data.len()
+                            )));
+                        }
+                        let frame = f.frame().ok_or_else(|| {
+                            err(format!(
+                                "message {n} on {RX}: identifier {:#x} invalid",
+                                f.id
+                            ))
+                        })?;
+                        let rx = Received {
+                            frame,
+                            timestamp: Duration::from_nanos(f.kernel_ns.unwrap_or(f.host_ns)),
+                        };
+                        let phase = match collection_end {
+                            None => Phase::Collection,
+                            Some(_) => Phase::After,
+                        };
+                        admit(&rx, phase).map_err(|e| err(format!("message {n} on {RX}: {e}")))?;
+                        frames.push(rx);
                     }
-                    let frame = f.frame().ok_or_else(|| {
-                        err(format!(
-                            "message {n} on {RX}: identifier {:#x} invalid",
-                            f.id
-                        ))
-                    })?;
-                    let rx = Received {
-                        frame,
-                        timestamp: Duration::from_nanos(f.kernel_ns.unwrap_or(f.host_ns)),
-                    };
-                    let phase = match collection_end {
-                        None => Phase::Collection,
-                        Some(_) => Phase::After,
-                    };
-                    admit(&rx, phase).map_err(|e| err(format!("message {n} on {RX}: {e}")))?;
-                    frames.push(rx);
                 }
                 _ => {}
             }
@@ -298,7 +310,8 @@ mod tests {
                     host_ns: 1_000 + i,
                     kernel_ns: None,
                 };
-                put(&mut w, rx, f.host_ns, &f.to_proto().encode_to_vec());
+                let batch = crate::can_batch(std::slice::from_ref(&f));
+                put(&mut w, rx, f.host_ns, &batch.encode_to_vec());
                 if let Some((after, body)) = end {
                     if i + 1 == after {
                         put(&mut w, collection, 5_000, body);

@@ -125,9 +125,15 @@ fn read_finished_mcap(path: &Path) -> Option<serde_json::Value> {
         let m = m.unwrap_or_else(|e| panic!("{}: bad message: {e}", path.display()));
         messages += 1;
         if m.channel.topic == "/calibration" {
-            let v =
-                log_json::log_message_json(&m.channel.topic, &m.channel.message_encoding, &m.data)
-                    .expect("a /calibration message");
+            let schema = m.channel.schema.as_ref().map_or("", |s| s.name.as_str());
+            let v = log_json::log_message_json(
+                &m.channel.topic,
+                schema,
+                &m.channel.message_encoding,
+                &m.data,
+            )
+            .pop()
+            .expect("a /calibration message");
             if v.get("nodes").is_some() {
                 push = Some(v);
             }

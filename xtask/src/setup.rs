@@ -49,6 +49,10 @@ pub const PACKAGES: &[(&str, &str)] = &[
     ),
     ("lintian", "checks every Debian package the project builds"),
     ("python3", "runs the cantools and mcap cross-checks"),
+    (
+        "nodejs",
+        "runs @mcap/core's indexed reader, Foxglove's, on the session log (tests/js; npm comes with it, or as Debian's npm)",
+    ),
     ("python3-venv", "the project's venv for those cross-checks"),
     (
         "systemd",
@@ -124,6 +128,7 @@ pub fn install_all() -> Result<()> {
     }
     host::install_packages(&host::missing(packages()))?;
     python_env()?;
+    js_env()?;
     report(check())
 }
 
@@ -168,6 +173,7 @@ pub fn check() -> Vec<Result<String>> {
     lines.push(check_program(&["lintian", "--version"], "lintian"));
     lines.push(check_program(&["systemd-analyze", "--version"], "systemd"));
     lines.push(check_python());
+    lines.push(check_program(&["node", "--version"], "node"));
     if native_vcan() {
         lines.push(Ok(
             "native vcan works here: the QEMU guest is not needed".into()
@@ -422,6 +428,32 @@ pub fn python_env() -> Result<PathBuf> {
     )?;
     std::fs::write(&stamp, wanted)?;
     Ok(python)
+}
+
+/// The JavaScript oracles of `tests/js` (`@mcap/core`): `npm ci` there when its lockfile
+/// changed since the last install (npm from Debian's package when nodejs came without it);
+/// returns the directory.
+pub fn js_env() -> Result<PathBuf> {
+    let dir = paths::workspace_root().join("tests/js");
+    let lock = std::fs::read_to_string(dir.join("package-lock.json"))
+        .with_context(|| format!("read {}/package-lock.json", dir.display()))?;
+    let stamp = dir.join("node_modules/.exocal-lock.json");
+    if std::fs::read_to_string(&stamp).ok().as_deref() == Some(&lock) {
+        return Ok(dir);
+    }
+    if host::which("npm").is_none() {
+        host::install_packages(&host::missing(["npm"]))?;
+    }
+    eprintln!("[setup] npm ci in {}", dir.display());
+    process::run(
+        Command::new("npm")
+            .args(["ci", "--no-audit", "--no-fund", "--prefix"])
+            .arg(&dir),
+        "npm ci",
+        "npm ci in tests/js failed (is the npm registry reachable?)",
+    )?;
+    std::fs::write(&stamp, lock)?;
+    Ok(dir)
 }
 
 #[cfg(test)]

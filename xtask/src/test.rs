@@ -121,6 +121,8 @@ pub fn run(args: Args) -> Result<u8> {
     // guest is offline, so it is made here, and every suite finds it through EXOCAL_PYTHON.
     let python = setup::python_env()?;
     std::env::set_var("EXOCAL_PYTHON", &python);
+    // The JavaScript oracle (@mcap/core's indexed reader) for the host suites.
+    setup::js_env()?;
     std::env::set_var(
         "EXOCAL_PYENV",
         python.parent().and_then(|b| b.parent()).unwrap_or(&python),

@@ -709,6 +709,81 @@ mod tests {
         }
     }
 
+    /// The demo's log opens in the readers users run (issue 47): `@mcap/core`'s
+    /// `McapIndexedReader` (Foxglove's and Lichtblick's; it threw on a log without message
+    /// indexes) and python's `mcap`, every message through the indexes, every CRC checked, the
+    /// same counts as the file's statistics; and the log stays within 6 MB per minute with its
+    /// indexes. Run: `cargo xtask test` (it installs `tests/js` and the venv).
+    #[test]
+    #[ignore = "needs node with tests/js installed and the venv (EXOCAL_PYTHON): `cargo xtask test` runs it"]
+    fn the_demos_log_opens_in_foxgloves_indexed_reader_and_pythons() {
+        let dir = std::env::temp_dir().join(format!("exocald-demo-readers-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let opts = DemoOptions {
+            seed: 2024,
+            speed: 1e6,
+            output: dir.clone(),
+            hold: false,
+            wearer: Default::default(),
+        };
+        let config = demo_config(Config::default_config(), &dir, 1.0);
+        let result = match run(&config, &opts).map_err(|e| *e) {
+            Ok(r) => r,
+            Err(SessionError { error, summary }) => panic!("{error}\n{summary:#?}"),
+        };
+        let path = &result.summary.log_path;
+        let bytes = std::fs::read(path).unwrap();
+        let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
+        let stats = summary.stats.unwrap();
+        let run = |program: &str, script: &str| -> serde_json::Value {
+            let out = std::process::Command::new(program)
+                .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/..").to_string() + script)
+                .arg(path)
+                .output()
+                .unwrap_or_else(|e| panic!("cannot run {program}: {e}"));
+            assert!(
+                out.status.success(),
+                "{script}: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            serde_json::from_slice(&out.stdout).unwrap()
+        };
+        let python = std::env::var("EXOCAL_PYTHON").unwrap_or_else(|_| "python3".into());
+        let js = run("node", "/tests/js/read_mcap.mjs");
+        let py = run(&python, "/daemon/tools/check_mcap.py");
+        assert_eq!(
+            js["messages"], py["messages"],
+            "@mcap/core and python disagree"
+        );
+        let total: u64 = js["messages"]
+            .as_object()
+            .unwrap()
+            .values()
+            .map(|n| n.as_u64().unwrap())
+            .sum();
+        assert_eq!(total, stats.message_count);
+        assert_eq!(js["statistics"].as_u64(), Some(stats.message_count));
+        // The raw frames, counted by python from the batches, as the summary counted them.
+        let rx = result
+            .summary
+            .log_counts
+            .iter()
+            .find(|(t, _)| t == "/can/rx")
+            .unwrap()
+            .1;
+        assert_eq!(py["counts"]["/can/rx"].as_u64(), Some(rx));
+        let minutes = (stats.message_end_time - stats.message_start_time) as f64 / 60e9;
+        let mb_per_minute = bytes.len() as f64 / 1e6 / minutes;
+        eprintln!(
+            "{}: {} bytes over {:.1} s: {mb_per_minute:.2} MB per minute",
+            path.display(),
+            bytes.len(),
+            minutes * 60.0
+        );
+        assert!(mb_per_minute <= 6.0, "{mb_per_minute:.2} MB per minute");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
     #[test]
     fn the_paper_scenario_calibrates_pushes_and_persists() {
         let dir = std::env::temp_dir().join(format!("exocald-demo-{}", std::process::id()));

@@ -14,7 +14,14 @@
 //!   A failed sync is the next tick's error;
 //! - [`SessionLog::finish`] writes the summary (statistics, indexes) and footer; the daemon calls
 //!   it on every exit path, SIGTERM/SIGINT included;
-//! - message counts per topic are kept so callers and tests can check them against the file.
+//! - message indexes are written, as the indexed readers need (`@mcap/core`'s, which Foxglove
+//!   and Lichtblick open files with); the raw frames, most of the log, go in batches of a few
+//!   milliseconds (`exocal_log::CAN_BATCH_NS`) so that their 16 uncompressed bytes of index
+//!   per message stay small. A batch is written when it is full or old, before a chunk closes
+//!   (so a flush loses none), and before the collection end and the calibration (so every
+//!   frame received before them is before them in the file);
+//! - record counts per topic are kept (frames for `/can/rx` and `/can/tx`, messages for the
+//!   rest) so callers and tests can check them against the file.
 //!
 //! # Topics and schemas
 //!
@@ -23,8 +30,8 @@
 //!
 //! | topic | schema | what |
 //! |---|---|---|
-//! | `/can/rx`, `/can/tx` | `exocal.CanFrame` | every raw frame received / sent: id, flags, DLC, data, kernel and host timestamps |
-//! | `/joint_states` | `foxglove.JointStates` | each decoded joint reading (`jointN`: position, velocity), as the exported URDF names the joints |
+//! | `/can/rx`, `/can/tx` | `exocal.CanFrames` | every raw frame received / sent, in batches of a few milliseconds: id, flags, DLC, data, kernel and host timestamps |
+//! | `/joint_states` | `foxglove.JointStates` | the decoded joint readings (`jointN`: position, velocity, as the exported URDF names the joints), one message per sample of the arm (the readings within a few milliseconds, each joint once) |
 //! | `/ee_pose` | `foxglove.PoseInFrame` | each assembled end-effector reference pose, frame `base_link` |
 //! | `/ee_gyro` | `exocal.AngularRate` | the end effector's IMU rate (a stream of `exocal_session::stream::STREAMS`) |
 //! | `/tf` | `foxglove.FrameTransforms` | the arm's frames on the calibrated table (`base_link → link1 … link7 → tool0`, the URDF's): Foxglove's 3D panel draws the arm |
@@ -43,7 +50,7 @@ use std::fs::File;
 use std::io::{BufWriter, Seek, Write};
 use std::path::{Path, PathBuf};
 
-use exocal_log::{fox, timestamp, MESSAGE_ENCODING};
+use exocal_log::{fox, timestamp, CAN_BATCH_FRAMES, CAN_BATCH_NS, MESSAGE_ENCODING};
 pub use exocal_log::{proto, CanFrameRecord, CollectionEnd, Level, Topic};
 
 use crate::log::records::{Record, Transform, BASE_FRAME};
@@ -206,7 +213,7 @@ pub fn aligned_sample(s: &exocal_session::align::AlignedSample) -> proto::Aligne
     }
 }
 
-/// Messages written per topic.
+/// Records written per topic (frames on `/can/rx` and `/can/tx`, messages elsewhere).
 pub type Counts = BTreeMap<Topic, u64>;
 
 /// An open session log.
@@ -219,6 +226,12 @@ pub struct SessionLog<W: Write + Seek> {
     last_flush_ns: Option<u64>,
     sync: Option<Syncer>,
     buffer: Vec<u8>,
+    /// The raw frames not written yet, `/can/rx`'s and `/can/tx`'s, each with its first
+    /// frame's log time.
+    batches: [(u64, Vec<CanFrameRecord>); 2],
+    /// The joint readings of the arm's sample not written yet (joint, angle, rate), with the
+    /// first one's log time.
+    sample: (u64, Vec<(usize, f64, f64)>),
 }
 
 /// `fdatasync`s a log file on a thread of its own, on request: requests made while one waits
@@ -369,9 +382,9 @@ impl<W: Write + Seek> SessionLog<W> {
             // One thread: zstd's worker pool (the crate's default, one per physical CPU) locks a
             // mutex on every record written and wakes threads for a few hundred kB a second.
             .compression_threads(0)
-            // No message indexes: 16 uncompressed bytes per message (more than a compressed
-            // frame), and readers find every message through the chunk indexes.
-            .emit_message_indexes(false)
+            // Message indexes: Foxglove's indexed reader needs them (16 uncompressed bytes per
+            // message: the raw frames go in batches).
+            .emit_message_indexes(true)
             .profile("")
             .library(concat!("exocald ", env!("CARGO_PKG_VERSION")))
             // Chunks close on time (tick) or at this size, whichever first.
@@ -393,11 +406,25 @@ impl<W: Write + Seek> SessionLog<W> {
             last_flush_ns: None,
             sync: None,
             buffer: Vec::with_capacity(512),
+            batches: Default::default(),
+            sample: (0, Vec::with_capacity(8)),
         })
     }
 
     /// Writes one message on `topic` at log time `log_ns`.
     pub fn write<M: prost::Message>(
+        &mut self,
+        topic: Topic,
+        log_ns: u64,
+        message: &M,
+    ) -> Result<(), LogError> {
+        self.put(topic, log_ns, message)?;
+        self.counts[topic.index()] += 1;
+        Ok(())
+    }
+
+    /// Writes one message on `topic` at log time `log_ns`, uncounted.
+    fn put<M: prost::Message>(
         &mut self,
         topic: Topic,
         log_ns: u64,
@@ -416,22 +443,85 @@ impl<W: Write + Seek> SessionLog<W> {
             publish_time: log_ns,
         };
         self.writer.write_to_known_channel(&header, &self.buffer)?;
-        self.counts[i] += 1;
         Ok(())
+    }
+
+    /// Adds a raw frame to its topic's batch, writing the batch first if it is old and after if
+    /// it is full.
+    fn batch(&mut self, sent: bool, log_ns: u64, frame: &CanFrameRecord) -> Result<(), LogError> {
+        let (topic, b) = if sent {
+            (Topic::CanTx, 1)
+        } else {
+            (Topic::CanRx, 0)
+        };
+        let (first, batch) = &self.batches[b];
+        if !batch.is_empty() && log_ns.saturating_sub(*first) >= CAN_BATCH_NS {
+            self.write_batch(b)?;
+        }
+        let (first, batch) = &mut self.batches[b];
+        if batch.is_empty() {
+            *first = log_ns;
+        }
+        batch.push(frame.clone());
+        self.counts[topic.index()] += 1;
+        if batch.len() >= CAN_BATCH_FRAMES {
+            self.write_batch(b)?;
+        }
+        Ok(())
+    }
+
+    /// Writes batch `b` (0: `/can/rx`, 1: `/can/tx`) if it holds any frame.
+    fn write_batch(&mut self, b: usize) -> Result<(), LogError> {
+        if self.batches[b].1.is_empty() {
+            return Ok(());
+        }
+        let message = exocal_log::can_batch(&self.batches[b].1);
+        let first = self.batches[b].0;
+        self.batches[b].1.clear();
+        let topic = if b == 1 { Topic::CanTx } else { Topic::CanRx };
+        self.put(topic, first, &message)
+    }
+
+    /// Writes every batch that holds a frame, and the arm's sample.
+    fn write_batches(&mut self) -> Result<(), LogError> {
+        self.write_batch(0)?;
+        self.write_batch(1)?;
+        self.write_sample()
+    }
+
+    /// Adds a joint reading to the arm's sample, writing the sample first if it already has
+    /// this joint or is old: one `/joint_states` message per sample of the arm, as Foxglove's
+    /// panels take it.
+    fn joint(&mut self, log_ns: u64, reading: (usize, f64, f64)) -> Result<(), LogError> {
+        let (first, joints) = &self.sample;
+        if !joints.is_empty()
+            && (joints.iter().any(|j| j.0 == reading.0)
+                || log_ns.saturating_sub(*first) >= CAN_BATCH_NS)
+        {
+            self.write_sample()?;
+        }
+        if self.sample.1.is_empty() {
+            self.sample.0 = log_ns;
+        }
+        self.sample.1.push(reading);
+        Ok(())
+    }
+
+    /// Writes the arm's sample if it holds a reading.
+    fn write_sample(&mut self) -> Result<(), LogError> {
+        if self.sample.1.is_empty() {
+            return Ok(());
+        }
+        let message = joint_states(self.sample.0, &self.sample.1);
+        self.sample.1.clear();
+        self.write(Topic::JointStates, self.sample.0, &message)
     }
 
     /// Writes `record` (see [`Record`]) at log time `log_ns`.
     pub fn write_record(&mut self, log_ns: u64, record: &Record<'_>) -> Result<(), LogError> {
         match *record {
-            Record::Frame { sent, frame } => {
-                let topic = if sent { Topic::CanTx } else { Topic::CanRx };
-                self.write(topic, log_ns, &frame.to_proto())
-            }
-            Record::Joint { joint, angle, rate } => self.write(
-                Topic::JointStates,
-                log_ns,
-                &joint_states(log_ns, &[(joint, angle, rate)]),
-            ),
+            Record::Frame { sent, frame } => self.batch(sent, log_ns, frame),
+            Record::Joint { joint, angle, rate } => self.joint(log_ns, (joint, angle, rate)),
             Record::EePose(pose) => self.write(Topic::EePose, log_ns, &pose_in_frame(log_ns, pose)),
             Record::Rate {
                 stream,
@@ -445,8 +535,15 @@ impl<W: Write + Seek> SessionLog<W> {
             Record::Arm(links) => self.write(Topic::Tf, log_ns, &frame_transforms(log_ns, links)),
             Record::Aligned(s) => self.write(Topic::Aligned, log_ns, &aligned_sample(s)),
             Record::Progress(p) => self.write(Topic::Progress, log_ns, &progress(p)),
-            Record::CollectionEnd(end) => self.write(Topic::Collection, log_ns, end),
-            Record::Calibration(c) => self.write(Topic::Calibration, log_ns, c),
+            // Every frame before these records in time is before them in the file.
+            Record::CollectionEnd(end) => {
+                self.write_batches()?;
+                self.write(Topic::Collection, log_ns, end)
+            }
+            Record::Calibration(c) => {
+                self.write_batches()?;
+                self.write(Topic::Calibration, log_ns, c)
+            }
             Record::RobotDescription(urdf) => self.write(
                 Topic::RobotDescription,
                 log_ns,
@@ -480,6 +577,7 @@ impl<W: Write + Seek> SessionLog<W> {
     /// Closes the open chunk, flushes it to the kernel and has it synced (on the log's sync
     /// thread; an earlier sync's error is returned here).
     pub fn flush(&mut self) -> Result<(), LogError> {
+        self.write_batches()?;
         self.writer.flush()?;
         if let Some(s) = &self.sync {
             s.request()?;
@@ -487,16 +585,18 @@ impl<W: Write + Seek> SessionLog<W> {
         Ok(())
     }
 
-    /// Messages written so far, per topic.
+    /// Records written so far, per topic (an arm's sample not written yet included).
     pub fn counts(&self) -> Counts {
+        let pending = |t: Topic| u64::from(t == Topic::JointStates && !self.sample.1.is_empty());
         Topic::ALL
             .iter()
-            .map(|&t| (t, self.counts[t.index()]))
+            .map(|&t| (t, self.counts[t.index()] + pending(t)))
             .collect()
     }
 
     /// Writes the summary and footer; returns the counts.
     pub fn finish(mut self) -> Result<Counts, LogError> {
+        self.write_batches()?;
         self.writer.finish()?;
         if let Some(s) = self.sync.take() {
             s.finish()?;
@@ -659,10 +759,16 @@ mod tests {
         ])
     }
 
-    /// Decodes a message of `topic` as the schema says, panicking if it does not.
-    fn decode_any(topic: &str, data: &[u8]) {
+    /// Decodes a message of `topic` as the schema says, panicking if it does not; the records
+    /// it holds (frames of a batch on `/can/*`, else 1).
+    fn decode_any(topic: &str, data: &[u8]) -> u64 {
         match Topic::from_name(topic).unwrap() {
-            Topic::CanRx | Topic::CanTx => drop(proto::CanFrame::decode(data).unwrap()),
+            Topic::CanRx | Topic::CanTx => {
+                let frames =
+                    exocal_log::decode_can_frames("exocal.CanFrames", "protobuf", data).unwrap();
+                assert!(!frames.is_empty(), "an empty batch on {topic}");
+                return frames.len() as u64;
+            }
             Topic::JointStates => drop(fox::JointStates::decode(data).unwrap()),
             Topic::EePose => drop(fox::PoseInFrame::decode(data).unwrap()),
             Topic::EeGyro => drop(proto::AngularRate::decode(data).unwrap()),
@@ -674,15 +780,16 @@ mod tests {
             Topic::Events => drop(fox::Log::decode(data).unwrap()),
             Topic::RobotDescription => drop(proto::RobotDescription::decode(data).unwrap()),
         }
+        1
     }
 
+    /// Records per topic (frames on `/can/*`), every message decoded as its topic's type.
     fn read_counts(bytes: &[u8]) -> BTreeMap<String, u64> {
         let mut counts = BTreeMap::new();
         for m in mcap::MessageStream::new(bytes).unwrap() {
             let m = m.unwrap();
-            // Every message decodes as its topic's type.
-            decode_any(&m.channel.topic, &m.data);
-            *counts.entry(m.channel.topic.clone()).or_insert(0) += 1;
+            *counts.entry(m.channel.topic.clone()).or_insert(0) +=
+                decode_any(&m.channel.topic, &m.data);
         }
         counts
     }
@@ -774,6 +881,8 @@ mod tests {
             rate: 1.5,
         };
         log.write_record(5, &joint).unwrap();
+        // The arm's sample is written when the next begins, or here.
+        log.write_batches().unwrap();
         let bytes = {
             let SessionLog { mut writer, .. } = log;
             writer.finish().unwrap();

@@ -422,7 +422,8 @@ mod tests {
             String::from_utf8_lossy(&run.stderr)
         );
         let got: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
-        let counts: BTreeMap<String, u64> = serde_json::from_value(got["counts"].clone()).unwrap();
+        let counts: BTreeMap<String, u64> =
+            serde_json::from_value(got["messages"].clone()).unwrap();
         assert_eq!(counts.values().sum::<u64>(), r.messages);
         assert_eq!(counts.len(), Topic::ALL.len(), "{counts:?}");
     }

@@ -1,24 +1,26 @@
 //! The session-log messages the suites check, decoded with the log's one schema
-//! (`exocal-log`) into JSON values: CAN frames as `{"id", "data"}`, a `/calibration` message as
-//! `{}` or, once pushed, `{"nodes": [{"node", "new_crc", "holds", "authenticated"}]}`.
+//! (`exocal-log`) into JSON values: CAN frames as `{"id", "data"}` (a message on `/can/*` is a
+//! batch of them), a `/calibration` message as `{}` or, once pushed,
+//! `{"nodes": [{"node", "new_crc", "holds", "authenticated"}]}`.
 
 use prost::Message;
 use serde_json::{json, Value};
 
-/// `data` of a message on `topic` as JSON, for the topics above; `None` for other topics.
-/// Panics naming the topic when a message does not decode.
-pub fn log_message_json(topic: &str, encoding: &str, data: &[u8]) -> Option<Value> {
+/// The records of a message on `topic` (its channel's schema named `schema`) as JSON, for the
+/// topics above (every frame of a batch); empty for other topics. Panics naming the topic when
+/// a message does not decode.
+pub fn log_message_json(topic: &str, schema: &str, encoding: &str, data: &[u8]) -> Vec<Value> {
     match topic {
-        "/can/rx" | "/can/tx" => {
-            let f = exocal_log::decode_can_frame(encoding, data)
-                .unwrap_or_else(|e| panic!("{topic}: {e}"));
-            Some(json!({ "id": f.id, "data": f.data }))
-        }
+        "/can/rx" | "/can/tx" => exocal_log::decode_can_frames(schema, encoding, data)
+            .unwrap_or_else(|e| panic!("{topic}: {e}"))
+            .into_iter()
+            .map(|f| json!({ "id": f.id, "data": f.data }))
+            .collect(),
         "/calibration" => {
             let c = exocal_log::proto::Calibration::decode(data)
                 .unwrap_or_else(|e| panic!("{topic}: {e}"));
             if c.push.is_empty() {
-                return Some(json!({}));
+                return vec![json!({})];
             }
             let nodes: Vec<Value> = c
                 .push
@@ -32,8 +34,8 @@ pub fn log_message_json(topic: &str, encoding: &str, data: &[u8]) -> Option<Valu
                     })
                 })
                 .collect();
-            Some(json!({ "nodes": nodes }))
+            vec![json!({ "nodes": nodes })]
         }
-        _ => None,
+        _ => Vec::new(),
     }
 }
