@@ -19,10 +19,17 @@
 //!   before the collection's nonce reached it (signed under its previous nonce, or in flight
 //!   when the nonce went out) are not attacks. They are dropped all the same;
 //! - a node whose heartbeat shows a new boot count lost the nonce with its RAM (and restarts
-//!   its sequence): the gate drops every node's held frames as start frames and starts the
-//!   grace again, [`StreamGate::nonce_wanted`] says so once, and the caller sends every node a
-//!   new nonce and gives it to [`StreamGate::renonce`] (a new nonce, so that the spans of this
-//!   collection cannot be replayed into its second part);
+//!   its sequence): the gate drops every node's held frames, [`StreamGate::nonce_wanted`] says
+//!   so once, and the caller sends every node a new nonce and gives it to
+//!   [`StreamGate::renonce`] (a new nonce, so that the spans of this collection cannot be
+//!   replayed into its second part). Those drops count as loss, not start frames: a heartbeat
+//!   is not authenticated, and a spoofed one must not hide which spans an injection spoiled
+//!   (a real reboot costs a second or two of stream, within [`MAX_DROPPED_FRACTION`]);
+//! - a `StreamNonce` frame on the bus is never this controller's (a socket does not receive
+//!   its own frames): nodes obey it, so their next digests fail. The gate counts it
+//!   ([`GateStats::foreign_nonces`]) and wants a new nonce sent, as after a reboot; the spans
+//!   lost in between count as loss. At most [`MAX_RENONCES`] new nonces per collection
+//!   ([`GateStats::renonces_capped`] past them): a flood of forged frames then shows as loss;
 //! - memory is bounded: at most [`MAX_COVERED`] frames held per node, at most
 //!   [`MAX_REJECT_RUNS`] recorded verdicts;
 //! - the gate is deterministic given the frames and each digest's verdict: it records the
@@ -52,6 +59,10 @@ pub const START_GRACE: Duration = Duration::from_secs(1);
 /// a node's reboot costs its stream for a second or two (a few % of a 15-s session); beyond
 /// this the receiver or the bus is failing, or someone is on it.
 pub const MAX_DROPPED_FRACTION: f64 = 0.05;
+
+/// Most new nonces a collection sends after its first ([`StreamGate::nonce_wanted`]): nodes
+/// that reboot, or forged `StreamNonce` frames, beyond that are loss.
+pub const MAX_RENONCES: u64 = 8;
 
 /// Most runs of rejected digests recorded (a run: consecutive digests of one node).
 pub const MAX_REJECT_RUNS: usize = 4096;
@@ -111,6 +122,15 @@ pub struct GateStats {
     /// More rejected digests than [`MAX_REJECT_RUNS`] runs: the record is incomplete (an
     /// offline replay then differs).
     pub rejects_truncated: bool,
+    /// `StreamNonce` frames received: sent by another sender on the bus (forged, or a second
+    /// controller), never by this one.
+    pub foreign_nonces: u64,
+    /// Heartbeats that showed a node's new boot count (a reboot, or a spoofed heartbeat).
+    pub reboots: u64,
+    /// New nonces wanted after the first (at most [`MAX_RENONCES`]).
+    pub renonces: u64,
+    /// More were wanted than [`MAX_RENONCES`]: the rest were not sent.
+    pub renonces_capped: bool,
 }
 
 impl GateStats {
@@ -185,6 +205,8 @@ pub struct StreamGate {
     opened: Option<Duration>,
     /// A node rebooted since the nonce went out.
     nonce_wanted: bool,
+    /// Receive time of the last frame.
+    last: Option<Duration>,
 }
 
 impl StreamGate {
@@ -208,23 +230,40 @@ impl StreamGate {
             replaying: false,
             opened: None,
             nonce_wanted: false,
+            last: None,
         }
     }
 
-    /// Whether a node rebooted (its heartbeat's boot count changed) since the last call: the
-    /// caller sends the collection's nonce again (a node takes the same nonce twice without
-    /// restarting its stream).
+    /// Whether a node rebooted (its heartbeat's boot count changed) or a foreign
+    /// `StreamNonce` frame was seen since the last call: the caller sends every node a new
+    /// nonce (at most [`MAX_RENONCES`] times per collection).
     pub fn nonce_wanted(&mut self) -> bool {
         std::mem::take(&mut self.nonce_wanted)
     }
 
+    /// Wants a new nonce sent, within [`MAX_RENONCES`].
+    fn want_nonce(&mut self) {
+        if self.nonce_wanted {
+            return;
+        }
+        if self.stats.renonces < MAX_RENONCES {
+            self.stats.renonces += 1;
+            self.nonce_wanted = true;
+        } else {
+            self.stats.renonces_capped = true;
+        }
+    }
+
     /// The caller sent every node the new `nonce` (see [`StreamGate::nonce_wanted`]): the
-    /// verifiers restart under it.
+    /// verifiers restart under it, and the frames held until then, which no digest under it
+    /// covers, are dropped (loss, once past the start).
     pub fn renonce(&mut self, nonce: StreamNonce) {
-        for g in &mut self.nodes {
-            if let Some(v) = g.verifier.as_mut() {
+        let now = self.last.unwrap_or_default();
+        for i in 0..self.nodes.len() {
+            if let Some(v) = self.nodes[i].verifier.as_mut() {
                 v.restart(nonce);
             }
+            self.drop_held(i, None, now);
         }
     }
 
@@ -313,6 +352,7 @@ impl StreamGate {
         let mut dropped = Vec::new();
         let now = rx.timestamp;
         self.opened.get_or_insert(now);
+        self.last = Some(now);
         let id = rx.frame.raw_id();
         let family = u16::try_from(id)
             .ok()
@@ -367,15 +407,21 @@ impl StreamGate {
                     *boot = Some(h.boot_count);
                     if rebooted {
                         // A new nonce goes to every node: the held spans will not verify
-                        // under it, and the start begins again.
-                        self.nonce_wanted = true;
-                        self.opened = Some(now);
+                        // under it. Their drops are loss (the heartbeat may be spoofed).
+                        self.stats.reboots += 1;
+                        self.want_nonce();
                         for i in 0..self.nodes.len() {
-                            self.nodes[i].verified = false;
-                            self.drop_held(i, None, now);
+                            dropped.push(self.drop_held(i, None, now));
                         }
                     }
                 }
+                pass.push(*rx);
+            }
+            Some((f, None)) if f.kind == spec::Kind::StreamNonce => {
+                // Not ours (see the module docs): every node took it; a new one of ours
+                // follows.
+                self.stats.foreign_nonces += 1;
+                self.want_nonce();
                 pass.push(*rx);
             }
             _ => pass.push(*rx),
@@ -625,6 +671,96 @@ mod tests {
         let (_, mut old) = setup();
         let (pass, _) = span(&mut g, &mut old, PAST_START + 400, 0);
         assert_eq!(pass.len(), 1);
+    }
+
+    /// The attack of issue 48, item 1: a keyless sender injects into 3 spans in 10 and spoofs
+    /// two heartbeats (a new boot count, then the old one) before each of their digests. The
+    /// held frames, rogue ones included, used to be dropped as start frames: 0 spans dropped,
+    /// no second sender, no heavy loss. Now they are loss: the 3 spans show, and heavy loss
+    /// refuses the session; the new nonces the spoofs ask for stop at [`MAX_RENONCES`].
+    #[test]
+    fn spoofed_heartbeats_do_not_hide_an_injection() {
+        let (mut g, mut s) = setup();
+        opened(&mut g);
+        let mut pass = Vec::new();
+        for k in 0..10u64 {
+            let t0 = PAST_START + 100 * k;
+            let attacked = k % 3 == 1;
+            for i in 0..10 {
+                let rx = joint(0.1 * i as f64, t0 + i);
+                s.add(rx.frame.raw_id() as u16, rx.frame.data(), 0);
+                g.on_frame(&rx, &mut pass);
+                if attacked && i < 2 {
+                    g.on_frame(&joint(1.0, t0 + i), &mut pass);
+                }
+            }
+            if attacked {
+                g.on_frame(&heartbeat(1, t0 + 10), &mut pass);
+                g.on_frame(&heartbeat(0, t0 + 10), &mut pass);
+                if g.nonce_wanted() {
+                    // The controller sends a new nonce; the node takes it.
+                    let fresh = StreamNonce { nonce: 1000 + k };
+                    g.renonce(fresh);
+                    s.set_nonce(fresh, 0);
+                }
+            }
+            g.on_frame(&digest(&mut s, t0 + 10), &mut pass);
+        }
+        let st = g.stats();
+        assert_eq!(st.start_frames, 0, "{st:?}");
+        assert_eq!((st.reboots, st.renonces), (6, 3), "{st:?}");
+        assert_eq!(st.dropped_spans, 3, "{st:?}");
+        assert!(st.heavy_loss(), "{st:?}");
+        // A flood of spoofed heartbeats: the new nonces stop at the limit.
+        for k in 0..40u64 {
+            g.on_frame(
+                &heartbeat((k % 2) as u8 + 1, PAST_START + 2000 + k),
+                &mut pass,
+            );
+            g.nonce_wanted();
+        }
+        assert_eq!(g.stats().renonces, MAX_RENONCES);
+        assert!(g.stats().renonces_capped);
+    }
+
+    /// Issue 48, item 2: one unsigned `StreamNonce` frame. Every node obeys it, so its next
+    /// digests fail; the gate used to ignore the frame (0 of 40 later spans verified, the
+    /// session ended as failed authentication, the frame never named). Now the frame is
+    /// counted, a new nonce of the controller's is wanted, the span in between is loss, and the
+    /// stream verifies again under the new nonce.
+    #[test]
+    fn a_spoofed_nonce_is_named_and_the_stream_renonced() {
+        let (mut g, mut s) = setup();
+        opened(&mut g);
+        let (pass, _) = span(&mut g, &mut s, PAST_START, 0);
+        assert_eq!(pass.len(), 11);
+        let forged = StreamNonce { nonce: 666 };
+        let mut pass = Vec::new();
+        g.on_frame(
+            &Received {
+                frame: Message::StreamNonce(forged).to_frame().unwrap(),
+                timestamp: Duration::from_millis(PAST_START + 50),
+            },
+            &mut pass,
+        );
+        assert_eq!(pass.len(), 1, "passed on, for ingest to name");
+        s.set_nonce(forged, 0);
+        let (pass, _) = span(&mut g, &mut s, PAST_START + 100, 0);
+        assert_eq!(pass.len(), 1, "signed under the forged nonce: not passed");
+        assert!(g.nonce_wanted());
+        assert!(!g.nonce_wanted(), "said once");
+        let fresh = StreamNonce { nonce: 78 };
+        g.renonce(fresh);
+        s.set_nonce(fresh, 0);
+        let (pass, _) = span(&mut g, &mut s, PAST_START + 200, 0);
+        assert_eq!(pass.len(), 11, "the stream verifies again");
+        let st = g.stats();
+        assert_eq!(
+            (st.foreign_nonces, st.renonces, st.dropped_spans),
+            (1, 1, 1),
+            "{st:?}"
+        );
+        assert_eq!(st.start_frames, 0);
     }
 
     #[test]

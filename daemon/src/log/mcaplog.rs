@@ -17,9 +17,12 @@
 //! - message indexes are written, as the indexed readers need (`@mcap/core`'s, which Foxglove
 //!   and Lichtblick open files with); the raw frames, most of the log, go in batches of a few
 //!   milliseconds (`exocal_log::CAN_BATCH_NS`) so that their 16 uncompressed bytes of index
-//!   per message stay small. A batch is written when it is full or old, before a chunk closes
-//!   (so a flush loses none), and before the collection end and the calibration (so every
-//!   frame received before them is before them in the file);
+//!   per message stay small, and the joint readings of one sample of the arm in one message.
+//!   A batch is written when it is full or old (by log time), before the collection end and
+//!   the calibration (so every frame received before them is before them in the file), and by
+//!   [`SessionLog::flush`] and [`SessionLog::finish`]; not by [`SessionLog::tick`], so the same
+//!   frames make the same file whatever the timing. A hard kill also loses the open batches:
+//!   the last 10 ms (at most 64 frames) of each raw topic and the arm's last sample;
 //! - record counts per topic are kept (frames for `/can/rx` and `/can/tx`, messages for the
 //!   rest) so callers and tests can check them against the file.
 //!
@@ -568,16 +571,23 @@ impl<W: Write + Seek> SessionLog<W> {
             Some(last) => now_ns.saturating_sub(last) >= self.flush_interval_ns,
         };
         if due {
-            self.flush()?;
+            self.close_chunk()?;
             self.last_flush_ns = Some(now_ns);
         }
         Ok(due)
     }
 
-    /// Closes the open chunk, flushes it to the kernel and has it synced (on the log's sync
-    /// thread; an earlier sync's error is returned here).
+    /// Writes the open batches, closes the open chunk, flushes it to the kernel and has it
+    /// synced (on the log's sync thread; an earlier sync's error is returned here).
     pub fn flush(&mut self) -> Result<(), LogError> {
         self.write_batches()?;
+        self.close_chunk()
+    }
+
+    /// [`SessionLog::flush`] without the open batches: what [`SessionLog::tick`] does, so that
+    /// where the batches close depends on the frames alone, not on when ticks come (the same
+    /// frames make the same file).
+    fn close_chunk(&mut self) -> Result<(), LogError> {
         self.writer.flush()?;
         if let Some(s) = &self.sync {
             s.request()?;

@@ -191,6 +191,8 @@ struct Io<'a> {
     log_error: Option<LogError>,
     /// Trigger frames during the session ([`Throttle`]: a flood is not a line each).
     ignored_triggers: Throttle,
+    /// `StreamNonce` frames another sender put on the bus.
+    foreign_nonces: Throttle,
 }
 
 impl Io<'_> {
@@ -296,6 +298,21 @@ impl Io<'_> {
                     self.event(at, Level::Warning, &line);
                 }
             }
+            Event::Message(exocal_dbc::Message::StreamNonce(n)) => {
+                // Never ours (a socket does not receive its own frames): the stream gate wants
+                // a new nonce of ours sent (exocal_session::verify).
+                if let Some(k) = self.foreign_nonces.occur() {
+                    let line = Throttle::line(
+                        &format!(
+                            "a StreamNonce frame this controller did not send (nonce {:#014x}): \
+                             another sender on the bus; every node gets a new nonce",
+                            n.nonce
+                        ),
+                        k,
+                    );
+                    self.event(at, Level::Warning, &line);
+                }
+            }
             Event::Message(_) | Event::Partial => {}
         }
     }
@@ -385,6 +402,7 @@ pub async fn run_session_with<T: Transport>(
         started: Instant::now(),
         log_error: None,
         ignored_triggers: Throttle::default(),
+        foreign_nonces: Throttle::default(),
     };
     io.reporter
         .message(&format!("logging to {}", log_path.display()));
@@ -594,7 +612,8 @@ impl<T: Transport> Running<'_, '_, T> {
                 rx = self.bus.recv() => {
                     let rx = rx.map_err(|source| DaemonError::Bus { what: "receiving CAN".into(), source })?;
                     self.io.take_frame(&rx, &mut self.collector);
-                    // A node rebooted: it lost the nonce with its RAM; every node gets a new one.
+                    // A node rebooted (it lost the nonce with its RAM), or another sender set
+                    // one: every node gets a new one.
                     if self.collector.gate.as_mut().is_some_and(StreamGate::nonce_wanted) {
                         self.send_stream_nonce().await?;
                     }
@@ -642,7 +661,8 @@ impl<T: Transport> Running<'_, '_, T> {
                     "stream verification: {} spans verified ({} frames); {} spans dropped \
                      unverified ({} frames, {:.1} s: {} bad MAC, {} frames lost, {} without a \
                      digest); {} replayed digests ignored; {} frames from before the nonce \
-                     dropped",
+                     dropped; {} new boot counts, {} StreamNonce frames from another sender, \
+                     {} new nonces sent{}",
                     g.verified_spans,
                     g.verified_frames,
                     g.dropped_spans,
@@ -652,7 +672,15 @@ impl<T: Transport> Running<'_, '_, T> {
                     g.deficit,
                     g.no_digest,
                     g.stale,
-                    g.start_frames
+                    g.start_frames,
+                    g.reboots,
+                    g.foreign_nonces,
+                    g.renonces,
+                    if g.renonces_capped {
+                        " (the limit: more were wanted)"
+                    } else {
+                        ""
+                    }
                 ),
             );
             for (node, spans) in g.second_senders() {

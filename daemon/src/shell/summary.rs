@@ -25,6 +25,14 @@ pub fn print_summary(summary: &SessionSummary) {
             g.start_frames,
             g.second_senders()
                 .map(|(n, c)| format!("; a second sender on {n}'s identifiers ({c} spans)"))
+                .chain((g.foreign_nonces > 0).then(|| format!(
+                    "; {} StreamNonce frames from another sender on the bus",
+                    g.foreign_nonces
+                )))
+                .chain((g.reboots > 0).then(|| format!(
+                    "; {} new boot counts in heartbeats (reboots, or spoofed)",
+                    g.reboots
+                )))
                 .collect::<String>()
         );
     }
