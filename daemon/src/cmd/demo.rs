@@ -709,15 +709,10 @@ mod tests {
         }
     }
 
-    /// The demo's log opens in the readers users run (issue 47): `@mcap/core`'s
-    /// `McapIndexedReader` (Foxglove's and Lichtblick's; it threw on a log without message
-    /// indexes) and python's `mcap`, every message through the indexes, every CRC checked, the
-    /// same counts as the file's statistics; and the log stays within 6 MB per minute with its
-    /// indexes. Run: `cargo xtask test` (it installs `tests/js` and the venv).
-    #[test]
-    #[ignore = "needs node with tests/js installed and the venv (EXOCAL_PYTHON): `cargo xtask test` runs it"]
-    fn the_demos_log_opens_in_foxgloves_indexed_reader_and_pythons() {
-        let dir = std::env::temp_dir().join(format!("exocald-demo-readers-{}", std::process::id()));
+    /// The demo of seed 2024 at full speed in a fresh directory named after `name`: the
+    /// directory, the configuration and the result.
+    fn seed_2024(name: &str) -> (std::path::PathBuf, Config, DemoResult) {
+        let dir = std::env::temp_dir().join(format!("exocald-demo-{name}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         let opts = DemoOptions {
             seed: 2024,
@@ -727,10 +722,21 @@ mod tests {
             wearer: Default::default(),
         };
         let config = demo_config(Config::default_config(), &dir, 1.0);
-        let result = match run(&config, &opts).map_err(|e| *e) {
-            Ok(r) => r,
+        match run(&config, &opts).map_err(|e| *e) {
+            Ok(r) => (dir, config, r),
             Err(SessionError { error, summary }) => panic!("{error}\n{summary:#?}"),
-        };
+        }
+    }
+
+    /// The demo's log opens in the readers users run (issue 47): `@mcap/core`'s
+    /// `McapIndexedReader` (Foxglove's and Lichtblick's; it threw on a log without message
+    /// indexes) and python's `mcap`, every message through the indexes, every CRC checked, the
+    /// same counts as the file's statistics; and the log stays within 6 MB per minute with its
+    /// indexes. Run: `cargo xtask test` (it installs `tests/js` and the venv).
+    #[test]
+    #[ignore = "needs node with tests/js installed and the venv (EXOCAL_PYTHON): `cargo xtask test` runs it"]
+    fn the_demos_log_opens_in_foxgloves_indexed_reader_and_pythons() {
+        let (dir, _, result) = seed_2024("readers");
         let path = &result.summary.log_path;
         let bytes = std::fs::read(path).unwrap();
         let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
@@ -786,20 +792,7 @@ mod tests {
 
     #[test]
     fn the_paper_scenario_calibrates_pushes_and_persists() {
-        let dir = std::env::temp_dir().join(format!("exocald-demo-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        let opts = DemoOptions {
-            seed: 2024,
-            speed: 1e6,
-            output: dir.clone(),
-            hold: false,
-            wearer: Default::default(),
-        };
-        let config = demo_config(Config::default_config(), &dir, 1.0);
-        let result = match run(&config, &opts).map_err(|e| *e) {
-            Ok(r) => r,
-            Err(SessionError { error, summary }) => panic!("{error}\n{summary:#?}"),
-        };
+        let (dir, config, result) = seed_2024("paper");
         check_flash(&result).unwrap();
         let s = &result.summary;
         let v = &s.outcome.as_ref().unwrap().verdict;
