@@ -30,7 +30,9 @@
 //! with its key only if it reads both its key slot and its counter record, its counter the
 //! higher of the record and the image's ([`Provisioning::boot`]); a node that has either but
 //! cannot read both boots without a key and installs nothing until it is provisioned again (fail
-//! closed), and so does a node that was never provisioned.
+//! closed), and so does a node that was never provisioned. Provisioning again never takes a
+//! counter back: over a record that does not read, it keys only a node given a new key
+//! ([`provision`], [`Provisioned::locked`]).
 
 use exocal_dbc::auth::{Key, KeySet, KEY_LEN};
 use exocal_dbc::table::crc32;
@@ -175,20 +177,44 @@ pub fn write_key(dir: &Path, node: NodeId, key: &Key) -> std::io::Result<()> {
     std::fs::rename(&tmp, &p)
 }
 
+/// What [`provision`] did: the nodes it keyed, and those it left locked.
+#[derive(Debug, Default, PartialEq, Eq)]
+pub struct Provisioned {
+    /// Nodes whose key slot and counter record it wrote.
+    pub keyed: Vec<NodeId>,
+    /// Nodes left as they were, locked (they boot keyless and install nothing): their counter
+    /// record does not read while their key slot holds the key given (or does not read either),
+    /// and a counter started again under the same key would let every recorded `CommitAuth`
+    /// install again. Provision them with a new key. With why.
+    pub locked: Vec<(NodeId, String)>,
+}
+
 /// Provisions the key slot and the counter record of every joint node `keys` has a key for (a
-/// factory step: the nodes read both at boot); returns the nodes provisioned. The counter
-/// record is never lowered: it keeps the highest of what it held and the table image's counter
-/// that still read (after losing both, give the node a new key: an old `CommitAuth` made with
-/// the old one would otherwise verify again).
-pub fn provision(dir: &Path, keys: &KeySet) -> std::io::Result<Vec<NodeId>> {
-    let mut done = Vec::new();
+/// factory step: the nodes read both at boot). The counter never goes down: it keeps the
+/// highest of what its record held and the table image's counter that still reads. Where the
+/// record is missing or corrupt, only a node never provisioned (no key slot, no record) or
+/// given a key other than the one its slot holds is keyed again (an old `CommitAuth` does not
+/// verify under a new key); any other node stays locked ([`Provisioned::locked`]): fail closed.
+pub fn provision(dir: &Path, keys: &KeySet) -> std::io::Result<Provisioned> {
+    let mut done = Provisioned::default();
     for node in NodeId::ALL {
-        if let Some(key) = keys.node(node) {
-            write_key(dir, node, key)?;
-            let record = read_counter(dir, node).ok().flatten().unwrap_or(0);
-            let image = read(dir, node).ok().flatten().map_or(0, |i| i.counter);
-            write_counter(dir, node, record.max(image))?;
-            done.push(node);
+        let Some(key) = keys.node(node) else { continue };
+        let image = read(dir, node).ok().flatten().map_or(0, |i| i.counter);
+        let counter = match (read_key(dir, node), read_counter(dir, node)) {
+            (_, Ok(Some(record))) => Ok(record.max(image)),
+            (Ok(None), Ok(None)) => Ok(image),
+            (Ok(Some(old)), _) if old.bytes() != key.bytes() => Ok(image),
+            (Ok(Some(_)), Ok(None)) => Err("its counter record is missing".to_string()),
+            (_, Err(e)) => Err(e.to_string()),
+            (Err(e), Ok(None)) => Err(e.to_string()),
+        };
+        match counter {
+            Ok(counter) => {
+                write_key(dir, node, key)?;
+                write_counter(dir, node, counter)?;
+                done.keyed.push(node);
+            }
+            Err(why) => done.locked.push((node, why)),
         }
     }
     Ok(done)
@@ -435,7 +461,7 @@ mod tests {
         let d = dir("keys");
         let keys = KeySet::derived(11);
         assert_eq!(read_key(&d, NodeId::JOINTS[0]).unwrap(), None);
-        assert_eq!(provision(&d, &keys).unwrap(), NodeId::ALL.to_vec());
+        assert_eq!(provision(&d, &keys).unwrap().keyed, NodeId::ALL.to_vec());
         for node in NodeId::ALL {
             assert_eq!(read_key(&d, node).unwrap().as_ref(), keys.node(node));
             let mode = std::fs::metadata(key_path(&d, node))

@@ -160,11 +160,18 @@ fn provision_keys(file: Option<&Path>, flash_dir: &Path) -> anyhow::Result<Strin
     let keys = KeySet::parse(&text).with_context(|| format!("key file {}", path.display()))?;
     let done = exocal_hil::flash::provision(flash_dir, &keys)
         .with_context(|| format!("writing key slots in {}", flash_dir.display()))?;
-    Ok(format!(
+    let mut line = format!(
         "provisioned the key slots of {} node(s) from {}",
-        done.len(),
+        done.keyed.len(),
         path.display()
-    ))
+    );
+    for (node, why) in &done.locked {
+        line.push_str(&format!(
+            "; node {} stays locked (installs nothing) until given a new key: {why}",
+            node.raw()
+        ));
+    }
+    Ok(line)
 }
 
 /// What the nodes do once the motion has ended, for the readiness line.

@@ -1547,4 +1547,96 @@ pub(crate) mod tests {
         assert_eq!(flash::read_counter(&dir, node).unwrap(), Some(1));
         let _ = std::fs::remove_dir_all(&dir);
     }
+
+    /// Issue 48, item 3: restarting `exocal-hil` re-provisions the nodes, and provisioning
+    /// wrote an unreadable counter record back as the image's counter: a flipped bit in the
+    /// record and a lost image took a node's counter from 2 to 0 under the same key, and every
+    /// recorded `CommitAuth` installed again (any earlier table). Now the node stays locked:
+    /// provisioning names it and leaves it alone, it boots keyless, the recorded transfer
+    /// installs nothing. A new key unlocks it, and the old transfer does not verify under it.
+    #[test]
+    fn a_corrupt_counter_record_keeps_the_node_locked_until_a_new_key() {
+        use exocal_dbc::transfer::Upload;
+        let dir = temp_dir("corrupt-counter");
+        let node = NodeId::JOINTS[1];
+        let keys = exocal_dbc::auth::KeySet::derived(48);
+        flash::provision(&dir, &keys).unwrap();
+        let old = Table::from_si(0.0301, -1.5, 0.0299, 0.01, 1.2, 0.9).unwrap();
+        let new = Table::from_si(0.0302, -1.5, 0.0298, 0.02, 1.2, 0.9).unwrap();
+        let mut suit = Suit::new(at_rest(1.0), &dir).unwrap();
+        suit.advance(1.5);
+        let key = keys.node(node).unwrap().clone();
+        let mut up = Upload::authenticated(node, 7, old, rest_policy(), key.clone());
+        let (outcome, sent, _, t) = exchange(&mut suit, &mut up, 1.5);
+        assert_eq!(outcome, Some(Ok(old.crc())));
+        let mut up = Upload::authenticated(node, 8, new, rest_policy(), key);
+        let (outcome, ..) = exchange(&mut suit, &mut up, t);
+        assert_eq!(outcome, Some(Ok(new.crc())));
+        assert_eq!(flash::read_counter(&dir, node).unwrap(), Some(2));
+        drop(suit);
+        // One bit of the counter record flips, the table image is lost; exocal-hil restarts
+        // (it provisions from its key file at every start).
+        let p = flash::counter_path(&dir, node);
+        let mut record = std::fs::read(&p).unwrap();
+        record[8] ^= 0x02;
+        std::fs::write(&p, record).unwrap();
+        std::fs::remove_file(flash::path(&dir, node)).unwrap();
+        let done = flash::provision(&dir, &keys).unwrap();
+        assert_eq!(done.keyed.len(), NodeId::ALL.len() - 1);
+        assert_eq!(done.locked.len(), 1);
+        assert_eq!(done.locked[0].0, node);
+        assert!(
+            done.locked[0].1.contains("CRC mismatch"),
+            "{:?}",
+            done.locked
+        );
+        let mut suit = Suit::new(at_rest(1.0), &dir).unwrap();
+        suit.advance(1.5);
+        assert_eq!(suit.stats().locked, 1);
+        let factory = flash::read(&dir, node).unwrap().unwrap();
+        assert_ne!(factory.table, old);
+        let transfer: Vec<TableCmd> = sent
+            .into_iter()
+            .filter(|c| c.cmd.code() != exocal_dbc::CmdCode::Readback)
+            .collect();
+        let (replies, _) = replay(&mut suit, &transfer, 1.5);
+        assert!(
+            replies.iter().any(|r| matches!(
+                r,
+                Reply::Nack {
+                    reason: NackReason::NoKey,
+                    ..
+                }
+            )),
+            "{replies:?}"
+        );
+        assert_eq!(flash::read(&dir, node).unwrap().unwrap(), factory);
+        drop(suit);
+        // Provisioned with the same keys again: still locked. With a new key: keyed, and the
+        // recorded transfer (the old key's MAC) still installs nothing.
+        assert_eq!(flash::provision(&dir, &keys).unwrap().locked.len(), 1);
+        let rekeyed = exocal_dbc::auth::KeySet::derived(49);
+        let done = flash::provision(&dir, &rekeyed).unwrap();
+        assert!(
+            done.locked.is_empty() && done.keyed.contains(&node),
+            "{done:?}"
+        );
+        let mut suit = Suit::new(at_rest(1.0), &dir).unwrap();
+        suit.advance(1.5);
+        assert_eq!(suit.stats().locked, 0);
+        let (replies, _) = replay(&mut suit, &transfer, 1.5);
+        assert!(
+            !replies.iter().any(|r| matches!(
+                r,
+                Reply::Ack {
+                    cmd: exocal_dbc::CmdCode::Commit,
+                    ..
+                }
+            )),
+            "{replies:?}"
+        );
+        let held = flash::read(&dir, node).unwrap().unwrap();
+        assert_eq!((held.table, held.counter), (factory.table, factory.counter));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }
