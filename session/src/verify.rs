@@ -120,8 +120,11 @@ pub struct GateStats {
     /// sender on that node's identifiers.
     pub second_sender: [u64; 9],
     /// More rejected digests than [`MAX_REJECT_RUNS`] runs: the record is incomplete (an
-    /// offline replay then differs).
+    /// offline replay then differs, and `exocald offline` refuses the log).
     pub rejects_truncated: bool,
+    /// Digests over no held frames that did not verify (forged, or a node without a key):
+    /// they drop nothing, so they are counted, not recorded (live only; a replay skips them).
+    pub empty_rejects: u64,
     /// `StreamNonce` frames received: sent by another sender on the bus (forged, or a second
     /// controller), never by this one.
     pub foreign_nonces: u64,
@@ -323,6 +326,27 @@ impl StreamGate {
         verdict
     }
 
+    /// A digest over no held frames passes and drops nothing whatever its verdict, so the
+    /// verdict is counted ([`GateStats::empty_rejects`]), never recorded: one forged digest
+    /// after each genuine span filled the record in half a second (issue 48, item 2). Live it
+    /// is checked (a genuine one moves the verifier's sequence on); replaying, it is skipped.
+    /// Either way it takes its ordinal and its sequence number, so replay and live stay in
+    /// step, and it verifies no span (`verified`, `verified_spans` are of spans with frames).
+    fn empty_digest(&mut self, i: usize, d: &exocal_dbc::StreamDigest) {
+        self.ordinals[i] += 1;
+        let gate = &mut self.nodes[i];
+        if !self.replaying {
+            let verdict = gate.verifier.as_mut().map(|v| {
+                let none: [(u16, &[u8]); 0] = [];
+                v.check(d, none)
+            });
+            if !matches!(verdict, Some(Ok(()))) {
+                self.stats.empty_rejects += 1;
+            }
+        }
+        gate.last_seq = Some(d.seq_lo);
+    }
+
     fn record(&mut self, i: usize, ordinal: u64, stale: bool) {
         let node = (i + 1) as u8;
         let full = self.rejects.len() >= MAX_REJECT_RUNS;
@@ -368,8 +392,14 @@ impl StreamGate {
                 self.nodes[i].held.push_back(*rx);
             }
             Some((f, Some(node))) if f.kind == spec::Kind::StreamDigest => {
-                if let Ok(Message::StreamDigest(d)) = exocal_dbc::decode_frame(&rx.frame) {
-                    let i = usize::from(node.raw() - 1);
+                let digest = match exocal_dbc::decode_frame(&rx.frame) {
+                    Ok(Message::StreamDigest(d)) => Some(d),
+                    _ => None,
+                };
+                let i = usize::from(node.raw() - 1);
+                if let Some(d) = digest.filter(|_| self.nodes[i].held.is_empty()) {
+                    self.empty_digest(i, &d);
+                } else if let Some(d) = digest {
                     let verdict = self.verdict(i, &d);
                     let gate = &mut self.nodes[i];
                     // Digests lost before this one: a surplus is their frames, not a sender's.
@@ -836,6 +866,64 @@ mod tests {
         }
         assert_eq!(replayed, live);
         assert_eq!(r.stats().dropped_frames, g.stats().dropped_frames);
+    }
+
+    /// Issue 48, item 2: a forged digest after each genuine span, over no frames, drops
+    /// nothing but was recorded as a run of its own; 4,097 of them (half a second of bus)
+    /// filled the record, later rejects went unrecorded, and an offline replay passed the
+    /// injected frames live had dropped. Now they are counted, the record keeps the one span
+    /// that was attacked, and the replay passes exactly what live passed.
+    #[test]
+    fn a_full_reject_record_cannot_be_filled_by_digests_over_no_frames() {
+        let (mut g, mut s) = setup();
+        let node = NodeId::JOINTS[2];
+        let forged = |k: u64, t_ms: u64| Received {
+            frame: Message::StreamDigest(exocal_dbc::StreamDigest {
+                node,
+                seq_lo: 0xBEEF,
+                count: (k % 3) as u8,
+                mac: k,
+            })
+            .to_frame()
+            .unwrap(),
+            timestamp: Duration::from_millis(t_ms),
+        };
+        let spans = MAX_REJECT_RUNS as u64 + 10;
+        let (mut input, mut injected) = (Vec::new(), Vec::new());
+        for k in 0..spans {
+            let t0 = 10 * k;
+            for i in 0..2 {
+                let rx = joint(0.1 * i as f64, t0 + i);
+                s.add(rx.frame.raw_id() as u16, rx.frame.data(), 0);
+                input.push(rx);
+                if k == spans - 5 {
+                    injected.push(joint(1.0, t0 + i));
+                    input.push(joint(1.0, t0 + i));
+                }
+            }
+            input.push(digest(&mut s, t0 + 5));
+            input.push(forged(k, t0 + 6));
+        }
+        let mut live = Vec::new();
+        for rx in &input {
+            g.on_frame(rx, &mut live);
+        }
+        let st = g.stats();
+        assert_eq!(st.empty_rejects, spans, "{st:?}");
+        assert!(!st.rejects_truncated);
+        assert_eq!(g.rejects().len(), 1, "only the attacked span");
+        assert_eq!((st.dropped_spans, st.dropped_frames), (1, 4));
+        assert!(!live
+            .iter()
+            .any(|rx| rx.frame.data()[..] == joint(1.0, 0).frame.data()[..]));
+        let mut r = StreamGate::replaying(g.rejects());
+        let mut replayed = Vec::new();
+        for rx in &input {
+            r.on_frame(rx, &mut replayed);
+        }
+        assert_eq!(replayed, live);
+        assert_eq!(r.stats().dropped_frames, st.dropped_frames);
+        assert_eq!(r.stats().verified_spans, st.verified_spans);
     }
 
     /// A log is hostile: recorded runs at the end of the ordinals' range (`first + count` past

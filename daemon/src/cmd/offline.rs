@@ -222,19 +222,11 @@ pub fn read_input_gated(
                 }
                 frames.truncate(n);
             }
-            let gate = session.stream.map(|s| {
-                let runs: Vec<RejectRun> = s
-                    .rejects
-                    .iter()
-                    .map(|r| RejectRun {
-                        node: u8::try_from(r.node).unwrap_or(u8::MAX),
-                        first: r.first,
-                        count: r.count,
-                        stale: r.stale,
-                    })
-                    .collect();
-                StreamGate::replaying(&runs)
-            });
+            let gate = session
+                .stream
+                .map(|s| replay_gate(&s))
+                .transpose()
+                .map_err(|e| DaemonError::Input(format!("{}: MCAP log: {e}", path.display())))?;
             Ok((Recording::Frames(frames), session.cut, gate))
         }
         Format::Candump => {
@@ -251,6 +243,30 @@ pub fn read_input_gated(
             Ok((Recording::Samples(samples), None, None))
         }
     }
+}
+
+/// The live stream gate's verdicts as a replaying gate ([`StreamGate::replaying`]); an error
+/// where the record is incomplete (`rejects_truncated`): the replay would pass frames the live
+/// gate dropped.
+fn replay_gate(s: &exocal_log::proto::StreamVerification) -> Result<StreamGate, String> {
+    if s.rejects_truncated {
+        return Err(format!(
+            "the stream gate's record of rejected digests is incomplete (more than {} runs): a \
+             replay cannot take the frames the live session took",
+            exocal_session::verify::MAX_REJECT_RUNS
+        ));
+    }
+    let runs: Vec<RejectRun> = s
+        .rejects
+        .iter()
+        .map(|r| RejectRun {
+            node: u8::try_from(r.node).unwrap_or(u8::MAX),
+            first: r.first,
+            count: r.count,
+            stale: r.stale,
+        })
+        .collect();
+    Ok(StreamGate::replaying(&runs))
 }
 
 /// What a recalibration produced.
@@ -463,5 +479,43 @@ pub fn run(
             error: DaemonError::Validation(reasons),
             summary: Some(summary),
         }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use exocal_log::proto;
+
+    /// Issue 48, item 2: where the live gate's record of rejected digests was cut short, a
+    /// replay would pass the frames of the rejects left out (two injected frames, taken
+    /// offline and exported into a table); such a log is refused (65), naming why.
+    #[test]
+    fn a_full_reject_record_is_refused_offline() {
+        let full = proto::StreamVerification {
+            rejects_truncated: true,
+            ..Default::default()
+        };
+        let why = replay_gate(&full).unwrap_err();
+        assert!(why.contains("incomplete"), "{why}");
+        let whole = proto::StreamVerification {
+            rejects: vec![proto::RejectRun {
+                node: 3,
+                first: 1,
+                count: 2,
+                stale: false,
+            }],
+            ..Default::default()
+        };
+        let gate = replay_gate(&whole).unwrap();
+        assert_eq!(
+            gate.rejects(),
+            [RejectRun {
+                node: 3,
+                first: 1,
+                count: 2,
+                stale: false
+            }]
+        );
     }
 }

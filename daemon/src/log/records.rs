@@ -142,6 +142,7 @@ pub fn stream_verification(gate: &exocal_session::verify::StreamGate) -> proto::
             })
             .collect(),
         rejects_truncated: g.rejects_truncated,
+        empty_rejects: g.empty_rejects,
     }
 }
 

@@ -29,6 +29,10 @@ pub fn print_summary(summary: &SessionSummary) {
                     "; {} StreamNonce frames from another sender on the bus",
                     g.foreign_nonces
                 )))
+                .chain((g.empty_rejects > 0).then(|| format!(
+                    "; {} digests over no frames that did not verify (forged, or a keyless node)",
+                    g.empty_rejects
+                )))
                 .chain((g.reboots > 0).then(|| format!(
                     "; {} new boot counts in heartbeats (reboots, or spoofed)",
                     g.reboots
