@@ -89,15 +89,32 @@ pub struct OutputConfig {
 pub struct LiveConfig {
     /// Serve the session over the Foxglove WebSocket protocol.
     pub enabled: bool,
-    /// Address and port to listen on.
+    /// Address and port to listen on (loopback unless `allow_remote`).
     pub listen: std::net::SocketAddr,
+    /// Whether `listen` may be an address other hosts reach (the view is unauthenticated).
+    pub allow_remote: bool,
+    /// Most messages per second of log time on each streaming channel.
+    pub max_hz: f64,
+    /// Most clients connected at once; more are refused (HTTP 503).
+    pub max_clients: usize,
 }
+
+/// [`LiveConfig::max_hz`] by default: plenty to watch an arm move.
+pub const LIVE_MAX_HZ: f64 = 30.0;
+/// [`LiveConfig::max_clients`] by default: a person or two, and a recorder.
+pub const LIVE_MAX_CLIENTS: usize = 4;
+/// The most [`LiveConfig::max_clients`] may be (each client's send queue is bounded: the
+/// daemon's memory grows by at most that much per client).
+pub const LIVE_CLIENTS_LIMIT: usize = 32;
 
 impl Default for LiveConfig {
     fn default() -> Self {
         LiveConfig {
             enabled: false,
             listen: std::net::SocketAddr::from(([127, 0, 0, 1], 8765)),
+            allow_remote: false,
+            max_hz: LIVE_MAX_HZ,
+            max_clients: LIVE_MAX_CLIENTS,
         }
     }
 }
@@ -352,6 +369,10 @@ struct RawOutput {
 struct RawLive {
     enabled: bool,
     listen: String,
+    #[serde(default)]
+    allow_remote: bool,
+    max_hz: Option<f64>,
+    max_clients: Option<u64>,
 }
 
 #[derive(Deserialize)]
@@ -872,9 +893,8 @@ impl Checker<'_> {
 
         let live = match raw.live {
             None => LiveConfig::default(),
-            Some(l) => LiveConfig {
-                enabled: l.enabled,
-                listen: l.listen.parse().map_err(|_| {
+            Some(l) => {
+                let listen: std::net::SocketAddr = l.listen.parse().map_err(|_| {
                     self.err(
                         "live.listen",
                         format!(
@@ -882,8 +902,36 @@ impl Checker<'_> {
                             l.listen
                         ),
                     )
-                })?,
-            },
+                })?;
+                if !listen.ip().is_loopback() && !l.allow_remote {
+                    return Err(self.err(
+                        "live.listen",
+                        format!(
+                            "{listen} is reachable from other hosts and the live view has no \
+                             authentication: listen on loopback (127.0.0.1), or set \
+                             allow_remote = true in [live] to serve it anyway"
+                        ),
+                    ));
+                }
+                let max_clients = l.max_clients.unwrap_or(LIVE_MAX_CLIENTS as u64);
+                if max_clients == 0 || max_clients > LIVE_CLIENTS_LIMIT as u64 {
+                    return Err(self.err(
+                        "live.max_clients",
+                        format!("must be 1 to {LIVE_CLIENTS_LIMIT}, got {max_clients}"),
+                    ));
+                }
+                LiveConfig {
+                    enabled: l.enabled,
+                    listen,
+                    allow_remote: l.allow_remote,
+                    max_hz: self.positive_at_most(
+                        "live.max_hz",
+                        l.max_hz.unwrap_or(LIVE_MAX_HZ),
+                        1000.0,
+                    )?,
+                    max_clients: max_clients as usize,
+                }
+            }
         };
         let sensors = match raw.sensors {
             None => SensorSpec::default(),
@@ -1094,9 +1142,12 @@ impl Config {
         );
         let _ = writeln!(
             w,
-            "[live]\nenabled = {}\nlisten = {}\n",
+            "[live]\nenabled = {}\nlisten = {}\nallow_remote = {}\nmax_hz = {}\nmax_clients = {}\n",
             self.live.enabled,
             text(&self.live.listen.to_string()),
+            self.live.allow_remote,
+            num(self.live.max_hz),
+            self.live.max_clients,
         );
         let _ = write!(
             w,
@@ -1352,6 +1403,36 @@ mod tests {
         let (key, line, _) = invalid(&text);
         assert_eq!(key, "extra");
         assert_eq!(line, Some(line_containing(&text, "[extra]")));
+    }
+
+    /// Issue 48, item 5: the live view has no authentication, so an address other hosts
+    /// reach needs `allow_remote`; its client limit is bounded.
+    #[test]
+    fn a_live_view_for_other_hosts_needs_allow_remote() {
+        let live = |extra: &str| {
+            let text = DEFAULT_TOML.replace(
+                "listen = \"127.0.0.1:8765\"\n",
+                &format!("listen = \"0.0.0.0:8765\"\n{extra}"),
+            );
+            Config::parse(&text)
+        };
+        let allowed = DEFAULT_TOML.replace("allow_remote = false", "allow_remote = true");
+        let e = Config::parse(&allowed.replace("127.0.0.1:8765", "0.0.0.0:8765"));
+        assert!(e.is_ok(), "{e:?}");
+        let e = live("").unwrap_err().to_string();
+        assert!(
+            e.contains("live.listen") && e.contains("allow_remote"),
+            "{e}"
+        );
+        let e = Config::parse(&DEFAULT_TOML.replace("max_clients = 4", "max_clients = 0"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("live.max_clients"), "{e}");
+        let c = Config::parse(DEFAULT_TOML).unwrap();
+        assert_eq!(
+            (c.live.max_hz, c.live.max_clients),
+            (LIVE_MAX_HZ, LIVE_MAX_CLIENTS)
+        );
     }
 
     #[test]

@@ -4,22 +4,35 @@
 //!
 //! Contract:
 //! - off unless `[live] enabled = true` (or `exocald demo --live`); it listens on
-//!   `[live] listen` (loopback by default) on a runtime of its own (one worker thread), so
-//!   neither the session's loop nor a paused demo clock ever waits for a client;
+//!   `[live] listen` on a runtime of its own (one worker thread), so neither the session's loop
+//!   nor a paused demo clock ever waits for a client. The view has no authentication: an
+//!   address other hosts reach needs `[live] allow_remote = true` (the configuration refuses
+//!   it otherwise) and is warned about at start ([`LiveView::banner`]);
+//! - bounded: at most `[live] max_clients` connections at once (more get HTTP 503 and are
+//!   closed), each with a send queue of [`LIVE_BACKLOG`] messages (a client that does not keep
+//!   up loses its oldest messages; the SDK's server runs on an ephemeral loopback port behind
+//!   the connection gate);
 //! - it is an observer of the session's records ([`crate::shell::tee::Recorder`] hands it every
 //!   [`Record`] the log gets) and never fails the session: a slow client misses messages;
 //! - channels, with the log's schemas (`exocal-log`): `/joint_states` (all seven joints) and
 //!   `/tf` (the arm's frames on the current table, as the exported URDF names them) and
 //!   `/ee_pose` (the measured end-effector pose) and `/ee_gyro` (the end effector's IMU rate),
-//!   each at most [`LIVE_HZ`] of log time;
-//!   `/progress` (coverage per joint, condition number), `/calibration` (the result, then the
-//!   push report) and `/events`, every message; `/robot_description` (`std_msgs/String`, JSON:
-//!   the URDF of the current table — nominal while collecting, calibrated once calibrated);
+//!   each at most `[live] max_hz` messages per second of log time, their timestamps never
+//!   stepping back (a record older than what was sent — the stream gate releases a node's
+//!   frames a span at a time — updates nothing; a step back of [`CLOCK_STEP_NS`] or more is the
+//!   clock stepping and starts over); `/progress` (coverage per joint, condition number),
+//!   `/calibration` (the result, then the push report) and `/events`, every message;
+//!   `/robot_description` (the URDF of the current table — nominal while collecting, calibrated
+//!   once calibrated), with the log's schema (`exocal.RobotDescription`) as every channel;
 //! - a client that subscribes to `/robot_description`, `/progress` or `/calibration` gets the
 //!   latest message at once (they change rarely).
 
 use std::net::SocketAddr;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
+
+use tokio::io::AsyncWriteExt;
+use tokio::net::{TcpListener, TcpStream};
 
 use exocal_log::{proto, Topic};
 use foxglove::websocket::{ChannelView, Client, ServerListener};
@@ -31,19 +44,29 @@ use crate::config::{Config, JOINTS};
 use crate::log::records::{arm_transforms, Observer, Record};
 use crate::log::{mcaplog, records};
 
-/// Most messages per second of log time on the streaming channels (`/joint_states`, `/tf`,
-/// `/ee_pose`): plenty to watch an arm move, a few percent of what the bus carries.
-pub const LIVE_HZ: f64 = 30.0;
-/// Whether a streaming channel last sent at `last` may send at `log_ns` (at most [`LIVE_HZ`] of
-/// log time; a clock that stepped back sends at once); if so, `last` becomes `log_ns`.
-fn due(last: &mut Option<u64>, log_ns: u64) -> bool {
-    let period_ns = (1e9 / LIVE_HZ) as u64;
-    if last.is_some_and(|t| log_ns < t.saturating_add(period_ns) && log_ns >= t) {
+/// Messages queued per client; beyond, its oldest are dropped (the SDK's backlog).
+pub const LIVE_BACKLOG: usize = 256;
+/// A step back of log time at least this long is the clock stepping, not a late record.
+pub const CLOCK_STEP_NS: u64 = 1_000_000_000;
+
+/// Whether log time `log_ns` is behind `last` by less than a clock step: a late record.
+fn late(last: Option<u64>, log_ns: u64) -> bool {
+    last.is_some_and(|t| log_ns < t && t - log_ns < CLOCK_STEP_NS)
+}
+
+/// Whether a streaming channel last sent at `last` may send at `log_ns`: never behind `last`
+/// (a late record), at most one message per `period_ns` of log time; a clock step starts
+/// over. If so, `last` becomes `log_ns`.
+fn due(last: &mut Option<u64>, log_ns: u64, period_ns: u64) -> bool {
+    if late(*last, log_ns) || last.is_some_and(|t| log_ns >= t && log_ns - t < period_ns) {
         return false;
     }
     *last = Some(log_ns);
     true
 }
+
+/// What a connection beyond `[live] max_clients` is told (HTTP 503), before it is closed.
+const BUSY: &str = "exocald: the live view has as many clients as [live] max_clients allows";
 
 /// The topic of the URDF.
 pub const ROBOT_DESCRIPTION: &str = "/robot_description";
@@ -63,8 +86,12 @@ struct Channels {
 /// What the view keeps between records.
 struct State {
     table: calib_core::DhTable<JOINTS>,
-    joints: [Option<(f64, f64)>; JOINTS],
-    pose: Option<crate::log::records::Transform>,
+    /// Each joint's latest reading (angle, rate) and its log time.
+    joints: [Option<(f64, f64, u64)>; JOINTS],
+    /// The latest end-effector pose and its log time.
+    pose: Option<(crate::log::records::Transform, u64)>,
+    /// One streaming message per this much log time.
+    period_ns: u64,
     last_sent_ns: Option<u64>,
     /// Log time of the last `/ee_gyro` message sent.
     last_rate_ns: Option<u64>,
@@ -117,6 +144,8 @@ pub struct LiveView {
     shared: Arc<Shared>,
     server: Option<WebSocketServerHandle>,
     runtime: Option<tokio::runtime::Runtime>,
+    /// Where clients connect (the connection gate's port).
+    port: u16,
 }
 
 impl std::fmt::Debug for LiveView {
@@ -136,9 +165,51 @@ fn channel(ctx: &Arc<Context>, topic: Topic) -> Result<Arc<RawChannel>, foxglove
         .build_raw()
 }
 
-/// A URDF as a `std_msgs/String` JSON message.
+/// A URDF as the log writes it.
 fn robot_description(urdf: &str) -> Vec<u8> {
-    serde_json::to_vec(&serde_json::json!({ "data": urdf })).unwrap_or_default()
+    proto::RobotDescription {
+        data: urdf.to_string(),
+    }
+    .encode_to_vec()
+}
+
+/// Takes clients on `listener` for the server at `inner`, at most `max` at once; the others
+/// get HTTP 503 ([`BUSY`]) and are closed.
+async fn gate(listener: TcpListener, inner: SocketAddr, max: usize) {
+    let active = Arc::new(AtomicUsize::new(0));
+    let busy: Arc<[u8]> = format!(
+        "HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain\r\nConnection: close\r\n\
+         Content-Length: {}\r\n\r\n{BUSY}",
+        BUSY.len()
+    )
+    .into_bytes()
+    .into();
+    loop {
+        let mut client = match listener.accept().await {
+            Ok((client, _)) => client,
+            // Out of descriptors or the like: wait instead of spinning.
+            Err(_) => {
+                tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+                continue;
+            }
+        };
+        if active.load(Ordering::Acquire) >= max {
+            let busy = busy.clone();
+            tokio::spawn(async move {
+                let _ = client.write_all(&busy).await;
+                let _ = client.shutdown().await;
+            });
+            continue;
+        }
+        active.fetch_add(1, Ordering::AcqRel);
+        let active = active.clone();
+        tokio::spawn(async move {
+            if let Ok(mut server) = TcpStream::connect(inner).await {
+                let _ = tokio::io::copy_bidirectional(&mut client, &mut server).await;
+            }
+            active.fetch_sub(1, Ordering::AcqRel);
+        });
+    }
 }
 
 fn table_of(rows: impl Iterator<Item = calib_core::DhRow>) -> Option<calib_core::DhTable<JOINTS>> {
@@ -170,12 +241,23 @@ impl std::error::Error for LiveError {
 }
 
 impl LiveView {
-    /// Starts the server on `listen`, the arm on `config`'s nominal table.
+    /// Starts the server on `listen` (with `config`'s `[live]` limits), the arm on `config`'s
+    /// nominal table.
     pub fn start(listen: SocketAddr, config: &Config) -> Result<LiveView, LiveError> {
         let err = |e: foxglove::FoxgloveError| LiveError {
             what: format!("starting the live view on {listen}"),
             source: std::io::Error::other(e),
         };
+        let listener = std::net::TcpListener::bind(listen)
+            .and_then(|l| l.set_nonblocking(true).map(|()| l))
+            .map_err(|source| LiveError {
+                what: format!(
+                    "listening on {listen} for the live view (another program on the port? \
+                     set [live] listen to a free one)"
+                ),
+                source,
+            })?;
+        let port = listener.local_addr().map_or(0, |a| a.port());
         let ctx = Context::new();
         let build = || -> Result<Channels, foxglove::FoxgloveError> {
             Ok(Channels {
@@ -186,15 +268,7 @@ impl LiveView {
                 progress: channel(&ctx, Topic::Progress)?,
                 calibration: channel(&ctx, Topic::Calibration)?,
                 events: channel(&ctx, Topic::Events)?,
-                robot_description: ChannelBuilder::new(ROBOT_DESCRIPTION)
-                    .context(&ctx)
-                    .message_encoding("json")
-                    .schema(foxglove::Schema::new(
-                        "std_msgs/String",
-                        "jsonschema",
-                        br#"{"type":"object","properties":{"data":{"type":"string"}}}"#.as_slice(),
-                    ))
-                    .build_raw()?,
+                robot_description: channel(&ctx, Topic::RobotDescription)?,
             })
         };
         let channels = build().map_err(err)?;
@@ -204,6 +278,7 @@ impl LiveView {
             table,
             joints: [None; JOINTS],
             pose: None,
+            period_ns: (1e9 / config.live.max_hz) as u64,
             last_sent_ns: None,
             last_rate_ns: None,
             latched: Vec::new(),
@@ -226,7 +301,8 @@ impl LiveView {
         let server = ctx
             .websocket_server()
             .name("exocald")
-            .bind(listen.ip().to_string(), listen.port())
+            .bind("127.0.0.1", 0)
+            .message_backlog_size(LIVE_BACKLOG)
             .listener(Arc::new(Latch(shared.clone())))
             .tokio_runtime(runtime.handle());
         // Started on a thread of its own: this may run inside the session's runtime, where
@@ -237,17 +313,37 @@ impl LiveView {
                 .unwrap_or_else(|_| Err(foxglove::FoxgloveError::Unspecified("panicked".into())))
         })
         .map_err(err)?;
+        let inner = SocketAddr::from(([127, 0, 0, 1], handle.port()));
+        let max = config.live.max_clients;
+        runtime.spawn(async move {
+            if let Ok(listener) = TcpListener::from_std(listener) {
+                gate(listener, inner, max).await;
+            }
+        });
         Ok(LiveView {
             _context: ctx,
             shared,
             server: Some(handle),
             runtime: Some(runtime),
+            port,
         })
     }
 
     /// The port it listens on.
     pub fn port(&self) -> u16 {
-        self.server.as_ref().map_or(0, WebSocketServerHandle::port)
+        self.port
+    }
+
+    /// The line that says where to connect, with a warning where other hosts can.
+    pub fn banner(&self, config: &Config) -> String {
+        let ip = config.live.listen.ip();
+        let mut line = format!("live view: connect Foxglove to ws://{ip}:{}", self.port);
+        if !ip.is_loopback() {
+            line.push_str(
+                " — WARNING: reachable from other hosts (allow_remote), with no authentication",
+            );
+        }
+        line
     }
 }
 
@@ -260,12 +356,16 @@ impl Observer for LiveView {
         match *record {
             Record::Joint { joint, angle, rate } => {
                 if let Some(slot) = state.joints.get_mut(joint.wrapping_sub(1)) {
-                    *slot = Some((angle, rate));
+                    if !late(slot.map(|s| s.2), log_ns) {
+                        *slot = Some((angle, rate, log_ns));
+                    }
                 }
                 self.stream(&mut state, log_ns);
             }
             Record::EePose(pose) => {
-                state.pose = Some(*pose);
+                if !late(state.pose.map(|p| p.1), log_ns) {
+                    state.pose = Some((*pose, log_ns));
+                }
                 self.stream(&mut state, log_ns);
             }
             Record::Rate {
@@ -273,7 +373,8 @@ impl Observer for LiveView {
                 node_timestamp_lo_us,
                 xyz,
             } => {
-                if !due(&mut state.last_rate_ns, log_ns) {
+                let period = state.period_ns;
+                if !due(&mut state.last_rate_ns, log_ns, period) {
                     return;
                 }
                 let bytes =
@@ -309,16 +410,16 @@ impl Observer for LiveView {
 }
 
 impl LiveView {
-    /// The streaming channels, at most [`LIVE_HZ`] of log time.
+    /// The streaming channels, at most one message per `period_ns` of log time.
     fn stream(&self, state: &mut State, log_ns: u64) {
         let mut last = state.last_sent_ns;
-        if !due(&mut last, log_ns) {
+        if !due(&mut last, log_ns, state.period_ns) {
             return;
         }
         let Some(q) = state
             .joints
             .iter()
-            .map(|j| j.map(|(angle, _)| angle))
+            .map(|j| j.map(|(angle, ..)| angle))
             .collect::<Option<Vec<f64>>>()
         else {
             return;
@@ -330,7 +431,7 @@ impl LiveView {
             .joints
             .iter()
             .enumerate()
-            .filter_map(|(i, j)| j.map(|(a, r)| (i + 1, a, r)))
+            .filter_map(|(i, j)| j.map(|(a, r, _)| (i + 1, a, r)))
             .collect();
         c.joint_states.log_with_meta(
             &mcaplog::joint_states(log_ns, &readings).encode_to_vec(),
@@ -342,7 +443,7 @@ impl LiveView {
             &mcaplog::frame_transforms(log_ns, &links).encode_to_vec(),
             at,
         );
-        if let Some(pose) = state.pose {
+        if let Some((pose, _)) = state.pose {
             c.ee_pose
                 .log_with_meta(&mcaplog::pose_in_frame(log_ns, &pose).encode_to_vec(), at);
         }
@@ -372,5 +473,34 @@ impl Drop for LiveView {
         if let Some(runtime) = self.runtime.take() {
             runtime.shutdown_background();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// At most one message per period of log time; a late record (behind what was sent by
+    /// less than a clock step) never sends, so timestamps never step back; a clock step starts
+    /// over.
+    #[test]
+    fn a_streaming_channel_sends_at_its_rate_and_never_steps_back() {
+        let period = 33_333_333;
+        let mut last = None;
+        let ms = 1_000_000u64;
+        let sent: Vec<u64> = (0..100u64)
+            .map(|k| 10_000 * ms + 5 * ms * k)
+            .filter(|&t| due(&mut last, t, period))
+            .collect();
+        assert!(sent.windows(2).all(|w| w[1] - w[0] >= period), "{sent:?}");
+        assert_eq!(sent.len(), 15); // 0.5 s at one per 35 ms (the first 5-ms step past 33.3)
+        let at = last.unwrap();
+        assert!(!due(&mut last, at - 100 * ms, period), "a late record");
+        assert_eq!(last, Some(at));
+        assert!(
+            due(&mut last, at - 2 * CLOCK_STEP_NS, period),
+            "a clock step"
+        );
+        assert!(late(Some(at), at - 1) && !late(Some(at), at) && !late(None, 0));
     }
 }

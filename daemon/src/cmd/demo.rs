@@ -106,9 +106,8 @@ pub fn run(config: &Config, opts: &DemoOptions) -> Result<DemoResult, Box<Sessio
     };
     if let Some(live) = &live {
         eprintln!(
-            "exocald: live view: connect Foxglove to ws://{}:{}{}",
-            config.live.listen.ip(),
-            live.port(),
+            "exocald: {}{}",
+            live.banner(config),
             if opts.hold {
                 " (it stays up after the session: Ctrl-C to stop)"
             } else {

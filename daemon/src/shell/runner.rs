@@ -360,11 +360,7 @@ pub async fn run_session<T: Transport>(
         false => None,
     };
     if let Some(live) = &live {
-        reporter.message(&format!(
-            "live view: connect Foxglove to ws://{}:{}",
-            config.live.listen.ip(),
-            live.port()
-        ));
+        reporter.message(&live.banner(config));
     }
     let observers: Vec<&dyn Observer> = live.iter().map(|l| l as &dyn Observer).collect();
     run_session_with(
