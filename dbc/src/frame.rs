@@ -10,7 +10,7 @@ use core::time::Duration;
 use embedded_can::Id;
 
 /// A classic CAN frame (0..=8 data bytes), standard or extended identifier, data or remote.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct Frame {
     id: Id,
     len: u8,
@@ -109,7 +109,7 @@ impl Frame {
 }
 
 /// A frame as received, with its receive timestamp.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct Received {
     /// The frame.
     pub frame: Frame,

@@ -10,8 +10,10 @@
 //!   calibrated on exactly the first `frames` received frames
 //!   ([`exocal_log::read::McapSession::collection_frames`]); a log without the record (a session
 //!   that never finished collecting) is replayed whole. A candump log is
-//!   replayed whole: `--export-candump` writes exactly the frames the calibration used, so it
-//!   replays to the same result;
+//!   replayed whole (where it holds stream digests, each node's frames are taken at its next
+//!   digest, as the live gate released them; MACs unchecked): `--export-candump` writes exactly
+//!   the frames the calibration used, in receive order with the digests, so it replays to the
+//!   same result;
 //! - an MCAP log cut short (a killed daemon's: no summary, no footer) is read up to where it
 //!   stops: every message of every complete chunk; the run warns how much was recovered and
 //!   where the file was cut ([`read_session_log`]);
@@ -37,6 +39,7 @@
 //!   shows the data's quality and excitation; the TOML and URDF exports only for a validated
 //!   table.
 
+use std::collections::HashMap;
 use std::io::{BufRead, BufReader, Read, Seek};
 use std::path::{Path, PathBuf};
 
@@ -232,7 +235,17 @@ pub fn read_input_gated(
         Format::Candump => {
             let mut reader = CandumpReader::new(rules);
             each_line(path, InputKind::Candump, input, |l| reader.line(l))?;
-            Ok((Recording::Frames(reader.finish()), None, None))
+            let frames = reader.finish();
+            // The stream digests of an authenticated session (a daemon's export, or
+            // `candump -l` of its bus): each node's frames are taken at its next digest, as the
+            // live gate released them, so ingest sees them in the same order. MACs are not
+            // checked (no keys offline); frames after a node's last digest are not taken.
+            let digests = frames.iter().any(|rx| {
+                exocal_dbc::decode_frame(&rx.frame)
+                    .is_ok_and(|m| matches!(m, exocal_dbc::Message::StreamDigest(_)))
+            });
+            let gate = digests.then(|| StreamGate::replaying(&[]));
+            Ok((Recording::Frames(frames), None, gate))
         }
         Format::Csv => {
             let mut reader = CsvReader::new(rules);
@@ -267,6 +280,38 @@ fn replay_gate(s: &exocal_log::proto::StreamVerification) -> Result<StreamGate, 
         })
         .collect();
     Ok(StreamGate::replaying(&runs))
+}
+
+/// The frames `--export-candump` writes: behind the stream gate (where the session had one),
+/// the frames it passed — exactly what the calibration used — in the order they were received,
+/// as `candump -l` writes them (the gate releases a node's frames a span at a time, at its
+/// digest, which the export keeps: its replay releases them the same way); with how many it
+/// did not pass.
+fn export_frames(frames: &[Received], gate: Option<StreamGate>) -> (Vec<Received>, usize) {
+    let Some(mut gate) = gate else {
+        return (frames.to_vec(), 0);
+    };
+    let mut passed = Vec::new();
+    for rx in frames {
+        gate.on_frame(rx, &mut passed);
+    }
+    let mut left: HashMap<Received, usize> = HashMap::new();
+    for rx in &passed {
+        *left.entry(*rx).or_default() += 1;
+    }
+    let exported: Vec<Received> = frames
+        .iter()
+        .filter(|rx| {
+            left.get_mut(*rx).is_some_and(|n| {
+                let take = *n > 0;
+                *n = n.saturating_sub(1);
+                take
+            })
+        })
+        .copied()
+        .collect();
+    let held = frames.len() - exported.len();
+    (exported, held)
 }
 
 /// What a recalibration produced.
@@ -434,16 +479,17 @@ pub fn run(
         }
     };
     if let (Recording::Frames(frames), Some(out)) = (&input, &opts.export_candump) {
-        // Behind the stream gate, the frames it passed, in the order ingest took them: a
-        // candump replay (ungated) then takes exactly what the calibration used.
-        let passed = export_gate.map(|mut g| {
-            let mut pass = Vec::new();
-            for rx in frames {
-                g.on_frame(rx, &mut pass);
-            }
-            pass
-        });
-        let text = formats::candump_text(passed.as_deref().unwrap_or(frames), &config.interface);
+        let (exported, held) = export_frames(frames, export_gate);
+        if held > 0 {
+            eprintln!(
+                "exocald: {} holds {} frames in receive order; {held} the stream gate did not \
+                 pass (unverified, or still held at the collection's end) are left out, as the \
+                 calibration left them",
+                out.display(),
+                exported.len()
+            );
+        }
+        let text = formats::candump_text(&exported, &config.interface);
         write_file(out, "candump log", text.as_bytes())?;
     }
     let accepted = calibrated.outcome.verdict.accepted();
