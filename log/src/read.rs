@@ -86,7 +86,22 @@ pub enum Phase {
 /// [`ReadError`] naming the message.
 pub fn read_mcap_session(
     input: impl Read,
+    admit: impl FnMut(&Received, Phase) -> Result<(), String>,
+) -> Result<McapSession, ReadError> {
+    read(input, admit, true)
+}
+
+/// What [`read_mcap_session`] reads except the frames ([`McapSession::frames`] is empty): the
+/// collection end, the stream gate's record and the push outcome, in the memory of one chunk
+/// whatever the log's length (`exocald nodes` reads the last push of logs of any size).
+pub fn read_mcap_record(input: impl Read) -> Result<McapSession, ReadError> {
+    read(input, admit_all, false)
+}
+
+fn read(
+    input: impl Read,
     mut admit: impl FnMut(&Received, Phase) -> Result<(), String>,
+    keep_frames: bool,
 ) -> Result<McapSession, ReadError> {
     let err = |what: String| ReadError { what };
     let mut frames = Vec::new();
@@ -182,7 +197,9 @@ pub fn read_mcap_session(
                             Some(_) => Phase::After,
                         };
                         admit(&rx, phase).map_err(|e| err(format!("message {n} on {RX}: {e}")))?;
-                        frames.push(rx);
+                        if keep_frames {
+                            frames.push(rx);
+                        }
                     }
                 }
                 _ => {}
@@ -351,6 +368,21 @@ mod tests {
         let e = read_mcap_session(&session_log(5, Some((2, &[0xFF, 0xFF])))[..], admit_all)
             .unwrap_err();
         assert!(e.to_string().contains("/collection"), "{e}");
+        // Issue 48, item 4: `nodes` reads the record without the frames (it read whole logs
+        // into memory): the same record, no frame kept.
+        let log = session_log(5, Some((3, &body)));
+        let (whole, record) = (
+            read_mcap_session(&log[..], admit_all).unwrap(),
+            read_mcap_record(&log[..]).unwrap(),
+        );
+        assert!(record.frames.is_empty());
+        assert_eq!(
+            McapSession {
+                frames: whole.frames.clone(),
+                ..record
+            },
+            whole
+        );
     }
 
     /// A finished log must be whole: damage anywhere in its data section is an error naming the

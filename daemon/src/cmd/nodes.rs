@@ -242,14 +242,15 @@ pub fn pushed(records: &[exocal_log::proto::NodePush]) -> BTreeMap<NodeId, LastP
         .collect()
 }
 
-/// A session log's push outcome per node ([`pushed`]); a log cut short is recovered first.
+/// A session log's push outcome per node ([`pushed`]), read as a stream without its frames (the
+/// memory of one chunk, whatever the log's size); a log cut short is read up to where it stops.
 pub fn log_push(path: &Path) -> Result<BTreeMap<NodeId, LastPush>, DaemonError> {
-    let bytes = std::fs::read(path).map_err(|source| DaemonError::Io {
+    let file = std::fs::File::open(path).map_err(|source| DaemonError::Io {
         what: format!("reading {}", path.display()),
         source,
     })?;
-    let session =
-        crate::cmd::offline::read_session_log(path, &bytes[..], exocal_log::read::admit_all)?;
+    let session = exocal_log::read::read_mcap_record(std::io::BufReader::new(file))
+        .map_err(|e| DaemonError::Input(format!("{}: {e}", path.display())))?;
     Ok(pushed(&session.push))
 }
 
