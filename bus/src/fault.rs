@@ -44,6 +44,9 @@ pub struct FaultConfig {
     pub reorder_max: Duration,
     /// A second copy of the frame follows it [`DUPLICATE_GAP`] later.
     pub duplicate: f64,
+    /// After this many sends the transport fails every send (`ENOBUFS`: a transmit queue that
+    /// stays full, a bus-off controller); `None`: never.
+    pub fail_sends_after: Option<u64>,
 }
 
 /// Time between a frame and its duplicate (a little more than one classic frame at 1 Mbit/s).
@@ -248,6 +251,7 @@ pub struct FaultInjector<T: Transport> {
     held: BinaryHeap<Reverse<Held>>,
     order: u64,
     now: Duration,
+    sent: u64,
 }
 
 impl<T: Transport> FaultInjector<T> {
@@ -262,6 +266,7 @@ impl<T: Transport> FaultInjector<T> {
             held: BinaryHeap::new(),
             order: 0,
             now: Duration::ZERO,
+            sent: 0,
         }
     }
 
@@ -310,6 +315,15 @@ impl<T: Transport> FaultInjector<T> {
 
 impl<T: Transport> Transport for FaultInjector<T> {
     async fn send(&mut self, frame: &Frame) -> Result<(), BusError> {
+        if self
+            .faults
+            .config()
+            .fail_sends_after
+            .is_some_and(|n| self.sent >= n)
+        {
+            return Err(BusError::Io(std::io::Error::from_raw_os_error(105))); // ENOBUFS
+        }
+        self.sent += 1;
         if let Fate::Deliver { frame, at, again } = self.faults.fate(self.now, *frame) {
             self.hold(at, frame);
             if let Some(again) = again {

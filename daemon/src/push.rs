@@ -40,6 +40,11 @@
 //!   report takes the node's answer to the fence (authenticated: it then reads the table back
 //!   with a nonce, [`exocal_dbc::transfer::Upload::verify`], and says `New` only if the signed
 //!   answer is the new table); with no answer it says `Unknown`;
+//! - a bus that fails mid-way (a send or receive error: ENOBUFS that does not clear, bus-off,
+//!   the interface gone) ends the push with [`PushFailed`]: the error and the report as far as
+//!   it went, per node — `Old` where no Commit went out and the node's answer says so,
+//!   `Unknown` where a Commit went out and nothing was heard since — which the session logs
+//!   before it fails;
 //! - time comes from the bus clock (simulated in the demo), never from the system directly;
 //!   timeouts and backoffs run on its monotonic reading ([`Clock::monotonic`]), so a step of
 //!   the wall clock cannot stall or hurry a push.
@@ -189,8 +194,32 @@ fn micros(d: Duration) -> u64 {
     d.as_micros().min(u128::from(u64::MAX)) as u64
 }
 
+/// A push the bus stopped mid-way (ENOBUFS for long, bus-off, the interface gone): the error,
+/// and per node what was sent and what is known it holds ([`NodeReport`]; a node whose Commit
+/// went out and that was not heard from since is `Unknown`), for the log and `exocald nodes`.
+#[derive(Debug)]
+pub struct PushFailed {
+    /// What the bus did.
+    pub error: exocal_bus::BusError,
+    /// What the push knows of every node at that point.
+    pub report: PushReport,
+}
+
+impl std::fmt::Display for PushFailed {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "the bus failed mid-way through the push: {}", self.error)
+    }
+}
+
+impl std::error::Error for PushFailed {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        Some(&self.error)
+    }
+}
+
 /// Pushes `tables` to their nodes; `first_session` numbers the transfer sessions (incremented
-/// per upload, mod 256). Every frame sent or received goes to `observer`.
+/// per upload, mod 256). Every frame sent or received goes to `observer`. A bus error ends the
+/// push with what is known per node ([`PushFailed`]).
 pub async fn push_tables<T: Transport>(
     bus: &mut T,
     clock: &Clock,
@@ -198,7 +227,7 @@ pub async fn push_tables<T: Transport>(
     policy: &PushPolicy,
     first_session: u8,
     observer: &mut dyn PushObserver,
-) -> Result<PushReport, exocal_bus::BusError> {
+) -> Result<PushReport, Box<PushFailed>> {
     let retry = RetryPolicy {
         timeout_us: policy.timeout_ms * 1000,
         ..RetryPolicy::default()
@@ -257,14 +286,20 @@ pub async fn push_tables<T: Transport>(
         .collect();
     // Counters proved but not yet saved (those signed are saved before their CommitAuth).
     let mut unsaved = false;
-    while jobs.iter().any(|j| !j.done) {
+    let mut failed = None;
+    'push: while jobs.iter().any(|j| !j.done) {
         // Frames are stamped with the bus clock; deadlines run on its monotonic reading, so a
         // step of the host's wall clock neither stalls nor hurries a push.
         let now = clock.now();
         let now_us = micros(clock.monotonic());
         for job in jobs.iter_mut().filter(|j| !j.done) {
             if job.fence.is_some() {
-                fence_step(bus, job, retry, fence_sends, now, now_us, observer).await?;
+                if let Err(e) =
+                    fence_step(bus, job, retry, fence_sends, now, now_us, observer).await
+                {
+                    failed = Some(e);
+                    break 'push;
+                }
                 continue;
             }
             if job.upload.is_none() && now_us >= job.next_start_us {
@@ -311,7 +346,10 @@ pub async fn push_tables<T: Transport>(
                 }
                 if refused.is_none() {
                     job.commit_sent |= matches!(cmd.cmd, Command::Commit { .. });
-                    send(bus, &cmd, now, observer).await?;
+                    if let Err(e) = send(bus, &cmd, now, observer).await {
+                        failed = Some(e);
+                        break 'push;
+                    }
                 }
             }
             let result = match refused {
@@ -371,8 +409,33 @@ pub async fn push_tables<T: Transport>(
         // runtime; the logic runs on the bus clock).
         match tokio::time::timeout(Duration::from_millis(1), bus.recv()).await {
             Ok(Ok(rx)) => on_received(&rx, &mut jobs, observer),
-            Ok(Err(e)) => return Err(e),
+            Ok(Err(e)) => {
+                failed = Some(e);
+                break 'push;
+            }
             Err(_) => {}
+        }
+    }
+    if let Some(e) = &failed {
+        for job in jobs.iter_mut().filter(|j| !j.done) {
+            // Sent before the bus failed: a Commit may have landed, or may still.
+            let note = if job.commit_sent {
+                job.held_crc = None;
+                job.verified = None;
+                job.verified_crc = None;
+                format!("the bus failed after its Commit was sent ({e}): either table")
+            } else {
+                // No Commit can land: what the node answered so far holds.
+                if let Some(up) = &job.upload {
+                    job.held_crc = up.held_crc().or(job.held_crc);
+                    job.verified_crc = up.verified_crc().or(job.verified_crc);
+                }
+                format!("the bus failed before its Commit was sent ({e})")
+            };
+            job.last_error = Some(match job.last_error.take() {
+                Some(prev) => format!("{prev}; {note}"),
+                None => note,
+            });
         }
     }
     if let (Some((dir, counters)), true) = (&state, unsaved) {
@@ -386,12 +449,16 @@ pub async fn push_tables<T: Transport>(
             }
         }
     }
-    Ok(PushReport {
+    let report = PushReport {
         nodes: jobs
             .iter()
             .map(|j| report(j, policy.authenticate))
             .collect(),
-    })
+    };
+    match failed {
+        None => Ok(report),
+        Some(error) => Err(Box::new(PushFailed { error, report })),
+    }
 }
 
 /// One turn of a job's fence (see the module doc).
@@ -910,6 +977,60 @@ mod tests {
         assert!(r.error.as_deref().unwrap().contains("no key"), "{r:?}");
         assert_eq!(*flashes[1].1 .0.lock().unwrap(), Some(table(0.0)));
         assert_eq!(sent, 6 * 10);
+    }
+
+    /// Issue 48, item 8: a push the bus stops mid-way (ENOBUFS from then on, from the fault
+    /// injector) returned the bus error and nothing else, so the log had no per-node record and
+    /// `exocald nodes` compared with an older log. Now it returns what it knows of every node:
+    /// `Old` only where no Commit went out (and the node does hold its old table), `Unknown`
+    /// with "after its Commit was sent" where one did (or where the node had not answered
+    /// yet); never a wrong `New` or `Old`.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_push_the_bus_stops_mid_way_reports_every_node() {
+        let (mut before, mut after) = (0, 0);
+        for fail_after in [3, 20, 45, 62, 67] {
+            let (flashes, tables) = setup(true);
+            let (nodes, ep) = spawn_nodes(flashes.clone(), |_| false, vec![]);
+            let wire = exocal_bus::FaultConfig {
+                fail_sends_after: Some(fail_after),
+                ..Default::default()
+            };
+            let mut bus = exocal_bus::FaultInjector::new(ep, wire, 1);
+            let mut sink = |_: bool, _: &Frame, _: Duration| {};
+            let failed = push_tables(&mut bus, &Clock::Wall, &tables, &policy(), 9, &mut sink)
+                .await
+                .expect_err("the bus fails");
+            nodes.abort();
+            assert!(failed.to_string().contains("mid-way"), "{failed}");
+            assert_eq!(failed.report.nodes.len(), 7);
+            for (r, ((_, flash), (_, t))) in
+                failed.report.nodes.iter().zip(flashes.iter().zip(&tables))
+            {
+                let held = flash.0.lock().unwrap().unwrap();
+                let error = r.error.as_deref().unwrap_or_default();
+                match r.holds {
+                    Holds::New => assert_eq!(held.crc(), t.crc(), "{r:?}"),
+                    Holds::Old => {
+                        assert_eq!(held, table(0.0), "{r:?}");
+                        assert!(error.contains("before its Commit"), "{r:?}");
+                        before += 1;
+                    }
+                    // Not answered yet: nothing known but that no Commit went out.
+                    Holds::Unknown if error.contains("before its Commit") => {
+                        assert_eq!(held, table(0.0), "{r:?}");
+                    }
+                    Holds::Unknown => {
+                        assert!(error.contains("after its Commit was sent"), "{r:?}");
+                        assert_eq!(r.verified_crc, None, "{r:?}");
+                        after += 1;
+                    }
+                }
+            }
+        }
+        assert!(
+            before > 0 && after > 0,
+            "{before} before, {after} after a Commit"
+        );
     }
 
     #[test]

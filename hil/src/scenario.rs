@@ -443,6 +443,7 @@ impl Faults {
             reorder: self.reorder,
             reorder_max: ms(self.reorder_max_ms),
             duplicate: self.duplicate,
+            fail_sends_after: None,
         }
     }
 

@@ -966,7 +966,7 @@ impl<T: Transport> Running<'_, '_, T> {
         self.io.notifier.status("pushing tables");
         self.io.reporter.phase("pushing", "the tables to the nodes");
         let first_session = (ns(start) / 1_000_000 % 251) as u8;
-        let report = push_tables(
+        let pushed = push_tables(
             self.bus,
             self.clock,
             &tables,
@@ -974,11 +974,12 @@ impl<T: Transport> Running<'_, '_, T> {
             first_session,
             self.io,
         )
-        .await
-        .map_err(|source| DaemonError::Bus {
-            what: "pushing tables".into(),
-            source,
-        })?;
+        .await;
+        // A push the bus stopped mid-way is recorded as far as it went, per node, then fails.
+        let (report, bus_error) = match pushed {
+            Ok(report) => (report, None),
+            Err(failed) => (failed.report, Some(failed.error)),
+        };
         let now = self.clock.now();
         for line in report.lines() {
             self.io.event(now, Level::Info, &line);
@@ -1002,6 +1003,12 @@ impl<T: Transport> Running<'_, '_, T> {
             .collect();
         let complete = report.complete();
         self.summary.push = Some(report);
+        if let Some(source) = bus_error {
+            return Err(DaemonError::Bus {
+                what: "pushing tables (what each node was sent and holds is in the log)".into(),
+                source,
+            });
+        }
         if !complete {
             return Err(DaemonError::Push(failed.join("; ")));
         }
