@@ -9,16 +9,18 @@
 //!   `exocald run` needs it; anything missing is a [`KeyError`] naming what and where, which
 //!   `exocald` maps to exit 78 at start-up, before it touches the bus;
 //! - a key never appears in an error, a log line or the session report ([`KeySet`]'s `Debug`
-//!   names nodes, not keys); a key file with an all-zero key or one key for two names is
-//!   refused ([`KeySet::parse`]); keys are zeroised when dropped
-//!   ([`exocal_dbc::auth::Key`]), and the shipped units set `LimitCORE=0` (no core dump holds
-//!   them);
-//! - outside systemd (no `$INVOCATION_ID`: a credentials directory made by hand), a key file
-//!   that group or others may read or write is loaded with a warning ([`permission_warning`]);
-//!   under systemd the credential is the service's own, whatever the source file's mode.
+//!   names nodes, not keys); a key file with a key that cannot be random (all zero, a few
+//!   repeated bytes, counting byte by byte), or with one key for two names or two keys a few
+//!   hex digits apart, is refused ([`KeySet::parse`]); keys, and the key file's text, are
+//!   zeroised when dropped ([`exocal_dbc::auth::Key`]), and the shipped units set
+//!   `LimitCORE=0` (no core dump holds them);
+//! - a key file that group or others may read or write is loaded with a warning
+//!   ([`permission_warning`]), whatever the environment: the credential as the daemon sees it,
+//!   and its source `/etc/credstore/exocal-keys` where the daemon can see it (as root; a
+//!   `DynamicUser=` service cannot look into `/etc/credstore`, mode 0700).
 
 use std::fmt;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use exocal_dbc::auth::{KeyFileError, KeySet};
 use exocal_dbc::NodeId;
@@ -119,8 +121,9 @@ pub fn load(dir: Option<PathBuf>, nodes: &[NodeId], trigger: bool) -> Result<Key
     let Some(path) = dir.map(|d| d.join(CREDENTIAL)) else {
         return Err(KeyError::Missing { looked: None });
     };
+    // The key file's text is wiped when dropped, as the keys are.
     let text = match std::fs::read_to_string(&path) {
-        Ok(t) => t,
+        Ok(t) => zeroize::Zeroizing::new(t),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             return Err(KeyError::Missing { looked: Some(path) })
         }
@@ -164,37 +167,51 @@ pub fn load_if_present(nodes: &[NodeId]) -> Result<Option<KeySet>, KeyError> {
     }
 }
 
-/// A warning for a key file in `dir` (the credentials directory) that group or others may
-/// read or write, when not `under_systemd` (whose credentials are the service's own); `None`
-/// when the file is private, absent, or systemd passed it.
-pub fn permission_warning(dir: Option<&Path>, under_systemd: bool) -> Option<String> {
+/// Where the shipped units load the credential from (`LoadCredential=`).
+pub const CREDENTIAL_SOURCE: &str = "/etc/credstore/exocal-keys";
+
+/// A warning for the first of `files` (key files) that group or others may read or write;
+/// `None` when each is private, absent, or out of sight.
+pub fn permission_warning(files: &[PathBuf]) -> Option<String> {
     use std::os::unix::fs::PermissionsExt;
-    if under_systemd {
-        return None;
-    }
-    let path = dir?.join(CREDENTIAL);
-    let mode = std::fs::metadata(&path).ok()?.permissions().mode() & 0o777;
-    (mode & 0o077 != 0).then(|| {
-        format!(
-            "WARNING: the key file {} has mode {mode:04o}: other users may read the node keys \
-             (chmod 600 it, or pass it as a systemd credential)",
-            path.display()
-        )
+    files.iter().find_map(|path| {
+        let mode = std::fs::metadata(path).ok()?.permissions().mode() & 0o777;
+        (mode & 0o077 != 0).then(|| {
+            format!(
+                "WARNING: the key file {} has mode {mode:04o}: other users may read the node keys \
+                 (chmod 600 it, or pass it as a systemd credential)",
+                path.display()
+            )
+        })
     })
 }
 
-/// [`permission_warning`] for `$CREDENTIALS_DIRECTORY`, outside systemd when `$INVOCATION_ID`
-/// is unset.
+/// [`permission_warning`] for the credential in `$CREDENTIALS_DIRECTORY` and its source,
+/// [`CREDENTIAL_SOURCE`].
 pub fn credential_warning() -> Option<String> {
-    let under_systemd = std::env::var_os("INVOCATION_ID").is_some();
-    permission_warning(credentials_dir().as_deref(), under_systemd)
+    let mut files: Vec<PathBuf> = credentials_dir()
+        .map(|d| d.join(CREDENTIAL))
+        .into_iter()
+        .collect();
+    files.push(PathBuf::from(CREDENTIAL_SOURCE));
+    permission_warning(&files)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    const K: &str = "000102030405060708090a0b0c0d0e0f";
+    /// Random keys, as `openssl rand -hex 16` makes them: Joint1 … Joint7, then the trigger.
+    const KEYS: [&str; 8] = [
+        "d2fe1afeaf1a7f865abffce7e70bc40f",
+        "f8cdd3372ffdf62dd6e41bb3ca8305df",
+        "83b0061fafc8061321dd9c86f166f1a9",
+        "803141d6acbe79035aa51970f73b2a20",
+        "4e8f6a2f12becd4cc10408154b93d44f",
+        "8c093a86240c2d004be100a8d84da4cb",
+        "892048930dc0381aae120438d77217d5",
+        "6ef94891acfe2c5f0906f9eb19e38475",
+    ];
 
     fn dir(name: &str, text: Option<&str>) -> PathBuf {
         let d = std::env::temp_dir().join(format!("exocald-keys-{}-{name}", std::process::id()));
@@ -206,15 +223,15 @@ mod tests {
         d
     }
 
-    /// A distinct key per name: `K` with its last digit the node's id (`f` for the trigger).
+    /// A key per name ([`KEYS`]).
     fn all(trigger: bool) -> String {
-        let key = |last: char| format!("{}{last}", &K[..31]);
         let mut t: String = NodeId::JOINTS
             .iter()
-            .map(|n| format!("{} {}\n", n.name(), key(char::from(b'0' + n.raw()))))
+            .zip(KEYS)
+            .map(|(n, k)| format!("{} {k}\n", n.name()))
             .collect();
         if trigger {
-            t.push_str(&format!("Trigger {}\n", key('f')));
+            t.push_str(&format!("Trigger {}\n", KEYS[7]));
         }
         t
     }
@@ -245,56 +262,72 @@ mod tests {
         let d3 = dir("no-joint5", Some(&all(true).replace("Joint5", "# Joint5")));
         let e = load(Some(d3.clone()), &NodeId::JOINTS, true).unwrap_err();
         assert!(e.to_string().contains("no key for Joint5"), "{e}");
-        let d4 = dir("bad", Some(&all(true).replace("Joint3 00", "Joint3 zz")));
+        let d4 = dir("bad", Some(&all(true).replace("Joint3 83", "Joint3 zz")));
         let e = load(Some(d4.clone()), &NodeId::JOINTS, true).unwrap_err();
         let shown = e.to_string();
-        assert!(shown.contains("line 3") && !shown.contains(K), "{shown}");
+        assert!(
+            shown.contains("line 3") && !shown.contains(&KEYS[2][2..]),
+            "{shown}"
+        );
         for d in [d, d2, d3, d4] {
             let _ = std::fs::remove_dir_all(&d);
         }
     }
 
-    /// Issue 34, item 8: a shared or all-zero key is refused, naming the line and not the key.
+    /// Issue 34, item 8, and issue 48, item 9: a shared, all-zero, patterned or nearly shared
+    /// key is refused, naming the line and not the key.
     #[test]
     fn a_shared_or_all_zero_key_is_refused() {
-        let shared = all(true).replace(
-            &format!("Joint5 {}5", &K[..31]),
-            &format!("Joint5 {}3", &K[..31]),
-        );
-        let d = dir("shared", Some(&shared));
-        let e = load(Some(d.clone()), &NodeId::JOINTS, true)
-            .unwrap_err()
-            .to_string();
-        assert!(
-            e.contains("line 5") && e.contains("same key") && !e.contains(&K[..20]),
-            "{e}"
-        );
-        let zero = all(true).replace(&format!("{}2", &K[..31]), &"0".repeat(32));
-        let d2 = dir("zero", Some(&zero));
-        let e = load(Some(d2.clone()), &NodeId::JOINTS, true)
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("line 2") && e.contains("all-zero"), "{e}");
-        for d in [d, d2] {
+        let with = |joint: usize, key: &str| all(true).replace(KEYS[joint - 1], key);
+        let nearly = format!("{}{}", &KEYS[2][..31], "0");
+        for (name, text, line, said) in [
+            ("shared", with(5, KEYS[2]), "line 5", "same key"),
+            ("nearly", with(5, &nearly), "line 5", "nearly the same key"),
+            ("zero", with(2, &"0".repeat(32)), "line 2", "all-zero"),
+            (
+                "counting",
+                with(4, "00112233445566778899aabbccddeeff"),
+                "line 4",
+                "counting",
+            ),
+            (
+                "repeated",
+                with(6, &"c0ffee".repeat(6)[..32]),
+                "line 6",
+                "repeated bytes",
+            ),
+        ] {
+            let d = dir(name, Some(&text));
+            let e = load(Some(d.clone()), &NodeId::JOINTS, true)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(line) && e.contains(said), "{name}: {e}");
+            assert!(KEYS.iter().all(|k| !e.contains(&k[..12])), "{e}");
             let _ = std::fs::remove_dir_all(&d);
         }
     }
 
-    /// Issue 34, item 8: outside systemd, a key file others may read is said; a private one,
-    /// or one systemd passed, is not.
+    /// Issue 34, item 8, and issue 48, item 9: a key file others may read is said whatever the
+    /// environment (it was skipped under systemd, so a world-readable source in
+    /// /etc/credstore went unsaid); a private one, or one out of sight, is not.
     #[test]
-    fn a_key_file_readable_by_others_is_warned_about_outside_systemd() {
+    fn a_key_file_readable_by_others_is_warned_about() {
         use std::os::unix::fs::PermissionsExt;
         let d = dir("mode", Some(&all(true)));
         let file = d.join(CREDENTIAL);
-        std::fs::set_permissions(&file, std::fs::Permissions::from_mode(0o644)).unwrap();
-        let w = permission_warning(Some(&d), false).expect("a warning");
-        assert!(w.contains("0644") && w.contains("exocal-keys"), "{w}");
-        assert!(!w.contains(&K[..20]), "{w}");
-        assert_eq!(permission_warning(Some(&d), true), None);
+        let source = d.join("credstore-exocal-keys");
+        std::fs::write(&source, all(true)).unwrap();
         std::fs::set_permissions(&file, std::fs::Permissions::from_mode(0o600)).unwrap();
-        assert_eq!(permission_warning(Some(&d), false), None);
-        assert_eq!(permission_warning(None, false), None);
+        std::fs::set_permissions(&source, std::fs::Permissions::from_mode(0o644)).unwrap();
+        let w = permission_warning(&[file.clone(), source.clone()]).expect("a warning");
+        assert!(
+            w.contains("0644") && w.contains("credstore-exocal-keys"),
+            "{w}"
+        );
+        assert!(KEYS.iter().all(|k| !w.contains(&k[..12])), "{w}");
+        std::fs::set_permissions(&source, std::fs::Permissions::from_mode(0o600)).unwrap();
+        assert_eq!(permission_warning(&[file, source]), None);
+        assert_eq!(permission_warning(&[d.join("absent")]), None);
         let _ = std::fs::remove_dir_all(&d);
     }
 }

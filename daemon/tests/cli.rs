@@ -146,21 +146,32 @@ fn missing_keys_exit_78_and_authentication_off_is_said() {
             String::from_utf8_lossy(&out.stderr).into_owned(),
         )
     };
-    let creds = temp("exocal-keys", "Joint1 000102030405060708090a0b0c0d0e0f\n");
+    // Random keys, as `openssl rand -hex 16` makes them (patterned ones are refused).
+    const KEYS: [&str; 8] = [
+        "d2fe1afeaf1a7f865abffce7e70bc40f",
+        "f8cdd3372ffdf62dd6e41bb3ca8305df",
+        "83b0061fafc8061321dd9c86f166f1a9",
+        "803141d6acbe79035aa51970f73b2a20",
+        "4e8f6a2f12becd4cc10408154b93d44f",
+        "8c093a86240c2d004be100a8d84da4cb",
+        "892048930dc0381aae120438d77217d5",
+        "6ef94891acfe2c5f0906f9eb19e38475",
+    ];
+    let creds = temp("exocal-keys", &format!("Joint1 {}\n", KEYS[0]));
     let (code, err) = calibrate_with(&creds, None);
     assert_eq!(code, Some(78), "{err}");
     assert!(err.contains("no key for Joint2"), "{err}");
-    assert!(!err.contains("000102"), "a key in the message: {err}");
+    assert!(!err.contains(&KEYS[0][..6]), "a key in the message: {err}");
     // Every joint's key but not the end effector's (it signs its stream): 78, naming it.
     let joints: String = (1..=7)
-        .map(|n| format!("Joint{n} 000102030405060708090a0b0c0d0e{n:02x}\n"))
+        .map(|n| format!("Joint{n} {}\n", KEYS[n - 1]))
         .collect();
     let no_ee = temp("no-ee/exocal-keys", &joints);
     let (code, err) = calibrate_with(&no_ee, None);
     assert_eq!(code, Some(78), "{err}");
     assert!(err.contains("no key for EndEffector"), "{err}");
     // Every key, but no state directory (issue 34): 78, naming it; with one, on to the socket.
-    let all = format!("{joints}EndEffector 000102030405060708090a0b0c0d0e08\n");
+    let all = format!("{joints}EndEffector {}\n", KEYS[7]);
     let full = temp("full/exocal-keys", &all);
     let state = full.parent().unwrap().join("state");
     for with_state in [false, true] {

@@ -48,6 +48,12 @@ pub const KEY_LEN: usize = 16;
 #[derive(Clone, PartialEq, Eq)]
 pub struct Key([u8; KEY_LEN]);
 
+/// Fewest distinct byte values a key may have ([`Key::weakness`]).
+pub const MIN_DISTINCT_BYTES: usize = 8;
+/// Fewest hex digits in which two keys of one key file may differ (random keys differ in about
+/// 30 of 32; one a digit or two from another was edited from it).
+pub const MIN_DIGITS_APART: u32 = 8;
+
 impl Drop for Key {
     fn drop(&mut self) {
         self.0.zeroize();
@@ -96,6 +102,43 @@ impl Key {
     /// Whether every byte is zero (a placeholder, never a key).
     pub fn is_zero(&self) -> bool {
         self.0.iter().all(|&b| b == 0)
+    }
+
+    /// Why this key cannot be a random one (all zero, few distinct bytes, or counting up or
+    /// down byte by byte), if it cannot: a random key has fewer than [`MIN_DISTINCT_BYTES`]
+    /// distinct bytes with a probability of about 2·10⁻⁹.
+    pub fn weakness(&self) -> Option<&'static str> {
+        if self.is_zero() {
+            return Some("an all-zero key is a placeholder, not a key");
+        }
+        let mut seen = [false; 256];
+        for &b in &self.0 {
+            seen[usize::from(b)] = true;
+        }
+        if seen.iter().filter(|&&s| s).count() < MIN_DISTINCT_BYTES {
+            return Some(
+                "a key of a few repeated bytes is not random: generate one (e.g. `openssl rand -hex 16`)",
+            );
+        }
+        let step = self.0[1].wrapping_sub(self.0[0]);
+        if self.0.windows(2).all(|w| w[1].wrapping_sub(w[0]) == step) {
+            return Some(
+                "a key counting byte by byte (00 01 02 …) is not random: generate one (e.g. `openssl rand -hex 16`)",
+            );
+        }
+        None
+    }
+
+    /// In how many of its 32 hex digits this key differs from `other`.
+    pub fn digits_apart(&self, other: &Key) -> u32 {
+        self.0
+            .iter()
+            .zip(&other.0)
+            .map(|(a, b)| {
+                let x = a ^ b;
+                u32::from(x & 0x0f != 0) + u32::from(x & 0xf0 != 0)
+            })
+            .sum()
     }
 
     /// A 32-bit identifier of this key (a MAC of `I`): to tell, in stored state, which key a
@@ -397,19 +440,27 @@ impl KeySet {
             if held.is_some() {
                 return Err(err("this name has a key on an earlier line"));
             }
-            if key.is_zero() {
-                return Err(err("an all-zero key is a placeholder, not a key"));
+            if let Some(why) = key.weakness() {
+                return Err(err(why));
             }
-            if keys
+            let nearest = keys
                 .nodes
                 .iter()
                 .chain([&keys.trigger])
                 .flatten()
-                .any(|k| k == &key)
-            {
-                return Err(err(
+                .map(|k| k.digits_apart(&key))
+                .min();
+            match nearest {
+                Some(0) => return Err(err(
                     "the same key as an earlier line: every node and the trigger need their own",
-                ));
+                )),
+                Some(d) if d < MIN_DIGITS_APART => {
+                    return Err(err(
+                        "nearly the same key as an earlier line (a few hex digits apart): every \
+                         node and the trigger need their own random key",
+                    ))
+                }
+                _ => {}
             }
             match slot {
                 None => keys.trigger = Some(key),
@@ -566,37 +617,49 @@ mod tests {
 
     #[test]
     fn key_files_parse_and_errors_name_the_line_not_the_key() {
-        let text = "# suit 42\n\nJoint1 000102030405060708090a0b0c0d0e0f\n  Trigger FFEEDDCCBBAA99887766554433221100  \n";
+        let text = "# suit 42\n\nJoint1 3babf2654c93cdfe26a520652b3b5198\n  Trigger 1D3CD88FF38903ABB8F0CA36D13DBFB1  \n";
         let k = KeySet::parse(text).unwrap();
-        assert_eq!(k.node(NodeId::JOINTS[0]).unwrap().bytes()[15], 0x0f);
-        assert_eq!(k.trigger().unwrap().bytes()[0], 0xff);
+        assert_eq!(k.node(NodeId::JOINTS[0]).unwrap().bytes()[15], 0x98);
+        assert_eq!(k.trigger().unwrap().bytes()[0], 0x1d);
         assert!(k.node(NodeId::JOINTS[1]).is_none());
         assert_eq!(format!("{k:?}"), r#"["Joint1", "Trigger"]"#);
         assert_eq!(format!("{:?}", k.trigger().unwrap()), "Key(..)");
         for (bad, line) in [
             ("Joint1 0001", 1),
-            ("\nJoint9 000102030405060708090a0b0c0d0e0f", 2),
-            ("Joint1 000102030405060708090a0b0c0d0e0g", 1),
+            ("\nJoint9 3babf2654c93cdfe26a520652b3b5198", 2),
+            ("Joint1 3babf2654c93cdfe26a520652b3b519g", 1),
             ("Joint1", 1),
             ("Joint1 00 11", 1),
             (
-                "Joint1 000102030405060708090a0b0c0d0e0f\nJoint1 000102030405060708090a0b0c0d0e0f",
+                "Joint1 3babf2654c93cdfe26a520652b3b5198\nJoint1 3babf2654c93cdfe26a520652b3b5198",
                 2,
             ),
             // Issue 34: an all-zero key, and one key for two names (a node and the trigger).
             ("Joint2 00000000000000000000000000000000", 1),
+            // Issue 48: keys that are not random, and one edited from another.
+            ("Joint2 abababababababab0101010101010101", 1),
+            ("Joint2 000102030405060708090a0b0c0d0e0f", 1),
+            ("Joint2 f0e0d0c0b0a090807060504030201000", 1),
             (
-                "Joint1 000102030405060708090a0b0c0d0e0f\n# x\nJoint2 000102030405060708090A0B0C0D0E0F",
+                "Joint1 3babf2654c93cdfe26a520652b3b5198\nJoint2 3babf2654c93cdfe26a520652b3b5199",
+                2,
+            ),
+            (
+                "Joint1 3babf2654c93cdfe26a520652b3b5198\nTrigger 3babf2654c93cdfe26a5206aab3b5198",
+                2,
+            ),
+            (
+                "Joint1 3babf2654c93cdfe26a520652b3b5198\n# x\nJoint2 3BABF2654C93CDFE26A520652B3B5198",
                 3,
             ),
             (
-                "Trigger 000102030405060708090a0b0c0d0e0f\nJoint7 000102030405060708090a0b0c0d0e0f",
+                "Trigger 3babf2654c93cdfe26a520652b3b5198\nJoint7 3babf2654c93cdfe26a520652b3b5198",
                 2,
             ),
         ] {
             let e = KeySet::parse(bad).unwrap_err();
             assert_eq!(e.line, line, "{bad}: {e}");
-            assert!(!e.to_string().contains("0001"), "{e}");
+            assert!(!e.to_string().to_lowercase().contains("3babf2"), "{e}");
         }
         let d = KeySet::derived(2024);
         assert_eq!(d, KeySet::derived(2024));

@@ -155,8 +155,11 @@ fn provision_keys(file: Option<&Path>, flash_dir: &Path) -> anyhow::Result<Strin
              the others install no table until they are provisioned"
         ));
     };
-    let text = std::fs::read_to_string(&path)
-        .with_context(|| format!("reading the key file {}", path.display()))?;
+    // Wiped when dropped, as the keys are.
+    let text = zeroize::Zeroizing::new(
+        std::fs::read_to_string(&path)
+            .with_context(|| format!("reading the key file {}", path.display()))?,
+    );
     let keys = KeySet::parse(&text).with_context(|| format!("key file {}", path.display()))?;
     let done = exocal_hil::flash::provision(flash_dir, &keys)
         .with_context(|| format!("writing key slots in {}", flash_dir.display()))?;
@@ -209,7 +212,7 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
         let file = dir.join("keys");
-        std::fs::write(&file, "Joint2 000102030405060708090a0b0c0d0e0f\n").unwrap();
+        std::fs::write(&file, "Joint2 6dce7822fccd695373724892c45655b8\n").unwrap();
         let said = provision_keys(Some(&file), &dir.join("flash")).unwrap();
         assert!(said.contains("1 node(s)"), "{said}");
         assert!(
@@ -217,7 +220,7 @@ mod tests {
                 .unwrap()
                 .is_some()
         );
-        std::fs::write(&file, "Joint2 000102030405060708090a0b0c0d0e0z\n").unwrap();
+        std::fs::write(&file, "Joint2 6dce7822fccd695373724892c45655bz\n").unwrap();
         let e = format!(
             "{:#}",
             provision_keys(Some(&file), &dir.join("flash")).unwrap_err()

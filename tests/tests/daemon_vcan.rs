@@ -195,8 +195,8 @@ fn credentials(dir: &Path) -> PathBuf {
                 )
             })
             .collect();
-        text.push_str("EndEffector 0f1e2d3c4b5a69788796a5b4c3d2e1f0\n");
-        text.push_str("Trigger 00112233445566778899aabbccddeeff\n");
+        text.push_str("EndEffector 21be7911eb2dfb39e83b39a63b2d5ad0\n");
+        text.push_str("Trigger 95057c9d33381fbef4c25044b45b37a5\n");
         std::fs::write(creds.join("exocal-keys"), text).unwrap();
     }
     creds

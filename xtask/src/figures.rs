@@ -71,6 +71,9 @@ enum Source {
     SecurityDeductions,
     /// The same, every line.
     SecurityFull,
+    /// `systemd-analyze security` of `exocal-hil.service` (it holds the same keys): the
+    /// deductions and the overall score.
+    SecurityHil,
     /// BENCHMARKS.md's goals table: each goal, whether it is met, and the first sentence of its
     /// figure.
     BenchGoals,
@@ -159,6 +162,7 @@ const BLOCKS: &[(&str, &str, Source)] = &[
     ("calib-core/README.md", "paper-seeds", Source::PaperSeeds),
     ("calib-core/README.md", "paper-noise", Source::PaperNoise),
     ("systemd/README.md", "security-full", Source::SecurityFull),
+    ("systemd/README.md", "security-hil", Source::SecurityHil),
     ("systemd/README.md", "memory", Source::Memory),
     ("README.md", "bench-goals", Source::BenchGoals),
     ("README.md", "report-shot", Source::ReportShot),
@@ -1052,13 +1056,17 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
             }
             Ok(format!("{}\n", rows.join("\n")))
         }
-        Source::SecurityDeductions | Source::SecurityFull => {
-            let unit = std::fs::read_to_string(root.join("systemd/exocald.service"))?;
-            let exe = bin.join("exocald");
-            let path = scratch.join("exocald.service");
+        Source::SecurityDeductions | Source::SecurityFull | Source::SecurityHil => {
+            let name = match source {
+                Source::SecurityHil => "exocal-hil",
+                _ => "exocald",
+            };
+            let unit = std::fs::read_to_string(root.join(format!("systemd/{name}.service")))?;
+            let exe = bin.join(name);
+            let path = scratch.join(format!("{name}.service"));
             std::fs::write(
                 &path,
-                unit.replace("/usr/bin/exocald", &exe.display().to_string()),
+                unit.replace(&format!("/usr/bin/{name}"), &exe.display().to_string()),
             )?;
             // Exit status: 0, or the exposure level as a number when above the threshold.
             let out = Command::new("systemd-analyze")
