@@ -41,6 +41,8 @@ pub use embedded_can;
 /// The frame types live with the protocol (sans I/O): re-exported here for the transports.
 pub use exocal_dbc::frame::{Frame, Received};
 
+pub mod interface;
+
 #[cfg(feature = "socketcan")]
 mod socket;
 #[cfg(feature = "socketcan")]

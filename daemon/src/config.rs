@@ -1006,11 +1006,18 @@ impl fmt::Display for ExportError {
 
 impl std::error::Error for ExportError {}
 
+/// The comment [`with_nominal`] puts above the calibrated table.
+pub const CALIBRATED_NOTE: &str =
+    "# The suit's calibrated table (standard D-H parameters), written by \
+     `exocald offline --export-toml`: this suit's own, not the paper's Table 1.\n";
+
 /// `base` (a configuration text: the one the daemon ran with, or its shipped default) with its
 /// `[nominal]` table replaced by `table`: only the four `[nominal]` arrays are rewritten
 /// (lengths in metres, angles in degrees, as the file speaks), every other key, comment and
-/// layout kept. The result is a complete configuration whose nominal table is the calibrated
-/// one (`exocald offline --export-toml`).
+/// layout kept, except the comment above the table's first key: it described the table that
+/// was there (the shipped file's says "The paper's Table 1"), so it becomes [`CALIBRATED_NOTE`].
+/// The result is a complete configuration whose nominal table is the calibrated one (`exocald
+/// offline --export-toml`).
 pub fn with_nominal(base: &str, table: &DhTable<JOINTS>) -> Result<String, ExportError> {
     for (i, r) in table.rows.iter().enumerate() {
         let values = [
@@ -1050,6 +1057,10 @@ pub fn with_nominal(base: &str, table: &DhTable<JOINTS>) -> Result<String, Expor
                 nominal.insert(key, Item::Value(Value::Array(values)));
             }
         }
+    }
+    let first = nominal.iter().next().map(|(k, _)| k.to_string());
+    if let Some(mut key) = first.and_then(|k| nominal.key_mut(&k)) {
+        key.leaf_decor_mut().set_prefix(CALIBRATED_NOTE);
     }
     Ok(doc.to_string())
 }
@@ -1226,7 +1237,12 @@ mod tests {
         let t = DhTable::<JOINTS>::paper_actual();
         let out = with_nominal(base, &t).unwrap();
         assert!(out.contains("interface = \"can0\" # keep me"), "{out}");
-        assert!(out.contains("# rows"));
+        // The comment on the table that was there is replaced (issue 50: the calibrated table
+        // went out under "The paper's Table 1"); the others are kept.
+        assert!(
+            !out.contains("# rows") && out.contains(CALIBRATED_NOTE),
+            "{out}"
+        );
         assert!(out.contains("# twist"));
         assert!(out.contains("retries = 3"));
         let doc: toml_edit::DocumentMut = out.parse().unwrap();

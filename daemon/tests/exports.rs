@@ -5,7 +5,7 @@
 use calib_core::DhTable;
 use exocal_bus::embedded_can::Frame as _;
 use exocal_log::read::read_mcap_session;
-use exocald::config::{with_nominal, Config, DEFAULT_TOML};
+use exocald::config::{with_nominal, Config, CALIBRATED_NOTE, DEFAULT_TOML};
 use exocald::log::mcaplog::{CanFrameRecord, CollectionEnd, Level, SessionLog};
 use exocald::log::records::Record;
 
@@ -26,8 +26,10 @@ fn the_exported_configuration_loads_in_the_daemon_with_the_calibrated_table() {
     let mut same = loaded.clone();
     same.calibration.nominal = default.calibration.nominal;
     assert_eq!(same, default);
-    // The comments of the shipped file survive.
-    assert!(text.contains("# The paper's Table 1"));
+    // The comments of the shipped file survive, but the one that said the table is the
+    // paper's Table 1 (issue 50: the calibrated table went out under it).
+    assert!(text.contains("# Anatomical bounds"));
+    assert!(!text.contains("# The paper's Table 1") && text.contains(CALIBRATED_NOTE));
 }
 
 #[test]

@@ -18,7 +18,9 @@ use tokio::signal::unix::{signal, SignalKind};
 /// up: they keep sending heartbeats and answering table transfers (readback included) until
 /// SIGTERM or SIGINT, or for --linger seconds. When the motion ends, a line "exocal-hil: motion
 /// ended after N s; ..." goes to stderr. On SIGTERM/SIGINT (during the motion too) or at the end
-/// of --linger, the run's report goes to stdout and the exit status is 0.
+/// of --linger, the run's report goes to stdout and the exit status is 0. Exit status 69: the CAN
+/// interface is missing or cannot be opened (the message says how to create it); 1: any other
+/// error (named).
 ///
 /// Example: exocal-hil --iface vcan0 --speed 10
 #[derive(Parser, Debug)]
@@ -68,8 +70,31 @@ fn non_negative(text: &str) -> Result<f64, String> {
     }
 }
 
-fn main() -> anyhow::Result<()> {
-    let cli = Cli::parse();
+/// The CAN interface is missing or cannot be opened: exit 69 (EX_UNAVAILABLE), as exocald.
+#[derive(Debug)]
+struct Unavailable(String);
+
+impl std::fmt::Display for Unavailable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for Unavailable {}
+
+/// Runs, and on an error says what it is (no backtrace) and exits 69 or 1.
+fn main() -> std::process::ExitCode {
+    match run(Cli::parse()) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("exocal-hil: {e:#}");
+            let unavailable = e.downcast_ref::<Unavailable>().is_some();
+            std::process::ExitCode::from(if unavailable { 69 } else { 1 })
+        }
+    }
+}
+
+fn run(cli: Cli) -> anyhow::Result<()> {
     let mut scenario = match &cli.scenario {
         Some(p) => Scenario::load(p)?,
         None => Scenario::paper(),
@@ -86,6 +111,9 @@ fn main() -> anyhow::Result<()> {
         return Ok(());
     }
     let iface = cli.iface.context("--iface is required")?;
+    if let Some(why) = exocal_bus::interface::missing(&iface) {
+        return Err(Unavailable(format!("CAN interface {iface}: {why}")).into());
+    }
     eprintln!(
         "exocal-hil: {}",
         provision_keys(cli.keys.as_deref(), &cli.flash_dir)?
@@ -105,7 +133,10 @@ fn main() -> anyhow::Result<()> {
             }
         };
         let mut stop = std::pin::pin!(stop);
-        let mut bus = SocketCan::open(&iface)?;
+        let mut bus = SocketCan::open(&iface).map_err(|e| {
+            let has_can = exocal_bus::interface::kernel_has_can();
+            Unavailable(exocal_bus::interface::open_failure(&iface, &e, has_can))
+        })?;
         let mut hil = Hil::new(scenario, &cli.flash_dir)?;
         let clock = SimClock::new(clock.speed()).expect("checked above");
         eprintln!(

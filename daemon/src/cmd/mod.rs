@@ -62,60 +62,15 @@ pub fn apply_overrides(config: &mut Config, args: &SessionArgs) {
     }
 }
 
-/// Checks that the network interface `name` exists, with an error saying how to create it.
+/// Checks that the network interface `name` exists, with an error saying how to create it
+/// ([`exocal_bus::interface::missing`]).
 pub fn require_interface(name: &str) -> Result<(), DaemonError> {
-    let valid = !name.is_empty() && name.len() <= 15 && !name.contains('/') && name != "..";
-    if !valid || !Path::new("/sys/class/net").join(name).exists() {
-        let hint = if name.starts_with("vcan") {
-            format!(
-                "no such interface; on a bench create it with `ip link add {name} type vcan && \
-                 ip link set {name} up` (or install systemd/80-vcan0.netdev)"
-            )
-        } else {
-            "no such interface; check the CAN adapter and its systemd-networkd file \
-             (systemd/80-can0.network), or pass --interface"
-                .to_string()
-        };
-        return Err(DaemonError::Interface {
+    match exocal_bus::interface::missing(name) {
+        None => Ok(()),
+        Some(reason) => Err(DaemonError::Interface {
             name: name.to_string(),
-            reason: with_kernel_hint(hint, kernel_has_can()),
-        });
-    }
-    Ok(())
-}
-
-/// Whether this kernel has SocketCAN loaded: the `can` module creates `/proc/net/can`.
-fn kernel_has_can() -> bool {
-    Path::new("/proc/net/can").exists()
-}
-
-/// `reason`, and on a kernel without CAN, what to load.
-fn with_kernel_hint(reason: String, has_can: bool) -> String {
-    if has_can {
-        reason
-    } else {
-        format!(
-            "{reason}; this kernel has no SocketCAN loaded (no /proc/net/can): `modprobe can-raw` \
-             (and `modprobe vcan` for a bench interface), or a kernel built with CONFIG_CAN"
-        )
-    }
-}
-
-/// Why `name` cannot be opened as a CAN socket, with what to do: the kernel lacks CAN, or the
-/// interface is not a CAN one (its link type), else the system's error.
-fn open_failure(name: &str, error: &dyn std::fmt::Display, has_can: bool) -> String {
-    if !has_can {
-        return with_kernel_hint(format!("{error}"), false);
-    }
-    // ARPHRD_CAN: the link type of every CAN interface, vcan included.
-    const ARPHRD_CAN: &str = "280";
-    match std::fs::read_to_string(Path::new("/sys/class/net").join(name).join("type")) {
-        Ok(t) if t.trim() != ARPHRD_CAN => format!(
-            "{error}; `{name}` is not a CAN interface (link type {}, CAN is {ARPHRD_CAN}): pass \
-             one with --interface (`ip -details link show type can`, or `type vcan`, lists them)",
-            t.trim()
-        ),
-        _ => format!("{error}"),
+            reason,
+        }),
     }
 }
 
@@ -308,7 +263,11 @@ fn runtime() -> Result<tokio::runtime::Runtime, DaemonError> {
 fn open_can(config: &Config) -> Result<SocketCan, DaemonError> {
     SocketCan::open(&config.interface).map_err(|e| DaemonError::Interface {
         name: config.interface.clone(),
-        reason: open_failure(&config.interface, &e, kernel_has_can()),
+        reason: exocal_bus::interface::open_failure(
+            &config.interface,
+            &e,
+            exocal_bus::interface::kernel_has_can(),
+        ),
     })
 }
 
@@ -507,25 +466,6 @@ mod tests {
         );
         assert!(require_interface("../etc").is_err());
         assert!(require_interface("lo").is_ok());
-    }
-
-    /// Issue 33: on a kernel without CAN, or an interface that is not CAN, the error says what
-    /// to do instead of a bare "Address family not supported by protocol (os error 97)".
-    #[test]
-    fn a_kernel_or_interface_without_can_gets_a_hint() {
-        let bare = std::io::Error::from_raw_os_error(97);
-        let no_can = open_failure("can0", &bare, false);
-        assert!(
-            no_can.contains("os error 97") && no_can.contains("modprobe can-raw"),
-            "{no_can}"
-        );
-        let not_can = open_failure("lo", &bare, true);
-        assert!(
-            not_can.contains("`lo` is not a CAN interface (link type 772"),
-            "{not_can}"
-        );
-        let e = require_interface("can93").unwrap_err().to_string();
-        assert_eq!(e.contains("modprobe"), !kernel_has_can(), "{e}");
     }
 
     #[test]
