@@ -197,6 +197,17 @@ pub fn credential_warning() -> Option<String> {
     permission_warning(&files)
 }
 
+/// A seed for the transfer and readback nonces ([`exocal_dbc::auth::nonce`]) from the OS random
+/// source: the clock alone repeats across boots of a controller without a real-time clock, so a
+/// recorded answer would verify again. Should the OS source fail, std's randomly keyed hasher
+/// over the time stands in (its keys come from the OS too).
+pub fn nonce_seed() -> u64 {
+    getrandom::u64().unwrap_or_else(|_| {
+        use std::hash::BuildHasher;
+        std::collections::hash_map::RandomState::new().hash_one(std::time::SystemTime::now())
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

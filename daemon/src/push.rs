@@ -307,7 +307,8 @@ pub async fn push_tables<T: Transport>(
                 job.upload = Some(match &job.key {
                     Some(key) => {
                         let up =
-                            Upload::authenticated(job.node, session, job.table, retry, key.clone());
+                            Upload::authenticated(job.node, session, job.table, retry, key.clone())
+                                .seeded(crate::keys::nonce_seed());
                         match state.as_ref().and_then(|(_, c)| c.window(job.node, key)) {
                             Some((low, high)) => up.with_counter_window(low, high),
                             None => up,
@@ -526,10 +527,15 @@ async fn fence_step<T: Transport>(
             fence.next_send_us = now_us + retry.timeout_us;
             // A keyed node signs its answer over the nonce; the fence takes only the CRC (its
             // signed readback follows).
-            let nonce = job
-                .key
-                .as_ref()
-                .map_or(0, |k| auth::nonce(k, job.node, fence.session, now_us));
+            let nonce = job.key.as_ref().map_or(0, |k| {
+                auth::nonce(
+                    k,
+                    job.node,
+                    fence.session,
+                    crate::keys::nonce_seed(),
+                    now_us,
+                )
+            });
             let begin = fence_cmd(job.node, fence.session, Command::Begin { nonce });
             send(bus, &begin, now, observer).await?;
         }

@@ -18,6 +18,9 @@
 //!   counter it signs **before** the `CommitAuth` goes out, so a power loss mid-push never
 //!   makes the node's genuine counter look like a jump;
 //! - `trigger-counter`: the last trigger counter accepted (decimal);
+//! - `stream-nonce`: the last stream nonce sent (decimal, [`next_stream_nonce`]). A node takes
+//!   only a `StreamNonce` above the one it holds, so each nonce is above every one sent before:
+//!   this controller's next nonce always wins over a replayed one;
 //! - a file that does not read is an error naming it, never a silent reset (a reset would
 //!   reopen every recorded transfer or trigger to replay).
 
@@ -25,6 +28,7 @@ use std::collections::BTreeMap;
 use std::fmt;
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::time::{SystemTime, UNIX_EPOCH};
 
 use exocal_dbc::auth::Key;
 use exocal_dbc::NodeId;
@@ -33,6 +37,11 @@ use exocal_dbc::NodeId;
 pub const NODE_COUNTERS: &str = "node-counters";
 /// The file of the last accepted trigger counter.
 pub const TRIGGER_COUNTER: &str = "trigger-counter";
+/// The file of the last stream nonce sent.
+pub const STREAM_NONCE: &str = "stream-nonce";
+/// The wall clock's part in a stream nonce: tenths of a second since this Unix time
+/// (2026-01-01 00:00:00 UTC; 2³² tenths last 13.6 years).
+pub const STREAM_NONCE_EPOCH_S: u64 = 1_767_225_600;
 
 /// A state file that could not be read or written.
 #[derive(Debug)]
@@ -239,6 +248,53 @@ pub fn save_trigger_counter(dir: &Path, counter: u32) -> Result<(), StateError> 
     write(dir, TRIGGER_COUNTER, &format!("{counter}\n"))
 }
 
+/// The next stream nonce, recorded in `dir` before it is sent: one above the last sent (the one
+/// `dir` records, and `last`, this run's), raised to the tenths of a second since
+/// [`STREAM_NONCE_EPOCH_S`] by `now` when the clock is ahead. The record alone keeps nonces
+/// rising on a controller without a real-time clock; the clock keeps them above what the
+/// nodes hold when the record is new (another state directory, a replaced controller).
+pub fn next_stream_nonce(
+    dir: Option<&Path>,
+    last: u32,
+    now: SystemTime,
+) -> Result<u32, StateError> {
+    let path = |d: &Path| d.join(STREAM_NONCE);
+    let recorded = match dir {
+        Some(d) => match read(d, STREAM_NONCE)? {
+            None => 0,
+            Some(text) => text.trim().parse::<u32>().map_err(|_| StateError {
+                doing: "reading",
+                path: path(d),
+                source: invalid(
+                    "not a stream nonce (a decimal number below 2^32); nodes take only a nonce \
+                     above the last they took: restore it, or delete it and reboot the nodes"
+                        .into(),
+                ),
+            })?,
+        },
+        None => 0,
+    };
+    let tenths = now
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() / 100)
+        .saturating_sub(u128::from(STREAM_NONCE_EPOCH_S) * 10);
+    let clock = u32::try_from(tenths).unwrap_or(u32::MAX);
+    let next = recorded.max(last).checked_add(1).map(|n| n.max(clock));
+    let Some(next) = next.filter(|&n| n < u32::MAX) else {
+        return Err(StateError {
+            doing: "choosing",
+            path: dir.map_or_else(|| PathBuf::from(STREAM_NONCE), path),
+            source: invalid(
+                "no stream nonce left (the last was 2^32 - 2): give the nodes new keys".into(),
+            ),
+        });
+    };
+    if let Some(d) = dir {
+        write(d, STREAM_NONCE, &format!("{next}\n"))?;
+    }
+    Ok(next)
+}
+
 /// The state directory systemd gives the unit (`$STATE_DIRECTORY`; the first one if it names
 /// several), if any.
 pub fn from_env() -> Option<PathBuf> {
@@ -312,6 +368,45 @@ mod tests {
         let e = load_trigger_counter(&d).unwrap_err().to_string();
         assert!(e.contains("trigger-counter"), "{e}");
         let _ = std::fs::remove_dir_all(&d);
+    }
+
+    /// Issue 48, item 7: stream nonces rise whatever the clock does, and above it when it is
+    /// ahead; the record is kept before a nonce goes out.
+    #[test]
+    fn stream_nonces_rise_over_runs_and_a_clock_without_rtc() {
+        let d = dir("stream");
+        let epoch = UNIX_EPOCH;
+        let a = next_stream_nonce(Some(&d), 0, epoch).unwrap();
+        assert_eq!(a, 1, "no record, clock at 1970");
+        // Another run (last 0), the clock still at 1970: above the record.
+        assert_eq!(next_stream_nonce(Some(&d), 0, epoch).unwrap(), 2);
+        assert_eq!(
+            std::fs::read_to_string(d.join(STREAM_NONCE)).unwrap(),
+            "2\n"
+        );
+        // A clock that is right lifts it to its tenths of a second.
+        let t = UNIX_EPOCH + std::time::Duration::from_secs(STREAM_NONCE_EPOCH_S + 3600);
+        assert_eq!(next_stream_nonce(Some(&d), 0, t).unwrap(), 36_000);
+        // Then the clock steps back: still above.
+        assert_eq!(next_stream_nonce(Some(&d), 0, epoch).unwrap(), 36_001);
+        // A new state directory, the clock right: above the nonces sent before.
+        let other = dir("stream-other");
+        let later = t + std::time::Duration::from_secs(1);
+        assert_eq!(next_stream_nonce(Some(&other), 0, later).unwrap(), 36_010);
+        // Without a directory, this run's last.
+        assert_eq!(next_stream_nonce(None, 36_010, epoch).unwrap(), 36_011);
+        std::fs::write(d.join(STREAM_NONCE), "soon").unwrap();
+        let e = next_stream_nonce(Some(&d), 0, epoch)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("stream-nonce"), "{e}");
+        std::fs::write(d.join(STREAM_NONCE), format!("{}", u32::MAX - 1)).unwrap();
+        let e = next_stream_nonce(Some(&d), 0, epoch)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("new keys"), "{e}");
+        let _ = std::fs::remove_dir_all(&d);
+        let _ = std::fs::remove_dir_all(&other);
     }
 
     #[test]

@@ -171,7 +171,7 @@ fn hex_digit(c: u8) -> Option<u8> {
 }
 
 /// The CMAC of `parts` under `key`, not yet finalised.
-fn cmac(key: &Key, parts: &[&[u8]]) -> Cmac<Aes128> {
+pub(crate) fn cmac(key: &Key, parts: &[&[u8]]) -> Cmac<Aes128> {
     let mut mac = key.mac();
     for p in parts {
         mac.update(p);
@@ -179,12 +179,12 @@ fn cmac(key: &Key, parts: &[&[u8]]) -> Cmac<Aes128> {
     mac
 }
 
-fn truncated(mac: Cmac<Aes128>) -> u32 {
+pub(crate) fn truncated(mac: Cmac<Aes128>) -> u32 {
     let tag = mac.finalize().into_bytes();
     u32::from_be_bytes([tag[0], tag[1], tag[2], tag[3]])
 }
 
-fn verify(mac: Cmac<Aes128>, got: u32) -> bool {
+pub(crate) fn verify(mac: Cmac<Aes128>, got: u32) -> bool {
     mac.verify_truncated_left(&got.to_be_bytes()).is_ok()
 }
 
@@ -330,12 +330,19 @@ pub fn trigger(key: &Key, command: TriggerCommand, counter: u32) -> Trigger {
     }
 }
 
-/// A readback nonce for `node` in `session` at time `now_us`: a MAC, so nobody without the key
-/// can predict it (and ask the node for the answer beforehand).
-pub fn nonce(key: &Key, node: NodeId, session: u8, now_us: u64) -> u32 {
+/// A nonce for `node`'s Begin or readback in `session` at time `now_us`, from the caller's
+/// `seed` (drawn from the OS random source: the clock alone repeats across boots of a controller
+/// without a real-time clock): a MAC, so nobody without the key can predict it and ask the node
+/// for the answer beforehand.
+pub fn nonce(key: &Key, node: NodeId, session: u8, seed: u64, now_us: u64) -> u32 {
     truncated(cmac(
         key,
-        &[b"N", &[node.raw(), session], &now_us.to_le_bytes()],
+        &[
+            b"N",
+            &[node.raw(), session],
+            &seed.to_le_bytes(),
+            &now_us.to_le_bytes(),
+        ],
     ))
 }
 
@@ -590,7 +597,12 @@ mod tests {
             0x1_0203,
             tr.mac
         ));
-        assert_ne!(nonce(key, n, 1, 10), nonce(key, n, 1, 11));
+        assert_ne!(nonce(key, n, 1, 0, 10), nonce(key, n, 1, 0, 11));
+        assert_ne!(
+            nonce(key, n, 1, 5, 10),
+            nonce(key, n, 1, 6, 10),
+            "the seed counts"
+        );
     }
 
     #[test]

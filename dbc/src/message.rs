@@ -408,11 +408,16 @@ pub struct StreamDigest {
     pub mac: u64,
 }
 
-/// `StreamNonce`: the controller's nonce for the stream digests of one collection.
+/// `StreamNonce_<node>`: the controller's nonce for one node's stream digests of a collection,
+/// signed for that node ([`crate::stream_auth::sign_nonce`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct StreamNonce {
-    /// The nonce (48 bits).
-    pub nonce: u64,
+    /// The node it is for.
+    pub node: NodeId,
+    /// The nonce (never 0: a node's signer starts under 0, which nothing signs).
+    pub nonce: u32,
+    /// The first 32 bits of the CMAC over it.
+    pub mac: u32,
 }
 
 /// Any message of the protocol.
@@ -613,7 +618,9 @@ pub fn decode(id: u16, data: &[u8]) -> Result<Message, DecodeError> {
             })
         }
         Kind::StreamNonce => Message::StreamNonce(StreamNonce {
-            nonce: raw(&stream_nonce::NONCE) as u64,
+            node: node?,
+            nonce: raw(&stream_nonce::NONCE) as u32,
+            mac: raw(&stream_nonce::MAC) as u32,
         }),
     })
 }
@@ -631,7 +638,7 @@ pub fn decode_frame<F: embedded_can::Frame>(frame: &F) -> Result<Message, Decode
 }
 
 impl Message {
-    /// The sending (or, for `TableCmd`, addressed) node; `None` for `Trigger`.
+    /// The sending (or, for `TableCmd` and `StreamNonce`, addressed) node; `None` for `Trigger`.
     pub fn node(&self) -> Option<NodeId> {
         match self {
             Message::JointState(m) => Some(m.node),
@@ -641,7 +648,8 @@ impl Message {
             Message::TableCmd(m) => Some(m.node),
             Message::TableReply(m) => Some(m.node),
             Message::StreamDigest(m) => Some(m.node),
-            Message::Trigger(_) | Message::StreamNonce(_) => None,
+            Message::StreamNonce(m) => Some(m.node),
+            Message::Trigger(_) => None,
         }
     }
 
@@ -790,7 +798,8 @@ impl Message {
                 MAC.encode_raw(d, m.mac as i64)?;
             }
             Message::StreamNonce(m) => {
-                stream_nonce::NONCE.encode_raw(d, m.nonce as i64)?;
+                stream_nonce::NONCE.encode_raw(d, i64::from(m.nonce))?;
+                stream_nonce::MAC.encode_raw(d, i64::from(m.mac))?;
             }
         }
         Ok((id, *d, DLC))
@@ -973,7 +982,9 @@ mod tests {
                     mac
                 })
             ),
-            (0u64..1 << 48).prop_map(|nonce| Message::StreamNonce(StreamNonce { nonce })),
+            (node(), 1u32.., any::<u32>()).prop_map(|(node, nonce, mac)| Message::StreamNonce(
+                StreamNonce { node, nonce, mac }
+            )),
         ]
     }
 

@@ -5,8 +5,15 @@
 //! Contract:
 //! - the stream key is [`stream_key`]: the node's table key derived with the label `stream`
 //!   ([`Key::derive`]), so a stream MAC never verifies as a transfer MAC and the reverse;
+//! - the controller gives each node the collection's nonce in a `StreamNonce_<node>` frame signed
+//!   for it ([`sign_nonce`]: the first 32 bits of AES-128-CMAC under the node's stream key over
+//!   `N`, the node id and the nonce, u32 LE). A node takes a nonce only if that MAC verifies and
+//!   the nonce is above the last it took since boot ([`Signer::set_nonce`], [`NonceReject`]): a
+//!   forged nonce, one for another node, or a replayed one changes nothing. The controller
+//!   makes every nonce above all it sent before (a counter it persists), so its own next nonce
+//!   always wins over a replay, also after a node reboots;
 //! - a digest's MAC is the first 40 bits (big-endian) of AES-128-CMAC under the stream key over
-//!   `S`, the node id, the collection's nonce (u64 LE, [`StreamNonce`]), then for each covered
+//!   `S`, the node id, the collection's nonce (u64 LE), then for each covered
 //!   frame its identifier (u16 LE), its length and its data zero-padded to 8 bytes, then the
 //!   digest's full sequence number (u32 LE) and the number of frames covered (u8);
 //! - the data frames are those of [`covered`] families (JointState, EePose, the IMU families)
@@ -24,7 +31,7 @@
 use aes::Aes128;
 use cmac::{Cmac, Mac};
 
-use crate::auth::Key;
+use crate::auth::{self, Key};
 use crate::message::{StreamDigest, StreamNonce};
 use crate::spec::Kind;
 use crate::NodeId;
@@ -35,25 +42,49 @@ pub const DIGEST_PERIOD_US: u64 = 100_000;
 pub const MAX_COVERED: u8 = u8::MAX;
 /// Width of the truncated MAC, bits.
 pub const MAC_BITS: u32 = 40;
-/// Mask of the nonce bits the `StreamNonce` frame carries.
-pub const NONCE_MASK: u64 = (1 << 48) - 1;
 
 /// The stream key of a node whose table key is `table_key` (separate key usage).
 pub fn stream_key(table_key: &Key) -> Key {
     table_key.derive(b"stream")
 }
 
-/// A fresh collection nonce from the controller's `key` and its clock reading `now_us`: a MAC of
-/// the time, so it is unpredictable without the key and never repeats while time moves on.
-pub fn session_nonce(key: &Key, now_us: u64) -> StreamNonce {
-    let mut mac = <Cmac<Aes128> as Mac>::new_from_slice(key.derive(b"stream-nonce").bytes())
-        .expect("a 16-byte key fits AES-128");
-    mac.update(&now_us.to_le_bytes());
-    let tag = mac.finalize().into_bytes();
-    let mut b = [0u8; 8];
-    b[..6].copy_from_slice(&tag[..6]);
+/// The `StreamNonce_<node>` frame giving `node`, whose stream key is `key` ([`stream_key`]), the
+/// collection's `nonce` (the controller side).
+pub fn sign_nonce(key: &Key, node: NodeId, nonce: u32) -> StreamNonce {
     StreamNonce {
-        nonce: u64::from_le_bytes(b) & NONCE_MASK,
+        node,
+        nonce,
+        mac: auth::truncated(nonce_mac(key, node, nonce)),
+    }
+}
+
+fn nonce_mac(key: &Key, node: NodeId, nonce: u32) -> Cmac<Aes128> {
+    auth::cmac(key, &[b"N", &[node.raw()], &nonce.to_le_bytes()])
+}
+
+/// Why a node did not take a `StreamNonce` (it keeps the nonce it has).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NonceReject {
+    /// Addressed to another node.
+    OtherNode,
+    /// The MAC does not verify: forged, or made with another key.
+    BadMac,
+    /// Signed, but not above the nonce the node took last: a replay.
+    Stale {
+        /// The node's nonce.
+        held: u32,
+    },
+}
+
+impl core::fmt::Display for NonceReject {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match *self {
+            NonceReject::OtherNode => f.write_str("a nonce for another node"),
+            NonceReject::BadMac => f.write_str("the nonce's MAC does not verify"),
+            NonceReject::Stale { held } => {
+                write!(f, "a replayed nonce (not above the node's {held})")
+            }
+        }
     }
 }
 
@@ -114,7 +145,7 @@ fn verify40(mac: Cmac<Aes128>, got: u64) -> bool {
 pub struct Signer {
     key: Key,
     node: NodeId,
-    nonce: u64,
+    nonce: u32,
     seq: u32,
     span: Span,
     opened_us: u64,
@@ -134,15 +165,29 @@ impl Signer {
         }
     }
 
-    /// The controller's nonce: a different one restarts the stream (sequence 0, the open span
-    /// dropped); the same one again changes nothing.
-    pub fn set_nonce(&mut self, nonce: StreamNonce, now_us: u64) {
-        if nonce.nonce != self.nonce {
-            self.nonce = nonce.nonce;
-            self.seq = 0;
-            self.span = Span::open(&self.key, self.node, self.nonce);
-            self.opened_us = now_us;
+    /// The controller's `StreamNonce` for this node: taken only if its MAC verifies and it is
+    /// above the nonce held (then the stream restarts: sequence 0, the open span dropped);
+    /// otherwise nothing changes.
+    pub fn set_nonce(&mut self, nonce: StreamNonce, now_us: u64) -> Result<(), NonceReject> {
+        if nonce.node != self.node {
+            return Err(NonceReject::OtherNode);
         }
+        if !auth::verify(nonce_mac(&self.key, self.node, nonce.nonce), nonce.mac) {
+            return Err(NonceReject::BadMac);
+        }
+        if nonce.nonce <= self.nonce {
+            return Err(NonceReject::Stale { held: self.nonce });
+        }
+        self.nonce = nonce.nonce;
+        self.seq = 0;
+        self.span = Span::open(&self.key, self.node, u64::from(self.nonce));
+        self.opened_us = now_us;
+        Ok(())
+    }
+
+    /// The nonce the node holds (0 until it took one).
+    pub fn nonce(&self) -> u32 {
+        self.nonce
     }
 
     /// Adds a data frame the node sends (call it for [`covered`] frames only). Returns the
@@ -160,7 +205,10 @@ impl Signer {
     /// Closes the open span: its digest, and a new span opens.
     pub fn digest(&mut self, now_us: u64) -> StreamDigest {
         let count = self.span.count.min(u32::from(MAX_COVERED)) as u8;
-        let span = core::mem::replace(&mut self.span, Span::open(&self.key, self.node, self.nonce));
+        let span = core::mem::replace(
+            &mut self.span,
+            Span::open(&self.key, self.node, u64::from(self.nonce)),
+        );
         let mac = tag40(span.close(self.seq, count));
         let d = StreamDigest {
             node: self.node,
@@ -223,7 +271,7 @@ impl core::fmt::Display for Reject {
 pub struct Verifier {
     key: Key,
     node: NodeId,
-    nonce: u64,
+    nonce: u32,
     /// The lowest sequence number still acceptable.
     next_seq: u32,
 }
@@ -231,11 +279,11 @@ pub struct Verifier {
 impl Verifier {
     /// The verifier of `node`'s stream under `key` ([`stream_key`]) for the collection with
     /// `nonce`.
-    pub fn new(node: NodeId, key: Key, nonce: StreamNonce) -> Verifier {
+    pub fn new(node: NodeId, key: Key, nonce: u32) -> Verifier {
         Verifier {
             key,
             node,
-            nonce: nonce.nonce,
+            nonce,
             next_seq: 0,
         }
     }
@@ -248,8 +296,8 @@ impl Verifier {
     /// The controller sent the collection a new nonce (a node rebooted and lost the old one):
     /// every node restarts its sequence under it, and so does the verifier. Spans signed under
     /// the old nonce no longer verify.
-    pub fn restart(&mut self, nonce: StreamNonce) {
-        self.nonce = nonce.nonce;
+    pub fn restart(&mut self, nonce: u32) {
+        self.nonce = nonce;
         self.next_seq = 0;
     }
 
@@ -272,7 +320,7 @@ impl Verifier {
         if seq - self.next_seq > 0x8000 {
             return Err(Reject::Stale);
         }
-        let mut span = Span::open(&self.key, self.node, self.nonce);
+        let mut span = Span::open(&self.key, self.node, u64::from(self.nonce));
         for (id, data) in frames {
             span.add(id, data);
         }
@@ -325,10 +373,10 @@ mod tests {
         f.iter().map(|(id, d)| (*id, &d[..]))
     }
 
-    fn pair(nonce: u64) -> (Signer, Verifier) {
+    fn pair(nonce: u32) -> (Signer, Verifier) {
         let mut s = Signer::new(NODE, key(), 0);
-        s.set_nonce(StreamNonce { nonce }, 0);
-        (s, Verifier::new(NODE, key(), StreamNonce { nonce }))
+        s.set_nonce(sign_nonce(&key(), NODE, nonce), 0).unwrap();
+        (s, Verifier::new(NODE, key(), nonce))
     }
 
     #[test]
@@ -458,12 +506,47 @@ mod tests {
     }
 
     #[test]
-    fn stream_keys_differ_from_table_keys_and_nonces_from_each_other() {
+    fn stream_keys_differ_from_table_keys() {
         let table = Key::new([7; 16]);
         assert_ne!(stream_key(&table), table);
-        let a = session_nonce(&table, 1);
-        assert_ne!(a, session_nonce(&table, 2));
-        assert!(a.nonce <= NONCE_MASK);
+    }
+
+    /// Issue 48, item 1: a node takes only a signed nonce, for itself, above the one it holds.
+    #[test]
+    fn a_node_ignores_a_spoofed_nonce_and_a_replayed_one() {
+        let (mut s, mut v) = pair(42);
+        let before = sign(&mut s, &frames(3, 0));
+        assert_eq!(v.check(&before, refs(&frames(3, 0))), Ok(()));
+        let forged = StreamNonce {
+            node: NODE,
+            nonce: 666,
+            mac: 0xDEAD_BEEF,
+        };
+        assert_eq!(s.set_nonce(forged, 0), Err(NonceReject::BadMac));
+        let other_key = sign_nonce(&stream_key(&Key::new([8; 16])), NODE, 666);
+        assert_eq!(s.set_nonce(other_key, 0), Err(NonceReject::BadMac));
+        let for_another = sign_nonce(&key(), NodeId::JOINTS[0], 666);
+        assert_eq!(s.set_nonce(for_another, 0), Err(NonceReject::OtherNode));
+        let retargeted = StreamNonce {
+            node: NODE,
+            ..for_another
+        };
+        assert_eq!(s.set_nonce(retargeted, 0), Err(NonceReject::BadMac));
+        for old in [41, 42] {
+            assert_eq!(
+                s.set_nonce(sign_nonce(&key(), NODE, old), 0),
+                Err(NonceReject::Stale { held: 42 })
+            );
+        }
+        // None of them moved the stream: its next span verifies under 42.
+        assert_eq!(s.nonce(), 42);
+        let f = frames(3, 1);
+        let d = sign(&mut s, &f);
+        assert_eq!(d.seq_lo, 1);
+        assert_eq!(v.check(&d, refs(&f)), Ok(()));
+        // The controller's next nonce is taken.
+        assert_eq!(s.set_nonce(sign_nonce(&key(), NODE, 43), 0), Ok(()));
+        assert_eq!(sign(&mut s, &f).seq_lo, 0);
     }
 
     #[test]

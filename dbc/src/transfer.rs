@@ -529,6 +529,8 @@ struct UploadAuth {
     signed: Option<u32>,
     /// The CRC the node held in its last answer whose MAC verified (Begin or readback).
     verified_crc: Option<u32>,
+    /// The caller's random seed for the nonces ([`Upload::seeded`]).
+    seed: u64,
 }
 
 /// Controller side: pushes one table to one node, then verifies it by readback.
@@ -595,8 +597,19 @@ impl Upload {
             verified: None,
             signed: None,
             verified_crc: None,
+            seed: 0,
         });
         up
+    }
+
+    /// Seeds the nonces of an authenticated upload with `seed`, which the caller draws from the
+    /// OS random source ([`auth::nonce`]): without it a nonce is a MAC of the node, session and
+    /// clock alone, which repeat across boots of a controller without a real-time clock.
+    pub fn seeded(mut self, seed: u64) -> Self {
+        if let Some(a) = self.auth.as_mut() {
+            a.seed = seed;
+        }
+        self
     }
 
     /// Refuses (before signing anything, [`UploadError::Counter`]) a node whose authenticated
@@ -698,7 +711,7 @@ impl Upload {
             (Step::Readback(answer), None) => *answer = Answer::default(),
             (Step::Readback(_) | Step::Send(Command::Begin { .. }), Some(a)) => {
                 a.nonce
-                    .get_or_insert_with(|| auth::nonce(&a.key, node, session, now_us));
+                    .get_or_insert_with(|| auth::nonce(&a.key, node, session, a.seed, now_us));
             }
             _ => {}
         }

@@ -141,7 +141,7 @@ fn signals(m: &Message) -> Vec<(&'static str, f64)> {
             ("Count", f64::from(d.count)),
             ("Mac", d.mac as f64),
         ],
-        Message::StreamNonce(n) => vec![("Nonce", n.nonce as f64)],
+        Message::StreamNonce(n) => vec![("Nonce", f64::from(n.nonce)), ("Mac", f64::from(n.mac))],
     }
 }
 

@@ -118,6 +118,9 @@ pub struct Stats {
     /// Boots of a provisioned node that could not read its key slot or its counter record: it
     /// booted without a key, installing nothing until provisioned again (fail closed).
     pub locked: u64,
+    /// `StreamNonce` frames a node did not take: unsigned, signed for another node or with
+    /// another key, or not above the nonce it holds (a replay).
+    pub ignored_nonces: u64,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -810,11 +813,18 @@ impl Suit {
             return;
         }
         if let Ok(Message::StreamNonce(nonce)) = exocal_dbc::decode_frame(frame) {
-            for node in self.nodes.iter_mut().filter(|n| n.up) {
-                let local_us = node.local_us(t_s);
-                if let Some(s) = node.stream.as_mut() {
-                    s.set_nonce(nonce, local_us);
-                }
+            // Only the addressed node, up and keyed, takes it, and only if it is signed for it
+            // and newer (exocal_dbc::stream_auth).
+            let taken = self
+                .nodes
+                .iter_mut()
+                .find(|n| n.up && n.id == nonce.node)
+                .and_then(|node| {
+                    let local_us = node.local_us(t_s);
+                    node.stream.as_mut().map(|s| s.set_nonce(nonce, local_us))
+                });
+            if !matches!(taken, Some(Ok(()))) {
+                self.stats.ignored_nonces += 1;
             }
             return;
         }

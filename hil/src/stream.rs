@@ -1,14 +1,15 @@
 //! The emulated node's side of the authenticated sensor streams ([`exocal_dbc::stream_auth`]):
 //! a node holding a key signs the data frames it sends and sends a `StreamDigest` every
 //! [`exocal_dbc::stream_auth::DIGEST_PERIOD_US`]; it takes the collection's nonce from the
-//! controller's `StreamNonce`. A node without a key sends no digests (the controller, when it
-//! authenticates, then drops its frames: fail closed).
+//! controller's `StreamNonce_<node>` when that is signed for it and newer than the one it holds
+//! (a forged or replayed one changes nothing). A node without a key sends no digests (the
+//! controller, when it authenticates, then drops its frames: fail closed).
 
 use exocal_bus::embedded_can::Frame as _;
 use exocal_bus::Frame;
 use exocal_dbc::auth::Key;
 use exocal_dbc::message::{Message, StreamNonce};
-use exocal_dbc::stream_auth::{self, covered};
+use exocal_dbc::stream_auth::{self, covered, NonceReject};
 use exocal_dbc::{spec, NodeId};
 
 /// One node's stream signer.
@@ -27,9 +28,9 @@ pub fn signer(node: NodeId, key: Option<&Key>) -> Option<Signer> {
 }
 
 impl Signer {
-    /// The controller's nonce arrived.
-    pub fn set_nonce(&mut self, nonce: StreamNonce, local_us: u64) {
-        self.0.set_nonce(nonce, local_us);
+    /// The controller's nonce arrived: taken if signed for this node and newer.
+    pub fn set_nonce(&mut self, nonce: StreamNonce, local_us: u64) -> Result<(), NonceReject> {
+        self.0.set_nonce(nonce, local_us)
     }
 
     /// The node sends `frame`: covered if it is a data frame; the digest to send after it when
@@ -73,15 +74,37 @@ mod tests {
         let keys = KeySet::derived(5);
         crate::flash::provision(&dir, &keys).unwrap();
         let mut suit = Suit::new(Scenario::paper(), &dir).unwrap();
-        let nonce = stream_auth::session_nonce(keys.node(NodeId::JOINTS[0]).unwrap(), 1);
+        let nonce = 7;
         let before = suit.advance(0.5);
-        suit.receive(&Message::StreamNonce(nonce).to_frame().unwrap(), 0.5);
+        let stream_key = |n| stream_auth::stream_key(keys.node(n).unwrap());
+        let frame = |n, nonce| {
+            Message::StreamNonce(stream_auth::sign_nonce(&stream_key(n), n, nonce))
+                .to_frame()
+                .unwrap()
+        };
+        for n in NodeId::ALL {
+            suit.receive(&frame(n, nonce), 0.5);
+        }
+        // Forged, for another node, replayed: ignored (the verifiers below would fail else).
+        let forged = Message::StreamNonce(exocal_dbc::StreamNonce {
+            node: NodeId::JOINTS[0],
+            nonce: 99,
+            mac: 1,
+        });
+        suit.receive(&forged.to_frame().unwrap(), 0.5);
+        let mut misaddressed = frame(NodeId::JOINTS[1], 99);
+        misaddressed = Frame::new(
+            exocal_bus::embedded_can::StandardId::new(misaddressed.raw_id() as u16 - 1).unwrap(),
+            misaddressed.data(),
+        )
+        .unwrap();
+        suit.receive(&misaddressed, 0.5);
+        suit.receive(&frame(NodeId::JOINTS[2], nonce - 1), 0.5);
+        suit.receive(&frame(NodeId::JOINTS[3], nonce), 0.5);
+        assert_eq!(suit.stats().ignored_nonces, 4);
         let mut verifiers: BTreeMap<NodeId, (Verifier, Vec<Frame>, u32)> = NodeId::ALL
             .into_iter()
-            .map(|n| {
-                let key = stream_auth::stream_key(keys.node(n).unwrap());
-                (n, (Verifier::new(n, key, nonce), Vec::new(), 0))
-            })
+            .map(|n| (n, (Verifier::new(n, stream_key(n), nonce), Vec::new(), 0)))
             .collect();
         // Before the nonce, digests verify nowhere (nonce 0).
         assert!(before

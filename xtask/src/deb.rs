@@ -113,7 +113,7 @@ with a drop-in /etc/systemd/system/exocald.service.d/keys.conf:
     LoadCredentialEncrypted=exocal-keys:/etc/credstore.encrypted/exocal-keys
 
 With `authenticate = false` in the [push] section of /etc/exocal/exocald.toml, exocald
-sends plain transfers, which every exocal-3 node refuses (keyed or not): nothing can be
+sends plain transfers, which every node since exocal-3 refuses (keyed or not): nothing can be
 pushed that way, and exocald warns in the journal at every start that the nodes' answers
 and the sensor streams are unauthenticated.
 ";

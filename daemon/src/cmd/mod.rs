@@ -216,7 +216,7 @@ pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError
     if !config.push.authenticate {
         eprintln!(
             "exocald: WARNING: authentication is off ([push] authenticate = false): nodes of \
-             protocol exocal-3 install no unauthenticated table, any sender on the bus can forge \
+             protocol exocal-3 and later install no unauthenticated table, any sender on the bus can forge \
              their answers, and the sensor streams are taken unverified{}",
             if trigger { " or start a session" } else { "" }
         );

@@ -167,7 +167,8 @@ pub async fn read_tables<T: Transport>(
                 let session = first_session.wrapping_add(i as u8);
                 match keys.and_then(|k| k.node(node)) {
                     Some(key) => {
-                        let nonce = auth::nonce(key, node, session, micros(clock.now()));
+                        let seed = crate::keys::nonce_seed();
+                        let nonce = auth::nonce(key, node, session, seed, micros(clock.now()));
                         TableRead::authenticated(node, session, key.clone(), nonce)
                     }
                     None => TableRead::new(node, session),

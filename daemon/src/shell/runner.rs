@@ -299,14 +299,15 @@ impl Io<'_> {
                 }
             }
             Event::Message(exocal_dbc::Message::StreamNonce(n)) => {
-                // Never ours (a socket does not receive its own frames): the stream gate wants
-                // a new nonce of ours sent (exocal_session::verify).
+                // Never ours (a socket does not receive its own frames): forged or replayed,
+                // and the node takes neither (exocal_session::verify).
                 if let Some(k) = self.foreign_nonces.occur() {
                     let line = Throttle::line(
                         &format!(
-                            "a StreamNonce frame this controller did not send (nonce {:#014x}): \
-                             another sender on the bus; every node gets a new nonce",
-                            n.nonce
+                            "a StreamNonce frame for {} this controller did not send (nonce {}): \
+                             another sender on the bus, forging or replaying; the node keeps its \
+                             nonce",
+                            n.node, n.nonce
                         ),
                         k,
                     );
@@ -424,7 +425,7 @@ pub async fn run_session_with<T: Transport>(
         config,
         io: &mut io,
         collector: Collector::new(&config.calibration),
-        stream_key: None,
+        stream_nonce: 0,
         origin: Duration::ZERO,
         tick,
         summary: SessionSummary::new(log_path),
@@ -470,9 +471,8 @@ struct Running<'a, 'io, T> {
     config: &'a Config,
     io: &'a mut Io<'io>,
     collector: Collector,
-    /// The key the collection's stream nonces are made with, when the streams are
-    /// authenticated.
-    stream_key: Option<exocal_dbc::auth::Key>,
+    /// The last stream nonce sent (0: none yet; the streams are authenticated once one was).
+    stream_nonce: u32,
     /// Bus time of the collection's first frame: aligned sample times are relative to it.
     origin: Duration,
     tick: tokio::time::Interval,
@@ -716,9 +716,9 @@ impl<T: Transport> Running<'_, '_, T> {
     async fn authenticate_streams(&mut self) -> Result<(), DaemonError> {
         let now = self.clock.now();
         let keys = &self.config.push.keys;
-        let key = NodeId::ALL.into_iter().find_map(|n| keys.node(n));
+        let keyed = NodeId::ALL.into_iter().any(|n| keys.node(n).is_some());
         let on = self.config.push.authenticate && self.config.verify_streams;
-        let (true, Some(key)) = (on, key) else {
+        let (true, true) = (on, keyed) else {
             self.io.event(
                 now,
                 Level::Warning,
@@ -728,34 +728,43 @@ impl<T: Transport> Running<'_, '_, T> {
             return Ok(());
         };
         // The gate's nonce is set with the first one sent.
-        self.collector.gate = Some(StreamGate::new(keys, exocal_dbc::StreamNonce { nonce: 0 }));
-        self.stream_key = Some(key.clone());
+        self.collector.gate = Some(StreamGate::new(keys, 0));
         self.send_stream_nonce().await
     }
 
-    /// Sends a fresh `StreamNonce` to every node and gives it to the stream gate (at the
-    /// collection's start, and again when a node rebooted).
+    /// Sends a fresh nonce to every keyed node (`StreamNonce_<node>`, signed for it) and gives
+    /// it to the stream gate (at the collection's start, and again when a node rebooted). The
+    /// nonce is above every one sent before ([`crate::state::next_stream_nonce`]).
     async fn send_stream_nonce(&mut self) -> Result<(), DaemonError> {
-        let (Some(key), Some(gate)) = (&self.stream_key, self.collector.gate.as_mut()) else {
+        let Some(gate) = self.collector.gate.as_mut() else {
             return Ok(());
         };
-        let now = self.clock.now();
-        let nonce = stream_auth::session_nonce(key, now.as_micros() as u64);
+        let nonce = crate::state::next_stream_nonce(
+            self.config.push.state_dir.as_deref(),
+            self.stream_nonce,
+            std::time::SystemTime::now(),
+        )?;
+        self.stream_nonce = nonce;
         gate.renonce(nonce);
-        let frame: Frame = exocal_dbc::Message::StreamNonce(nonce)
-            .to_frame()
-            .map_err(|e| DaemonError::Internal {
-                what: "encoding the stream nonce".into(),
-                source: e.to_string().into(),
-            })?;
-        self.bus
-            .send(&frame)
-            .await
-            .map_err(|source| DaemonError::Bus {
-                what: "sending the stream nonce".into(),
-                source,
-            })?;
-        self.io.frame(true, &frame, now);
+        let keys = &self.config.push.keys;
+        for node in NodeId::ALL {
+            let Some(key) = keys.node(node) else { continue };
+            let signed = stream_auth::sign_nonce(&stream_auth::stream_key(key), node, nonce);
+            let frame: Frame = exocal_dbc::Message::StreamNonce(signed)
+                .to_frame()
+                .map_err(|e| DaemonError::Internal {
+                    what: "encoding the stream nonce".into(),
+                    source: e.to_string().into(),
+                })?;
+            self.bus
+                .send(&frame)
+                .await
+                .map_err(|source| DaemonError::Bus {
+                    what: format!("sending {node} its stream nonce"),
+                    source,
+                })?;
+            self.io.frame(true, &frame, self.clock.now());
+        }
         Ok(())
     }
 
@@ -1289,8 +1298,8 @@ mod tests {
         assert_eq!(err.error.exit_code(), crate::exit::code::TEMPFAIL);
         let summary = err.summary.unwrap();
         assert!(summary.push.is_none());
-        // Sent: the collection's stream nonce, nothing else.
-        assert_eq!(topic_count(&summary, "/can/tx"), 1);
+        // Sent: the collection's stream nonce (one frame per node), nothing else.
+        assert_eq!(topic_count(&summary, "/can/tx"), NodeId::ALL.len() as u64);
         assert!(topic_count(&summary, "/can/rx") > 1000);
         // The file holds what the summary counts: a message per record, a batch of frames per
         // message on /can/*.
@@ -1338,8 +1347,8 @@ mod tests {
         let summary = err.summary.unwrap();
         assert!(summary.outcome.is_some() && summary.push.is_none());
         assert!(summary.latency.is_none(), "nothing was verified");
-        // Sent: the collection's stream nonce, no table command.
-        assert_eq!(topic_count(&summary, "/can/tx"), 1);
+        // Sent: the collection's stream nonce (one frame per node), no table command.
+        assert_eq!(topic_count(&summary, "/can/tx"), NodeId::ALL.len() as u64);
         assert_eq!(topic_count(&summary, "/calibration"), 1);
         assert_finished(&summary.log_path);
         assert_eq!(before, after);
@@ -1446,10 +1455,12 @@ mod tests {
     /// One authenticated session (the hil's nodes hold the keys the daemon has) against the
     /// paper hil, with a rogue on the bus when `rogue`: during bursts (~0.3 s every 10 s) it
     /// sends a biased copy of each Joint3 angle (+0.03 rad) and each pose's position page
-    /// (x + 2 cm). Returns the result, and the joint nodes' flash tables before and after.
+    /// (x + 2 cm); with `Rogue::Nonces`, every 10 s an unsigned `StreamNonce` for every node
+    /// (a nonce far above the daemon's) and a replay of each nonce frame the daemon sent.
+    /// Returns the result, and the joint nodes' flash tables before and after.
     async fn authenticated_session(
         name: &str,
-        rogue: bool,
+        rogue: Rogue,
     ) -> (Result<SessionSummary, SessionError>, Vec<Table>, Vec<Table>) {
         use exocal_dbc::{JointState, Message, PosePage};
         let dir = temp_dir(name);
@@ -1479,11 +1490,32 @@ mod tests {
         let ([mut daemon_end, mut rogue_end], clock, hil_task) = play(hil);
         let rogue_task = tokio::spawn(async move {
             let mut seen = 0u64;
-            if !rogue {
-                return;
-            }
+            let mut recorded: Vec<Frame> = Vec::new();
             while let Ok(rx) = rogue_end.recv().await {
                 seen += 1;
+                if rogue == Rogue::Nonces {
+                    match exocal_dbc::decode_frame(&rx.frame) {
+                        Ok(Message::StreamNonce(_)) => recorded.push(rx.frame),
+                        _ if seen.is_multiple_of(35_000) => {
+                            for node in NodeId::ALL {
+                                let forged = Message::StreamNonce(exocal_dbc::StreamNonce {
+                                    node,
+                                    nonce: u32::MAX - 7,
+                                    mac: 0x0BAD_F00D,
+                                });
+                                let _ = rogue_end.send(&forged.to_frame::<Frame>().unwrap()).await;
+                            }
+                            for f in &recorded {
+                                let _ = rogue_end.send(f).await;
+                            }
+                        }
+                        _ => {}
+                    }
+                    continue;
+                }
+                if rogue == Rogue::None {
+                    continue;
+                }
                 // Bursts of ~0.3 s every 10 s (the suit sends ~3,500 frames/s).
                 if seen % 35_000 >= 1_000 {
                     continue;
@@ -1517,6 +1549,30 @@ mod tests {
         (result, before, tables(&flash))
     }
 
+    #[derive(Clone, Copy, PartialEq, Eq)]
+    enum Rogue {
+        None,
+        /// Biased data frames.
+        Injector,
+        /// Forged and replayed `StreamNonce` frames.
+        Nonces,
+    }
+
+    /// Issue 48, item 1: forged `StreamNonce` frames for every node (unsigned, a nonce far
+    /// ahead) and replays of the daemon's own, every 10 s. Every node used to obey an unsigned
+    /// nonce: 0 of 40 later spans verified and the session failed authentication, the frame
+    /// never named. Now no node takes them: no span is lost, the session validates and pushes,
+    /// and the summary counts the frames from another sender.
+    #[tokio::test(start_paused = true)]
+    async fn spoofed_nonces_on_the_bus_change_nothing_and_are_counted() {
+        let (result, _, _) = authenticated_session("stream-nonces", Rogue::Nonces).await;
+        let s = result.unwrap_or_else(|e| panic!("session: {}", e.error));
+        let g = s.stream.clone().expect("streams verified");
+        assert!(g.foreign_nonces >= 5 * 16, "{g:?}");
+        assert_eq!((g.dropped_spans, g.renonces), (0, 0), "{g:?}");
+        assert!(s.push.as_ref().is_some_and(|p| p.complete()));
+    }
+
     /// A rogue injecting biased JointState and EePose frames during an authenticated session
     /// steers nothing: every span its frames land in is dropped, the session is refused naming
     /// Joint3 and the end effector as nodes with a second sender on their identifiers (exit
@@ -1524,7 +1580,7 @@ mod tests {
     /// rogue verifies every span past the start and pushes.
     #[tokio::test(start_paused = true)]
     async fn a_rogue_injecting_biased_frames_is_named_and_the_session_refused() {
-        let (clean, _, _) = authenticated_session("stream-clean", false).await;
+        let (clean, _, _) = authenticated_session("stream-clean", Rogue::None).await;
         let clean = clean.unwrap_or_else(|e| panic!("clean session: {}", e.error));
         let c = clean.stream.clone().expect("streams verified");
         assert_eq!(
@@ -1535,7 +1591,8 @@ mod tests {
         assert!(c.verified_spans > 4000, "{c:?}");
         assert!(clean.push.as_ref().is_some_and(|p| p.complete()));
 
-        let (attacked, before, after) = authenticated_session("stream-rogue", true).await;
+        let (attacked, before, after) =
+            authenticated_session("stream-rogue", Rogue::Injector).await;
         let summary = match &attacked {
             Ok(s) => s.clone(),
             Err(e) => e.summary.clone().expect("a summary"),

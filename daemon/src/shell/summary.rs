@@ -26,7 +26,7 @@ pub fn print_summary(summary: &SessionSummary) {
             g.second_senders()
                 .map(|(n, c)| format!("; a second sender on {n}'s identifiers ({c} spans)"))
                 .chain((g.foreign_nonces > 0).then(|| format!(
-                    "; {} StreamNonce frames from another sender on the bus",
+                    "; {} StreamNonce frames from another sender on the bus (forged or replayed)",
                     g.foreign_nonces
                 )))
                 .chain((g.empty_rejects > 0).then(|| format!(
