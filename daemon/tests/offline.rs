@@ -249,7 +249,7 @@ fn bad_inputs_are_errors_naming_the_file_line_and_problem() {
     let cases: [(&str, Vec<u8>, Option<Format>, &str); 9] = [
         (
             "s.csv",
-            format!("{header}\n0.0,1,2,3,4,5,6,7,0,0,0,2,0,0,0\n").into_bytes(),
+            format!("{header}\n0.0,0.1,0.2,0.3,0.4,0.5,0.6,0.7,0,0,0,2,0,0,0\n").into_bytes(),
             None,
             "s.csv: CSV samples, line 2: quaternion norm 2.000000",
         ),

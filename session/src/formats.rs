@@ -37,6 +37,11 @@ use crate::outcome::TimedSample;
 use crate::rules::{Budget, WindowRules};
 use crate::JOINTS;
 
+/// Largest joint reading a CSV sample may carry (rad): beyond it the file is in degrees.
+pub const MAX_JOINT_READING_RAD: f64 = core::f64::consts::TAU;
+/// Farthest end-effector position from the base a CSV sample may carry (m): beyond it the file
+/// is in millimetres.
+pub const MAX_POSITION_M: f64 = 5.0;
 /// Characters of a bad line quoted in its error.
 pub const MAX_QUOTED: usize = 80;
 
@@ -223,6 +228,30 @@ impl CsvReader {
                     csv_err(n, format!("{name} = {shown:?} is not a finite number"))
                 })?;
         }
+        // Unit mistakes get a hint naming the unit, not a calibration that fails later.
+        for (j, q) in v[1..8].iter().enumerate() {
+            if q.abs() > MAX_JOINT_READING_RAD {
+                return Err(csv_err(
+                    n,
+                    format!(
+                        "q{} = {q}: a joint reading beyond ±2π; the CSV takes radians (in \
+                         degrees? divide by 57.2958)",
+                        j + 1
+                    ),
+                ));
+            }
+        }
+        for (name, x) in ["x", "y", "z"].iter().zip(&v[8..11]) {
+            if x.abs() > MAX_POSITION_M {
+                return Err(csv_err(
+                    n,
+                    format!(
+                        "{name} = {x}: an end-effector position {MAX_POSITION_M} m or more from \
+                         the base; the CSV takes metres (in millimetres? divide by 1000)"
+                    ),
+                ));
+            }
+        }
         let t = v[0];
         if let Some(prev) = self.samples.last() {
             if t <= prev.t {
@@ -390,6 +419,21 @@ mod tests {
                 format!("{CSV_HEADER}\n{}", ok.replace(",1,0,0,0", ",2,0,0,0")),
                 2,
                 "quaternion norm",
+            ),
+            // Issue 50, item 4: degrees and millimetres get a hint naming the unit.
+            (
+                format!(
+                    "{CSV_HEADER}\n{ok}\n{}",
+                    ok.replacen("0.1,0,0,0,0", "0.2,0,0,0,95.5", 1)
+                ),
+                3,
+                "q4 = 95.5: a joint reading beyond ±2π; the CSV takes radians (in degrees?",
+            ),
+            (
+                format!("{CSV_HEADER}\n{}", ok.replace("0.2,0.3", "200,0.3")),
+                2,
+                "y = 200: an end-effector position 5 m or more from the base; the CSV takes \
+                 metres (in millimetres?",
             ),
         ];
         for (text, line, what) in cases {
