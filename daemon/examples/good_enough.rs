@@ -130,6 +130,7 @@ fn main() {
                 speed: 1_000.0,
                 output,
                 hold: false,
+                quiet: false,
                 wearer: kind.wearer.clone(),
             };
             let result = match run(&config, &opts) {

@@ -4,7 +4,9 @@
 //! calibrates when triggered; `exocald demo` runs the emulated suit and the daemon in one process
 //! (no CAN, no root); `exocald check-config` validates a configuration file and prints it;
 //! `exocald offline` recalibrates from a recorded session; `exocald recover` rewrites a log cut
-//! short as a complete file; `exocald nodes` asks every node which table it holds.
+//! short as a complete file; `exocald nodes` asks every node which table it holds;
+//! `exocald completions SHELL` and `exocald man` print what the shell and man(1) need, made
+//! from this definition.
 
 use std::path::PathBuf;
 
@@ -97,6 +99,34 @@ pub enum Command {
     /// Exit status: 0 every node answered; 69 some node did not answer (each named), or the CAN
     /// interface is missing; 74 I/O error; 78 bad configuration.
     Nodes(NodesArgs),
+    /// Print the shell completion script for SHELL on stdout.
+    ///
+    /// bash: `exocald completions bash > ~/.local/share/bash-completion/completions/exocald`;
+    /// zsh: into a directory of your `fpath` as `_exocald`; fish:
+    /// `~/.config/fish/completions/exocald.fish`. The Debian package installs all three.
+    /// Exit status: 0 printed; 74 stdout could not be written.
+    Completions(CompletionsArgs),
+    /// Print the manual page (roff) on stdout, or write one per subcommand into --dir.
+    ///
+    /// `exocald man | man -l -` reads it now. The Debian package installs them (man exocald,
+    /// man exocald-offline, …). Exit status: 0 written; 74 I/O error.
+    Man(ManArgs),
+}
+
+/// Options of `completions`.
+#[derive(Debug, Args)]
+pub struct CompletionsArgs {
+    /// The shell.
+    #[arg(value_enum)]
+    pub shell: clap_complete::Shell,
+}
+
+/// Options of `man`.
+#[derive(Debug, Args)]
+pub struct ManArgs {
+    /// Write `exocald.1` and `exocald-SUBCOMMAND.1` into this directory instead.
+    #[arg(long, value_name = "DIR")]
+    pub dir: Option<PathBuf>,
 }
 
 /// Options of `nodes`.
@@ -149,6 +179,14 @@ pub struct OfflineArgs {
     /// Write the replayed frames as a `candump -L` log (frame inputs only).
     #[arg(long, value_name = "OUT.log")]
     pub export_candump: Option<PathBuf>,
+    /// Print only the verdict (the summary's last line) on stdout, and no progress.
+    #[arg(long, short = 'q', conflicts_with = "json")]
+    pub quiet: bool,
+    /// Print the result as one JSON object on stdout (verdict, exit status, expected error,
+    /// held-out errors, the calibrated table in SI units, per-node push results, refusals),
+    /// and no progress: for scripts.
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// Options shared by `calibrate` and `run`.
@@ -185,6 +223,19 @@ pub struct DemoArgs {
     /// connect to ws://127.0.0.1:8765 and watch the arm, the progress and the result.
     #[arg(long)]
     pub live: bool,
+    /// Serve the live view on this loopback address and port instead (implies --live), e.g.
+    /// 127.0.0.1:8766 when 8765 is taken. For other hosts, use `[live] listen` with
+    /// `allow_remote = true` in a --config file.
+    #[arg(long, value_name = "ADDR", value_parser = loopback)]
+    pub listen: Option<std::net::SocketAddr>,
+    /// Print only the verdict (the summary's last line) on stdout, and no progress.
+    #[arg(long, short = 'q', conflicts_with = "json")]
+    pub quiet: bool,
+    /// Print the result as one JSON object on stdout (verdict, exit status, expected error,
+    /// held-out errors, the calibrated table in SI units, per-node push results, refusals),
+    /// and no progress: for scripts.
+    #[arg(long)]
+    pub json: bool,
     /// After the session, power the emulated nodes up again from their flash and ask them what
     /// they hold, as `exocald nodes` asks a suit's nodes on a bus (its listing, on stdout).
     #[arg(long)]
@@ -199,6 +250,22 @@ fn positive(text: &str) -> Result<f64, String> {
         Ok(v) => Err(format!("{v} is not a speed: it must be finite and above 0")),
         Err(e) => Err(format!("`{text}` is not a number: {e}")),
     }
+}
+
+/// A loopback address and port (`--listen`): the live view has no authentication.
+#[cfg(feature = "demo")]
+fn loopback(text: &str) -> Result<std::net::SocketAddr, String> {
+    let addr: std::net::SocketAddr = text
+        .parse()
+        .map_err(|_| format!("`{text}` is not an address and port (e.g. 127.0.0.1:8766)"))?;
+    if !addr.ip().is_loopback() {
+        return Err(format!(
+            "{addr} is reachable from other hosts and the live view has no authentication: \
+             use a loopback address (127.0.0.1), or `[live] listen` with allow_remote = true \
+             in a --config file"
+        ));
+    }
+    Ok(addr)
 }
 
 /// Options of `check-config`.

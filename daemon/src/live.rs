@@ -252,8 +252,9 @@ impl LiveView {
             .and_then(|l| l.set_nonblocking(true).map(|()| l))
             .map_err(|source| LiveError {
                 what: format!(
-                    "listening on {listen} for the live view (another program on the port? \
-                     set [live] listen to a free one)"
+                    "listening on {listen} for the live view (another program on the port, \
+                     e.g. another exocald? `ss -ltnp` names it; choose a free port: \
+                     `exocald demo --listen 127.0.0.1:8766`, or [live] listen)"
                 ),
                 source,
             })?;

@@ -292,3 +292,168 @@ fn the_summary_says_when_the_sensors_rate_bias_is_not_configured() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Issue 50, item 3: completions for each shell and the manual pages, made from the CLI
+/// definition, name every subcommand.
+#[test]
+fn completions_and_manual_pages_come_from_the_cli_definition() {
+    let subcommands = [
+        "calibrate",
+        "run",
+        "demo",
+        "check-config",
+        "offline",
+        "recover",
+        "nodes",
+        "completions",
+        "man",
+    ];
+    for shell in ["bash", "zsh", "fish", "elvish", "powershell"] {
+        let (code, out, err) = exocald(&["completions", shell]);
+        assert_eq!(code, 0, "{shell}: {err}");
+        for sub in subcommands {
+            assert!(out.contains(sub), "{shell} completions lack {sub}");
+        }
+    }
+    assert!(exocald(&["completions", "bash"])
+        .1
+        .contains("--export-candump"));
+    assert_eq!(exocald(&["completions", "tcsh"]).0, 64);
+
+    let (code, page, err) = exocald(&["man"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(page.contains(".TH exocald 1"), "{page}");
+    for sub in subcommands {
+        let roff = sub.replace('-', "\\-");
+        assert!(
+            page.contains(&format!("exocald\\-{roff}(1)")),
+            "{sub}: {page}"
+        );
+    }
+    let dir = std::env::temp_dir().join(format!("exocald-cli-{}-man", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let (code, _, err) = exocald(&["man", "--dir", dir.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    for sub in subcommands {
+        let p = dir.join(format!("exocald-{sub}.1"));
+        let text = std::fs::read_to_string(&p).unwrap_or_else(|e| panic!("{p:?}: {e}"));
+        assert!(text.contains(&format!(".TH exocald-{sub} 1")), "{p:?}");
+    }
+    assert!(dir.join("exocald.1").exists());
+    let demo = std::fs::read_to_string(dir.join("exocald-demo.1")).unwrap();
+    assert!(demo.contains("\\-\\-listen"), "{demo}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Issue 50, item 3: `demo --listen`: loopback only, and a taken port says what to do.
+#[cfg(feature = "demo")]
+#[test]
+fn demo_listen_takes_loopback_only_and_a_taken_port_gets_a_hint() {
+    let (code, _, err) = exocald(&["demo", "--listen", "0.0.0.0:8765"]);
+    assert_eq!(code, 64, "{err}");
+    assert!(err.contains("allow_remote"), "{err}");
+    let (code, _, err) = exocald(&["demo", "--listen", "localhost"]);
+    assert_eq!(code, 64, "{err}");
+    assert!(err.contains("not an address and port"), "{err}");
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = taken.local_addr().unwrap().to_string();
+    let out = std::env::temp_dir().join(format!("exocald-cli-{}-taken", std::process::id()));
+    let (code, _, err) = exocald(&["demo", "--listen", &addr, "-o", out.to_str().unwrap()]);
+    assert_eq!(code, 74, "{err}");
+    assert!(
+        err.contains(&format!("listening on {addr}")) && err.contains("exocald demo --listen"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Issue 50, item 2: the summary's last line is the verdict with the expected error; `--quiet`
+/// prints that line alone, `--json` one object a script reads; offline says the same of the
+/// demo's log, and a refusal says why.
+#[cfg(feature = "demo")]
+#[test]
+fn the_verdict_is_the_last_line_and_quiet_and_json_say_it() {
+    let dir = std::env::temp_dir().join(format!("exocald-cli-{}-verdict", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let out = dir.to_str().unwrap();
+    let (code, text, err) = exocald(&["demo", "--speed", "1e6", "-o", out]);
+    assert_eq!(code, 0, "{err}");
+    let last = text.lines().last().unwrap().to_string();
+    assert!(
+        last.starts_with(
+            "verdict: validated and pushed, every node holds the new table; \
+                          expected table error ±"
+        ),
+        "{last}"
+    );
+    assert!(
+        text.contains("drift model, every joint: Gauss-Markov"),
+        "{text}"
+    );
+    assert!(
+        text.contains("held-out mean error, nominal → calibrated: position "),
+        "{text}"
+    );
+
+    let (code, quiet, err) = exocald(&["demo", "--speed", "1e6", "-o", out, "--quiet"]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(quiet.trim_end(), last, "the same seed, the same verdict");
+    assert!(err.is_empty(), "--quiet: nothing on stderr: {err}");
+
+    let (code, json, err) = exocald(&["demo", "--speed", "1e6", "-o", out, "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let v: serde_json::Value = serde_json::from_str(&json).expect("one JSON object");
+    assert_eq!(v["verdict"], "pushed");
+    assert_eq!(v["exit"], 0);
+    assert_eq!(v["line"].as_str(), Some(last.as_str()));
+    let mm = v["expected_error"]["position_mm"].as_f64().unwrap();
+    assert!(last.contains(&format!("±{mm:.2} mm")), "{last} vs {mm}");
+    let table = v["table"].as_array().unwrap();
+    assert_eq!(table.len(), 7);
+    assert!(
+        table[2]["a"].as_f64().unwrap() > 0.3,
+        "metres: {}",
+        table[2]
+    );
+    let push = v["push"].as_array().unwrap();
+    assert!(push.iter().all(|n| n["holds"] == "New"), "{json}");
+
+    let log = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.extension().is_some_and(|x| x == "mcap"))
+        .unwrap();
+    let log = log.to_str().unwrap();
+    let (code, json, err) = exocald(&["offline", "-i", log, "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let o: serde_json::Value = serde_json::from_str(&json).unwrap();
+    assert_eq!(o["verdict"], "validated");
+    assert_eq!(o["table"], v["table"], "offline replays to the live table");
+    assert!(o["push"].is_null());
+
+    let strict = exocald::config::DEFAULT_TOML.replace(
+        "max_expected_position_error_mm = 3.0",
+        "max_expected_position_error_mm = 0.1",
+    );
+    let config = temp("strict.toml", &strict);
+    let config = config.to_str().unwrap();
+    let (code, text, _) = exocald(&["--config", config, "offline", "-i", log]);
+    assert_eq!(code, 65);
+    let last = text.lines().last().unwrap();
+    assert!(
+        last.starts_with("verdict: refused, nothing pushed: "),
+        "{last}"
+    );
+    let (code, json, _) = exocald(&["--config", config, "offline", "-i", log, "--json"]);
+    assert_eq!(code, 65);
+    let r: serde_json::Value = serde_json::from_str(&json).unwrap();
+    assert_eq!(
+        (r["verdict"].as_str(), r["exit"].as_i64()),
+        (Some("refused"), Some(65))
+    );
+    assert!(!r["refusals"].as_array().unwrap().is_empty(), "{json}");
+    let (code, json, _) = exocald(&["offline", "-i", "/nonexistent.mcap", "--json"]);
+    let e: serde_json::Value = serde_json::from_str(&json).expect("JSON on a failure too");
+    assert_eq!(e["exit"].as_i64(), Some(i64::from(code)));
+    let _ = std::fs::remove_dir_all(&dir);
+}

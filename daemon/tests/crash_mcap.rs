@@ -258,7 +258,7 @@ fn a_log_cut_after_its_collection_window_recalibrates_offline_to_the_live_result
     let log = &mcap_files(&dir)[0];
     let expected = offline(log);
     let expected = String::from_utf8_lossy(&expected.stdout).into_owned();
-    let key = "held-out mean pose error:";
+    let key = "held-out mean error";
     let expected = line(&expected, key)
         .expect("the session calibrates")
         .to_owned();

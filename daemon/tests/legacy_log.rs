@@ -59,6 +59,7 @@ fn todays_live_rows(config: &Config, dir: &Path) -> exocal_session::pipeline::Ou
         speed: 1e6,
         output: dir.join("today"),
         hold: false,
+        quiet: false,
         wearer: Default::default(),
     };
     let config = exocald::cmd::demo::demo_config(config.clone(), &opts.output, 1.0);

@@ -159,6 +159,7 @@ fn a_foxglove_client_watches_the_demo_and_gets_the_calibration() {
         speed: 1e6,
         output: dir.clone(),
         hold: false,
+        quiet: false,
         wearer: Default::default(),
     };
     let (got, demo) = std::thread::scope(|s| {
@@ -278,7 +279,7 @@ fn the_live_view_takes_at_most_max_clients() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Which WebSocket subprotocols the live view accepts (README, "The live view"): the Foxglove
+/// Which WebSocket subprotocols the live view accepts (docs/suit.md, "The live view"): the Foxglove
 /// SDK's `foxglove.sdk.v1` and `foxglove.sdk.v1.1`; a client offering only the older
 /// `foxglove.websocket.v1` gets HTTP 400 (the SDK has no setting for it).
 #[test]

@@ -660,9 +660,8 @@ pub fn render(input: &ReportInput) -> String {
         "<p class=\"note\">The figure to judge the table by is the expected table error: how far \
          the calibrated arm's pose is expected to be from the true arm's on fresh poses (1σ, \
          RMS over the workspace). The {slice} errors above are measured against the reference and \
-         include that slice's own drift and reference noise. The console's \"held-out mean pose \
-         error … % better\" is validation's figure, position (m) and rotation (rad) in one \
-         norm; the cards and the console's \"held-out mean position error\" line separate them.</p>"
+         include that slice's own drift and reference noise; the console's \"held-out mean \
+         error\" line gives the same figures.</p>"
     );
 
     out.push_str("<h2>End-effector trajectories</h2>\n");
@@ -942,7 +941,8 @@ fn drift_table(out: &mut String, em: &EmDetail) {
         out.push_str(
             "<p class=\"note\">95% intervals from the curvature of the likelihood (calib-core's \
              <code>drift_confidence</code>). Checked by Monte Carlo on sessions of 120 τ, they \
-             cover the truth about 87% of the time; on sessions shorter than about 100 τ they are \
+             cover the truth about 90% of the time (τ 91%, σ 89%: calib-core/README.md, \
+             <code>drift-coverage</code>); on sessions shorter than about 100 τ they are \
              optimistic.</p>",
         );
     }

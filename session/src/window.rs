@@ -218,6 +218,8 @@ pub struct Progress {
     pub guidance: Option<[f64; JOINTS]>,
     /// Overall readiness 0..1: the least advanced of time, coverage and samples.
     pub readiness: f64,
+    /// The expected table error the window stops at (stop when good enough), if it does.
+    pub target: Option<Expected>,
 }
 
 impl Progress {
@@ -236,10 +238,16 @@ impl Progress {
             required * 100.0
         );
         if let Some(k) = self.condition_number {
-            s.push_str(&format!(", cond {k:.3e}"));
+            s.push_str(&format!(", condition number {k:.1}"));
         }
         if let Some(e) = self.expected {
-            s.push_str(&format!(", expected {e}"));
+            s.push_str(&format!(", expected table error {e}"));
+        }
+        if let Some(t) = self.target {
+            s.push_str(&format!(
+                ", stops within ±{:.1} mm, ±{:.1} mrad",
+                t.position_mm, t.rotation_mrad
+            ));
         }
         if let Some(advice) = self.advice() {
             s.push_str(&format!(", {advice}"));
@@ -422,6 +430,10 @@ impl Window {
             expected: self.expected,
             guidance: self.guidance,
             readiness: time.min(cov).min(samples),
+            target: r.stop_at_expected_error.map(|(mm, mrad)| Expected {
+                position_mm: mm,
+                rotation_mrad: mrad,
+            }),
         }
     }
 
@@ -509,6 +521,10 @@ mod tests {
             }),
             guidance: Some([0.99, 0.99, 0.99, 0.99, 0.99, 0.99, 0.949]),
             readiness: 0.5,
+            target: Some(Expected {
+                position_mm: 2.0,
+                rotation_mrad: 6.0,
+            }),
         };
         let line = widest.short(1.0);
         assert_eq!(line, "360 s cov 99 99 99 99 99 99 99/100 ±100.0 mm j7→94.9");
@@ -625,10 +641,9 @@ mod tests {
         });
         assert!(!s.good_enough());
         assert_eq!(s.phase(30.0), Phase::Collecting);
-        assert!(s
-            .progress(30.0)
-            .line(0.5)
-            .ends_with(", expected ±2.50 mm, ±5.00 mrad (1σ)"));
+        assert!(s.progress(30.0).line(0.5).ends_with(
+            ", expected table error ±2.50 mm, ±5.00 mrad (1σ), stops within ±2.0 mm, ±6.0 mrad"
+        ));
         // At the maximum the motion alone decides: calibrate what there is.
         assert_eq!(s.phase(120.0), Phase::Ready);
         // Within both limits: ready after STOP_GUARD estimates in a row, never before the
@@ -703,6 +718,6 @@ mod tests {
             line.starts_with("collecting 3.2 s, 0 samples, coverage % [0 0 0 0 0 0 0] (need 50)"),
             "{line}"
         );
-        assert!(line.ends_with("cond 1.230e2"), "{line}");
+        assert!(line.ends_with("condition number 123.0"), "{line}");
     }
 }

@@ -58,6 +58,8 @@ pub struct DemoOptions {
     pub output: PathBuf,
     /// With the live view: keep serving after the session until SIGTERM or SIGINT.
     pub hold: bool,
+    /// No progress on stderr (`--quiet`, `--json`).
+    pub quiet: bool,
     /// How the emulated wearer moves and follows the session's guidance (the scenario's
     /// `[wearer]`; by default the paper's motion, no one listening).
     pub wearer: Wearer,
@@ -228,6 +230,7 @@ async fn session(
         config,
         shutdown.wait(),
         &observers,
+        opts.quiet,
     )
     .await;
     pacer.abort();
@@ -382,11 +385,11 @@ pub async fn session_against_suit<D: Transport>(
     config: &Config,
     shutdown: impl Future<Output = ()>,
 ) -> SuitSession {
-    session_against_suit_with(suit, daemon_end, clock, config, shutdown, &[]).await
+    session_against_suit_with(suit, daemon_end, clock, config, shutdown, &[], false).await
 }
 
 /// [`session_against_suit`], its records handed to `observers` too (the live view, the
-/// emulated wearer's ear).
+/// emulated wearer's ear); without progress on stderr when `quiet`.
 pub async fn session_against_suit_with<D: Transport>(
     suit: RunningSuit,
     daemon_end: &mut D,
@@ -394,9 +397,13 @@ pub async fn session_against_suit_with<D: Transport>(
     config: &Config,
     shutdown: impl Future<Output = ()>,
     observers: &[&dyn Observer],
+    quiet: bool,
 ) -> SuitSession {
     let mut notifier = Notifier::disabled();
-    let mut reporter = Reporter::detect(&notifier);
+    let mut reporter = match quiet {
+        true => Reporter::Quiet,
+        false => Reporter::detect(&notifier),
+    };
     let started = Instant::now();
     let result = run_session_with(
         daemon_end,
@@ -601,6 +608,7 @@ mod tests {
             speed: 1e6,
             output: dir.join("out"),
             hold: false,
+            quiet: false,
             wearer,
         };
         let mut config = demo_config(Config::default_config(), &opts.output, 1.0);
@@ -660,6 +668,7 @@ mod tests {
                 speed: 1e6,
                 output: dir.clone(),
                 hold: false,
+                quiet: false,
                 wearer: Wearer {
                     reach,
                     compliance,
@@ -718,6 +727,7 @@ mod tests {
             speed: 1e6,
             output: dir.clone(),
             hold: false,
+            quiet: false,
             wearer: Default::default(),
         };
         let config = demo_config(Config::default_config(), &dir, 1.0);

@@ -20,7 +20,7 @@ use crate::exit::DaemonError;
 use crate::shell::notify::{Notifier, Reporter};
 use crate::shell::runner::run_session;
 use crate::shell::shutdown::Shutdown;
-use crate::shell::summary::finish;
+use crate::shell::summary::{finish, Output};
 
 /// Where a configuration came from.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -89,28 +89,14 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
             runtime()?.block_on(serve_on_can(config, args.dry_run))
         }
         Command::Offline(args) => {
-            let (config, source) = resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
-            eprintln!("exocald: configuration from {source}");
-            let text = match &source {
-                ConfigSource::File(p) => {
-                    std::fs::read_to_string(p).map_err(|source| DaemonError::Io {
-                        what: format!("reading {}", p.display()),
-                        source,
-                    })?
-                }
-                ConfigSource::BuiltIn => DEFAULT_TOML.to_string(),
-            };
-            let opts = crate::cmd::offline::OfflineOptions {
-                input: args.input,
-                format: args.format,
-                report: args.report,
-                export_toml: args.export_toml,
-                export_urdf: args.export_urdf,
-                export_candump: args.export_candump,
-            };
-            finish(crate::cmd::offline::run(&config, &text, &opts).map_err(|e| *e))
+            let output = Output::from_flags(args.quiet, args.json);
+            let mut printed = false;
+            let result = offline(cli.config.as_deref(), args, output, &mut printed);
+            json_error_unless(result, output, printed)
         }
         Command::Recover(args) => recover_log(&args),
+        Command::Completions(args) => completions(args.shell),
+        Command::Man(args) => man(args.dir.as_deref()),
         Command::Nodes(args) => {
             let result = nodes(cli.config.as_deref(), &args);
             match &result {
@@ -125,47 +111,167 @@ pub fn run(cli: Cli) -> Result<(), DaemonError> {
         }
         #[cfg(feature = "demo")]
         Command::Demo(args) => {
-            let (config, source) = resolve_config(cli.config.as_deref(), Path::new(SYSTEM_CONFIG))?;
-            eprintln!("exocald: configuration from {source}");
-            let mut config = crate::cmd::demo::demo_config(config, &args.output, 1.0);
-            config.live.enabled |= args.live;
-            if config.push.authenticate {
-                eprintln!(
-                    "exocald: demo keys: one AES-128 key per node derived in-process from the \
-                     seed ({}): not secret, for the emulated suit only",
-                    args.seed
-                );
-            }
-            let opts = crate::cmd::demo::DemoOptions {
-                seed: args.seed,
-                speed: args.speed,
-                output: args.output.clone(),
-                hold: args.live,
-                wearer: Default::default(),
-            };
-            match crate::cmd::demo::run(&config, &opts).map_err(|e| *e) {
-                Ok(result) => {
-                    crate::shell::summary::print_summary(&result.summary);
-                    let check = crate::cmd::demo::check_flash(&result);
-                    for (node, crc) in &result.flash_crc {
-                        let crc = crc.map_or_else(|| "none".into(), |c| format!("{c:#010x}"));
-                        println!("flash {node}: table CRC {crc}");
-                    }
-                    if check.is_ok() {
-                        println!("every node persisted the pushed table (CRC match)");
-                    }
-                    if args.nodes {
-                        let flash = args.output.join("flash");
-                        let listing =
-                            crate::cmd::demo::ask_nodes(&config, args.seed, &flash, &[], None)?;
-                        println!("{}", listing.lines().join("\n"));
-                    }
-                    check
-                }
-                Err(e) => finish(Err(e)),
+            let output = Output::from_flags(args.quiet, args.json);
+            let mut printed = false;
+            let result = demo(cli.config.as_deref(), &args, output, &mut printed);
+            json_error_unless(result, output, printed)
+        }
+    }
+}
+
+/// With `--json`, an error no result was printed for (a bad configuration, an unreadable
+/// input) still gives stdout one JSON object, `{"error": …, "exit": N}`, as `nodes --json`.
+fn json_error_unless(
+    result: Result<(), DaemonError>,
+    output: Output,
+    printed: bool,
+) -> Result<(), DaemonError> {
+    if let (Err(e), Output::Json, false) = (&result, output, printed) {
+        println!("{}", error_json(e));
+    }
+    result
+}
+
+/// `exocald offline`: the configuration, then the replay and its result (`printed` once it
+/// is on stdout).
+fn offline(
+    config_path: Option<&Path>,
+    args: crate::cli::OfflineArgs,
+    output: Output,
+    printed: &mut bool,
+) -> Result<(), DaemonError> {
+    let (config, source) = resolve_config(config_path, Path::new(SYSTEM_CONFIG))?;
+    if output == Output::Text {
+        eprintln!("exocald: configuration from {source}");
+    }
+    let text = match &source {
+        ConfigSource::File(p) => std::fs::read_to_string(p).map_err(|source| DaemonError::Io {
+            what: format!("reading {}", p.display()),
+            source,
+        })?,
+        ConfigSource::BuiltIn => DEFAULT_TOML.to_string(),
+    };
+    let opts = crate::cmd::offline::OfflineOptions {
+        input: args.input,
+        format: args.format,
+        report: args.report,
+        export_toml: args.export_toml,
+        export_urdf: args.export_urdf,
+        export_candump: args.export_candump,
+    };
+    let result = crate::cmd::offline::run(&config, &text, &opts).map_err(|e| *e);
+    *printed = true;
+    finish(result, output)
+}
+
+/// `exocald demo`: the emulated suit and the daemon, then the result, the flash check and,
+/// with `--nodes`, the nodes' listing (`printed` once the result is on stdout).
+#[cfg(feature = "demo")]
+fn demo(
+    config_path: Option<&Path>,
+    args: &crate::cli::DemoArgs,
+    output: Output,
+    printed: &mut bool,
+) -> Result<(), DaemonError> {
+    let (config, source) = resolve_config(config_path, Path::new(SYSTEM_CONFIG))?;
+    let quiet = output != Output::Text;
+    if !quiet {
+        eprintln!("exocald: configuration from {source}");
+    }
+    let mut config = crate::cmd::demo::demo_config(config, &args.output, 1.0);
+    config.live.enabled |= args.live;
+    if let Some(listen) = args.listen {
+        config.live.enabled = true;
+        config.live.listen = listen;
+    }
+    if config.push.authenticate && !quiet {
+        eprintln!(
+            "exocald: demo keys: one AES-128 key per node derived in-process from the seed \
+             ({}): not secret, for the emulated suit only",
+            args.seed
+        );
+    }
+    let opts = crate::cmd::demo::DemoOptions {
+        seed: args.seed,
+        speed: args.speed,
+        output: args.output.clone(),
+        hold: args.live || args.listen.is_some(),
+        quiet,
+        wearer: Default::default(),
+    };
+    let result = match crate::cmd::demo::run(&config, &opts).map_err(|e| *e) {
+        Ok(result) => result,
+        Err(e) => {
+            *printed = true;
+            return finish(Err(e), output);
+        }
+    };
+    let mut check = crate::cmd::demo::check_flash(&result);
+    let mut extra: Vec<String> = result
+        .flash_crc
+        .iter()
+        .map(|(node, crc)| {
+            let crc = crc.map_or_else(|| "none".into(), |c| format!("{c:#010x}"));
+            format!("flash {node}: table CRC {crc}")
+        })
+        .collect();
+    if check.is_ok() {
+        extra.push("every node persisted the pushed table (CRC match)".into());
+        if args.nodes {
+            let flash = args.output.join("flash");
+            match crate::cmd::demo::ask_nodes(&config, args.seed, &flash, &[], None) {
+                Ok(listing) => extra.extend(listing.lines()),
+                Err(e) => check = Err(e),
             }
         }
     }
+    *printed = true;
+    crate::shell::summary::print_result(
+        Some(&result.summary),
+        check.as_ref().err(),
+        &extra,
+        output,
+    );
+    check
+}
+
+/// `exocald completions SHELL`: the completion script, from the CLI definition.
+fn completions(shell: clap_complete::Shell) -> Result<(), DaemonError> {
+    use clap::CommandFactory;
+    let mut out = Vec::new();
+    clap_complete::generate(shell, &mut Cli::command(), "exocald", &mut out);
+    write_stdout(&out, "the completion script")
+}
+
+/// `exocald man [--dir DIR]`: the manual page on stdout, or one per subcommand into `dir`.
+fn man(dir: Option<&Path>) -> Result<(), DaemonError> {
+    use clap::CommandFactory;
+    let io = |what: String| move |source| DaemonError::Io { what, source };
+    let Some(dir) = dir else {
+        let mut out = Vec::new();
+        clap_mangen::Man::new(Cli::command())
+            .render(&mut out)
+            .map_err(io("rendering the manual page".into()))?;
+        return write_stdout(&out, "the manual page");
+    };
+    std::fs::create_dir_all(dir).map_err(io(format!("creating {}", dir.display())))?;
+    clap_mangen::generate_to(Cli::command(), dir).map_err(io(format!(
+        "writing the manual pages into {}",
+        dir.display()
+    )))
+}
+
+/// Writes `bytes` to stdout (a closed pipe is an I/O error, 74, never a panic).
+fn write_stdout(bytes: &[u8], what: &str) -> Result<(), DaemonError> {
+    use std::io::Write;
+    let mut stdout = std::io::stdout().lock();
+    stdout
+        .write_all(bytes)
+        .and_then(|()| stdout.flush())
+        .map_err(|source| DaemonError::Io {
+            what: format!("writing {what} to stdout"),
+            source,
+        })
 }
 
 /// `exocald nodes`: the configuration, the keys if provisioned, then the listing.
@@ -288,7 +394,7 @@ pub async fn calibrate_on_can(config: Config, dry_run: bool) -> Result<(), Daemo
         &mut reporter,
     )
     .await;
-    finish(result)
+    finish(result, Output::Text)
 }
 
 /// `exocald run`: wait for an authentic `Trigger` frame (StartCalibration) or SIGUSR1, run a

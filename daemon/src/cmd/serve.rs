@@ -245,7 +245,7 @@ pub async fn serve<T: Transport>(
                 }
             }
         };
-        match crate::shell::summary::finish(result) {
+        match crate::shell::summary::finish(result, crate::shell::summary::Output::Text) {
             Ok(()) => {}
             Err(DaemonError::Interrupted) => return Err(DaemonError::Interrupted),
             Err(e) => reporter.message(&format!("session failed: {e}")),

@@ -646,6 +646,7 @@ mod tests {
             expected: None,
             guidance: Some([1.0, 0.9, 0.9, 0.9, 0.9, 0.9, 0.4]),
             readiness: 0.1,
+            target: None,
         }
     }
 

@@ -118,6 +118,8 @@ pub enum Reporter {
         /// Elapsed time (s) of the last plain line; `None` before the first.
         last_line: Option<f64>,
     },
+    /// Nothing (`--quiet`, `--json`: stdout carries the result, stderr only errors).
+    Quiet,
 }
 
 impl Reporter {
@@ -169,6 +171,7 @@ impl Reporter {
                     eprintln!("exocald: {line}");
                 }
             }
+            Reporter::Quiet => {}
         }
     }
 
@@ -202,6 +205,7 @@ impl Reporter {
                 bar.set_prefix(phase.to_string());
                 bar.set_message(detail.to_string());
             }
+            Reporter::Quiet => {}
             _ => eprintln!("exocald: {phase}: {detail}"),
         }
     }
@@ -210,6 +214,7 @@ impl Reporter {
     pub fn message(&self, text: &str) {
         match self {
             Reporter::Bar(bar) => bar.println(format!("exocald: {text}")),
+            Reporter::Quiet => {}
             _ => eprintln!("exocald: {text}"),
         }
     }
@@ -249,6 +254,7 @@ mod tests {
             }),
             guidance: None,
             readiness: 1.0,
+            target: None,
         };
         // Lines at 50 and 55 s; the estimate that closes the window lands after 55 s.
         let mut last = None;
@@ -257,9 +263,9 @@ mod tests {
         assert!(!Reporter::line_due(&mut last, 55.01));
         let line = Reporter::closing_line(&mut last, &progress(55.01, 1.66), 0.5);
         assert!(
-            line.as_deref().is_some_and(
-                |l| l.starts_with("collecting 55.0 s") && l.contains("expected ±1.66 mm")
-            ),
+            line.as_deref()
+                .is_some_and(|l| l.starts_with("collecting 55.0 s")
+                    && l.contains("expected table error ±1.66 mm")),
             "{line:?}"
         );
         // A window closing on a tick whose line was printed: not twice.

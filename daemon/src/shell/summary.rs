@@ -1,9 +1,132 @@
 //! The session summary as `exocald` prints it on stdout: what the user reads after a session
-//! (log path, frames, clocks, expected table error, verdict, push), one line per fact. Used by
-//! every subcommand that runs a session and by the serve loop; it imports nothing of theirs.
+//! (log path, frames, clocks, expected table error, push), one line per fact, and last the
+//! verdict ([`verdict`]); or only the verdict (`--quiet`), or one JSON object (`--json`,
+//! [`json`]). Used by every subcommand that runs a session and by the serve loop; it imports
+//! nothing of theirs.
 
 use crate::exit::DaemonError;
 use crate::shell::runner::{SessionError, SessionSummary};
+
+/// How a session's result goes to stdout.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Output {
+    /// The summary, one line per fact, then the verdict.
+    #[default]
+    Text,
+    /// The verdict line only.
+    Quiet,
+    /// One JSON object ([`json`]).
+    Json,
+}
+
+impl Output {
+    /// From the `--quiet` and `--json` flags (clap keeps them apart).
+    pub fn from_flags(quiet: bool, json: bool) -> Output {
+        match (quiet, json) {
+            (_, true) => Output::Json,
+            (true, false) => Output::Quiet,
+            (false, false) => Output::Text,
+        }
+    }
+}
+
+/// Prints a session's result as `output` says: with [`Output::Text`] the summary, then `extra`
+/// lines (the demo's flash check), then the verdict; `error` is how the run ends, if it fails.
+pub fn print_result(
+    summary: Option<&SessionSummary>,
+    error: Option<&DaemonError>,
+    extra: &[String],
+    output: Output,
+) {
+    match output {
+        Output::Text => {
+            if let Some(s) = summary {
+                print_summary(s);
+            }
+            for line in extra {
+                println!("{line}");
+            }
+            println!("{}", verdict(summary, error));
+        }
+        Output::Quiet => println!("{}", verdict(summary, error)),
+        Output::Json => println!("{}", json(summary, error)),
+    }
+}
+
+/// The last line: validated and pushed, or refused and why, with the expected table error.
+pub fn verdict(summary: Option<&SessionSummary>, error: Option<&DaemonError>) -> String {
+    let outcome = summary.and_then(|s| s.outcome.as_ref());
+    let push = summary.and_then(|s| s.push.as_ref());
+    let expected = outcome
+        .and_then(|o| o.verdict.expected)
+        .map(|e| format!("; expected table error {e}"))
+        .unwrap_or_default();
+    match (error, outcome, push) {
+        (None, Some(_), Some(p)) if p.complete() => {
+            format!("verdict: validated and pushed, every node holds the new table{expected}")
+        }
+        (None, Some(o), None) if o.verdict.accepted() => {
+            format!("verdict: validated; nothing pushed (offline, or --dry-run){expected}")
+        }
+        (_, Some(o), _) if !o.verdict.accepted() => {
+            let reasons: Vec<String> = o.verdict.reasons.iter().map(|r| r.to_string()).collect();
+            format!("verdict: refused, nothing pushed: {}", reasons.join("; "))
+        }
+        (Some(e), Some(_), Some(p)) if p.complete() => {
+            format!("verdict: validated and pushed, but {e}{expected}")
+        }
+        (Some(e), Some(_), Some(_)) => {
+            format!("verdict: validated, but not every node took the table: {e}{expected}")
+        }
+        (Some(e), _, _) => format!("verdict: nothing pushed: {e}"),
+        (None, _, _) => "verdict: nothing to push".into(),
+    }
+}
+
+/// The result for scripts (`--json`): `verdict` (`pushed`, `validated`, `refused` or
+/// `failed`) and its line, `exit` (the status the process ends with), `error`, `log`,
+/// `report`, `expected_error` (1σ, mm and mrad), `heldout` (mean error of the nominal and the
+/// judged table on the held-out slice, mm and mrad), `condition_number`, `refusals`, `table`
+/// (the calibrated rows in SI units: m, rad, s, rad/s) and `push` (per node: what it holds,
+/// the CRCs sent and held, attempts, error). Absent parts are null.
+pub fn json(summary: Option<&SessionSummary>, error: Option<&DaemonError>) -> serde_json::Value {
+    let outcome = summary.and_then(|s| s.outcome.as_ref());
+    let push = summary.and_then(|s| s.push.as_ref());
+    let kind = match (error, outcome, push) {
+        (None, Some(_), Some(p)) if p.complete() => "pushed",
+        (None, Some(o), None) if o.verdict.accepted() => "validated",
+        (_, Some(o), _) if !o.verdict.accepted() => "refused",
+        _ => "failed",
+    };
+    let v = outcome.map(|o| &o.verdict);
+    serde_json::json!({
+        "verdict": kind,
+        "line": verdict(summary, error),
+        "exit": error.map_or(0, DaemonError::exit_code),
+        "error": error.map(ToString::to_string),
+        "log": summary.map(|s| s.log_path.display().to_string()),
+        "report": summary.and_then(|s| s.report_path.as_ref()).map(|p| p.display().to_string()),
+        "expected_error": v.and_then(|v| v.expected).map(|e| serde_json::json!({
+            "position_mm": e.position_mm,
+            "rotation_mrad": e.rotation_mrad,
+        })),
+        "heldout": v.map(|v| serde_json::json!({
+            "samples": v.heldout_samples,
+            "nominal": {
+                "position_mm": v.nominal.mean_position_m * 1e3,
+                "rotation_mrad": v.nominal.mean_rotation_rad * 1e3,
+            },
+            "calibrated": {
+                "position_mm": v.candidate.mean_position_m * 1e3,
+                "rotation_mrad": v.candidate.mean_rotation_rad * 1e3,
+            },
+        })),
+        "condition_number": v.map(|v| v.condition_number),
+        "refusals": v.map(|v| v.reasons.iter().map(ToString::to_string).collect::<Vec<_>>()),
+        "table": outcome.map(|o| o.node_rows),
+        "push": push.map(|p| &p.nodes),
+    })
+}
 
 /// Prints what a session did, to stdout (one line per fact).
 pub fn print_summary(summary: &SessionSummary) {
@@ -79,8 +202,13 @@ pub fn print_summary(summary: &SessionSummary) {
                     println!("drift joint {}: {d} (95%)", j + 1);
                 }
             }
-            for (j, m) in em.models.iter().enumerate() {
-                println!("drift model joint {}: {m}", j + 1);
+            let models: Vec<String> = em.models.iter().map(ToString::to_string).collect();
+            if models.windows(2).all(|w| w[0] == w[1]) && !models.is_empty() {
+                println!("drift model, every joint: {}", models[0]);
+            } else {
+                for (j, m) in models.iter().enumerate() {
+                    println!("drift model joint {}: {m}", j + 1);
+                }
             }
             if let Some(line) = rate_bias_line(em) {
                 println!("{line}");
@@ -90,25 +218,20 @@ pub fn print_summary(summary: &SessionSummary) {
                 println!("{line}");
             }
         }
-        println!(
-            "held-out mean pose error: nominal {:.4e}, calibrated {:.4e} ({:.1}% better); condition number {:.3e}",
-            v.nominal.mean_error,
-            v.candidate.mean_error,
-            v.improvement * 100.0,
-            v.condition_number
-        );
         let removed = if v.nominal.mean_position_m > 0.0 {
             (1.0 - v.candidate.mean_position_m / v.nominal.mean_position_m) * 100.0
         } else {
             0.0
         };
         println!(
-            "held-out mean position error: {:.2} → {:.2} mm ({removed:.0}% removed), rotation {:.1} → {:.1} mrad (the report's cards)",
+            "held-out mean error, nominal → calibrated: position {:.2} → {:.2} mm ({removed:.0}% \
+             removed), rotation {:.1} → {:.1} mrad",
             v.nominal.mean_position_m * 1e3,
             v.candidate.mean_position_m * 1e3,
             v.nominal.mean_rotation_rad * 1e3,
             v.candidate.mean_rotation_rad * 1e3
         );
+        println!("condition number: {:.1}", v.condition_number);
         for moved in &o.onto_bounds {
             println!("{}", moved.line());
         }
@@ -142,17 +265,18 @@ pub fn print_summary(summary: &SessionSummary) {
     }
 }
 
-/// Prints the summary of a session result and returns its error.
-pub fn finish(result: Result<SessionSummary, SessionError>) -> Result<(), DaemonError> {
+/// Prints a session result as `output` says ([`print_result`]) and returns its error.
+pub fn finish(
+    result: Result<SessionSummary, SessionError>,
+    output: Output,
+) -> Result<(), DaemonError> {
     match result {
         Ok(summary) => {
-            print_summary(&summary);
+            print_result(Some(&summary), None, &[], output);
             Ok(())
         }
         Err(SessionError { error, summary }) => {
-            if let Some(s) = summary {
-                print_summary(&s);
-            }
+            print_result(summary.as_ref(), Some(&error), &[], output);
             Err(error)
         }
     }

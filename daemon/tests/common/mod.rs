@@ -27,6 +27,7 @@ pub fn live_session_with(
         speed: 1e6,
         output: dir.to_path_buf(),
         hold: false,
+        quiet: false,
         wearer: Default::default(),
     };
     let mut config = exocald::cmd::demo::demo_config(Config::default_config(), dir, 1.0);
