@@ -508,9 +508,10 @@ fn page_head(out: &mut String, title: &str, source: &str) {
     );
     let _ = writeln!(
         out,
-        "<h1>{}</h1><p class=\"sub\">{}</p>",
+        "<h1>{}</h1><p class=\"sub\">{} · exocal {}</p>",
         esc(title),
-        esc(source)
+        esc(source),
+        env!("CARGO_PKG_VERSION")
     );
 }
 
@@ -664,6 +665,22 @@ pub fn render(input: &ReportInput) -> String {
          error\" line gives the same figures.</p>"
     );
 
+    // The table itself right after the verdict and the key numbers: what was pushed, what
+    // changed and by how much.
+    out.push_str("<h2>Parameters</h2>\n");
+    out.push_str(
+        "<p class=\"note\">Standard D-H parameters per joint. σ (LS) is the white-noise standard \
+         deviation from the least-squares information matrix; σ (EM, CRB) the Cramér–Rao bound \
+         under the fitted drift model. Changes larger than 3σ (EM) are highlighted.</p>\n",
+    );
+    parameter_table(&mut out, &input.nominal, c);
+    out.push_str("<h3>Strongest correlations</h3>\n");
+    correlation_table(&mut out, c);
+    match &input.push {
+        Some(push) => push_table(&mut out, push),
+        None => out.push_str(PUSH_MARK),
+    }
+
     out.push_str("<h2>End-effector trajectories</h2>\n");
     let (time, plane) = trajectories(input);
     figure(
@@ -736,20 +753,6 @@ pub fn render(input: &ReportInput) -> String {
          model, Kalman filter and RTS smoother).",
         drift,
     );
-
-    out.push_str("<h2>Parameters</h2>\n");
-    out.push_str(
-        "<p class=\"note\">Standard D-H parameters per joint. σ (LS) is the white-noise standard \
-         deviation from the least-squares information matrix; σ (EM, CRB) the Cramér–Rao bound \
-         under the fitted drift model. Changes larger than 3σ (EM) are highlighted.</p>\n",
-    );
-    parameter_table(&mut out, &input.nominal, c);
-    out.push_str("<h3>Strongest correlations</h3>\n");
-    correlation_table(&mut out, c);
-    match &input.push {
-        Some(push) => push_table(&mut out, push),
-        None => out.push_str(PUSH_MARK),
-    }
 
     out.push_str("<h2>Data quality</h2>\n");
     let exc = quality_section(
@@ -886,7 +889,7 @@ fn drift_table(out: &mut String, em: &EmDetail) {
     if ci {
         out.push_str("<th>σ 95%</th>");
     }
-    out.push_str("<th>σ (paper, eq. 8)</th><th>model (and why)</th></tr></thead><tbody>");
+    out.push_str("<th>σ (paper, eq. 8, rad/s)</th><th>model (and why)</th></tr></thead><tbody>");
     let range = |(lo, hi): (f64, f64), scale: f64, p: usize| {
         if hi.is_finite() {
             format!("{:.p$}–{:.p$}", lo * scale, hi * scale)

@@ -318,6 +318,13 @@ fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
         "the expected accuracy is not stated"
     );
     assert!(!dom.contains("class=\"missing\""), "a plot was not drawn");
+    // Issue 50, item 5: the parameter table near the top (after the verdict and the key
+    // numbers, before the plots), a unit on the drift table's σ, the version in the header.
+    let at = |s: &str| dom.find(s).unwrap_or_else(|| panic!("no {s}"));
+    assert!(at("<h2>Parameters</h2>") < at("<h2>End-effector trajectories</h2>"));
+    assert!(at("class=\"cards\"") < at("<h2>Parameters</h2>"));
+    assert!(dom.contains("σ (paper, eq. 8, rad/s)"));
+    assert!(dom.contains(&format!("· exocal {}", env!("CARGO_PKG_VERSION"))));
     // Legends sit after their charts, never over the data (issue 33): none inside an SVG (its
     // box would be plotters' grey-bordered rectangle), and the browser lays none over a chart.
     assert!(!dom.contains("#BEBEBE"), "a legend box inside a chart");

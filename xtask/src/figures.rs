@@ -983,8 +983,8 @@ fn generate(root: &Path, scratch: &Path, source: Source) -> Result<String> {
             screenshot(&report, &scratch.join("report-shot.png"), &dir)?;
             Ok(format!(
                 "![The demo's calibration report (seed 2024): verdict, held-out errors before and after,\n\
-                 expected table error {expected}, condition number; the end-effector trajectories\n\
-                 of the measured arm, the nominal and the calibrated model]({SCREENSHOT})\n"
+                 expected table error {expected}, condition number; then the D-H parameters,\n\
+                 nominal, least squares and calibrated, with their σ and changes]({SCREENSHOT})\n"
             ))
         }
         Source::Nodes => {
