@@ -597,7 +597,7 @@ fn calibrate_on_vcan0_pushes_a_table_every_node_holds_and_logs_every_frame() {
         "exocald offline failed:\n{replayed}\n{}",
         String::from_utf8_lossy(&offline.stderr)
     );
-    for key in ["aligned samples:", "held-out mean pose error:"] {
+    for key in ["aligned samples:", "held-out mean error"] {
         let line = |text: &str| {
             text.lines()
                 .find(|l| l.starts_with(key))
