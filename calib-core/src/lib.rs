@@ -80,6 +80,7 @@ pub mod model;
 #[cfg(any(test, feature = "research"))]
 pub mod paper_em;
 pub mod reading;
+pub mod rest;
 pub mod rng;
 #[cfg(test)]
 mod scenario_tests;
@@ -116,6 +117,7 @@ pub use model::{
 #[cfg(any(test, feature = "research"))]
 pub use paper_em::{paper_em, PaperEmForm, PaperEmOptions, PaperEmResult};
 pub use reading::{separate, JointSeparation, SeparationSlot};
+pub use rest::{GyroAtRest, GyroBias};
 pub use rng::Rng;
 pub use sim::{DriftSite, Motion, Outliers, Scenario, ScenarioConfig, SimSample, Slip};
 pub use versus_ls::{em_versus_ls, EmVersusLs, TableChoice, MAX_EM_LS_STATISTIC};

@@ -16,6 +16,12 @@
 //!   reports the smooth motion θ, the arm is at θ + Δθ) or in the reading (a real sensor and the
 //!   emulated suit: the arm is at the smooth motion q, the sensor reports q − Δθ).
 //! * **Reading noise**: white noise on every reported angle ([`ScenarioConfig::reading_noise`]).
+//! * **A joint gyro** per joint: the rate of the smooth motion about the joint's axis, less
+//!   the rate bias the angle integrates (so a reading that integrates its gyro reads
+//!   `q + ∫ gyro bias`), plus white noise ([`ScenarioConfig::gyro_noise`], drawn from a
+//!   generator of its own so that every other draw is the same with and without it).
+//! * **Still at the start** ([`ScenarioConfig::still_s`]): the wearer holds the motion's first
+//!   pose that long, then moves as the motion does from its start.
 //! * **A slip** ([`Slip`]): one joint's angle error steps mid-session and stays.
 //! * **The reference pose** is `FK(actual, arm angles)`, plus optional white noise (rotation
 //!   applied in the tool frame) and **glitches** ([`Outliers`]: with a given probability a run
@@ -170,6 +176,10 @@ pub struct ScenarioConfig<const N: usize> {
     pub site: DriftSite,
     /// Standard deviation of white noise on every reported joint angle (rad); 0 = none.
     pub reading_noise: f64,
+    /// Standard deviation of white noise on every joint gyro reading (rad/s); 0 = none.
+    pub gyro_noise: f64,
+    /// The wearer holds still this long at the start (s); 0 = moves from the first sample.
+    pub still_s: f64,
     /// Standard deviation of white position noise on the measured pose (m); 0 = none.
     pub position_noise: f64,
     /// Standard deviation of white rotation noise per axis (rad); 0 = none.
@@ -192,6 +202,8 @@ impl ScenarioConfig<7> {
             heading: [0.0; 7],
             site: DriftSite::Arm,
             reading_noise: 0.0,
+            gyro_noise: 0.0,
+            still_s: 0.0,
             position_noise: 0.0,
             rotation_noise: 0.0,
             outliers: Outliers::NONE,
@@ -210,6 +222,8 @@ pub struct SimSample<const N: usize> {
     pub drift: [f64; N],
     /// The true joint angles of the arm, which the pose follows (before pose noise).
     pub arm: [f64; N],
+    /// Every joint's gyro reading about its axis (rad/s; module docs).
+    pub gyro: [f64; N],
     /// Whether the measured pose is glitched.
     pub outlier: bool,
 }
@@ -220,6 +234,8 @@ pub struct Scenario<const N: usize> {
     config: ScenarioConfig<N>,
     motion: Motion<N>,
     rng: Rng,
+    /// The gyros' noise.
+    gyro_rng: Rng,
     /// Gauss-Markov part of the angle error.
     drift: [f64; N],
     /// Integrated rate bias and the rate bias.
@@ -247,6 +263,7 @@ impl<const N: usize> Scenario<N> {
             config,
             motion,
             rng,
+            gyro_rng: Rng::new(seed ^ 0x6780_5EED),
             drift,
             integrated: [0.0; N],
             rate,
@@ -286,7 +303,24 @@ impl<const N: usize> Iterator for Scenario<N> {
     fn next(&mut self) -> Option<SimSample<N>> {
         let cfg = self.config;
         let t = self.k as f64 * cfg.drift.dt;
-        let smooth = self.motion.at(t);
+        // The motion's own clock: held at 0 while the wearer is still.
+        let moving = t >= cfg.still_s;
+        let tm = if moving { t - cfg.still_s } else { 0.0 };
+        let smooth = self.motion.at(tm);
+        let gyro: [f64; N] = core::array::from_fn(|j| {
+            let rate = if moving {
+                let (_, swing) = self.motion.middle_and_swing(j);
+                swing * self.motion.unit(j, tm).1
+            } else {
+                0.0
+            };
+            let noise = if cfg.gyro_noise > 0.0 {
+                cfg.gyro_noise * self.gyro_rng.normal()
+            } else {
+                0.0
+            };
+            rate - (self.rate[j] + cfg.heading[j]) + noise
+        });
         let slip = |j: usize| match cfg.slip {
             Some(s) if s.joint == j && t >= s.time => s.angle,
             _ => 0.0,
@@ -333,6 +367,7 @@ impl<const N: usize> Iterator for Scenario<N> {
             sample: Sample { joints, pose },
             drift: error,
             arm,
+            gyro,
             outlier: glitch.is_some(),
         })
     }
