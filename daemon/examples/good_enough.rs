@@ -132,6 +132,7 @@ fn main() {
                 hold: false,
                 quiet: false,
                 wearer: kind.wearer.clone(),
+                drift: Default::default(),
             };
             let result = match run(&config, &opts) {
                 Ok(r) => r,

@@ -300,8 +300,12 @@ struct RawConfig {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawSensors {
+    #[serde(default)]
     rate_bias_deg_s: f64,
+    #[serde(default)]
     rate_bias_walk_deg_s_per_sqrt_s: f64,
+    #[serde(default)]
+    unaided_joints: Vec<i64>,
 }
 
 #[derive(Deserialize)]
@@ -559,6 +563,23 @@ impl Checker<'_> {
             x if x > max => Err(self.err(key, format!("{x} is above the limit {max}"))),
             x => Ok(x),
         }
+    }
+
+    /// A set of joints, numbered from 1, each once.
+    fn joint_set(&self, key: &str, joints: &[i64]) -> Result<[bool; JOINTS], ConfigError> {
+        let mut set = [false; JOINTS];
+        for &j in joints {
+            let i = usize::try_from(j)
+                .ok()
+                .filter(|i| (1..=JOINTS).contains(i))
+                .ok_or_else(|| {
+                    self.err(key, format!("joint {j}: joints are numbered 1 to {JOINTS}"))
+                })?;
+            if std::mem::replace(&mut set[i - 1], true) {
+                return Err(self.err(key, format!("joint {j} is listed twice")));
+            }
+        }
+        Ok(set)
     }
 
     /// `|x| <= max`.
@@ -952,6 +973,7 @@ impl Checker<'_> {
                         )?
                         .to_radians(),
                 },
+                unaided: self.joint_set("sensors.unaided_joints", &r.unaided_joints)?,
             },
         };
         let trigger = TriggerRules {
@@ -1166,12 +1188,17 @@ impl Config {
             num(self.trigger.cooldown_s)
         );
         let rb = self.calibration.sensors.rate_bias;
-        if !rb.is_none() {
+        let unaided: Vec<String> = (0..JOINTS)
+            .filter(|&j| self.calibration.sensors.unaided[j])
+            .map(|j| (j + 1).to_string())
+            .collect();
+        if !rb.is_none() || !unaided.is_empty() {
             let _ = write!(
                 w,
-                "\n[sensors]\nrate_bias_deg_s = {}\nrate_bias_walk_deg_s_per_sqrt_s = {}\n",
+                "\n[sensors]\nrate_bias_deg_s = {}\nrate_bias_walk_deg_s_per_sqrt_s = {}\nunaided_joints = [{}]\n",
                 num(deg(rb.ramp)),
-                num(deg(rb.walk))
+                num(deg(rb.walk)),
+                unaided.join(", ")
             );
         }
         out
@@ -1228,6 +1255,26 @@ mod tests {
         let e = Config::parse(&bad).unwrap_err();
         assert_eq!(e.key(), Some("sensors.rate_bias_deg_s"), "{e}");
         assert!(e.line().is_some(), "{e}");
+    }
+
+    #[test]
+    fn unaided_joints_are_read_written_back_and_checked() {
+        let with = format!("{DEFAULT_TOML}\n[sensors]\nunaided_joints = [1, 3, 5]\n");
+        let c = Config::parse(&with).unwrap();
+        let s = c.calibration.sensors;
+        assert_eq!(s.unaided, [true, false, true, false, true, false, false]);
+        assert!(s.rate_bias.is_none());
+        assert_eq!(Config::parse(&c.to_toml()).unwrap(), c);
+        for (list, says) in [
+            ("[0]", "numbered 1 to 7"),
+            ("[8]", "numbered 1 to 7"),
+            ("[2, 2]", "twice"),
+        ] {
+            let bad = with.replace("[1, 3, 5]", list);
+            let e = Config::parse(&bad).unwrap_err();
+            assert_eq!(e.key(), Some("sensors.unaided_joints"), "{e}");
+            assert!(e.to_string().contains(says), "{e}");
+        }
     }
     use calib_core::ParamKind;
 

@@ -61,6 +61,7 @@ fn todays_live_rows(config: &Config, dir: &Path) -> exocal_session::pipeline::Ou
         hold: false,
         quiet: false,
         wearer: Default::default(),
+        drift: Default::default(),
     };
     let config = exocald::cmd::demo::demo_config(config.clone(), &opts.output, 1.0);
     let summary = match exocald::cmd::demo::run(&config, &opts) {

@@ -161,6 +161,7 @@ fn a_foxglove_client_watches_the_demo_and_gets_the_calibration() {
         hold: false,
         quiet: false,
         wearer: Default::default(),
+        drift: Default::default(),
     };
     let (got, demo) = std::thread::scope(|s| {
         let (started_tx, started_rx) = std::sync::mpsc::channel();

@@ -39,6 +39,8 @@ pub struct Motion {
     reach: [f64; 7],
     /// Advised sweeps, in the order heard.
     sweeps: Vec<Sweep>,
+    /// The wearer holds the free motion's first pose this long (s), then moves from there.
+    still_s: f64,
 }
 
 /// `3x² − 2x³` on `[0, 1]` (clamped) and its derivative.
@@ -59,7 +61,14 @@ impl Motion {
             free: calib_core::Motion::random(ranges, rng),
             reach: [1.0; 7],
             sweeps: Vec::new(),
+            still_s: 0.0,
         }
+    }
+
+    /// This motion held still at its first pose for `seconds` first.
+    pub fn with_still(mut self, seconds: f64) -> Motion {
+        self.still_s = seconds;
+        self
     }
 
     /// This motion with the free motion of joint `j` using `reach[j]` of its range (in (0, 1]).
@@ -82,7 +91,11 @@ impl Motion {
 
     /// Angle (rad) and rate (rad/s) of joint `j` at time `t` (s).
     pub fn joint(&self, j: usize, t: f64) -> (f64, f64) {
-        let (s, ds) = self.free.unit(j, t);
+        let (s, ds) = if self.still_s > 0.0 && t < self.still_s {
+            (self.free.unit(j, 0.0).0, 0.0)
+        } else {
+            self.free.unit(j, t - self.still_s)
+        };
         let (mut u, mut du) = (self.reach[j] * s, self.reach[j] * ds);
         if let Some(w) = self
             .sweeps

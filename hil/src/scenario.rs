@@ -191,6 +191,12 @@ pub struct Drift {
     pub formula: DriftFormula,
     /// Seven per-joint overrides.
     pub per_joint: Option<Vec<JointDrift>>,
+    /// A heading drift, °/s: the nodes on [`Drift::heading_joints`] integrate their gyro with
+    /// nothing to correct its heading, so their angle gains this rate bias (its sign drawn per
+    /// joint from the seed) from power-up without bound, and their rate and gyro read it.
+    pub heading_deg_s: f64,
+    /// The joints (numbered from 1) with the heading drift.
+    pub heading_joints: Vec<u8>,
 }
 
 impl Default for Drift {
@@ -201,6 +207,8 @@ impl Default for Drift {
             sigma: 1.0,
             formula: DriftFormula::Paper,
             per_joint: None,
+            heading_deg_s: 0.0,
+            heading_joints: Vec::new(),
         }
     }
 }
@@ -650,6 +658,23 @@ impl Scenario {
                     format!("needs 7 entries, got {}", p.len()),
                 ));
             }
+        }
+        if !(self.drift.heading_deg_s.is_finite() && self.drift.heading_deg_s.abs() <= 1.0) {
+            return Err(invalid(
+                "drift.heading_deg_s",
+                format!("must be within ±1 °/s, got {}", self.drift.heading_deg_s),
+            ));
+        }
+        if let Some(j) = self
+            .drift
+            .heading_joints
+            .iter()
+            .find(|&&j| !(1..=7).contains(&j))
+        {
+            return Err(invalid(
+                "drift.heading_joints",
+                format!("joint {j}: joints are numbered 1 to 7"),
+            ));
         }
         for j in 0..7 {
             let d = self.drift.joint(j);

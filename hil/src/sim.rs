@@ -154,6 +154,10 @@ struct Node {
     gm: Option<GaussMarkov>,
     bias: [f64; 3],
     bias_gm: GaussMarkov,
+    /// The heading rate bias its angle integrates (rad/s; 0 where gravity corrects it), and
+    /// the joint's axis in its link's frame, which the gyro's bias reads it along.
+    heading: f64,
+    axis: Vector3<f64>,
     pose_seq: u8,
     /// Link origin at the last two IMU samples (time, position), for the accelerometer.
     history: [Option<(f64, Vector3<f64>)>; 2],
@@ -229,9 +233,24 @@ impl Suit {
         scenario.validate().map_err(HilError::Scenario)?;
         let arm = scenario.arm.table();
         let motion = Motion::random(&scenario.arm.ranges(), &mut seeded(scenario.seed, 1))
-            .with_reach(scenario.wearer.reach);
+            .with_reach(scenario.wearer.reach)
+            .with_still(scenario.wearer.still_s);
         let attention = Attention::new(scenario.wearer.clone(), seeded(scenario.seed, 5));
         let mut clock_rng = seeded(scenario.seed, 2);
+        let mut heading_rng = seeded(scenario.seed, 6);
+        let heading: [f64; 7] = std::array::from_fn(|j| {
+            let sign = if heading_rng.uniform() < 0.5 {
+                -1.0
+            } else {
+                1.0
+            };
+            let on = scenario.drift.heading_joints.contains(&(j as u8 + 1));
+            if on {
+                sign * scenario.drift.heading_deg_s.to_radians()
+            } else {
+                0.0
+            }
+        });
         let factory_table = scenario.factory.preset.table();
         let mut stats = Stats::default();
         let mut nodes = Vec::new();
@@ -311,6 +330,12 @@ impl Suit {
                 gm,
                 bias,
                 bias_gm,
+                heading: id.joint_index().map_or(0.0, |j| heading[j]),
+                axis: id.joint_index().map_or(Vector3::z(), |j| {
+                    // z_{j-1} seen from link j: R_x(α_j)ᵀ ẑ.
+                    let alpha = arm.rows[j].alpha;
+                    Vector3::new(0.0, alpha.sin(), alpha.cos())
+                }),
                 pose_seq: 0,
                 history: [None; 2],
                 up: true,
@@ -371,6 +396,18 @@ impl Suit {
     /// The true D-H table of the arm.
     pub fn true_table(&self) -> &DhTable<7> {
         &self.arm
+    }
+
+    /// The heading rate bias each joint's angle integrates (rad/s, joint 1 first; 0 where its
+    /// node corrects it): the scenario's `drift.heading_*`, with the signs drawn.
+    pub fn headings(&self) -> [f64; 7] {
+        let mut h = [0.0; 7];
+        for n in &self.nodes {
+            if let Some(j) = n.id.joint_index() {
+                h[j] = n.heading;
+            }
+        }
+        h
     }
 
     /// True joint angles at simulated time `t_s`.
@@ -570,8 +607,10 @@ impl Suit {
                 if let Some(gm) = node.gm {
                     node.drift = gm.step(node.drift, &mut node.rng);
                 }
-                let mut angle = q - node.drift + gauss(&mut node.rng, noise.angle_rad);
-                let rate = qd + gauss(&mut node.rng, noise.rate_rad_s);
+                // The heading integrates from power-up; the rate is the node's gyro about the axis.
+                let mut angle =
+                    q - node.drift + node.heading * t + gauss(&mut node.rng, noise.angle_rad);
+                let rate = qd + node.heading + gauss(&mut node.rng, noise.rate_rad_s);
                 if nan_p > 0.0 && self.fault_rng.uniform() < nan_p {
                     angle = f64::NAN;
                     self.stats.nans += 1;
@@ -611,9 +650,14 @@ impl Suit {
                 for b in node.bias.iter_mut() {
                     *b = node.bias_gm.step(*b, &mut node.rng);
                 }
+                // Along the joint's axis, a heading node's gyro bias is its heading.
+                let mut bias = Vector3::from(node.bias);
+                if node.heading != 0.0 {
+                    bias += node.axis * (node.heading - bias.dot(&node.axis));
+                }
                 let channels: [ImuChannel; 3] = [
                     (
-                        r.transpose() * w + Vector3::from(node.bias),
+                        r.transpose() * w + bias,
                         noise.gyro_rad_s,
                         32.767,
                         Message::ImuGyro,

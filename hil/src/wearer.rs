@@ -33,6 +33,8 @@ pub struct Wearer {
     /// Seconds the wearer moves the advised joint, and between two considerations of advice
     /// (at least `2 ·` [`RAMP_S`]).
     pub follow_s: f64,
+    /// Seconds the wearer stands still at power-up before moving (0: moves at once).
+    pub still_s: f64,
 }
 
 impl Default for Wearer {
@@ -42,6 +44,7 @@ impl Default for Wearer {
             compliance: 0.0,
             reaction_s: 2.0,
             follow_s: 10.0,
+            still_s: 0.0,
         }
     }
 }

@@ -813,6 +813,9 @@ pub struct AlignedSample {
     pub t: f64,
     /// Joint angles (rad), joint 1 first.
     pub joints: [f64; JOINTS],
+    /// Each joint node's gyro about its joint's axis (rad/s; [`crate::ingest::Ingest::with_joint_gyros`]);
+    /// NaN where not kept (by default, and a CSV) or not interpolated at `t`.
+    pub rates: [f64; JOINTS],
     /// Measured end-effector pose at `t`.
     pub pose: Pose,
     /// How long the stream with the longest hole around `t` went unseen beyond its usual
@@ -828,6 +831,7 @@ impl AlignedSample {
         AlignedSample {
             t,
             joints: sample.joints,
+            rates: [f64::NAN; JOINTS],
             pose: Pose {
                 position: sample.pose.p.into(),
                 orientation: [q.w, q.i, q.j, q.k],
@@ -896,6 +900,7 @@ pub struct Aligned {
 /// has a gap are excluded.
 pub fn align(
     joints: &[Vec<(f64, f64)>; JOINTS],
+    rates: &[Vec<(f64, f64)>; JOINTS],
     pose: &[(f64, Pose)],
     hz: f64,
     max_gap: f64,
@@ -924,6 +929,10 @@ pub fn align(
         .iter()
         .map(|s| resample_scalar(s, &g, max_gap))
         .collect();
+    let per_rate: Vec<Vec<Option<f64>>> = rates
+        .iter()
+        .map(|s| resample_scalar(s, &g, max_gap))
+        .collect();
     let poses = resample_pose(pose, &g, max_gap);
     let pose_times: Vec<f64> = pose.iter().map(|s| s.0).collect();
     let mut unseen_s = unseen(&pose_times, &g);
@@ -945,6 +954,7 @@ pub fn align(
             samples.push(AlignedSample {
                 t,
                 joints: q,
+                rates: std::array::from_fn(|j| per_rate[j][k].unwrap_or(f64::NAN)),
                 pose: p,
                 unseen_s: unseen_s[k],
             });
@@ -1412,7 +1422,7 @@ mod tests {
                 (t, p)
             })
             .collect();
-        let a = align(&joints, &pose, 100.0, 0.05, usize::MAX);
+        let a = align(&joints, &Default::default(), &pose, 100.0, 0.05, usize::MAX);
         assert_eq!(a.gaps, 0);
         let marked: Vec<f64> = a
             .samples
@@ -1510,7 +1520,7 @@ mod tests {
                 (t, pose)
             })
             .collect();
-        let a = align(&joints, &pose, hz, 0.05, usize::MAX);
+        let a = align(&joints, &Default::default(), &pose, hz, 0.05, usize::MAX);
         // Common span: 10.0006 .. 11.999 → grid 10.01 .. 11.99: 199 points.
         assert_eq!(a.grid_points, 199);
         // Joint 3's hole runs from its sample at 10.9993 to the one at 11.2003 (0.201 s > max
@@ -1529,6 +1539,11 @@ mod tests {
         // A missing stream gives nothing, not a panic.
         let mut empty = joints.clone();
         empty[6].clear();
-        assert_eq!(align(&empty, &pose, hz, 0.05, usize::MAX).samples.len(), 0);
+        assert_eq!(
+            align(&empty, &Default::default(), &pose, hz, 0.05, usize::MAX)
+                .samples
+                .len(),
+            0
+        );
     }
 }

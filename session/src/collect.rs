@@ -41,8 +41,19 @@ pub struct Collector {
 impl Collector {
     /// An empty collection under `config`'s node ids, session rules and joint ranges.
     pub fn new(settings: &Settings) -> Collector {
+        let ingest = Ingest::new(settings.joint_nodes);
         Collector {
-            ingest: Ingest::new(settings.joint_nodes),
+            // The gyro at rest needs the joint gyros where some joint is unaided: about each
+            // joint's axis, `z_{j−1}` seen from link `j`, `R_x(α_j)ᵀ ẑ`.
+            ingest: match settings.sensors.unaided.iter().any(|&u| u) {
+                true => ingest.with_joint_gyros(
+                    settings
+                        .nominal
+                        .rows
+                        .map(|r| [0.0, r.alpha.sin(), r.alpha.cos()]),
+                ),
+                false => ingest,
+            },
             window: Window::new(settings.window.clone(), settings.bounds.joint_range),
             gate: None,
             taken: 0,

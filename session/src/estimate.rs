@@ -186,8 +186,9 @@ fn expected_estimate(collector: &Collector, settings: &Settings) -> Option<Estim
         .iter()
         .map(AlignedSample::sample)
         .collect();
+    let at_rest = pipeline::take_out_gyro_bias(&collected.samples, &mut samples, settings);
     pipeline::separate_readings(&mut samples, settings);
-    let (ls_opts, em_opts) = pipeline::options(settings);
+    let (ls_opts, em_opts) = pipeline::options(settings, at_rest.as_ref());
     let c = pipeline::ls_then_em(&settings.nominal, &samples, &ls_opts, &em_opts, false).ok()?;
     Some(Estimate {
         condition: c.ls.condition,

@@ -282,6 +282,23 @@ pub struct Ingest {
     stats: FrameStats,
     /// The last payload seen per standard identifier (for [`FrameStats::repeats`]).
     last_payload: std::collections::HashMap<u32, ([u8; 8], usize)>,
+    /// The joint nodes' gyros about their joints' axes, where asked for
+    /// ([`Ingest::with_joint_gyros`]).
+    joint_gyros: Option<JointGyros>,
+}
+
+/// Keep a joint gyro reading only this long after the last one kept (s): a node that floods
+/// its gyro frames grows the series no faster than 250 readings a second.
+pub const JOINT_GYRO_MIN_INTERVAL_S: f64 = 0.004;
+
+/// Each joint node's gyro about its joint's axis: `(host s, rad/s)` in receive order, on the
+/// host's receive time (their 16-bit node stamps are not fitted; the gyro at rest needs no
+/// better than the frames' latency).
+#[derive(Debug, Clone)]
+struct JointGyros {
+    /// Joint `j`'s axis in its node's frame (unit).
+    axes: [[f64; 3]; JOINTS],
+    series: [Vec<(f64, f64)>; JOINTS],
 }
 
 impl Ingest {
@@ -311,7 +328,20 @@ impl Ingest {
             assembler: PoseAssembler::new(),
             stats: FrameStats::default(),
             last_payload: std::collections::HashMap::new(),
+            joint_gyros: None,
         }
+    }
+
+    /// This session keeping, beside its streams, each joint node's gyro reading about its
+    /// joint's axis (`axes[j]`, a unit vector in the node's frame), which alignment resamples
+    /// into [`crate::align::AlignedSample::rates`] (for the gyro at rest; they are not a
+    /// stream of their own: their frames are in the log's `/can/rx`).
+    pub fn with_joint_gyros(mut self, axes: [[f64; 3]; JOINTS]) -> Ingest {
+        self.joint_gyros = Some(JointGyros {
+            axes,
+            series: Default::default(),
+        });
+        self
     }
 
     /// Receive time of the session's first frame (transport clock).
@@ -402,10 +432,19 @@ impl Ingest {
                 None => Event::Partial,
             },
             Message::ImuGyro(v) if !repeated => {
-                let stream = self
-                    .source(v.node)
-                    .and_then(|source| stream_of(source, Kind::ImuGyro));
-                let Some(stream) = stream else {
+                let source = self.source(v.node);
+                if let (Some(Source::Joint(j)), Some(g)) = (source, self.joint_gyros.as_mut()) {
+                    let series = &mut g.series[j];
+                    if series
+                        .last()
+                        .is_none_or(|&(t, _)| host_s >= t + JOINT_GYRO_MIN_INTERVAL_S)
+                    {
+                        let a = g.axes[j];
+                        series.push((host_s, v.xyz[0] * a[0] + v.xyz[1] * a[1] + v.xyz[2] * a[2]));
+                    }
+                }
+                let Some(stream) = source.and_then(|source| stream_of(source, Kind::ImuGyro))
+                else {
                     return Event::Message(message);
                 };
                 let ts = u32::from(v.timestamp_lo);
@@ -553,6 +592,14 @@ impl Ingest {
         let session = align::track_clocks(&clocks, params);
         let mut reports = Vec::with_capacity(calibrating.len());
         let mut joints: [Vec<(f64, f64)>; JOINTS] = Default::default();
+        let mut rates = self
+            .joint_gyros
+            .as_ref()
+            .map(|g| g.series.clone())
+            .unwrap_or_default();
+        for r in &mut rates {
+            align::sort_stream(r);
+        }
         let mut poses = Vec::new();
         for (&i, track) in calibrating.iter().zip(&session.tracks) {
             let series = &self.streams[i];
@@ -569,7 +616,7 @@ impl Ingest {
             };
             reports.push(clock_report(STREAMS[i].name, series.len(), mapped, track));
         }
-        let mut aligned = align::align(&joints, &poses, hz, max_gap, max_points);
+        let mut aligned = align::align(&joints, &rates, &poses, hz, max_gap, max_points);
         aligned.stalls = session.stalls;
         (aligned, reports)
     }
@@ -598,6 +645,42 @@ mod tests {
         })
         .to_frame()
         .unwrap()
+    }
+
+    /// Asked for, a joint node's gyro is kept about its joint's axis on the receive time, at
+    /// most one reading per [`JOINT_GYRO_MIN_INTERVAL_S`] (a flood is thinned, not stored);
+    /// not asked for, nothing is kept.
+    #[test]
+    fn joint_gyros_are_kept_about_the_axis_and_a_flood_is_thinned() {
+        let gyro = |k: u16| {
+            Message::ImuGyro(exocal_dbc::ImuVector {
+                node: NodeId::new(3).unwrap(),
+                xyz: [0.25, 0.5, 1.0],
+                timestamp_lo: k,
+            })
+            .to_frame::<Frame>()
+            .unwrap()
+        };
+        let s = std::f64::consts::FRAC_1_SQRT_2;
+        let mut axes = [[0.0, 0.0, 1.0]; JOINTS];
+        axes[2] = [0.0, s, s];
+        let mut asked = Ingest::new([1, 2, 3, 4, 5, 6, 7]).with_joint_gyros(axes);
+        let mut plain = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
+        // 1000 frames in 0.1 s, then 10 at 100 Hz.
+        let times = (0..1000)
+            .map(|k| k as f64 * 1e-4)
+            .chain((1..=10).map(|k| 0.1 + k as f64 * 0.01));
+        for (k, t) in times.enumerate() {
+            asked.on_frame(&rx(gyro(k as u16), t));
+            plain.on_frame(&rx(gyro(k as u16), t));
+        }
+        let kept = &asked.joint_gyros.as_ref().unwrap().series[2];
+        assert_eq!(kept.len(), 25 + 10, "{kept:?}");
+        assert!(
+            kept.iter().all(|&(_, r)| (r - 1.5 * s).abs() < 1e-3),
+            "{kept:?}"
+        );
+        assert!(plain.joint_gyros.is_none());
     }
 
     #[test]

@@ -33,8 +33,8 @@ use crate::parallel::Parallel;
 use calib_core::drift_conf::Z_95;
 use calib_core::{
     drift_confidence, em_drift, em_versus_ls, identify_ls_with, ls_white_expected_error, separate,
-    table_error, DhTable, DriftEmOptions, DriftSlot, ErrorPoses, InputChecks, JointDrift,
-    LsOptions, RateBias, Sample, SeparationSlot, TableChoice, TableError,
+    table_error, DhTable, DriftEmOptions, DriftSlot, ErrorPoses, GyroAtRest, GyroBias, InputChecks,
+    JointDrift, LsOptions, RateBias, Sample, SeparationSlot, TableChoice, TableError,
 };
 use nalgebra::{DMatrix, SMatrix};
 use serde::Serialize;
@@ -245,6 +245,71 @@ pub struct Outcome {
     /// Per joint, the RMS of the rough drift taken out of its reading (rad; 0 where the
     /// reading is smooth).
     pub reading_drift_rms: [f64; JOINTS],
+    /// The gyros' bias measured while the suit was still and taken out of the unaided joints'
+    /// readings ([`gyro_at_rest`]; no runs where the suit was never still long enough); `None`
+    /// where no joint is unaided.
+    pub at_rest: Option<AtRest>,
+}
+
+/// The gyro at rest, as the summary and the report show it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct AtRest {
+    /// How long the suit was counted still (s).
+    pub still_s: f64,
+    /// Runs of stillness counted (0: never still for `calib_core::rest::MIN_REST_S`, nothing
+    /// taken out).
+    pub runs: usize,
+    /// The joints corrected (`[sensors] unaided_joints`).
+    pub joints: [bool; JOINTS],
+    /// Each joint's bias (°/s) and its standard error (°/s).
+    pub bias_deg_s: [f64; JOINTS],
+    /// Standard errors of [`AtRest::bias_deg_s`] (°/s).
+    pub se_deg_s: [f64; JOINTS],
+}
+
+impl AtRest {
+    /// `None` where no joint is unaided.
+    fn of(b: Option<&GyroBias<JOINTS>>, joints: &[bool; JOINTS]) -> Option<AtRest> {
+        joints.iter().any(|&u| u).then(|| AtRest {
+            still_s: b.map_or(0.0, |b| b.seconds),
+            runs: b.map_or(0, |b| b.runs),
+            joints: *joints,
+            bias_deg_s: b.map_or([f64::NAN; JOINTS], |b| b.bias.map(f64::to_degrees)),
+            se_deg_s: b.map_or([f64::NAN; JOINTS], |b| b.se.map(f64::to_degrees)),
+        })
+    }
+}
+
+impl std::fmt::Display for AtRest {
+    /// `still 4.6 s: gyro bias joint 1 +0.021 ± 0.007 °/s, joint 3 …, taken out of their readings`.
+    /// Without a run: `never still for 1 s: the gyro bias of joints 1, 3, 5 not measured, their
+    /// heading not taken out (stand still for a few seconds at the start)`.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let joints = (0..JOINTS).filter(|&j| self.joints[j]);
+        if self.runs == 0 {
+            let names: Vec<String> = joints.map(|j| (j + 1).to_string()).collect();
+            return write!(
+                f,
+                "never still for {} s: the gyro bias of joints {} not measured, their heading not \
+                 taken out (stand still for a few seconds at the start)",
+                calib_core::rest::MIN_REST_S,
+                names.join(", ")
+            );
+        }
+        write!(f, "still {:.1} s: gyro bias", self.still_s)?;
+        let mut sep = " ";
+        for j in joints {
+            write!(
+                f,
+                "{sep}joint {} {:+.3} ± {:.3} °/s",
+                j + 1,
+                self.bias_deg_s[j],
+                self.se_deg_s[j]
+            )?;
+            sep = ", ";
+        }
+        write!(f, ", taken out of their readings")
+    }
 }
 
 impl Outcome {
@@ -425,6 +490,7 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
     }
     let mut all = timed(samples);
     let mut plain: Vec<Sample<JOINTS>> = all.iter().map(|s| s.sample).collect();
+    let at_rest = take_out_gyro_bias(samples, &mut plain, settings);
     let reading_drift_rms = separate_readings(&mut plain, settings);
     for (s, moved) in all.iter_mut().zip(plain) {
         s.sample = moved;
@@ -432,7 +498,7 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
     let (fit, held) = split_holdout(&all, settings.validation.holdout_fraction);
     let fit: Vec<Sample<JOINTS>> = fit.iter().map(|s| s.sample).collect();
     let held: Vec<Sample<JOINTS>> = held.iter().map(|s| s.sample).collect();
-    let (ls_opts, em_opts) = options(settings);
+    let (ls_opts, em_opts) = options(settings, at_rest.as_ref());
     // The judged pass states nothing: the allowance is the detail pass's alone (`consider` changes
     // neither table nor stated error, calib-core's tests check it bit for bit).
     let judged_opts = DriftEmOptions {
@@ -546,6 +612,7 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
         verdict,
         onto_bounds,
         reading_drift_rms,
+        at_rest: AtRest::of(at_rest.as_ref(), &settings.sensors.unaided),
     };
     Ok(Calibrated {
         outcome,
@@ -559,7 +626,7 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
 /// rough part of its drift, and each pose with them (calib-core's `separate`, through the
 /// nominal table's FK, with the EM's starting τ); returns the RMS move per joint (rad).
 pub fn separate_readings(samples: &mut [Sample<JOINTS>], settings: &Settings) -> [f64; JOINTS] {
-    let (_, em_opts) = options(settings);
+    let (_, em_opts) = options(settings, None);
     let mut slots = vec![SeparationSlot::default(); samples.len()];
     separate(
         samples,
@@ -571,15 +638,52 @@ pub fn separate_readings(samples: &mut [Sample<JOINTS>], settings: &Settings) ->
     .map(|j| j.correction_rms)
 }
 
+/// The gyros' bias where the suit was still in `samples` (calib-core's `rest`: the joints'
+/// rates and the measured pose), when `[sensors]` names unaided joints; `None` otherwise, or
+/// where the suit was never still for `calib_core::rest::MIN_REST_S`.
+pub fn gyro_at_rest(samples: &[AlignedSample], settings: &Settings) -> Option<GyroBias<JOINTS>> {
+    if !settings.sensors.unaided.iter().any(|&u| u) {
+        return None;
+    }
+    let mut rest = GyroAtRest::new(1.0 / settings.window.grid_hz);
+    for s in samples {
+        rest.push(&s.sample().pose, &s.rates);
+    }
+    rest.estimate()
+}
+
+/// [`gyro_at_rest`] on `samples`, its bias taken out of the unaided joints of `plain` (the
+/// same samples as calib-core takes them), in seconds from the first sample.
+pub fn take_out_gyro_bias(
+    samples: &[AlignedSample],
+    plain: &mut [Sample<JOINTS>],
+    settings: &Settings,
+) -> Option<GyroBias<JOINTS>> {
+    let bias = gyro_at_rest(samples, settings)?;
+    let t0 = samples.first().map_or(0.0, |s| s.t);
+    for (s, a) in plain.iter_mut().zip(samples) {
+        bias.correct(s, a.t - t0, &settings.sensors.unaided);
+    }
+    Some(bias)
+}
+
 /// The LS and EM options the daemon calibrates with: input checks against the configured
-/// joint ranges (the error stated over them), the EM step `1 / window.grid_hz`, the sensors' rate-bias spec.
-pub fn options(settings: &Settings) -> (LsOptions<JOINTS>, DriftEmOptions<JOINTS>) {
+/// joint ranges (the error stated over them), the EM step `1 / window.grid_hz`, the sensors'
+/// rate-bias spec; where the gyros' bias was measured at rest (`at_rest`) and no spec is
+/// configured, what is left of it (its standard error) is the spec.
+pub fn options(
+    settings: &Settings,
+    at_rest: Option<&GyroBias<JOINTS>>,
+) -> (LsOptions<JOINTS>, DriftEmOptions<JOINTS>) {
     let checks = InputChecks::new(Some(settings.bounds.joint_range));
     let ls_opts = LsOptions {
         checks,
         ..LsOptions::new()
     };
-    let spec = settings.sensors.rate_bias;
+    let spec = match at_rest {
+        Some(b) if settings.sensors.rate_bias.is_none() => b.residual(&settings.sensors.unaided),
+        _ => settings.sensors.rate_bias,
+    };
     let em_opts = DriftEmOptions {
         checks,
         rate_bias_spec: spec,
@@ -799,6 +903,7 @@ mod tests {
         let at = |t: f64| AlignedSample {
             t,
             joints: [0.0; JOINTS],
+            rates: [0.0; JOINTS],
             pose: crate::align::Pose {
                 position: [0.0; 3],
                 orientation: [1.0, 0.0, 0.0, 0.0],
@@ -1186,7 +1291,7 @@ mod tests {
         );
         // The judged fit (the collection estimates too) skips them: `detail` only.
         let fit: Vec<Sample<JOINTS>> = c.samples.iter().map(|s| s.sample).collect();
-        let (ls_opts, em_opts) = options(&settings());
+        let (ls_opts, em_opts) = options(&settings(), None);
         let quick = ls_then_em(&settings().nominal, &fit, &ls_opts, &em_opts, false).unwrap();
         assert!(quick.em.unwrap().drift_confidence.is_none());
     }

@@ -279,6 +279,11 @@ pub const UNCONFIGURED_RATE_BIAS_DEG_S: f64 = 0.01;
 pub struct SensorSpec {
     /// The rate bias (none by default).
     pub rate_bias: RateBias,
+    /// The joints whose reading integrates the node's gyro with nothing to correct its heading
+    /// (no gravity reference about a vertical axis, no magnetometer): where the suit holds
+    /// still, their rates measure the gyro's bias, which is then taken out of their readings
+    /// (`pipeline::gyro_at_rest`). None by default.
+    pub unaided: [bool; JOINTS],
 }
 
 /// Everything the data path reads: the suit and the session's rules.

@@ -198,6 +198,7 @@ fn demo(
         hold: args.live || args.listen.is_some(),
         quiet,
         wearer: Default::default(),
+        drift: Default::default(),
     };
     let result = match crate::cmd::demo::run(&config, &opts).map_err(|e| *e) {
         Ok(result) => result,

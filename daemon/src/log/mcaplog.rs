@@ -654,6 +654,7 @@ mod tests {
         AlignedSample {
             t,
             joints: [t, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6],
+            rates: [0.0; 7],
             pose: Pose {
                 position: [0.1, 0.2, t],
                 orientation: [1.0, 0.0, 0.0, 0.0],

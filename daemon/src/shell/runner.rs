@@ -403,6 +403,16 @@ pub async fn run_session_with<T: Transport>(
     };
     io.reporter
         .message(&format!("logging to {}", log_path.display()));
+    let unaided: Vec<String> = (0..exocal_session::JOINTS)
+        .filter(|&j| config.calibration.sensors.unaided[j])
+        .map(|j| (j + 1).to_string())
+        .collect();
+    if !unaided.is_empty() {
+        io.reporter.message(&format!(
+            "stand still for a few seconds before moving: the gyro bias of joints {} is measured then",
+            unaided.join(", ")
+        ));
+    }
     io.event(
         start,
         Level::Info,

@@ -124,6 +124,7 @@ pub fn json(summary: Option<&SessionSummary>, error: Option<&DaemonError>) -> se
         "condition_number": v.map(|v| v.condition_number),
         "refusals": v.map(|v| v.reasons.iter().map(ToString::to_string).collect::<Vec<_>>()),
         "table": outcome.map(|o| o.node_rows),
+        "gyro_at_rest": outcome.and_then(|o| o.at_rest),
         "push": push.map(|p| &p.nodes),
     })
 }
@@ -195,6 +196,9 @@ pub fn print_summary(summary: &SessionSummary) {
                 "rough drift taken out of the readings, RMS per joint: {} mrad",
                 mrad.join(" ")
             );
+        }
+        if let Some(r) = &o.at_rest {
+            println!("gyro at rest: {r}");
         }
         if let Some(em) = &o.em {
             if let Some(drift) = em.drift_95 {

@@ -29,6 +29,7 @@ pub fn live_session_with(
         hold: false,
         quiet: false,
         wearer: Default::default(),
+        drift: Default::default(),
     };
     let mut config = exocald::cmd::demo::demo_config(Config::default_config(), dir, 1.0);
     config.calibration.window.min_duration_s = 20.0;
