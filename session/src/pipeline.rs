@@ -574,6 +574,12 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
         samples: &held,
     };
     let mut verdict = validate(&table, ls.condition, expected, heldout, settings);
+    let unaided = settings.sensors.unaided;
+    if at_rest.is_none() && unaided.iter().any(|&u| u) {
+        verdict
+            .reasons
+            .push(Refusal::NeverStill { joints: unaided });
+    }
     if let Ok(em) = &detail.em {
         let at = |k: usize| all.get(k).map(|s| s.t);
         let dt = 1.0 / settings.window.grid_hz;

@@ -135,6 +135,13 @@ pub enum Refusal {
         /// When it happened (s since the session's start), where there is a moment.
         at_s: Option<f64>,
     },
+    /// Joints whose reading integrates its gyro unaided (`[sensors] unaided_joints`), and the
+    /// suit never still long enough to measure the gyros' bias: their heading, which a session
+    /// cannot tell from the geometry, is unmeasured.
+    NeverStill {
+        /// The unaided joints.
+        joints: [bool; JOINTS],
+    },
     /// On the held-out slice the judged table is significantly worse than nominal.
     WorseThanNominal {
         /// Mean pose error of the judged table.
@@ -173,6 +180,19 @@ impl fmt::Display for Refusal {
                 why,
                 at_s: Some(t),
             } => write!(f, "{why} ({t:.2} s into the session)"),
+            Refusal::NeverStill { joints } => {
+                let names: Vec<String> = (0..JOINTS)
+                    .filter(|&j| joints[j])
+                    .map(|j| (j + 1).to_string())
+                    .collect();
+                write!(
+                    f,
+                    "joints {} integrate their gyro unaided and the suit was never still for {} s: \
+                     their heading is not measured (stand still for a few seconds at the start)",
+                    names.join(", "),
+                    calib_core::rest::MIN_REST_S
+                )
+            }
             Refusal::TooFewHeldOut { have } => write!(
                 f,
                 "only {have} held-out samples, at least {MIN_HELDOUT} needed"

@@ -658,7 +658,8 @@ mod tests {
     /// still for the first 5 s. With `[sensors] unaided_joints = [1, 3, 5]` the session measures
     /// the gyro bias then from the joints' rates, takes it out of their readings and states
     /// what is left, and its table holds that statement; without, the same suit's table is
-    /// off by nearly twice its statement in rotation.
+    /// off by nearly twice its statement in rotation. Told, with a wearer who never stands
+    /// still, the session is refused naming the joints.
     #[test]
     fn the_gyro_at_rest_takes_a_heading_out_of_a_live_session() {
         let unaided = [true, false, true, false, true, false, false];
@@ -726,6 +727,34 @@ mod tests {
             }
             ratios.push(ratio);
         }
+        // Told, but the wearer never stands still: refused, naming the joints.
+        let opts = DemoOptions {
+            seed: 21,
+            speed: 1e6,
+            output: dir.join("out-moving"),
+            hold: false,
+            quiet: true,
+            wearer: Wearer::default(),
+            drift: drift.clone(),
+        };
+        let mut config = demo_config(Config::default_config(), &opts.output, 1.0);
+        config.calibration.window.min_duration_s = 40.0;
+        config.calibration.window.stop_at_expected_error = None;
+        config.calibration.sensors.unaided = unaided;
+        let e = run(&config, &opts).map(|_| ()).expect_err("refused");
+        let outcome = e
+            .summary
+            .as_ref()
+            .and_then(|s| s.outcome.as_ref())
+            .expect("calibrated");
+        assert!(
+            outcome
+                .verdict
+                .reasons
+                .contains(&exocal_session::validate::Refusal::NeverStill { joints: unaided }),
+            "{:?}",
+            outcome.verdict.reasons
+        );
         let _ = std::fs::remove_dir_all(&dir);
         // Measured: real ÷ stated 0.68 / 0.58 told (1.7 mm, 4.4 mrad off), 1.23 / 1.90 not
         // (3.0 mm, 13.1 mrad).
