@@ -114,9 +114,49 @@ fn all_samples(input: &ReportInput) -> Vec<TimedSample> {
     input.fit.iter().chain(&input.held_out).copied().collect()
 }
 
-fn trajectories(input: &ReportInput) -> (Result<String, PlotError>, Result<String, PlotError>) {
+/// The pose error over time of the nominal table and of the table the held-out slice judged
+/// (fitted without it), position and rotation: where each is off, and whether the calibrated
+/// one stays better on the slice it never saw.
+fn error_over_time(input: &ReportInput) -> Result<String, PlotError> {
     let all = all_samples(input);
     let shade = input.held_out.first().map(|s| s.t);
+    let nominal = residuals(&input.nominal, &all);
+    let calibrated = residuals(held_out_table(input), &all);
+    let panel = |title: &str, unit: &str, pick: fn(&(f64, f64)) -> f64| Panel {
+        title: title.into(),
+        x_label: "time (s)".into(),
+        y_label: unit.into(),
+        series: [
+            ("nominal", NOMINAL, &nominal),
+            ("calibrated", CALIBRATED, &calibrated),
+        ]
+        .iter()
+        .map(|(name, colour, errors)| Series {
+            name: (*name).into(),
+            colour: *colour,
+            points: all
+                .iter()
+                .zip(errors.iter())
+                .map(|(s, e)| (s.t, pick(e)))
+                .collect(),
+            markers: false,
+        })
+        .collect(),
+        shade_from: shade,
+    };
+    line_panels(
+        &[
+            panel("end-effector position error", "‖Δp‖ (mm)", |e| e.0),
+            panel("end-effector rotation error", "‖Δφ‖ (mrad)", |e| e.1),
+        ],
+        WIDE,
+        240,
+    )
+}
+
+/// The trajectories on two planes of the base frame: measured, nominal and calibrated.
+fn trajectories(input: &ReportInput) -> Result<String, PlotError> {
+    let all = all_samples(input);
     let fk = |table: &DhTable<JOINTS>| -> Vec<(f64, [f64; 3])> {
         all.iter()
             .map(|s| {
@@ -139,26 +179,6 @@ fn trajectories(input: &ReportInput) -> (Result<String, PlotError>, Result<Strin
         ("nominal model", NOMINAL, &nominal),
         ("calibrated model", CALIBRATED, &calibrated),
     ];
-    let panels: Vec<Panel> = ["x", "y", "z"]
-        .iter()
-        .enumerate()
-        .map(|(axis, name)| Panel {
-            title: format!("end-effector {name}"),
-            x_label: "time (s)".into(),
-            y_label: format!("{name} (mm)"),
-            series: lines
-                .iter()
-                .map(|(label, colour, pts)| Series {
-                    name: (*label).into(),
-                    colour: *colour,
-                    points: pts.iter().map(|(t, p)| (*t, p[axis])).collect(),
-                    markers: false,
-                })
-                .collect(),
-            shade_from: shade,
-        })
-        .collect();
-    let time = line_panels(&panels, WIDE, 240);
     let plane = |a: usize, b: usize, title: &str, xl: &str, yl: &str| Panel {
         title: title.into(),
         x_label: xl.into(),
@@ -176,10 +196,9 @@ fn trajectories(input: &ReportInput) -> (Result<String, PlotError>, Result<Strin
     };
     let top = plane(0, 1, "top view (x–y)", "x (mm)", "y (mm)");
     let side = plane(0, 2, "side view (x–z)", "x (mm)", "z (mm)");
-    let plane = line_panels(&[top], HALF, 420).and_then(|a| {
+    line_panels(&[top], HALF, 420).and_then(|a| {
         line_panels(&[side], HALF, 420).map(|b| format!("<div class=\"pair\">{a}{b}</div>"))
-    });
-    (time, plane)
+    })
 }
 
 /// A histogram, drawn, and its bins.
@@ -284,13 +303,14 @@ fn em_charts(input: &ReportInput) -> (Result<String, PlotError>, Result<String, 
         .chain(&input.held_out)
         .map(|s| s.t)
         .collect();
-    let drift = Panel {
-        title: "estimated joint drift (smoothed)".into(),
-        x_label: "time (s)".into(),
-        y_label: "drift (mrad)".into(),
-        series: (0..JOINTS)
-            .map(|j| Series {
-                name: format!("joint {} (τ {:.2} s)", j + 1, em.drift[j].tau),
+    // One panel per joint: seven drifts on one axis hide each other.
+    let drift: Vec<Panel> = (0..JOINTS)
+        .map(|j| Panel {
+            title: format!("joint {}: τ {:.2} s", j + 1, em.drift[j].tau),
+            x_label: "time (s)".into(),
+            y_label: "drift (mrad)".into(),
+            series: vec![Series {
+                name: format!("joint {}", j + 1),
                 colour: JOINT_COLOURS[j],
                 points: times
                     .iter()
@@ -298,13 +318,13 @@ fn em_charts(input: &ReportInput) -> (Result<String, PlotError>, Result<String, 
                     .map(|(&t, d)| (t, d[j] * 1e3))
                     .collect(),
                 markers: false,
-            })
-            .collect(),
-        shade_from: None,
-    };
+            }],
+            shade_from: None,
+        })
+        .collect();
     (
         line_panels(&[ll], HALF, 330),
-        line_panels(&[drift], WIDE, 380),
+        line_panels(&drift, WIDE, 150),
     )
 }
 
@@ -524,10 +544,14 @@ const EXCITATION_CAPTION: &str = "Share of each joint's anatomical range the ses
 pub fn render_session(input: &SessionInput) -> String {
     let mut out = String::with_capacity(1 << 16);
     page_head(&mut out, &input.title, &input.source);
-    out.push_str(
+    out.push_str(if input.interrupted {
+        "<div class=\"verdict bad\">Stopped before calibrating (SIGTERM or SIGINT): nothing is \
+         pushed. The log holds every frame received; <code>exocald offline</code> on it calibrates \
+         what was collected.<ul>"
+    } else {
         "<div class=\"verdict bad\">Not calibrated: the session does not meet the session rules; \
-         nothing is pushed.<ul>",
-    );
+         nothing is pushed.<ul>"
+    });
     for r in &input.reasons {
         let _ = write!(out, "<li>{}</li>", esc(r));
     }
@@ -681,21 +705,21 @@ pub fn render(input: &ReportInput) -> String {
         None => out.push_str(PUSH_MARK),
     }
 
-    out.push_str("<h2>End-effector trajectories</h2>\n");
-    let (time, plane) = trajectories(input);
+    out.push_str("<h2>Error over time</h2>\n");
     figure(
         &mut out,
         FIGURES[0],
-        "Measured end-effector position, and the nominal and calibrated models' forward kinematics \
-         of the same joint readings (cf. the paper's Figs. 3, 4 and 7). The shaded part is the \
-         held-out slice, which judged a table fitted without it.",
-        time,
+        "The end effector's pose error, measured against the nominal and the calibrated models' \
+         forward kinematics of the same joint readings, sample by sample (cf. the paper's Figs. 3, \
+         4 and 7). The calibrated table here is the one fitted without the shaded held-out slice, \
+         which judged it.",
+        error_over_time(input),
     );
     figure(
         &mut out,
         FIGURES[1],
-        "The same trajectories projected on two planes of the base frame.",
-        plane,
+        "The measured trajectory and the two models' on two planes of the base frame.",
+        trajectories(input),
     );
 
     let (pos, rot, which) = residual_charts(input);
@@ -750,7 +774,7 @@ pub fn render(input: &ReportInput) -> String {
         &mut out,
         FIGURES[5],
         "Each joint's smoothed drift estimate over the samples the EM ran on (Gauss–Markov \
-         model, Kalman filter and RTS smoother).",
+         model, Kalman filter and RTS smoother), one panel per joint, each on its own scale.",
         drift,
     );
 
@@ -1022,6 +1046,7 @@ mod tests {
             title: "offline <short>".into(),
             source: "offline: short.csv (CSV)".into(),
             reasons: vec!["the recording is 3.0 s long, session.min_duration_s is 60 s".into()],
+            interrupted: false,
             samples,
             quality: Quality {
                 duration_s: 3.0,

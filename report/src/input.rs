@@ -59,8 +59,12 @@ pub struct SessionInput {
     pub title: String,
     /// Where the data came from, as [`ReportInput::source`].
     pub source: String,
-    /// Why no table was calibrated, one line per rule not met.
+    /// Why no table was calibrated, one line per rule not met (or what an interruption cut
+    /// short).
     pub reasons: Vec<String>,
+    /// Whether the session was stopped (SIGTERM, SIGINT) before it could calibrate, rather
+    /// than ending without meeting its rules.
+    pub interrupted: bool,
     /// The aligned samples the session had, time-ordered (may be empty).
     pub samples: Vec<TimedSample>,
     /// Data quality of the session.

@@ -356,6 +356,9 @@ pub fn line_panels(panels: &[Panel], width: u32, panel_height: u32) -> Result<St
             keys.push(("held out".into(), HELD_OUT_SHADE, Swatch::Area));
         }
     }
+    // A series drawn in several panels is named once.
+    let mut seen = std::collections::HashSet::new();
+    keys.retain(|k| seen.insert(k.0.clone()));
     svg.push_str(&legend(&keys));
     Ok(svg)
 }

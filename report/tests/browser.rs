@@ -321,7 +321,7 @@ fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
     // Issue 50, item 5: the parameter table near the top (after the verdict and the key
     // numbers, before the plots), a unit on the drift table's σ, the version in the header.
     let at = |s: &str| dom.find(s).unwrap_or_else(|| panic!("no {s}"));
-    assert!(at("<h2>Parameters</h2>") < at("<h2>End-effector trajectories</h2>"));
+    assert!(at("<h2>Parameters</h2>") < at("<h2>Error over time</h2>"));
     assert!(at("class=\"cards\"") < at("<h2>Parameters</h2>"));
     assert!(dom.contains("σ (paper, eq. 8, rad/s)"));
     assert!(dom.contains(&format!("· exocal {}", env!("CARGO_PKG_VERSION"))));
@@ -340,11 +340,28 @@ fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
         let points = polyline_points(fig);
         let rects = fig.matches("<rect").count();
         match id {
-            // Three series × three axes (decimated to 1,500 points each); two planes of three.
-            "fig-trajectory-time" | "fig-trajectory-plane" => {
-                assert!(points >= 2 * 3 * 1500, "{id}: {points} points")
+            // Two series (nominal, calibrated) × position and rotation error (decimated to
+            // 1,500 points each), each named once in the legend; two planes of three series.
+            "fig-trajectory-time" => {
+                assert!(points >= 2 * 2 * 1500, "{id}: {points} points");
+                let legend = &dom[dom[dom.find(id).unwrap()..]
+                    .find("class=\"legend\"")
+                    .unwrap()
+                    + dom.find(id).unwrap()..];
+                let legend = &legend[..legend.find("</div>").unwrap()];
+                assert_eq!(legend.matches("nominal").count(), 1, "{legend}");
             }
-            "fig-drift" => assert!(points >= 7 * 1500, "{id}: {points} points"),
+            "fig-trajectory-plane" => assert!(points >= 2 * 3 * 1500, "{id}: {points} points"),
+            // One panel per joint (issue 50, item 5).
+            "fig-drift" => {
+                assert!(points >= 7 * 1500, "{id}: {points} points");
+                assert_eq!(
+                    (1..=7)
+                        .filter(|j| fig.contains(&format!("joint {j}: τ")))
+                        .count(),
+                    7
+                );
+            }
             "fig-likelihood" => assert!(points >= 3, "{id}: {points} points"),
             // Bars: at least a few non-empty bins per distribution, one bar per joint.
             "fig-residual-position" | "fig-residual-rotation" => {

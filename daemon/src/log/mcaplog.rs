@@ -315,14 +315,23 @@ impl Drop for Syncer {
 
 /// The file name of a session started at `start_ns` (ns since the epoch, UTC).
 pub fn session_file_name(start_ns: u64) -> String {
-    let secs = (start_ns / 1_000_000_000) as i64;
+    let ((y, m, d), (h, min, s)) = utc(start_ns);
+    format!("exocal-{y:04}{m:02}{d:02}T{h:02}{min:02}{s:02}Z.mcap")
+}
+
+/// `2026-11-29 04:05:06 UTC` for a time in ns since the Unix epoch (the report's header).
+pub fn utc_time(ns: u64) -> String {
+    let ((y, m, d), (h, min, s)) = utc(ns);
+    format!("{y:04}-{m:02}-{d:02} {h:02}:{min:02}:{s:02} UTC")
+}
+
+/// (year, month, day), (hour, minute, second) of a time in ns since the Unix epoch.
+fn utc(ns: u64) -> ((i64, u32, u32), (i64, i64, i64)) {
+    let secs = (ns / 1_000_000_000) as i64;
     let (days, rem) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
-    let (y, m, d) = civil_from_days(days);
-    format!(
-        "exocal-{y:04}{m:02}{d:02}T{:02}{:02}{:02}Z.mcap",
-        rem / 3600,
-        rem % 3600 / 60,
-        rem % 60
+    (
+        civil_from_days(days),
+        (rem / 3600, rem % 3600 / 60, rem % 60),
     )
 }
 
@@ -1045,6 +1054,10 @@ mod tests {
         assert_eq!(
             session_file_name(1_709_210_096_000_000_000),
             "exocal-20240229T123456Z.mcap"
+        );
+        assert_eq!(
+            utc_time(1_709_210_096_000_000_000),
+            "2024-02-29 12:34:56 UTC"
         );
     }
 }

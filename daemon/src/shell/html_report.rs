@@ -88,6 +88,7 @@ pub fn session_input(
         title,
         source,
         reasons,
+        interrupted: false,
         samples: timed(samples),
         quality,
     }

@@ -437,6 +437,7 @@ pub async fn run_session_with<T: Transport>(
         collector: Collector::new(&config.calibration),
         stream_nonce: 0,
         origin: Duration::ZERO,
+        start,
         tick,
         summary: SessionSummary::new(log_path),
         report: None,
@@ -485,6 +486,8 @@ struct Running<'a, 'io, T> {
     stream_nonce: u32,
     /// Bus time of the collection's first frame: aligned sample times are relative to it.
     origin: Duration,
+    /// Bus time the session started (its log's name).
+    start: Duration,
     tick: tokio::time::Interval,
     summary: SessionSummary,
     /// The calibration report as written before the push, for [`Running::report_push`].
@@ -501,6 +504,9 @@ impl<T: Transport> Running<'_, '_, T> {
     ) -> Result<(), DaemonError> {
         if let Err(e) = self.collect(shutdown.as_mut()).await {
             self.summary.frames = self.collector.ingest.stats().clone();
+            if matches!(e, DaemonError::Interrupted) {
+                self.interrupted_report(start);
+            }
             return Err(e);
         }
         let window_closed = (Instant::now(), self.clock.monotonic());
@@ -1072,6 +1078,30 @@ impl<T: Transport> Running<'_, '_, T> {
         Ok(())
     }
 
+    /// The report of a session stopped during collection: when and with how many frames, and
+    /// that the log has them. Written at once, without aligning what was collected: a stop is
+    /// given seconds (the unit's `TimeoutStopSec`), which aligning a long collection on a slow
+    /// controller could exceed; `exocald offline` on the log shows the rest.
+    fn interrupted_report(&mut self, start: Duration) {
+        let (title, source) = self.report_titles("session");
+        let stats = self.collector.ingest.stats();
+        let seconds = self.clock.now().saturating_sub(start).as_secs_f64();
+        let reasons = vec![format!(
+            "stopped {seconds:.1} s into the collection, with {} frames received ({} decoded)",
+            stats.received, stats.decoded
+        )];
+        let mut input = crate::shell::html_report::session_input(
+            title,
+            source,
+            &[],
+            reasons,
+            exocal_report::Quality::default(),
+        );
+        input.interrupted = true;
+        let html = exocal_report::html::render_session(&input);
+        self.write_report(&html, "session report");
+    }
+
     /// Step 5: once pushed (completely or not), the report with the push's outcome per node:
     /// the report written before the push, its banner replaced and the push table added
     /// (`exocal_report::html::with_push`: string work, no plot re-rendered, so it costs the
@@ -1097,8 +1127,9 @@ impl<T: Transport> Running<'_, '_, T> {
         (
             format!("exocald {what} — {name}"),
             format!(
-                "live session on {}, logged to {}",
+                "live session on {}, started {}, logged to {}",
                 self.config.interface,
+                crate::log::mcaplog::utc_time(ns(self.start)),
                 path.display()
             ),
         )
@@ -1308,6 +1339,14 @@ mod tests {
         assert_eq!(err.error.exit_code(), crate::exit::code::TEMPFAIL);
         let summary = err.summary.unwrap();
         assert!(summary.push.is_none());
+        // The report says it was stopped, when, and that the log has the frames.
+        let report =
+            std::fs::read_to_string(summary.report_path.as_ref().expect("a report")).unwrap();
+        assert!(
+            report.contains("Stopped before calibrating")
+                && report.contains("into the collection, with"),
+            "{report}"
+        );
         // Sent: the collection's stream nonce (one frame per node), nothing else.
         assert_eq!(topic_count(&summary, "/can/tx"), NodeId::ALL.len() as u64);
         assert!(topic_count(&summary, "/can/rx") > 1000);
