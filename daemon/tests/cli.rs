@@ -430,6 +430,10 @@ fn the_verdict_is_the_last_line_and_quiet_and_json_say_it() {
     assert_eq!(o["verdict"], "validated");
     assert_eq!(o["table"], v["table"], "offline replays to the live table");
     assert!(o["push"].is_null());
+    assert!(
+        !err.contains("replaying"),
+        "--json: no progress on stderr: {err}"
+    );
 
     let strict = exocald::config::DEFAULT_TOML.replace(
         "max_expected_position_error_mm = 3.0",

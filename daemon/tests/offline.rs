@@ -122,6 +122,7 @@ fn offline_recalibration_agrees_with_the_live_session() {
         export_toml: Some(toml_out.clone()),
         export_urdf: Some(urdf_out.clone()),
         export_candump: Some(candump.clone()),
+        quiet: false,
     };
     // The live session's table, bit for bit, and its improvement.
     let same_table_as_live = |outcome: &Outcome| {

@@ -158,6 +158,7 @@ fn offline(
         export_toml: args.export_toml,
         export_urdf: args.export_urdf,
         export_candump: args.export_candump,
+        quiet: !matches!(output, crate::shell::summary::Output::Text),
     };
     let result = crate::cmd::offline::run(&config, &text, &opts).map_err(|e| *e);
     *printed = true;

@@ -361,6 +361,8 @@ pub struct OfflineOptions {
     pub export_urdf: Option<PathBuf>,
     /// Where to write the replayed frames as a `candump -L` log (`None`: not written).
     pub export_candump: Option<PathBuf>,
+    /// No progress on stderr (`--quiet`, `--json`): warnings and errors still go there.
+    pub quiet: bool,
 }
 
 /// The report's default path: `<input stem>.offline.html` next to the input (never the live
@@ -420,13 +422,17 @@ pub fn run(
         ),
         None => format!("offline: {} ({format})", path.display()),
     };
+    let source = format!(
+        "{source}; {}",
+        crate::shell::html_report::config_line(&config.calibration)
+    );
     if let (Recording::Samples(_), Some(_)) = (&input, &opts.export_candump) {
         return Err(DaemonError::Usage(
             "--export-candump needs a frame input (MCAP or candump), not CSV samples".into(),
         )
         .into());
     }
-    if let Recording::Frames(frames) = &input {
+    if let (Recording::Frames(frames), false) = (&input, opts.quiet) {
         eprintln!(
             "exocald: replaying {} frames from {} ({format})",
             frames.len(),

@@ -24,6 +24,34 @@ pub fn report_path_for_log(log: &Path) -> PathBuf {
     log.with_extension("html")
 }
 
+/// The configuration a report was made under, in a line: the window, its stop target, the
+/// limits a pushed table must meet, the unaided joints.
+pub fn config_line(c: &exocal_session::Settings) -> String {
+    let w = &c.window;
+    let v = &c.validation;
+    let mut line = format!(
+        "configured: window {}–{} s on a {} Hz grid",
+        w.min_duration_s, w.max_duration_s, w.grid_hz
+    );
+    if let Some((mm, mrad)) = w.stop_at_expected_error {
+        line += &format!(", stops within ±{mm} mm, ±{mrad} mrad");
+    }
+    line += &format!(
+        ", pushes within ±{} mm, ±{} mrad and condition number {}",
+        v.max_expected_position_error_mm,
+        v.max_expected_rotation_error_mrad,
+        v.max_condition_number
+    );
+    let unaided: Vec<String> = (0..exocal_session::JOINTS)
+        .filter(|&j| c.sensors.unaided[j])
+        .map(|j| (j + 1).to_string())
+        .collect();
+    if !unaided.is_empty() {
+        line += &format!(", unaided joints {}", unaided.join(", "));
+    }
+    line
+}
+
 /// The report of a calibration (see the module docs).
 pub fn report_input(
     title: String,

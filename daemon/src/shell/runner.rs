@@ -1127,10 +1127,11 @@ impl<T: Transport> Running<'_, '_, T> {
         (
             format!("exocald {what} — {name}"),
             format!(
-                "live session on {}, started {}, logged to {}",
+                "live session on {}, started {}, logged to {}; {}",
                 self.config.interface,
                 crate::log::mcaplog::utc_time(ns(self.start)),
-                path.display()
+                path.display(),
+                crate::shell::html_report::config_line(&self.config.calibration)
             ),
         )
     }

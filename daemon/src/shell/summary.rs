@@ -53,33 +53,74 @@ pub fn print_result(
     }
 }
 
+/// How a session ended, classified once for the verdict line and for `--json`.
+enum Ending<'a> {
+    /// Validated, and every node holds the new table.
+    Pushed,
+    /// Validated, nothing pushed (offline, or `--dry-run`).
+    Validated,
+    /// Refused, for these reasons.
+    Refused(&'a [exocal_session::validate::Refusal]),
+    /// Validated and pushed to every node, then this went wrong.
+    PushedBut(&'a DaemonError),
+    /// Validated, but not every node took the table.
+    PartlyPushed(&'a DaemonError),
+    /// Nothing pushed, because of this.
+    Failed(&'a DaemonError),
+    /// No error and nothing to push.
+    Nothing,
+}
+
+impl<'a> Ending<'a> {
+    fn of(summary: Option<&'a SessionSummary>, error: Option<&'a DaemonError>) -> Ending<'a> {
+        let outcome = summary.and_then(|s| s.outcome.as_ref());
+        let push = summary.and_then(|s| s.push.as_ref());
+        match (error, outcome, push) {
+            (None, Some(_), Some(p)) if p.complete() => Ending::Pushed,
+            (None, Some(o), None) if o.verdict.accepted() => Ending::Validated,
+            (_, Some(o), _) if !o.verdict.accepted() => Ending::Refused(&o.verdict.reasons),
+            (Some(e), Some(_), Some(p)) if p.complete() => Ending::PushedBut(e),
+            (Some(e), Some(_), Some(_)) => Ending::PartlyPushed(e),
+            (Some(e), _, _) => Ending::Failed(e),
+            (None, _, _) => Ending::Nothing,
+        }
+    }
+
+    /// `--json`'s `verdict`.
+    fn kind(&self) -> &'static str {
+        match self {
+            Ending::Pushed => "pushed",
+            Ending::Validated => "validated",
+            Ending::Refused(_) => "refused",
+            _ => "failed",
+        }
+    }
+}
+
 /// The last line: validated and pushed, or refused and why, with the expected table error.
 pub fn verdict(summary: Option<&SessionSummary>, error: Option<&DaemonError>) -> String {
-    let outcome = summary.and_then(|s| s.outcome.as_ref());
-    let push = summary.and_then(|s| s.push.as_ref());
-    let expected = outcome
+    let expected = summary
+        .and_then(|s| s.outcome.as_ref())
         .and_then(|o| o.verdict.expected)
         .map(|e| format!("; expected table error {e}"))
         .unwrap_or_default();
-    match (error, outcome, push) {
-        (None, Some(_), Some(p)) if p.complete() => {
+    match Ending::of(summary, error) {
+        Ending::Pushed => {
             format!("verdict: validated and pushed, every node holds the new table{expected}")
         }
-        (None, Some(o), None) if o.verdict.accepted() => {
+        Ending::Validated => {
             format!("verdict: validated; nothing pushed (offline, or --dry-run){expected}")
         }
-        (_, Some(o), _) if !o.verdict.accepted() => {
-            let reasons: Vec<String> = o.verdict.reasons.iter().map(|r| r.to_string()).collect();
+        Ending::Refused(reasons) => {
+            let reasons: Vec<String> = reasons.iter().map(ToString::to_string).collect();
             format!("verdict: refused, nothing pushed: {}", reasons.join("; "))
         }
-        (Some(e), Some(_), Some(p)) if p.complete() => {
-            format!("verdict: validated and pushed, but {e}{expected}")
-        }
-        (Some(e), Some(_), Some(_)) => {
+        Ending::PushedBut(e) => format!("verdict: validated and pushed, but {e}{expected}"),
+        Ending::PartlyPushed(e) => {
             format!("verdict: validated, but not every node took the table: {e}{expected}")
         }
-        (Some(e), _, _) => format!("verdict: nothing pushed: {e}"),
-        (None, _, _) => "verdict: nothing to push".into(),
+        Ending::Failed(e) => format!("verdict: nothing pushed: {e}"),
+        Ending::Nothing => "verdict: nothing to push".into(),
     }
 }
 
@@ -87,17 +128,13 @@ pub fn verdict(summary: Option<&SessionSummary>, error: Option<&DaemonError>) ->
 /// `failed`) and its line, `exit` (the status the process ends with), `error`, `log`,
 /// `report`, `expected_error` (1σ, mm and mrad), `heldout` (mean error of the nominal and the
 /// judged table on the held-out slice, mm and mrad), `condition_number`, `refusals`, `table`
-/// (the calibrated rows in SI units: m, rad, s, rad/s) and `push` (per node: what it holds,
-/// the CRCs sent and held, attempts, error). Absent parts are null.
+/// (the calibrated rows in SI units: m, rad, s, rad/s), `gyro_at_rest` (what the gyros read
+/// while still, where joints are unaided) and `push` (per node: what it holds, the CRCs sent
+/// and held, attempts, error). Absent parts are null.
 pub fn json(summary: Option<&SessionSummary>, error: Option<&DaemonError>) -> serde_json::Value {
     let outcome = summary.and_then(|s| s.outcome.as_ref());
     let push = summary.and_then(|s| s.push.as_ref());
-    let kind = match (error, outcome, push) {
-        (None, Some(_), Some(p)) if p.complete() => "pushed",
-        (None, Some(o), None) if o.verdict.accepted() => "validated",
-        (_, Some(o), _) if !o.verdict.accepted() => "refused",
-        _ => "failed",
-    };
+    let kind = Ending::of(summary, error).kind();
     let v = outcome.map(|o| &o.verdict);
     serde_json::json!({
         "verdict": kind,
