@@ -324,7 +324,7 @@ fn em_charts(input: &ReportInput) -> (Result<String, PlotError>, Result<String, 
         .collect();
     (
         line_panels(&[ll], HALF, 330),
-        line_panels(&drift, WIDE, 150),
+        line_panels(&drift, WIDE, 190),
     )
 }
 

@@ -285,6 +285,8 @@ fn draw_panel(area: &DrawingArea<SVGBackend<'_>, Shift>, panel: &Panel) -> Resul
             xs
         }
     };
+    // A label per 30 px of height at most: a short panel (one of seven joints) stays legible.
+    let y_labels = (area.dim_in_pixel().1 as usize / 30).clamp(3, AXIS_LABELS);
     let mut chart = chart(area, &panel.title, 62, xs.clone(), ys.clone())?;
     let (x_ticks, x_desc) = axis_labels(&xs, &panel.x_label);
     let (y_ticks, y_desc) = axis_labels(&ys, &panel.y_label);
@@ -294,7 +296,7 @@ fn draw_panel(area: &DrawingArea<SVGBackend<'_>, Shift>, panel: &Panel) -> Resul
             .x_desc(x_desc)
             .y_desc(y_desc)
             .x_labels(AXIS_LABELS)
-            .y_labels(AXIS_LABELS)
+            .y_labels(y_labels)
             .x_label_formatter(&x_ticks)
             .y_label_formatter(&y_ticks),
         &panel.title,
