@@ -417,6 +417,15 @@ fn the_verdict_is_the_last_line_and_quiet_and_json_say_it() {
     );
     let push = v["push"].as_array().unwrap();
     assert!(push.iter().all(|n| n["holds"] == "New"), "{json}");
+    // The report's header: the emulated suit's seed, the start, the configuration.
+    let report = std::fs::read_to_string(v["report"].as_str().unwrap()).unwrap();
+    for says in [
+        "(emulated suit, seed 2024), started 20",
+        " UTC, logged to",
+        "configured: window 20–180 s",
+    ] {
+        assert!(report.contains(says), "no {says:?} in the report's header");
+    }
 
     let log = std::fs::read_dir(&dir)
         .unwrap()

@@ -190,6 +190,8 @@ async fn session(
         .duration_s
         .max(config.calibration.window.max_duration_s + 120.0);
     let mut config = config.clone();
+    // The seed names the emulated suit: in the log's first event and the report's header.
+    config.interface = format!("{} (emulated suit, seed {})", config.interface, opts.seed);
     let provisioned = if config.push.authenticate {
         config.push.keys = exocal_dbc::auth::KeySet::derived(opts.seed);
         exocal_hil::flash::provision(&flash_dir, &config.push.keys).map(|_| ())
