@@ -640,12 +640,7 @@ mod tests {
         let truth = *exocal_hil::Suit::new(scenario, &dir.join("truth"))
             .unwrap()
             .true_table();
-        let mut other = Scenario::paper();
-        other.seed = 0xF2E5_4000;
-        let fresh_suit = exocal_hil::Suit::new(other, &dir.join("fresh")).unwrap();
-        let fresh: Vec<[f64; 7]> = (0..2_000)
-            .map(|k| fresh_suit.true_joints(k as f64 * 0.1))
-            .collect();
+        let fresh = fresh_poses(&dir);
         let real = calib_core::table_error(&outcome.table(), &truth, &fresh);
         assert!(
             real.position_m * 1e3 <= stated.position_mm
@@ -653,6 +648,17 @@ mod tests {
             "real {real:?} against stated {stated:?}"
         );
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// 2,000 poses of another emulated motion, every 0.1 s: what a pushed table is judged on
+    /// against the emulated arm's true one.
+    fn fresh_poses(dir: &Path) -> Vec<[f64; 7]> {
+        let mut other = Scenario::paper();
+        other.seed = 0xF2E5_4000;
+        let suit = exocal_hil::Suit::new(other, &dir.join("fresh")).unwrap();
+        (0..2_000)
+            .map(|k| suit.true_joints(k as f64 * 0.1))
+            .collect()
     }
 
     /// Issue 46, item 3, live: the emulated nodes on joints 1, 3 and 5 integrate their gyro
@@ -677,12 +683,7 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
         let suit = exocal_hil::Suit::new(scenario, &dir.join("truth")).unwrap();
         let (truth, headings) = (*suit.true_table(), suit.headings());
-        let mut other = Scenario::paper();
-        other.seed = 0xF2E5_4000;
-        let fresh_suit = exocal_hil::Suit::new(other, &dir.join("fresh")).unwrap();
-        let fresh: Vec<[f64; 7]> = (0..2_000)
-            .map(|k| fresh_suit.true_joints(k as f64 * 0.1))
-            .collect();
+        let fresh = fresh_poses(&dir);
         let mut ratios = Vec::new();
         for told in [true, false] {
             let opts = DemoOptions {
