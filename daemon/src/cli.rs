@@ -23,8 +23,11 @@ pub const SYSTEM_CONFIG: &str = "/etc/exocal/exocald.toml";
 /// the D-H table (least squares, then EM over the joint-angle drift), checks the result against
 /// the anatomical bounds and on a held-out slice of the session, and only then pushes it to every
 /// node. Every session is logged to an MCAP file you can open in Foxglove.
-///
-/// New here? Try `exocald demo`: the whole story in one process, with an emulated suit.
+#[cfg_attr(feature = "demo", doc = "")]
+#[cfg_attr(
+    feature = "demo",
+    doc = "New here? Try `exocald demo`: the whole story in one process, with an emulated suit."
+)]
 #[derive(Debug, Parser)]
 #[command(name = "exocald", version, about, long_about, propagate_version = true)]
 pub struct Cli {
