@@ -77,7 +77,7 @@ mod tests {
         assert_eq!(missing("lo"), None);
     }
 
-    /// Issue 33: on a kernel without CAN, or an interface that is not CAN, the error says what
+    /// On a kernel without CAN, or an interface that is not CAN, the error says what
     /// to do instead of a bare "Address family not supported by protocol (os error 97)".
     #[test]
     fn a_kernel_or_interface_without_can_gets_a_hint() {

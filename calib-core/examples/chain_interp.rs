@@ -1,4 +1,4 @@
-//! Measurement (not a product change; issue 18): does the daemon's per-node sampling
+//! Measurement (not a product change): does the daemon's per-node sampling
 //! phase + linear interpolation onto the 100 Hz grid explain why, through the whole chain, the
 //! drift EM's real table error is ~1.5× its stated expected error?
 //!
@@ -20,20 +20,17 @@
 //! an AR(1)+white decomposition of the *effective* drift δ_k = m(t_k) − reported_k per joint
 //! (from its lag-0/1/2 autocovariances: φ = γ2/γ1, s² = γ1/φ, white w = γ0 − s²).
 //!
-//! Measured 2026-11-25 with the EM before issue 30 (100 seeds, 60 s; real / stated on fresh
-//! poses, pooled RMS ratio, position / rotation): a 1.01 / 1.04, a0 1.88 / 1.20, a1 (same m, d as a0, drift in the arm)
-//! 1.06 / 1.05, a2 (Scenario's m, d, drift in the reading) 1.80 / 1.17, b = c 1.55 / 1.11,
-//! d 1.88 / 1.20. The excess comes from where the drift sits (the HIL suit reads
+//! What it shows: the excess comes from where the drift sits (the HIL suit reads
 //! `angle = q − drift`, pose = FK(q): the reported angle carries the drift, so it is not
 //! exogenous to it), not from the interpolation, which smooths the drift in the reading and
-//! *lowers* the ratio; it vanishes at σ = 0.1 (a2 1.05 / 1.09 vs a 1.04 / 1.09), is 1.33 at
-//! σ = 0.5 and grows with the session (a0 1.61 / 1.88 / 2.04 at 30 / 60 / 120 s); refitting with
-//! the Jacobians at θ + δ̂ (`--relin`) changes nothing (1.81 → 1.79 over 20 seeds).
+//! *lowers* the ratio (b and c below a0 and d). The excess vanishes at small σ, grows with σ
+//! and with the session, and refitting with the Jacobians at θ + δ̂ (`--relin`) does not
+//! remove it.
 //!
 //! With `--separate`, every variant's samples go through `calib_core::separate` first, as the
-//! daemon's do. The summaries of `--seeds 20` with and without it, with today's EM, are
-//! recorded in BENCHMARKS.md (rerun by `cargo xtask figures --slow`) and quoted in
-//! calib-core/README.md, "The drift in the reading".
+//! daemon's do, and every variant's ratio is about 1 (figures of `--seeds 20` with and
+//! without it: BENCHMARKS.md, section "Accuracy: calib-core's sweeps", rerun by
+//! `cargo xtask figures --slow`; quoted in calib-core/README.md, "The drift in the reading").
 //!
 //! `cargo run -p calib-core --release --example chain_interp -- [--seeds N] [--seconds S]
 //! [--sigma S] [--tau T] [--only PREFIX] [--relin] [--separate]` (`--only a` runs a, a0, a1, a2).

@@ -1,4 +1,4 @@
-//! The field cells of the accuracy sweep (issue 30): real ÷ stated, our table against LS and
+//! The field cells of the accuracy sweep: real ÷ stated, our table against LS and
 //! against the bound, on a real suit's sensors (see `calib_core::sweep::field_grid`).
 //!
 //! `cargo run -p calib-core --release --example field [-- --seeds N] [--only SUBSTRING[,…]]

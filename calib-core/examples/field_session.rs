@@ -1,4 +1,4 @@
-//! One session of a field cell in detail (issue 30): what LS and our EM make of it, the drift
+//! One session of a field cell in detail: what LS and our EM make of it, the drift
 //! model each joint got and why, the discounted reference samples, the consistency statistics,
 //! the refusals, against the simulated truth.
 //!

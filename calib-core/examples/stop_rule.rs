@@ -1,4 +1,4 @@
-//! Stop when good enough across the sweep's regimes (issue 18): how long the daemon's rule
+//! Stop when good enough across the sweep's regimes: how long the daemon's rule
 //! (LS + our EM every 5 s from 15 s, close the window when the EM's expected table error is
 //! within [2 mm, 6 mrad], at 120 s at the latest) collects, and the table error it then reaches,
 //! against a fixed minute of the same session (see `calib_core::sweep::good_enough`).
@@ -6,7 +6,7 @@
 //! `cargo run -p calib-core --release --example stop_rule` (τ ∈ {0.1, 0.3, 1, 3, 10} s ×
 //! σ ∈ {0.25, 1, 4} × pose noise {none, 1 mm / 2 mrad}, 5 seeds per cell; optional `--seeds N`,
 //! `--sigma S`, `--tau T`, `--noise 0|1` to run part of it, `--limits MM,MRAD`). The whole grid
-//! took 4 min 33 s on one core (2026-11-24, load ≈ 1.7): a session that never meets the limits
+//! takes about 4.5 min on one core: a session that never meets the limits
 //! costs 22 fits, 2–9 s; most of the time goes to σ = 4, where most never do.
 //!
 //! Expected and real table errors are RMS over the cell's sessions (the expected error is a

@@ -1,4 +1,4 @@
-//! The accuracy sweep of issue 18: LS, our EM and the Cramér-Rao bound in table error over
+//! The accuracy sweep: LS, our EM and the Cramér-Rao bound in table error over
 //! drift τ × σ × pose noise × session length (see `calib_core::sweep`).
 //!
 //! `cargo run -p calib-core --release --example sweep` (the whole grid, 5 seeds per cell;

@@ -1,4 +1,4 @@
-//! How long must a wearer move (issue 32, item 1)? Per cell and seed: the table error LS reaches
+//! How long must a wearer move? Per cell and seed: the table error LS reaches
 //! after 60 s of motion (the fixed minute's calibration, judged on fresh drift-free poses), the
 //! motion time our calibration (LS then our EM, as the daemon runs it) needs to reach that same
 //! table error, and where the daemon's stop-when-good-enough rule closes the window: LS + EM
@@ -14,7 +14,7 @@
 //! and the stop's table error ÷ LS-60 s's (RMS over sessions). And what bounds the window: the
 //! motion time at which the Cramér-Rao bound itself (the true table, drift and noise; no
 //! unbiased calibration of those samples does better) reaches LS-60 s's table error, and the
-//! bound after the issue's goal of 20 s ÷ LS-60 s's error (RMS over sessions).
+//! bound after the 20 s goal for the median window ÷ LS-60 s's error (RMS over sessions).
 
 use calib_core::metrics::TableError;
 use calib_core::sweep::{field_grid, Cell, Simulation};
@@ -24,7 +24,7 @@ const EVERY_S: f64 = 5.0;
 const HORIZON_S: f64 = 90.0;
 /// The fixed window of the reference (s).
 const FIXED_S: f64 = 60.0;
-/// The issue's goal for the median window (s).
+/// The goal for the median window (s).
 const GOAL_S: f64 = 20.0;
 /// The stop rule's first evaluation (s).
 const MIN_S: f64 = 10.0;

@@ -43,20 +43,14 @@
 //!
 //! # Monte Carlo check (test `monte_carlo_standard_errors_match_the_spread`)
 //! 50 sessions of 24 s (K = 2,400, 120 τ) with exact Gauss-Markov drift τ = 0.2 s, σ = 10 mrad
-//! on every joint, 1 mm / 2 mrad pose noise; pooled over the 7 joints (350 estimates):
-//!
-//! | | empirical sd / mean reported se | 95% interval coverage | bias of the estimate |
-//! |---|---|---|---|
-//! | ln τ | 1.14 | 90.3% | −0.060 |
-//! | ln σ | 1.14 | 88.9% | −0.031 |
-//!
-//! (What the test printed on 2026-11-27; calib-core/README.md quotes its output, checked
-//! against a fresh run by `cargo xtask figures`.) The reported standard errors are about a
-//! seventh too small and the bias takes the rest of the coverage. Both grow on shorter
-//! sessions: at 30 τ (15 s, τ = 0.5 s) the ratios were 1.27 and 1.29, the coverage 75%, the
-//! biases −0.26 and −0.12; at 120 τ with τ = 0.5 s (60 s) 1.17 and 1.13, 87% and 88%
-//! (measured on 2026-11-24, with the EM before issue 30). Read the intervals as honest to
-//! about 15% when the session is ≳ 100 τ, and as optimistic below that.
+//! on every joint, 1 mm / 2 mrad pose noise; pooled over the 7 joints (350 estimates). The
+//! reported standard errors of ln τ and ln σ are about a seventh too small (empirical sd over
+//! mean reported se ≈ 1.14), and the estimates' low bias takes the rest of the coverage: the
+//! 95% intervals cover the truth about 89–91% of the time (figures: calib-core/README.md,
+//! `figures:drift-coverage`, checked against a fresh run by `cargo xtask figures`). Both grow
+//! on shorter sessions: at 30 τ (15 s, τ = 0.5 s) the coverage is nearer 75% (a single run
+//! with an earlier EM, not rechecked by `cargo xtask figures`). Read the intervals as honest
+//! to about 15% when the session is ≳ 100 τ, and as optimistic below that.
 
 use crate::drift_em::DriftEmResult;
 use crate::error::CalibError;

@@ -1,5 +1,5 @@
 //! Our EM: the drift as a time series (Kalman filter + Rauch-Tung-Striebel smoother), with the
-//! drift, the reference and the stated error as real sensors need them (issue 30).
+//! drift, the reference and the stated error as real sensors need them.
 //!
 //! # Contract (what a caller shows, logs and refuses on)
 //! [`em_drift`] takes the session's samples (readings already separated from the rough part of
@@ -98,14 +98,14 @@
 //! --nocapture` prints the counts and the time beside the paper's model alone,
 //! [`DriftEmOptions::plain`]).
 //!
-//! # What was tried and is off
+//! # What is left off, and why
 //! Re-linearising at the smoothed drift (the iterated extended smoother): the pseudo-measurement
-//! is right to second order (tested), yet on the paper's noise-free scenario the table got
+//! is right to second order (tested), yet on the paper's noise-free scenario the table gets
 //! worse (8 seeds, 20 s: real error 2.69 → 3.30 mm), and as much when re-linearised at the
 //! *true* drift: the regressors then move with the drift they are regressed against.
-//! Inflating the stated error by the per-joint long-run variance of the innovations: it stayed
+//! Inflating the stated error by the per-joint long-run variance of the innovations: it stays
 //! in its null band where the model is wrong in a way that matters (the drift in the reading
-//! left unseparated) and left it only by chance elsewhere; it is reported, not applied.
+//! left unseparated) and leaves it only by chance elsewhere; it is reported, not applied.
 //!
 //! A static θ offset and a slow drift are separable only to about `σ·√(2τ/T)` for a session of
 //! length T (the standard error of the mean of a Gauss-Markov process); the result reports this
@@ -185,8 +185,8 @@ pub const REML_ITERATIONS: usize = 4;
 /// BIC's penalty of the intensities it has, `terms · ln K` (K samples; `terms` those of the
 /// fitted intensities that are not zero, at least one, at most [`RATE_BIAS_TERMS`]): a steady
 /// rate bias (a heading that no gravity reference corrects) has one, a wandering one two.
-/// Measured, the likelihood-ratio test at 5% (5.99) took it on 1 in 8 short sessions without
-/// one, and the table was then worse than LS's.
+/// Measured, the likelihood-ratio test at 5% (5.99) takes it on 1 in 8 short sessions without
+/// one, and the table is then worse than LS's.
 pub fn rate_bias_threshold(samples: usize, terms: usize) -> f64 {
     terms.clamp(1, RATE_BIAS_TERMS) as f64 * libm::log(samples.max(2) as f64)
 }
@@ -278,7 +278,8 @@ impl<const N: usize> DriftEmOptions<N> {
     /// Defaults for a sample period `dt`. The starting values are deliberately not the
     /// simulator's truth: τ = 3 s, 5 mrad drift, 1 mm / 1 mrad noise. The drift starts small
     /// so that a steady rate bias is fitted before τ and σ grow to absorb it (from 20 mrad, a
-    /// 0.05 °/s heading was absorbed on 1 seed in 8, `a_heading_is_found_before_the_drift_absorbs_it`).
+    /// 0.05 °/s heading is absorbed on 1 seed in 8,
+    /// `a_heading_is_found_before_the_drift_absorbs_it`).
     pub fn new(dt: f64) -> Self {
         DriftEmOptions {
             dt,
@@ -307,8 +308,8 @@ impl<const N: usize> DriftEmOptions<N> {
         }
     }
 
-    /// The paper's drift model and nothing of issue 30's: Gauss-Markov drift on every joint, a
-    /// Gaussian reference, one linearisation, maximum-likelihood drift parameters.
+    /// The paper's drift model and none of what real sensors add: Gauss-Markov drift on every
+    /// joint, a Gaussian reference, one linearisation, maximum-likelihood drift parameters.
     pub fn plain(dt: f64) -> Self {
         DriftEmOptions {
             rate_bias: false,
@@ -2040,7 +2041,7 @@ mod cost {
     }
 
     /// LS + our EM at K = 6,000 (the paper scenario, seed 1, 60 s), the paper's model alone and
-    /// issue 30's, best of 5 (print only: `cargo test -p calib-core
+    /// the full one, best of 5 (print only: `cargo test -p calib-core
     /// --release em_cost_at_k_6000 -- --ignored --nocapture`).
     #[test]
     #[ignore]

@@ -49,7 +49,7 @@ pub(crate) fn basis(s: f64) -> [f64; RATE_BIAS_TERMS] {
 
 /// Per-sample storage of [`crate::em_drift`]: the sample's linearisation, its residual and its
 /// drift moments (filtered, then smoothed). One slot per sample: fixed memory, no allocation;
-/// 288 `f64` for N = 7 (it was 230 before the weight, time and θ-sensitivity fields).
+/// 288 `f64` for N = 7.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DriftSlot<const N: usize> {
     /// Pose error at the reference geometry (and drift, once relinearised).

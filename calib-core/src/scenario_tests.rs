@@ -1,4 +1,4 @@
-//! The "done when" targets on the paper's Section 4 scenario (60 s, seeded).
+//! LS's and our EM's targets on the paper's Section 4 scenario (60 s, seeded).
 
 use crate::drift_em::{em_drift_vec, DriftEmOptions};
 use crate::ls::{identify_ls, LsOptions};
@@ -16,7 +16,7 @@ fn paper_scenario_60s_meets_the_ls_and_em_targets() {
     let y_nom = objective_y(&nominal, &samples);
     let y_ls = objective_y(&ls.table, &samples);
     assert!(y_ls <= 0.2 * y_nom, "LS: {y_nom} -> {y_ls}");
-    // 30 iterations: the geometry has settled by then (see the example's history).
+    // 30 iterations: the geometry has settled by then.
     let opts = DriftEmOptions {
         max_iterations: 30,
         ..DriftEmOptions::new(cfg.drift.dt)

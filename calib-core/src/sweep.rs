@@ -1,5 +1,5 @@
 //! The accuracy sweep: LS and our EM against the Cramér-Rao bound over the regimes a user may
-//! meet (issue 18), in table error ([`crate::metrics`]).
+//! meet, in table error ([`crate::metrics`]).
 //!
 //! One [`Cell`] is a drift process (τ, σ in the paper's convention), a pose noise and a session
 //! length. Each seed draws a true table around Table 1 (every parameter moved by
@@ -612,7 +612,7 @@ impl Summary {
     }
 }
 
-/// The full grid of issue 18: τ × σ × pose noise × session length.
+/// The full grid: τ × σ × pose noise × session length.
 pub fn grid() -> Vec<Cell> {
     let mut cells = Vec::new();
     for seconds in [20.0, 60.0, 120.0] {
@@ -633,7 +633,7 @@ pub fn grid() -> Vec<Cell> {
     cells
 }
 
-/// The field cells (issue 30): a real suit's sensors ([`Field::SENSOR`]: 50 Hz, the drift in
+/// The field cells: a real suit's sensors ([`Field::SENSOR`]: 50 Hz, the drift in
 /// the reading, reading noise), 0.5 mm / 1 mrad pose noise, 30 s, τ = 1 s and σ = 7 mrad unless
 /// the cell's name says otherwise. Each with its name.
 pub fn field_grid() -> Vec<(&'static str, Cell)> {
@@ -817,7 +817,7 @@ mod tests {
         assert!(s.ls.position_m > s.bound.position_m, "{s:?}");
     }
 
-    /// The reduced sweep (issue 18): three 20 s cells with pose noise, where the sweep shows the
+    /// The reduced sweep: three 20 s cells with pose noise, where the sweep shows the
     /// EM at the bound (BENCHMARKS.md's record of `cargo run -p calib-core --release --example
     /// sweep -- --seconds 20`, 5 seeds). Over 4 seeds each, the EM's RMS table error stays within 1.10 × the
     /// bound's and below LS's, in position and rotation.
@@ -842,12 +842,11 @@ mod tests {
         }
     }
 
-    /// The bound cross-checked by Monte Carlo (issue 18, item 1): 50 sessions of 10 s, each
-    /// with its own true table around Table 1, τ = 1 s, σ = 1, 1 mm / 2 mrad pose noise.
-    /// Measured 2026-11-27 (the test's 50 sessions, printed): EM / bound 1.06 (position) and
-    /// 1.03 (rotation), LS / bound 1.56 and 1.29; what the EM reports (its bound at its own
-    /// estimates) is 1.04 and 0.96 of the bound at the truth (0.83 / 0.78 before issue 30's
-    /// EM: optimistic by a fifth then); LS / its sandwich expectation 1.03 and 0.97.
+    /// The bound cross-checked by Monte Carlo: 50 sessions of 10 s, each with its own true
+    /// table around Table 1, τ = 1 s, σ = 1, 1 mm / 2 mrad pose noise. Measured (the test's 50
+    /// sessions, printed): EM / bound 1.06 (position) and 1.03 (rotation), LS / bound 1.56 and
+    /// 1.29; what the EM reports (its bound at its own estimates) is 1.04 and 0.96 of the
+    /// bound at the truth; LS / its sandwich expectation 1.03 and 0.97.
     #[test]
     fn monte_carlo_agrees_with_the_bound_and_ls_does_not_reach_it() {
         let cell = paper_cell(1.0, 1.0, 10.0);
@@ -940,7 +939,7 @@ mod tests {
     }
 }
 
-/// Issue 30: the stated accuracy holds on the field cells (a real suit's sensors: 50 Hz, the
+/// The stated accuracy holds on the field cells (a real suit's sensors: 50 Hz, the
 /// drift in the reading, 30 s). 8 seeds per cell (`cargo run -p calib-core --release --example
 /// field` has the whole table); each test fails without the part of the model it names.
 #[cfg(test)]
@@ -959,7 +958,7 @@ mod field_tests {
         s.iter().filter(|s| !s.refused).copied().collect()
     }
 
-    /// The reduced field sweep (issue 30's "done when"): on the paper-like, slow-drift, glitching
+    /// The reduced field sweep: on the paper-like, slow-drift, glitching
     /// and rate-bias (with the sensors' spec) cells, real ÷ stated ≤ 1.25 and our table no worse
     /// than LS's. Measured (8 seeds; position / rotation): real ÷ stated 0.89 / 1.03, 0.72 / 0.96,
     /// 1.02 / 1.01, 0.77 / 0.89; ours ÷ LS 0.66 / 0.75, 0.86 / 0.96, 0.67 / 0.82, 0.49 / 0.55.
@@ -992,7 +991,7 @@ mod field_tests {
         }
     }
 
-    /// The reduced sweep of what the daemon pushes (issue 46's "done when"): where the gyro does
+    /// The reduced sweep of what the daemon pushes: where the gyro does
     /// what gyros do (a heading of 0.05 °/s on joints 1, 3, 5 over 30 and 60 s; one of 0.02 °/s
     /// over 40 s and a ramp of 0.02 °/s on every joint, each with the gyros read while still
     /// for 5 s first; a bias that wanders, 40 s) and on slow drift (τ 10 s, 40 s) and the
@@ -1002,8 +1001,8 @@ mod field_tests {
     /// 1.04 / 0.94, 0.83 / 0.91, 1.03 / 1.00, 0.96 / 0.91, 0.59 / 0.80, 0.89 / 1.03; ours ÷ LS
     /// 0.39 / 0.39, 0.14 / 0.15, 0.87 / 0.92, 0.80 / 0.78, 0.62 / 0.47, 1.05 / 1.02 (τ 10 s: LS's
     /// white-noise model is nearly right there; the bound is met, 1.00 / 1.03), 0.66 / 0.75.
-    /// Before (the arbiter keeping LS's table wherever the tables disagreed, the EM
-    /// started from a 20 mrad drift), the 60-s heading's first 8 seeds: LS's table pushed on 6,
+    /// An arbiter keeping LS's table wherever the tables disagree, with the EM started from a
+    /// 20 mrad drift, fails this on the 60-s heading's first 8 seeds: LS's table pushed on 6,
     /// the EM's (the heading absorbed) on 2; the pushed tables 5.0× their statement in position
     /// over the 8 (RMS), 6 of them beyond 3×.
     #[test]
@@ -1032,7 +1031,7 @@ mod field_tests {
         }
     }
 
-    /// Item 3, the gyro at rest: a heading of 0.02 °/s on joints 1, 3, 5 over 40 s is what the
+    /// The gyro at rest: a heading of 0.02 °/s on joints 1, 3, 5 over 40 s is what the
     /// session alone cannot tell from the geometry (the EM keeps the paper's model, its table and
     /// LS's equally off). With the wearer still for the first 5 s, the gyros read then take the
     /// bias out of those joints and the EM is told what is left; the same sessions without that
@@ -1074,8 +1073,8 @@ mod field_tests {
 
     /// A heading (a steady rate bias on joints 1, 3, 5, integrated without bound) is found from
     /// the EM's default start: on seed 2 of the 60-s cell, started from a 20 mrad drift, τ and σ
-    /// grew to absorb the ramp first (τ 7–9 s, σ 18–20 mrad on those joints, `2 Δ ln L` 0.0) and
-    /// the table was 23.8 mm off with ±6.3 mm stated; from 5 mrad the rate bias is in the model
+    /// grow to absorb the ramp first (τ 7–9 s, σ 18–20 mrad on those joints, `2 Δ ln L` 0.0) and
+    /// the table is 23.8 mm off with ±6.3 mm stated; from 5 mrad the rate bias is in the model
     /// on every joint, and the angle it integrated on the heading joints more than half the
     /// truth's and 3 standard errors (measured: 37–54 mrad of 52).
     #[test]
@@ -1169,7 +1168,7 @@ mod field_tests {
         }
     }
 
-    /// Item 1, the drift model as IMUs have it: with a rate bias of 0.02 °/s per joint and the
+    /// The drift model as IMUs have it: with a rate bias of 0.02 °/s per joint and the
     /// sensors' spec, the rate-bias model states what it reaches; the Gauss-Markov model alone,
     /// told the same spec, states too little by 1.67 / 1.82 (measured) and its table is no
     /// better than LS's.
@@ -1210,7 +1209,7 @@ mod field_tests {
         );
     }
 
-    /// Item 2, a reference that glitches: 5% of the poses 2 cm / 20 mrad off. The heavy-tailed
+    /// A reference that glitches: 5% of the poses 2 cm / 20 mrad off. The heavy-tailed
     /// model discounts exactly the glitched samples and the stated error holds; a Gaussian
     /// reference takes the glitches for jumps of the joints and every session is refused; with
     /// more glitches than `max_discounted_share` (10%) the session is refused for that.
@@ -1254,7 +1253,7 @@ mod field_tests {
         std::eprintln!("{}", em.refusals[0]);
     }
 
-    /// Item 4, a stated error that holds where the drift is slow (τ = 10 s over 30 s): the
+    /// A stated error that holds where the drift is slow (τ = 10 s over 30 s): the
     /// restricted (REML) drift parameters count the θ offsets' uncertainty; maximum likelihood
     /// fits τ and σ low and states too little (measured 1.58 / 1.85 against 0.72 / 0.96).
     #[test]
@@ -1268,7 +1267,7 @@ mod field_tests {
         assert!(mp > 1.3 && mr > 1.3, "ML {mp:.2} / {mr:.2}");
     }
 
-    /// Item 4, the data contradicting the model: a joint sensor that slips 20 mrad mid-session
+    /// The data contradicting the model: a joint sensor that slips 20 mrad mid-session
     /// is refused, naming the joint and the sample.
     #[test]
     fn a_sensor_that_slips_is_refused_naming_the_joint() {

@@ -14,7 +14,7 @@
 //! in the reading, no pose noise, seed 13 of `good_enough`): the EM's table 4.7 mm off with
 //! ±1.3 mm stated (its linearisation about the reported angles lets two joints' drift stand in
 //! for the wrist's geometry: τ 1.9 and 2.7 s fitted where the drift has 1 s), LS's 1.0 mm off
-//! with `L` = 2.4 mm; the statistic is 16. Where the EM's model holds it was 0.66–2.95 (24
+//! with `L` = 2.4 mm; the statistic is 16. Where the EM's model holds it is 0.66–2.95 (24
 //! simulated sessions, `where_the_model_holds_the_em_agrees_with_ls`).
 //! Under the model the statistic is a weighted sum of χ² variables of mean 1; 4 is beyond its
 //! 95th percentile for any number of them.
@@ -192,11 +192,11 @@ mod tests {
     }
 
     /// A heading the EM found (0.05 °/s on joints 1, 3, 5, 60 s) moves LS's table by tens of
-    /// millimetres: compared as it was (LS's table against the EM's, `D² / (L² − S²)`) the
-    /// statistic was 108–405 on 7 of 8 seeds and LS's table was pushed 5.7–29 mm off at ±2–3 mm
-    /// stated; with LS's table predicted from the EM's moved by the fitted rate bias, the two
-    /// agree (measured 0.1–1.3) and the EM's table is kept. A LS table off by what the rate bias
-    /// does not explain is refused, naming the joints with a rate bias.
+    /// millimetres: compared as they are (LS's table against the EM's, `D² / (L² − S²)`) the
+    /// statistic would be 108–405 on 7 of 8 seeds and LS's table pushed 5.7–29 mm off at
+    /// ±2–3 mm stated; with LS's table predicted from the EM's moved by the fitted rate bias,
+    /// the two agree (measured 0.1–1.3) and the EM's table is kept. A LS table off by what the
+    /// rate bias does not explain is refused, naming the joints with a rate bias.
     #[test]
     fn a_heading_the_em_found_explains_ls_and_an_unexplained_one_is_refused() {
         let cell = field_cell("heading 0.05 °/s on joints 1, 3, 5 (60 s)").unwrap();
@@ -235,8 +235,8 @@ mod tests {
 
     /// Where the EM's model holds (the drift in the reading separated first, as the daemon
     /// does; full reach and a lazy wrist, 8 seeds each) its table agrees with LS's: measured
-    /// 2026-11-27, statistic 0.80–2.95 over these 16 sessions (0.66–2.95 over seeds
-    /// 1–12), against the limit of 4.
+    /// statistic 0.80–2.95 over these 16 sessions (0.66–2.95 over seeds 1–12), against the
+    /// limit of 4.
     #[test]
     fn where_the_model_holds_the_em_agrees_with_ls() {
         let cell = field_cell("drift in the reading (60 s)").unwrap();

@@ -1,7 +1,6 @@
-//! Stop when good enough, measured (issues 18.5 and 32): demo sessions of the paper's scenario on
-//! the in-process bus, seeds 1..=N, each run as the fixed minute (`min_duration_s = 60`, the
-//! rule off),
-//! as `[session] stop_at_expected_error = [MM, MRAD]` with `min_duration_s = 15`, and — with
+//! Stop when good enough, measured: demo sessions of the paper's scenario on the in-process
+//! bus, seeds 1..=N, each run as the fixed minute (`min_duration_s = 60`, the rule off), as
+//! `[session] stop_at_expected_error = [MM, MRAD]` with `min_duration_s = 15`, and — with
 //! `--compliance P` — stopping so with an emulated wearer who follows the progress line's
 //! guidance (`exocal_hil::wearer`: each piece of advice considered at most every 10 s, followed
 //! with probability P, 2 s later, by 10 s of sweeps of the advised joint's whole range).

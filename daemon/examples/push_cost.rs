@@ -3,9 +3,9 @@
 //! Pushes a table to all seven joint nodes of exocal-hil on the in-process bus (the suit at 1×
 //! real time, nodes answering after 0.3 ms like the emulated firmware), RUNS times (default 20),
 //! keyed nodes and `push.authenticate`; prints per push the wall time and the frames on the bus
-//! per node, and the host's cost of one AES-128-CMAC of each kind. (An unauthenticated push is
-//! no longer possible to compare with: since issue 34 a node without a key fails closed and
-//! installs nothing.) BENCHMARKS.md records the figures; docs/reliability.md quotes them.
+//! per node, and the host's cost of one AES-128-CMAC of each kind. (There is no unauthenticated
+//! push to compare with: a node without a key fails closed and installs nothing.)
+//! BENCHMARKS.md records the figures; docs/reliability.md quotes them.
 
 use std::time::{Duration, Instant};
 

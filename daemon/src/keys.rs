@@ -285,8 +285,8 @@ mod tests {
         }
     }
 
-    /// Issue 34, item 8, and issue 48, item 9: a shared, all-zero, patterned or nearly shared
-    /// key is refused, naming the line and not the key.
+    /// A shared, all-zero, patterned or nearly shared key is refused, naming the line and not
+    /// the key.
     #[test]
     fn a_shared_or_all_zero_key_is_refused() {
         let with = |joint: usize, key: &str| all(true).replace(KEYS[joint - 1], key);
@@ -318,9 +318,9 @@ mod tests {
         }
     }
 
-    /// Issue 34, item 8, and issue 48, item 9: a key file others may read is said whatever the
-    /// environment (it was skipped under systemd, so a world-readable source in
-    /// /etc/credstore went unsaid); a private one, or one out of sight, is not.
+    /// A key file others may read is said whatever the environment (under systemd too, so a
+    /// world-readable source in /etc/credstore is not left unsaid); a private one, or one out
+    /// of sight, is not.
     #[test]
     fn a_key_file_readable_by_others_is_warned_about() {
         use std::os::unix::fs::PermissionsExt;

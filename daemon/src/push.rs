@@ -849,8 +849,8 @@ mod tests {
         })
     }
 
-    /// Regression: a Commit of an earlier attempt that the node processes after the last
-    /// attempt gave up installed the new table while the report said `Old` (11–18 of 7,000
+    /// A Commit of an earlier attempt that the node processes after the last attempt gave up
+    /// installs the new table, so the report must not say `Old` (a rare race: 11–18 of 7,000
     /// transfers in the atomic-push campaign). The node here holds back its first Commit
     /// until every command of all later attempts has arrived, then installs the new table
     /// silently; the report must say `New` (learnt from the final CRC query), matching flash.
@@ -985,12 +985,11 @@ mod tests {
         assert_eq!(sent, 6 * 10);
     }
 
-    /// Issue 48, item 8: a push the bus stops mid-way (ENOBUFS from then on, from the fault
-    /// injector) returned the bus error and nothing else, so the log had no per-node record and
-    /// `exocald nodes` compared with an older log. Now it returns what it knows of every node:
-    /// `Old` only where no Commit went out (and the node does hold its old table), `Unknown`
-    /// with "after its Commit was sent" where one did (or where the node had not answered
-    /// yet); never a wrong `New` or `Old`.
+    /// A push the bus stops mid-way (ENOBUFS from then on, from the fault injector) returns
+    /// what it knows of every node, not only the bus error, so the log has a per-node record
+    /// and `exocald nodes` does not compare with an older log: `Old` only where no Commit went
+    /// out (and the node does hold its old table), `Unknown` with "after its Commit was sent"
+    /// where one did (or where the node had not answered yet); never a wrong `New` or `Old`.
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn a_push_the_bus_stops_mid_way_reports_every_node() {
         let (mut before, mut after) = (0, 0);
@@ -1055,7 +1054,7 @@ mod tests {
         d
     }
 
-    /// Issue 34, item 1: with a state directory, a node whose authenticated counter went back
+    /// With a state directory, a node whose authenticated counter went back
     /// below the last one proved, or jumped above the highest one signed, is refused before
     /// anything is signed (no `CommitAuth` on the bus, not retried, the table stays); within
     /// its window the push goes on and records what the node proved and what was signed.

@@ -370,7 +370,7 @@ mod tests {
         let _ = std::fs::remove_dir_all(&d);
     }
 
-    /// Issue 48, item 7: stream nonces rise whatever the clock does, and above it when it is
+    /// Stream nonces rise whatever the clock does, and above it when it is
     /// ahead; the record is kept before a nonce goes out.
     #[test]
     fn stream_nonces_rise_over_runs_and_a_clock_without_rtc() {

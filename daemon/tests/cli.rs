@@ -24,7 +24,7 @@ fn temp(name: &str, text: &str) -> std::path::PathBuf {
 }
 
 /// daemon/README.md quotes the error of `retries` misspelt in the shipped file: its line number
-/// is the shipped file's (issue 33: it had drifted).
+/// is the shipped file's, so the README cannot drift from it.
 #[test]
 fn the_readmes_misspelt_key_example_names_the_right_line() {
     let readme = include_str!("../README.md");
@@ -60,7 +60,7 @@ fn a_bad_config_exits_78_naming_the_key_and_line() {
 }
 
 /// A value past its key's upper bound is refused before anything allocates for it (`grid_hz =
-/// 1e12` once made `offline` ask for 480 TB and abort with 134).
+/// 1e12` would make `offline` ask for 480 TB and abort with 134).
 #[test]
 fn an_absurd_value_exits_78_before_any_work() {
     let text = exocald::config::DEFAULT_TOML.replace("grid_hz = 100.0", "grid_hz = 1e12");
@@ -170,7 +170,7 @@ fn missing_keys_exit_78_and_authentication_off_is_said() {
     let (code, err) = calibrate_with(&no_ee, None);
     assert_eq!(code, Some(78), "{err}");
     assert!(err.contains("no key for EndEffector"), "{err}");
-    // Every key, but no state directory (issue 34): 78, naming it; with one, on to the socket.
+    // Every key, but no state directory: 78, naming it; with one, on to the socket.
     let all = format!("{joints}EndEffector {}\n", KEYS[7]);
     let full = temp("full/exocal-keys", &all);
     let state = full.parent().unwrap().join("state");
@@ -197,7 +197,7 @@ fn missing_keys_exit_78_and_authentication_off_is_said() {
 }
 
 /// `nodes --json` with no bus: exit 69, and stdout is one JSON object naming the interface
-/// (issue 33: it printed nothing).
+/// (not empty: a script reading it gets the error too).
 #[test]
 fn nodes_json_without_a_bus_prints_a_json_error() {
     let (code, out, err) = exocald(&["nodes", "--json", "-i", "vcan93"]);
@@ -253,7 +253,7 @@ fn the_default_config_prints_and_checks() {
     );
 }
 
-/// Issue 30: without the sensors' spec the summary says what the expected table error leaves
+/// Without the sensors' spec the summary says what the expected table error leaves
 /// out, with a figure: what a rate bias of 0.01 °/s, too small for the session to show, would
 /// add to the table error (calib-core's consider allowance); with `[sensors]` it does not.
 #[test]
@@ -293,7 +293,7 @@ fn the_summary_says_when_the_sensors_rate_bias_is_not_configured() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Issue 50, item 3: completions for each shell and the manual pages, made from the CLI
+/// Completions for each shell and the manual pages, made from the CLI
 /// definition, name every subcommand.
 #[test]
 fn completions_and_manual_pages_come_from_the_cli_definition() {
@@ -345,7 +345,7 @@ fn completions_and_manual_pages_come_from_the_cli_definition() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Issue 50, item 3: `demo --listen`: loopback only, and a taken port says what to do.
+/// `demo --listen`: loopback only, and a taken port says what to do.
 #[cfg(feature = "demo")]
 #[test]
 fn demo_listen_takes_loopback_only_and_a_taken_port_gets_a_hint() {
@@ -367,8 +367,8 @@ fn demo_listen_takes_loopback_only_and_a_taken_port_gets_a_hint() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
-/// Issue 50, item 2: the summary's last line is the verdict with the expected error; `--quiet`
-/// prints that line alone, `--json` one object a script reads; offline says the same of the
+/// The summary's last line is the verdict with the expected error; `--quiet` prints that line
+/// alone, `--json` one object a script reads; offline says the same of the
 /// demo's log, and a refusal says why.
 #[cfg(feature = "demo")]
 #[test]

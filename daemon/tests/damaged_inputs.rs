@@ -1,4 +1,4 @@
-//! Damaged and oversized inputs to `exocald offline` and `exocald recover` (issue 34, item 5):
+//! Damaged and oversized inputs to `exocald offline` and `exocald recover`:
 //! one test per class of the bad-input campaign (`fuzz/campaign.py`), each driving the binary
 //! and asserting exit 65 (or, for `recover` and a log merely cut short, what it must do
 //! instead) and the message naming what is wrong. The same inputs seed the fuzz corpus
@@ -341,7 +341,7 @@ fn a_log_beyond_one_session_is_exit_65_at_its_first_frame_beyond() {
 }
 
 /// A candump log whose first lines are at time 0, and one line of a megabyte: refused at that
-/// line (the first once made the alignment grid 1.4 TB).
+/// line (unchecked, the first would size the alignment grid at 1.4 TB).
 #[test]
 fn a_candump_log_beyond_one_session_is_exit_65_naming_the_line() {
     let dir = temp_dir("candump");

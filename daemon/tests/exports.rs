@@ -26,8 +26,8 @@ fn the_exported_configuration_loads_in_the_daemon_with_the_calibrated_table() {
     let mut same = loaded.clone();
     same.calibration.nominal = default.calibration.nominal;
     assert_eq!(same, default);
-    // The comments of the shipped file survive, but the one that said the table is the
-    // paper's Table 1 (issue 50: the calibrated table went out under it).
+    // The comments of the shipped file survive, but the one that says the table is the
+    // paper's Table 1 (untrue above a calibrated table) becomes the calibrated note.
     assert!(text.contains("# Anatomical bounds"));
     assert!(!text.contains("# The paper's Table 1") && text.contains(CALIBRATED_NOTE));
 }

@@ -1,4 +1,4 @@
-//! MCAP written by another implementation, in every variant (issue 47, item 6): python's `mcap`
+//! MCAP written by another implementation, in every variant: python's `mcap`
 //! writer makes files chunked or not, zstd / lz4 / uncompressed, with and without chunk and
 //! message indexes, with and without the summary's statistics and offsets, each with an
 //! attachment and a metadata record, and the same files cut short at ¼, ½, ¾ and without their

@@ -646,9 +646,9 @@ mod tests {
                 "Joint1 3babf2654c93cdfe26a520652b3b5198\nJoint1 3babf2654c93cdfe26a520652b3b5198",
                 2,
             ),
-            // Issue 34: an all-zero key, and one key for two names (a node and the trigger).
+            // An all-zero key, and one key for two names (a node and the trigger).
             ("Joint2 00000000000000000000000000000000", 1),
-            // Issue 48: keys that are not random, and one edited from another.
+            // Keys that are not random, and one edited from another.
             ("Joint2 abababababababab0101010101010101", 1),
             ("Joint2 000102030405060708090a0b0c0d0e0f", 1),
             ("Joint2 f0e0d0c0b0a090807060504030201000", 1),

@@ -511,7 +511,7 @@ mod tests {
         assert_ne!(stream_key(&table), table);
     }
 
-    /// Issue 48, item 1: a node takes only a signed nonce, for itself, above the one it holds.
+    /// A node takes only a signed nonce, for itself, above the one it holds.
     #[test]
     fn a_node_ignores_a_spoofed_nonce_and_a_replayed_one() {
         let (mut s, mut v) = pair(42);

@@ -1644,13 +1644,13 @@ mod tests {
         );
     }
 
-    /// Issue 34's rollback, with the real state machines: a sender without the key answers
-    /// Begin first with `Freshness = counter + 60,000`, NACKs the `CommitAuth` and keeps the 8
-    /// frames the controller sent; two genuine pushes follow; then it replays the 8 frames and a
-    /// Commit. Before exocal-3 the controller signed for the forged counter and the replay put
-    /// the older table back. Now the forged answer does not verify (it is counted, not
-    /// believed), the controller signs only the node's own counter + 1, and the replay is
-    /// refused as stale: the node keeps the newest table.
+    /// The rollback by an inflated freshness, with the real state machines: a sender without
+    /// the key answers Begin first with `Freshness = counter + 60,000`, NACKs the `CommitAuth`
+    /// and keeps the 8 frames the controller sent; two genuine pushes follow; then it replays
+    /// the 8 frames and a Commit. Were the controller to sign for the forged counter, the
+    /// replay would put the older table back. The forged answer does not verify (it is
+    /// counted, not believed), the controller signs only the node's own counter + 1, and the
+    /// replay is refused as stale: the node keeps the newest table.
     #[test]
     fn rollback_by_an_inflated_freshness_never_lands() {
         const C: u32 = 100;

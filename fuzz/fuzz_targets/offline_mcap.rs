@@ -1,8 +1,8 @@
-//! `exocald offline`'s reading of an MCAP session log (issue 34, item 5): arbitrary bytes, and
-//! the damaged logs of the seed corpus (bit flips, truncations, insertions, lengths of 2^62, a
-//! chunk claiming 1 TB once decompressed), read as a stream under the default configuration's
-//! budget. Invariant: a recording, or bad input (exit 65) naming the log — never a panic, an
-//! abort or another error.
+//! `exocald offline`'s reading of an MCAP session log: arbitrary bytes, and the damaged logs
+//! of the seed corpus (bit flips, truncations, insertions, lengths of 2^62, a chunk claiming
+//! 1 TB once decompressed), read as a stream under the default configuration's budget.
+//! Invariant: a recording, or bad input (exit 65) naming the log — never a panic, an abort or
+//! another error.
 #![no_main]
 
 use exocald::cmd::offline::Format;

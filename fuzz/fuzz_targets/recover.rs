@@ -1,4 +1,4 @@
-//! `exocald recover` (issue 34, item 5): arbitrary bytes behind the MCAP magic, and the damaged
+//! `exocald recover`: arbitrary bytes behind the MCAP magic, and the damaged
 //! logs of the seed corpus, rewritten as a complete file. Invariant: what is not MCAP is
 //! `NotMcap`; otherwise the output is a finished MCAP that scans whole, holding exactly the
 //! messages the recovery counted — never a panic, an abort or an allocation the input claims.

@@ -1,6 +1,5 @@
 //! `exocal-hil` as a user runs it: a missing interface is named with how to create it, exit 69
-//! (as exocald), never a backtrace (issue 50, item 7: it printed anyhow's `Error:` and, with
-//! `RUST_BACKTRACE=1`, a backtrace, and exited 1).
+//! (as exocald), never anyhow's `Error:` nor, with `RUST_BACKTRACE=1`, a backtrace and exit 1.
 
 use std::process::Command;
 

@@ -368,8 +368,8 @@ mod tests {
         let e = read_mcap_session(&session_log(5, Some((2, &[0xFF, 0xFF])))[..], admit_all)
             .unwrap_err();
         assert!(e.to_string().contains("/collection"), "{e}");
-        // Issue 48, item 4: `nodes` reads the record without the frames (it read whole logs
-        // into memory): the same record, no frame kept.
+        // `nodes` reads the record without the frames, so a long log is not held in memory:
+        // the same record, no frame kept.
         let log = session_log(5, Some((3, &body)));
         let (whole, record) = (
             read_mcap_session(&log[..], admit_all).unwrap(),

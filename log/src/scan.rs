@@ -1063,8 +1063,8 @@ mod tests {
     }
 
     /// A metadata record of 300,000 distinct keys (3.8 MB, well inside a record's limit) is
-    /// read (each key compared with every earlier one, 4.5·10^10 comparisons, this test ran
-    /// for more than 150 s unoptimised before it was stopped; with the set, the crate's 13 tests
+    /// read quickly: repeated keys are found with a set (comparing each key with every earlier
+    /// one is 4.5·10^10 comparisons, minutes unoptimised; with the set, the crate's 13 tests
     /// take about 2 s); the same key twice is damage.
     #[test]
     fn a_map_of_many_keys_reads_and_a_repeated_key_is_damage() {

@@ -206,7 +206,7 @@ pub enum Swatch {
     Area,
 }
 
-/// A chart's legend as HTML, placed after its SVG: beside the data, never over it (issue 33).
+/// A chart's legend as HTML, placed after its SVG: beside the data, never over it.
 /// Entries repeat across stacked panels; each is listed once.
 pub fn legend(entries: &[(String, RGBColor, Swatch)]) -> String {
     let mut seen: Vec<&(String, RGBColor, Swatch)> = Vec::new();
@@ -767,8 +767,8 @@ mod tests {
             ]
         };
         // A large nominal error beside a small calibrated one: the bins reach the largest
-        // nominal value (the old bins ended at the 99th percentile of both together, cutting
-        // off the nominal tail at the chart's edge).
+        // nominal value (bins ending at the 99th percentile of both together would cut off
+        // the nominal tail at the chart's edge).
         let nominal: Vec<f64> = (0..1000).map(|i| 200.0 + 0.1 * i as f64).collect();
         let calibrated: Vec<f64> = (0..1000).map(|i| 0.02 * i as f64).collect();
         let b = binning(&series(nominal.clone(), calibrated.clone()), 40).unwrap();

@@ -226,7 +226,7 @@ fn dump_dom(dir: &std::path::Path, name: &str, html: &str) -> String {
     String::from_utf8(out.stdout).unwrap()
 }
 
-/// Issue 33: a pushed table's report says so and lists every node's outcome; a node left on
+/// A pushed table's report says so and lists every node's outcome; a node left on
 /// its old table is named in the banner and marked in the table.
 #[test]
 fn the_report_shows_the_push_per_node() {
@@ -318,14 +318,14 @@ fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
         "the expected accuracy is not stated"
     );
     assert!(!dom.contains("class=\"missing\""), "a plot was not drawn");
-    // Issue 50, item 5: the parameter table near the top (after the verdict and the key
+    // The parameter table near the top (after the verdict and the key
     // numbers, before the plots), a unit on the drift table's σ, the version in the header.
     let at = |s: &str| dom.find(s).unwrap_or_else(|| panic!("no {s}"));
     assert!(at("<h2>Parameters</h2>") < at("<h2>Error over time</h2>"));
     assert!(at("class=\"cards\"") < at("<h2>Parameters</h2>"));
     assert!(dom.contains("σ (paper, eq. 8, rad/s)"));
     assert!(dom.contains(&format!("· exocal {}", env!("CARGO_PKG_VERSION"))));
-    // Legends sit after their charts, never over the data (issue 33): none inside an SVG (its
+    // Legends sit after their charts, never over the data: none inside an SVG (its
     // box would be plotters' grey-bordered rectangle), and the browser lays none over a chart.
     assert!(!dom.contains("#BEBEBE"), "a legend box inside a chart");
     assert_eq!(
@@ -352,7 +352,7 @@ fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
                 assert_eq!(legend.matches("nominal").count(), 1, "{legend}");
             }
             "fig-trajectory-plane" => assert!(points >= 2 * 3 * 1500, "{id}: {points} points"),
-            // One panel per joint (issue 50, item 5).
+            // One panel per joint.
             "fig-drift" => {
                 assert!(points >= 7 * 1500, "{id}: {points} points");
                 assert_eq!(
@@ -388,7 +388,7 @@ fn the_report_renders_in_headless_chromium_with_every_plot_drawn() {
     // The log-likelihood of a minute of samples is large: the case the labels must tell apart.
     let em = input.calibration.em.as_ref().unwrap();
     let ll = &em.log_likelihood;
-    // Every iteration of every objective has its marker (issue 33: 6 of 14 were shown).
+    // Every iteration of every objective has its marker, none dropped.
     assert_eq!(
         figure(&dom, "fig-likelihood").matches("<circle").count(),
         ll.len(),

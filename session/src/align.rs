@@ -1220,7 +1220,8 @@ mod tests {
         let lag = lagging(20.0, 23.0, 0.3);
         let (streams, truths) = session(4000, |_, t| lag(t));
         let p = AlignParams::default();
-        // Node by node, the lag is two jumps (late, then back on time): the old reading.
+        // Node by node, the lag reads as two jumps (late, then back on time); all nodes
+        // together, it is one stall.
         for s in &streams {
             assert_eq!(track_clock(s, &p).jumps(), 2);
         }

@@ -589,10 +589,10 @@ fn provisioned_keys() -> Vec<String> {
 /// The shipped units' `LoadCredential=exocal-keys:/etc/credstore/exocal-keys` reaches both
 /// services (exocald as a `DynamicUser` with `PrivateUsers=yes`, exocal-hil as root): the daemon
 /// loaded the keys, the nodes were provisioned from the same file, and every node's table went
-/// in by an authenticated commit whose counter the node stored. (It once failed here for a reason
-/// of the harness's making: the guest's systemd took itself for the host's Docker container and
-/// kept every mount private, so the credential mount never reached a unit; the harness's init
-/// now removes the container marker from the guest's root.)
+/// in by an authenticated commit whose counter the node stored. (This needs the harness's init
+/// to remove the container marker from the guest's root: otherwise the guest's systemd takes
+/// itself for the host's Docker container and keeps every mount private, so the credential
+/// mount never reaches a unit.)
 #[test]
 fn the_push_was_authenticated_with_the_credential_and_no_key_leaked() {
     let run = boot_run();

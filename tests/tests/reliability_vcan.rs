@@ -1,4 +1,4 @@
-//! Reliability subsets on real vcan (issues 7 and 20): the daemon's code and the emulated suit
+//! Reliability subsets on real vcan: the daemon's code and the emulated suit
 //! (exocal-hil: node state machines and flash files) in this process, each on its own SocketCAN
 //! socket on vcan0, so every frame crosses the kernel's CAN stack.
 //!
@@ -10,7 +10,7 @@
 //!   node clock jump, malformed frames and NaN values; no panic, the degraded node reported, no
 //!   table that fails validation pushed, every flash the factory table or exactly the pushed
 //!   one, agreeing with the report.
-//! - the rogue sender (issue 20): four attacks on the keyed nodes by a third socket
+//! - the rogue sender: four attacks on the keyed nodes by a third socket
 //!   (`common/rogue.rs`, also run on the in-process bus by `rogue.rs`); no flash changes, no
 //!   `New` for a node that never answered.
 //!
@@ -168,7 +168,7 @@ async fn atomic_push_over_vcan0_leaves_old_or_new_and_the_report_says_which() {
     assert!(tally.new * 10 >= tally.nodes * 7, "{tally:?}");
 }
 
-/// The rogue sender of issue 20 on vcan0 (the in-process run is `tests/rogue.rs`, same code):
+/// The rogue sender on vcan0 (the in-process run is `tests/rogue.rs`, same code):
 /// beside exocal-hil with keyed nodes and the daemon's authenticated push, a third socket
 /// sends (a) a transfer with the right CRC and no or a wrong MAC, (b) a replay of an earlier
 /// push's frames, (c) a valid MAC with a stale counter, (d) forged answers for a silent node.
@@ -187,9 +187,9 @@ async fn a_rogue_sender_on_vcan0_changes_no_table_and_never_makes_the_daemon_rep
     found.assert_clean(6, "every attack ran");
 }
 
-/// Issue 34, item 1, on vcan0 (the in-process run is `rogue.rs`, same code): the rollback the
-/// review reproduced — the rogue answers the daemon's Begin first with the node's counter +
-/// 60,000 (unsigned), NACKs the `CommitAuth` the daemon signs, keeps the 8 frames, and after
+/// The rollback by an inflated freshness on vcan0 (the in-process run is `rogue.rs`, same
+/// code): the rogue answers the daemon's Begin first with the node's counter + 60,000
+/// (unsigned), NACKs the `CommitAuth` the daemon signs, keeps the 8 frames, and after
 /// two later genuine pushes sends them with a Commit. The daemon (with its state directory)
 /// signs only the node's own counter + 1, and the older table never lands.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -488,8 +488,9 @@ async fn fault_rows_on_vcan0_report_the_degraded_node_and_push_nothing_invalid()
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
 
-/// Issue 34, item 3, on vcan0 (in process: `shell::runner::tests::a_rogue_injecting_biased_
-/// frames_is_named_and_the_session_refused`): during an authenticated collection a third
+/// A rogue in the sensor streams on vcan0 (in process:
+/// `shell::runner::tests::a_rogue_injecting_biased_frames_is_named_and_the_session_refused`):
+/// during an authenticated collection a third
 /// socket sends, after every tenth Joint3 `JointState` it sees, a copy with the angle biased by
 /// 0.03 rad. The stream gate drops every span the copies land in, and the session is refused
 /// naming Joint3 (only) as having a second sender on its identifiers (exit 65); nothing is

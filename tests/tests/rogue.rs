@@ -1,4 +1,4 @@
-//! The rogue sender (issue 20) on the in-process bus: exocal-hil with keyed nodes, the daemon's
+//! The rogue sender on the in-process bus: exocal-hil with keyed nodes, the daemon's
 //! push with the keys, and a third endpoint that knows everything on the bus but no key. The
 //! attacks and what they must not achieve are in `common/rogue.rs`; `reliability_vcan.rs` runs
 //! the same code on vcan0.
@@ -47,7 +47,7 @@ async fn a_rogue_sender_changes_no_table_and_never_makes_the_daemon_report_new()
     found.assert_clean(6, "every attack ran");
 }
 
-/// Issue 34, item 1: the rollback the review reproduced (an inflated, unsigned `Freshness`, a
+/// The rollback by an inflated freshness (an inflated, unsigned `Freshness`, a
 /// forged NACK, the kept `CommitAuth` replayed with a Commit after two later genuine pushes)
 /// on the in-process bus, against exocal-hil's keyed nodes and the daemon's push with its
 /// state directory: the older table never lands (`common/rogue.rs`, [`rogue::rollback`]).

@@ -594,11 +594,11 @@ mod tests {
     use super::*;
     use prost::Message as _;
 
-    /// Replays what the EM-against-LS check was built for (found 2026-11-27): a wearer whose
-    /// wrist keeps to 60 % of its range, seed 13, the fixed minute (the window runs to 122 s
-    /// for the wrist's coverage). The EM's table was 4.7 mm off the arm's true one with ±1.3 mm
-    /// stated; its disagreement with LS's is now beyond what LS's own error allows, so LS's
-    /// table is pushed, stated by LS's expected error, and that statement holds.
+    /// The case the EM-against-LS check is for: a wearer whose wrist keeps to 60 % of its
+    /// range, seed 13, the fixed minute (the window runs to 122 s for the wrist's coverage).
+    /// The EM's table is 4.7 mm off the arm's true one with ±1.3 mm stated; its disagreement
+    /// with LS's is beyond what LS's own error allows, so LS's table is pushed, stated by LS's
+    /// expected error, and that statement holds.
     #[test]
     fn an_em_that_disagrees_with_ls_leaves_the_ls_table_stated_honestly() {
         let dir =
@@ -661,7 +661,7 @@ mod tests {
             .collect()
     }
 
-    /// Issue 46, item 3, live: the emulated nodes on joints 1, 3 and 5 integrate their gyro
+    /// The gyro at rest, live: the emulated nodes on joints 1, 3 and 5 integrate their gyro
     /// with nothing to correct its heading (0.02 °/s, signs from the seed), and the wearer stands
     /// still for the first 5 s. With `[sensors] unaided_joints = [1, 3, 5]` the session measures
     /// the gyro bias then from the joints' rates, takes it out of their readings and states
@@ -859,8 +859,8 @@ mod tests {
         }
     }
 
-    /// The demo's log opens in the readers users run (issue 47): `@mcap/core`'s
-    /// `McapIndexedReader` (Foxglove's and Lichtblick's; it threw on a log without message
+    /// The demo's log opens in the readers users run: `@mcap/core`'s
+    /// `McapIndexedReader` (Foxglove's and Lichtblick's; it throws on a log without message
     /// indexes) and python's `mcap`, every message through the indexes, every CRC checked, the
     /// same counts as the file's statistics; and the log stays within 6 MB per minute with its
     /// indexes. Run: `cargo xtask test` (it installs `tests/js` and the venv).

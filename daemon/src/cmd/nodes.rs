@@ -13,7 +13,7 @@
 //!   time) of the output directory records for it in its `/calibration` record
 //!   ([`exocal_log::proto::NodePush`]): the CRC the node proved holding at the end of the push,
 //!   in an answer whose MAC verified (`verified_crc`). Never a readback found in `/can/rx`: any
-//!   sender on the bus can put one there after the verified one (issue 34). A node the push
+//!   sender on the bus can put one there after the verified one. A node the push
 //!   proved nothing of is shown with its outcome and compared with nothing. A log cut short is
 //!   read through [`crate::log::recover`]. `--log FILE` names the log instead;
 //! - a node that does not answer is named; [`read_tables`] never fails for a silent node, only
@@ -522,7 +522,7 @@ impl Listing {
 mod tests {
     use super::*;
 
-    /// Issue 34, item 2: the listing compares with what the push proved (`verified_crc`), not
+    /// The listing compares with what the push proved (`verified_crc`), not
     /// with what it sent or claimed. A node whose push proved nothing (all its answers forged
     /// or lost) is "not proved", even when it holds the sent table; a push that proved the old
     /// table makes a node holding the sent one "differs".

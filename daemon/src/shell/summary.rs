@@ -323,7 +323,7 @@ pub fn finish(
     }
 }
 
-/// Without the sensors' spec (issue 30): what a rate bias too small for the session to show
+/// Without the sensors' spec: what a rate bias too small for the session to show
 /// would add to the table error, or that the data chose the rate bias themselves. `None` when
 /// the spec is configured.
 pub fn rate_bias_line(em: &exocal_session::pipeline::EmSummary) -> Option<String> {

@@ -1,4 +1,4 @@
-//! The rogue sender (issue 20): four attacks on a suit whose nodes hold keys, on any transport
+//! The rogue sender: four attacks on a suit whose nodes hold keys, on any transport
 //! (the in-process bus in `rogue.rs`, vcan0 in `reliability_vcan.rs`: the same code).
 //!
 //! Beside exocal-hil (keyed nodes, flash files) and the daemon's `push_tables` (the node keys),
@@ -12,8 +12,9 @@
 //! - (d) the daemon pushes to a node that stays silent (transfer fault `Silent`) while the rogue
 //!   answers for it: Freshness, ACKs with the right CRCs, the readback fields, a guessed MAC.
 //!
-//! - the rollback of issue 34 ([`rollback`]): an inflated, unauthenticated `Freshness` answer
-//!   and a forged NACK, the 8 frames kept and replayed with a Commit after later pushes.
+//! - the rollback by an inflated freshness ([`rollback`]): an inflated, unauthenticated
+//!   `Freshness` answer and a forged NACK, the 8 frames kept and replayed with a Commit after
+//!   later pushes.
 //!
 //! Each attack must leave the attacked node's flash CRC unchanged, and the node's refusal
 //! (NACK `BadMac` / `StaleCounter`) must be seen, so the attack is known to have reached it;
@@ -447,9 +448,9 @@ async fn forge<T: Transport>(
     replies.len() as u64
 }
 
-/// The rollback of issue 34 (item 1), as the review reproduced it, on any transport. During a
-/// genuine push of `t1` to [`TARGET`] the rogue answers the daemon's Begin first, with the
-/// node's counter + 60,000, a guessed `FreshnessMac` and an ACK; it keeps Begin, the six
+/// The rollback by an inflated freshness, on any transport. During a genuine push of `t1` to
+/// [`TARGET`] the rogue answers the daemon's Begin first, with the node's counter + 60,000, a
+/// guessed `FreshnessMac` and an ACK; it keeps Begin, the six
 /// segments and the `CommitAuth` the daemon signs, and NACKs that `CommitAuth` in the node's
 /// name. Two later genuine pushes (`t2`, `t3`) follow. Then the rogue sends the 8 kept frames
 /// and a Commit of `t1`'s CRC, on the live node.

@@ -22,7 +22,7 @@ pub struct Ctx {
     pub pin: Vec<String>,
 }
 
-/// A goal of issue 6 and whether this run met it.
+/// A goal (BENCHMARKS.md, "Goals") and whether this run met it.
 pub struct Goal {
     pub what: String,
     pub met: bool,

@@ -1,4 +1,4 @@
-//! The daemon natively (issue 13, items 4 and 5): the power-up latency of a whole session on
+//! The daemon natively: the power-up latency of a whole session on
 //! the in-process bus (`exocald demo`), and the CPU of `exocald offline` on a 6,000-sample CSV
 //! with its HTML report. Both pinned to CPU 0, the release binary.
 //!

@@ -1,4 +1,5 @@
-//! `cargo xtask bench`: issue 6's comparisons, measured in one run and written to `BENCHMARKS.md`.
+//! `cargo xtask bench`: the comparisons BENCHMARKS.md's goals name, measured in one run and
+//! written to `BENCHMARKS.md`.
 //!
 //! Parts (all by default, or pick with `--only calib,firmware,daemon,ingest`):
 //!
