@@ -162,6 +162,26 @@ impl DhRow {
         self.transform_with(q, sa, ca)
     }
 
+    /// The row's motion about its joint, `Rz(q + θ)`: the first factor of
+    /// [`DhRow::transform`], which is `joint(q) · tail()`.
+    pub fn joint(&self, q: f64) -> Frame {
+        let (st, ct) = libm::sincos(q + self.theta_offset);
+        Frame {
+            r: Matrix3::new(ct, -st, 0.0, st, ct, 0.0, 0.0, 0.0, 1.0),
+            p: Vector3::zeros(),
+        }
+    }
+
+    /// The row's fixed part, `Tz(d) Tx(a) Rx(α)`: where the next joint's axis sits in the frame
+    /// that turned with this joint (the second factor of [`DhRow::transform`]).
+    pub fn tail(&self) -> Frame {
+        let (sa, ca) = libm::sincos(self.alpha);
+        Frame {
+            r: Matrix3::new(1.0, 0.0, 0.0, 0.0, ca, -sa, 0.0, sa, ca),
+            p: Vector3::new(self.a, 0.0, self.d),
+        }
+    }
+
     /// [`DhRow::transform`] with `(sin α, cos α)` given (they are constant per table, while the
     /// joint angle changes with every sample).
     #[inline]
@@ -322,6 +342,22 @@ impl<const N: usize> DhTable<N> {
             t = t.compose(&row.transform(*q));
         }
         t
+    }
+
+    /// The arm as a URDF or a transform tree draws it, at joint readings `joints`: link `i`'s
+    /// frame in its parent's (the base's for the first) is the parent row's
+    /// [`DhRow::tail`] then this row's [`DhRow::joint`], and the tool's frame in the last
+    /// link's is the last row's tail. Composed in order they are [`DhTable::fk`]; at zero
+    /// readings they are the URDF's fixed joint origins. This is the one place the D-H rows
+    /// are split at the joints: the log's transforms and the URDF export both read it.
+    pub fn links(&self, joints: &[f64; N]) -> ([Frame; N], Frame) {
+        let mut links = [Frame::identity(); N];
+        let mut parent = Frame::identity();
+        for ((link, row), &q) in links.iter_mut().zip(&self.rows).zip(joints) {
+            *link = parent.compose(&row.joint(q));
+            parent = row.tail();
+        }
+        (links, parent)
     }
 
     /// The table with `sin α`, `cos α` of every row evaluated once, for kinematics over many
@@ -677,6 +713,29 @@ mod tests {
         let mut rng = crate::rng::Rng::new(seed);
         let r = JointRanges::paper();
         core::array::from_fn(|j| r.limits[j].0 + (r.limits[j].1 - r.limits[j].0) * rng.uniform())
+    }
+
+    #[test]
+    fn the_links_compose_to_the_forward_kinematics() {
+        let table = DhTable::paper_actual();
+        for seed in 0..20 {
+            let q = rand_joints(seed);
+            let (links, tool) = table.links(&q);
+            let composed = links.iter().fold(Frame::identity(), |t, l| t.compose(l)).compose(&tool);
+            let fk = table.fk(&q);
+            assert!((composed.p - fk.p).norm() < 1e-12 && (composed.r - fk.r).norm() < 1e-12);
+            for (row, &qi) in table.rows.iter().zip(&q) {
+                let split = row.joint(qi).compose(&row.tail());
+                let whole = row.transform(qi);
+                assert!((split.p - whole.p).norm() < 1e-12 && (split.r - whole.r).norm() < 1e-12);
+            }
+        }
+        // The first link turns at the base; every other sits at its parent row's tail.
+        let (links, tool) = table.links(&[0.0; 7]);
+        assert_eq!(links[0].p, Vector3::zeros());
+        let r = &table.rows[2];
+        assert_eq!(links[3].p, Vector3::new(r.a, 0.0, r.d));
+        assert_eq!(tool.p, Vector3::new(table.rows[6].a, 0.0, table.rows[6].d));
     }
 
     /// The kinematics with every product written out in general (`Uᵀ x`, `x × p`, `T · U`), as

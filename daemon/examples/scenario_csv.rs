@@ -5,8 +5,8 @@
 //! (defaults: K = 6,000 samples at the scenario's 100 Hz, seed 1).
 
 use calib_core::ScenarioConfig;
+use exocal_session::detail::TimedSample;
 use exocal_session::formats::csv_text;
-use exocal_session::outcome::TimedSample;
 
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();

@@ -182,6 +182,10 @@ pub struct OfflineArgs {
     /// Write the replayed frames as a `candump -L` log (frame inputs only).
     #[arg(long, value_name = "OUT.log")]
     pub export_candump: Option<PathBuf>,
+    /// Write the aligned samples the calibration was given as CSV
+    /// (`t,q1…q7,x,y,z,qw,qx,qy,qz`, the format `offline` reads), whatever the verdict.
+    #[arg(long, value_name = "OUT.csv")]
+    pub export_csv: Option<PathBuf>,
     /// Print only the verdict (the summary's last line) on stdout, and no progress.
     #[arg(long, short = 'q', conflicts_with = "json")]
     pub quiet: bool,
@@ -346,6 +350,8 @@ mod tests {
             "r.html",
             "--export-urdf",
             "a.urdf",
+            "--export-csv",
+            "a.csv",
         ])
         .unwrap();
         match cli.command {
@@ -354,6 +360,7 @@ mod tests {
                 assert_eq!(a.format, Some(Format::Candump));
                 assert_eq!(a.report, Some(PathBuf::from("r.html")));
                 assert_eq!(a.export_urdf, Some(PathBuf::from("a.urdf")));
+                assert_eq!(a.export_csv, Some(PathBuf::from("a.csv")));
                 assert_eq!(a.export_toml, None);
             }
             other => panic!("{other:?}"),
@@ -407,7 +414,7 @@ mod tests {
         assert!(cal_help.contains("78 bad configuration"), "{cal_help}");
     }
 
-    /// Every subcommand's `--help` lists its exit statuses (issue 33), each of them a status
+    /// Every subcommand's `--help` lists its exit statuses, each of them a status
     /// `exit::code` defines; 64 is everyone's (a wrong command line).
     #[test]
     fn every_subcommand_lists_its_exit_statuses() {

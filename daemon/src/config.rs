@@ -27,14 +27,13 @@ pub const DEFAULT_TOML: &str = include_str!("../exocald.toml");
 
 /// Upper bounds of the numeric keys: beyond them a value is a typo or an attack, never a suit's
 /// setting, and some would exhaust memory or overflow arithmetic downstream (`grid_hz = 1e12`
-/// asked an offline run for 480 TB). `check-config` rejects them, naming the key and its line.
+/// would ask an offline run for 480 TB). `check-config` rejects them, naming the key and its line.
 pub mod limits {
     /// Longest collection window, s: what fits the unit's `MemoryMax=256M` with half of it to
     /// spare. A session's peak RSS grows linearly with its length (frames, streams and grid
-    /// kept until the calibration): measured with `exocald demo --speed 1000000`, 29.8 MiB at
-    /// 60 s, 104 MiB at 300 s, 282 MiB at 900 s (docs/reliability.md, "Memory budget"), about
-    /// 15 MiB + 0.30 MiB per second of session at `grid_hz = 100`; 360 s is ~125 MiB. A suit
-    /// collects a minute or two.
+    /// kept until the calibration): about 15 MiB + 0.30 MiB per second of session at
+    /// `grid_hz = 100`, so 360 s is ~125 MiB (figures: docs/reliability.md, "Memory budget").
+    /// A suit collects a minute or two.
     pub const MAX_DURATION_S: f64 = 360.0;
     /// The unit's memory limit (`systemd/exocald.service`), named in the refusals above.
     pub const MEMORY_MAX: &str = "MemoryMax=256M";
@@ -178,7 +177,7 @@ pub struct Config {
     /// The serve mode's trigger rules (`[trigger]`).
     pub trigger: TriggerRules,
     /// Whether an authenticated session (`[push] authenticate`) verifies the sensor streams
-    /// (`exocal_session::verify`). Always on from the configuration file; off only where a
+    /// (`exocal_session::gate`). Always on from the configuration file; off only where a
     /// test's subject is the wire's faults (the fault matrix: the gate drops every span a lost,
     /// duplicated or corrupted frame touches, so 10 % loss leaves no data).
     pub verify_streams: bool,
@@ -1188,17 +1187,14 @@ impl Config {
             num(self.trigger.cooldown_s)
         );
         let rb = self.calibration.sensors.rate_bias;
-        let unaided: Vec<String> = (0..JOINTS)
-            .filter(|&j| self.calibration.sensors.unaided[j])
-            .map(|j| (j + 1).to_string())
-            .collect();
+        let unaided = exocal_session::rules::joint_list(&self.calibration.sensors.unaided);
         if !rb.is_none() || !unaided.is_empty() {
             let _ = write!(
                 w,
                 "\n[sensors]\nrate_bias_deg_s = {}\nrate_bias_walk_deg_s_per_sqrt_s = {}\nunaided_joints = [{}]\n",
                 num(deg(rb.ramp)),
                 num(deg(rb.walk)),
-                unaided.join(", ")
+                unaided
             );
         }
         out
@@ -1284,8 +1280,8 @@ mod tests {
         let t = DhTable::<JOINTS>::paper_actual();
         let out = with_nominal(base, &t).unwrap();
         assert!(out.contains("interface = \"can0\" # keep me"), "{out}");
-        // The comment on the table that was there is replaced (issue 50: the calibrated table
-        // went out under "The paper's Table 1"); the others are kept.
+        // The comment on the table that was there is replaced (it would mislabel the calibrated
+        // table, e.g. as "The paper's Table 1"); the others are kept.
         assert!(
             !out.contains("# rows") && out.contains(CALIBRATED_NOTE),
             "{out}"
@@ -1468,7 +1464,7 @@ mod tests {
         assert_eq!(line, Some(line_containing(&text, "[extra]")));
     }
 
-    /// Issue 48, item 5: the live view has no authentication, so an address other hosts
+    /// The live view has no authentication, so an address other hosts
     /// reach needs `allow_remote`; its client limit is bounded.
     #[test]
     fn a_live_view_for_other_hosts_needs_allow_remote() {
@@ -1653,8 +1649,8 @@ mod tests {
         );
     }
 
-    /// A window longer than the memory budget allows (issue 34, item 6: 1,800 s peaked at
-    /// 511 MiB under `MemoryMax=256M`) is refused, naming the key, the limit and why; so is one
+    /// A window longer than the memory budget allows (1,800 s needs about 511 MiB, twice
+    /// `MemoryMax=256M`) is refused, naming the key, the limit and why; so is one
     /// within it whose faster grid holds more points than the budget was measured at.
     #[test]
     fn a_session_longer_than_the_memory_budget_is_refused() {

@@ -16,8 +16,8 @@
 //!   [`Record`] the log gets) and never fails the session: a slow client misses messages;
 //! - channels, with the log's schemas (`exocal-log`): `/joint_states` (all seven joints) and
 //!   `/tf` (the arm's frames on the current table, as the exported URDF names them) and
-//!   `/ee_pose` (the measured end-effector pose) and `/ee_gyro` (the end effector's IMU rate),
-//!   each at most `[live] max_hz` messages per second of log time, their timestamps never
+//!   `/ee_pose` (the measured end-effector pose) and a channel per raw IMU stream (the log's
+//!   topics: `/ee_gyro`, `/ee_mag`), each at most `[live] max_hz` messages per second of log time, their timestamps never
 //!   stepping back (a record older than what was sent — the stream gate releases a node's
 //!   frames a span at a time — updates nothing; a step back of [`CLOCK_STEP_NS`] or more is the
 //!   clock stepping and starts over); `/progress` (coverage per joint, condition number),
@@ -76,7 +76,8 @@ struct Channels {
     joint_states: Arc<RawChannel>,
     tf: Arc<RawChannel>,
     ee_pose: Arc<RawChannel>,
-    ee_gyro: Arc<RawChannel>,
+    /// One per raw IMU stream: the stream and its channel.
+    vectors: Vec<(usize, Arc<RawChannel>)>,
     progress: Arc<RawChannel>,
     calibration: Arc<RawChannel>,
     events: Arc<RawChannel>,
@@ -93,8 +94,8 @@ struct State {
     /// One streaming message per this much log time.
     period_ns: u64,
     last_sent_ns: Option<u64>,
-    /// Log time of the last `/ee_gyro` message sent.
-    last_rate_ns: Option<u64>,
+    /// Log time of the last message sent on each raw IMU stream's channel, in `vectors` order.
+    last_vector_ns: Vec<Option<u64>>,
     /// The latest message of the latched channels, by topic.
     latched: Vec<(&'static str, Vec<u8>)>,
 }
@@ -265,7 +266,9 @@ impl LiveView {
                 joint_states: channel(&ctx, Topic::JointStates)?,
                 tf: channel(&ctx, Topic::Tf)?,
                 ee_pose: channel(&ctx, Topic::EePose)?,
-                ee_gyro: channel(&ctx, Topic::EeGyro)?,
+                vectors: (exocal_session::stream::vectors())
+                    .map(|i| Ok((i, channel(&ctx, Topic::Vector(i))?)))
+                    .collect::<Result<_, foxglove::FoxgloveError>>()?,
                 progress: channel(&ctx, Topic::Progress)?,
                 calibration: channel(&ctx, Topic::Calibration)?,
                 events: channel(&ctx, Topic::Events)?,
@@ -281,7 +284,7 @@ impl LiveView {
             pose: None,
             period_ns: (1e9 / config.live.max_hz) as u64,
             last_sent_ns: None,
-            last_rate_ns: None,
+            last_vector_ns: vec![None; exocal_session::stream::vectors().count()],
             latched: Vec::new(),
         };
         let nominal = records::urdf(&table, &limits).unwrap_or_default();
@@ -369,18 +372,21 @@ impl Observer for LiveView {
                 }
                 self.stream(&mut state, log_ns);
             }
-            Record::Rate {
+            Record::Vector {
                 stream,
                 node_timestamp_lo_us,
                 xyz,
             } => {
+                let Some(k) = c.vectors.iter().position(|(i, _)| *i == stream) else {
+                    return;
+                };
                 let period = state.period_ns;
-                if !due(&mut state.last_rate_ns, log_ns, period) {
+                if !due(&mut state.last_vector_ns[k], log_ns, period) {
                     return;
                 }
-                let bytes =
-                    mcaplog::angular_rate(stream, node_timestamp_lo_us, xyz).encode_to_vec();
-                c.ee_gyro.log_with_meta(&bytes, at);
+                let mut bytes = Vec::new();
+                exocal_log::encode_vector(stream, node_timestamp_lo_us, xyz, &mut bytes);
+                c.vectors[k].1.log_with_meta(&bytes, at);
             }
             Record::Progress(p) => {
                 let bytes = mcaplog::progress(p).encode_to_vec();

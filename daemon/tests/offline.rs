@@ -86,7 +86,7 @@ fn offline_recalibration_agrees_with_the_live_session() {
         "a figure was not drawn"
     );
     assert!(html.contains("Joint7") && html.contains("EndEffector"));
-    // After the push the report has its outcome per node (issue 33), as the summary has it.
+    // After the push the report has its outcome per node, as the summary has it.
     if accepted {
         let push = live.push.as_ref().expect("a validated table is pushed");
         let all_new = push.complete();
@@ -114,6 +114,7 @@ fn offline_recalibration_agrees_with_the_live_session() {
         "frames arrived after collection"
     );
     let candump = dir.join("session.log");
+    let csv = dir.join("samples.csv");
     let (toml_out, urdf_out) = (dir.join("calibrated.toml"), dir.join("calibrated.urdf"));
     let from_mcap = OfflineOptions {
         input: live.log_path.clone(),
@@ -122,6 +123,7 @@ fn offline_recalibration_agrees_with_the_live_session() {
         export_toml: Some(toml_out.clone()),
         export_urdf: Some(urdf_out.clone()),
         export_candump: Some(candump.clone()),
+        export_csv: Some(csv.clone()),
         quiet: false,
     };
     // The live session's table, bit for bit, and its improvement.
@@ -150,8 +152,8 @@ fn offline_recalibration_agrees_with_the_live_session() {
     // (b) Its frames as candump replay to the same table, bit for bit: `candump -L` keeps µs,
     // and ingest reads receive times at µs resolution.
     // Behind the stream gate: the frames it passed by the collection's end.
-    // In receive order, as `candump -l` writes (issue 47: the gate releases a node's frames a
-    // span at a time, and the export had 4,285 steps back).
+    // In receive order, as `candump -l` writes (the gate releases a node's frames a span at a
+    // time, so the export has to put them back in order).
     let text = std::fs::read_to_string(&candump).unwrap();
     let times: Vec<f64> = text
         .lines()
@@ -170,7 +172,8 @@ fn offline_recalibration_agrees_with_the_live_session() {
     assert_eq!(summary_c.aligned_samples, live.aligned_samples);
     same_table_as_live(&outcome_c);
 
-    // (c) The aligned samples as CSV bypass alignment and give the same table to rounding.
+    // (c) The aligned samples as CSV (`--export-csv` of the MCAP run: every aligned sample, in
+    // the CSV format) bypass alignment and give the same table to rounding.
     let (recording, _, gate) = offline::read_input_gated(
         &live.log_path,
         std::fs::File::open(&live.log_path).unwrap(),
@@ -184,8 +187,7 @@ fn offline_recalibration_agrees_with_the_live_session() {
             .collected
             .samples,
     );
-    let csv = dir.join("samples.csv");
-    std::fs::write(&csv, csv_text(&samples)).unwrap();
+    assert_eq!(std::fs::read_to_string(&csv).unwrap(), csv_text(&samples));
     let from_csv = OfflineOptions {
         input: csv,
         report: Some(dir.join("csv.html")),

@@ -35,7 +35,7 @@ pub mod flash;
 pub mod motion;
 pub mod scenario;
 pub mod sim;
-pub mod stream;
+pub mod stream_auth;
 pub mod trial;
 pub mod wearer;
 

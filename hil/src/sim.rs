@@ -26,7 +26,7 @@
 use crate::flash::{self, FlashImage, NodeFlash};
 use crate::motion::Motion;
 use crate::scenario::{Scenario, TransferBehaviour};
-use crate::stream::{self, Signer};
+use crate::stream_auth::{self, Signer};
 use crate::wearer::Attention;
 use crate::HilError;
 use calib_core::{DhTable, Discretisation, GaussMarkov, PreparedTable, Rng};
@@ -163,7 +163,7 @@ struct Node {
     history: [Option<(f64, Vector3<f64>)>; 2],
     up: bool,
     boot_count: u32,
-    /// The stream signer, for a node holding a key (`crate::stream`).
+    /// The stream signer, for a node holding a key (`crate::stream_auth`).
     stream: Option<Signer>,
     transfer: NodeTransfer,
     flash: NodeFlash,
@@ -340,7 +340,10 @@ impl Suit {
                 history: [None; 2],
                 up: true,
                 boot_count,
-                stream: stream::signer(id, provisioning.key.as_ref().ok().and_then(Option::as_ref)),
+                stream: stream_auth::signer(
+                    id,
+                    provisioning.key.as_ref().ok().and_then(Option::as_ref),
+                ),
                 transfer: boot_transfer(id, image, provisioning, &mut stats),
                 flash: NodeFlash::new(flash_dir, id, boot_count),
                 behaviour: scenario.faults.transfer_behaviour(id.raw()),
@@ -577,7 +580,7 @@ impl Suit {
                 }
                 let provisioning = flash::Provisioning::read(&self.flash_dir, n.id);
                 // RAM is gone: the stream signer starts over, without the collection's nonce.
-                n.stream = stream::signer(
+                n.stream = stream_auth::signer(
                     n.id,
                     provisioning.key.as_ref().ok().and_then(Option::as_ref),
                 );
@@ -1487,7 +1490,7 @@ pub(crate) mod tests {
         }
     }
 
-    /// Issue 34, item 4: a provisioned node that reboots and cannot read its key slot (or its
+    /// A provisioned node that reboots and cannot read its key slot (or its
     /// counter record, or finds its key slot gone) boots without a key and installs nothing
     /// (NACK `NoKey`), instead of accepting unauthenticated tables.
     #[test]
@@ -1552,7 +1555,7 @@ pub(crate) mod tests {
         }
     }
 
-    /// Issue 34, item 4: the freshness counter survives a corrupt table image. A genuine
+    /// The freshness counter survives a corrupt table image. A genuine
     /// authenticated push installs a table (counter 1); the image is then corrupted and the
     /// suit powered up again (the node finds no table and is given its factory one, counter 0
     /// in the image); the recorded genuine transfer, replayed, is refused as stale: its counter
@@ -1602,10 +1605,10 @@ pub(crate) mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
-    /// Issue 48, item 3: restarting `exocal-hil` re-provisions the nodes, and provisioning
-    /// wrote an unreadable counter record back as the image's counter: a flipped bit in the
-    /// record and a lost image took a node's counter from 2 to 0 under the same key, and every
-    /// recorded `CommitAuth` installed again (any earlier table). Now the node stays locked:
+    /// Restarting `exocal-hil` re-provisions the nodes. Were provisioning to write an
+    /// unreadable counter record back as the image's counter, a flipped bit in the record and
+    /// a lost image would take a node's counter from 2 to 0 under the same key, and every
+    /// recorded `CommitAuth` would install again (any earlier table). So the node stays locked:
     /// provisioning names it and leaves it alone, it boots keyless, the recorded transfer
     /// installs nothing. A new key unlocks it, and the old transfer does not verify under it.
     #[test]

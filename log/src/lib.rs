@@ -26,6 +26,8 @@
 use std::borrow::Cow;
 use std::fmt;
 
+use exocal_dbc::spec::Kind;
+use exocal_session::stream::{self, Column, STREAMS};
 use serde::{Deserialize, Serialize};
 
 /// The encoding of every message.
@@ -80,8 +82,9 @@ pub enum Topic {
     JointStates,
     /// Each assembled end-effector reference pose.
     EePose,
-    /// The end effector's IMU angular rate.
-    EeGyro,
+    /// A raw IMU vector stream (an index of [`STREAMS`] whose column is
+    /// [`Column::Vector`]), on the stream's own topic.
+    Vector(usize),
     /// The arm's link frames.
     Tf,
     /// Samples on the common time grid, as fed to the calibration.
@@ -128,31 +131,63 @@ fn foxglove_schema<T: foxglove::Encode>(name: &'static str) -> Schema {
     }
 }
 
+/// The topics that are not a raw IMU stream's, in channel order.
+const FIXED: [Topic; 11] = [
+    Topic::CanRx,
+    Topic::CanTx,
+    Topic::JointStates,
+    Topic::EePose,
+    Topic::Tf,
+    Topic::Aligned,
+    Topic::Progress,
+    Topic::Collection,
+    Topic::Calibration,
+    Topic::Events,
+    Topic::RobotDescription,
+];
+
+/// The raw IMU streams of [`STREAMS`].
+const VECTORS: usize = {
+    let mut n = 0;
+    let mut i = 0;
+    while i < STREAMS.len() {
+        if matches!(STREAMS[i].column, Column::Vector) {
+            n += 1;
+        }
+        i += 1;
+    }
+    n
+};
+
 impl Topic {
-    /// Every topic, in channel order.
-    pub const ALL: [Topic; 12] = [
-        Topic::CanRx,
-        Topic::CanTx,
-        Topic::JointStates,
-        Topic::EePose,
-        Topic::Tf,
-        Topic::Aligned,
-        Topic::Progress,
-        Topic::Collection,
-        Topic::Calibration,
-        Topic::Events,
-        Topic::EeGyro,
-        Topic::RobotDescription,
-    ];
+    /// Every topic, in channel order: the fixed topics, then one per raw IMU stream in
+    /// [`STREAMS`] order.
+    pub const ALL: [Topic; FIXED.len() + VECTORS] = {
+        let mut all = [Topic::CanRx; FIXED.len() + VECTORS];
+        let mut n = 0;
+        while n < FIXED.len() {
+            all[n] = FIXED[n];
+            n += 1;
+        }
+        let mut i = 0;
+        while i < STREAMS.len() {
+            if matches!(STREAMS[i].column, Column::Vector) {
+                all[n] = Topic::Vector(i);
+                n += 1;
+            }
+            i += 1;
+        }
+        all
+    };
 
     /// The topic name in the file.
     pub const fn name(self) -> &'static str {
         match self {
             Topic::CanRx => "/can/rx",
             Topic::CanTx => "/can/tx",
-            Topic::JointStates => "/joint_states",
-            Topic::EePose => "/ee_pose",
-            Topic::EeGyro => "/ee_gyro",
+            Topic::JointStates => STREAMS[stream::angle(0)].topic,
+            Topic::EePose => STREAMS[stream::POSE].topic,
+            Topic::Vector(i) => STREAMS[i].topic,
             Topic::Tf => "/tf",
             Topic::Aligned => "/aligned",
             Topic::Progress => "/progress",
@@ -174,7 +209,7 @@ impl Topic {
             Topic::CanRx | Topic::CanTx => "exocal.CanFrames",
             Topic::JointStates => "foxglove.JointStates",
             Topic::EePose => "foxglove.PoseInFrame",
-            Topic::EeGyro => "exocal.AngularRate",
+            Topic::Vector(i) => vector_type(STREAMS[i].message),
             Topic::Tf => "foxglove.FrameTransforms",
             Topic::Aligned => "exocal.AlignedSample",
             Topic::Progress => "exocal.Progress",
@@ -201,6 +236,53 @@ impl Topic {
     pub fn index(self) -> usize {
         Topic::ALL.iter().position(|&t| t == self).unwrap_or(0)
     }
+}
+
+/// The message type of a raw IMU vector of `message` (`ImuGyro`, `ImuAccel`, `ImuMag`).
+const fn vector_type(message: Kind) -> &'static str {
+    match message {
+        Kind::ImuMag => "exocal.MagneticField",
+        Kind::ImuAccel => "exocal.Acceleration",
+        _ => "exocal.AngularRate",
+    }
+}
+
+/// Encodes a sample of raw IMU stream `stream` (an index of [`STREAMS`]; the low 16 bits of
+/// its node's clock, µs, and the vector in the sensor's frame) as its topic's message
+/// ([`Topic::Vector`]), into `out` (cleared first).
+pub fn encode_vector(stream: usize, node_timestamp_lo_us: u32, xyz: [f64; 3], out: &mut Vec<u8>) {
+    use prost::Message as _;
+    let s = &STREAMS[stream];
+    let frame_id = s.name.to_string();
+    let [x, y, z] = xyz;
+    out.clear();
+    let encoded = match s.message {
+        Kind::ImuMag => proto::MagneticField {
+            frame_id,
+            x,
+            y,
+            z,
+            node_timestamp_lo_us,
+        }
+        .encode(out),
+        Kind::ImuAccel => proto::Acceleration {
+            frame_id,
+            x,
+            y,
+            z,
+            node_timestamp_lo_us,
+        }
+        .encode(out),
+        _ => proto::AngularRate {
+            frame_id,
+            x,
+            y,
+            z,
+            node_timestamp_lo_us,
+        }
+        .encode(out),
+    };
+    encoded.expect("a Vec grows to fit any message");
 }
 
 /// Nanoseconds since the epoch as a Foxglove timestamp (saturating after 2106).
@@ -447,6 +529,40 @@ pub fn decode_collection_end(encoding: &str, data: &[u8]) -> Result<CollectionEn
 mod tests {
     use super::*;
     use prost::Message as _;
+
+    #[test]
+    fn every_raw_imu_stream_has_a_topic_of_its_quantitys_type() {
+        let vectors: Vec<usize> = stream::vectors().collect();
+        assert!(vectors.len() >= 2, "the gyro and the magnetometer");
+        for i in vectors {
+            let topic = Topic::Vector(i);
+            assert!(Topic::ALL.contains(&topic));
+            let mut out = Vec::new();
+            encode_vector(i, 7, [1.0, -2.0, 3.0], &mut out);
+            let (name, xyz, ts) = match STREAMS[i].message {
+                Kind::ImuGyro => {
+                    assert_eq!(topic.message_type(), "exocal.AngularRate");
+                    let m = proto::AngularRate::decode(&*out).unwrap();
+                    (m.frame_id, [m.x, m.y, m.z], m.node_timestamp_lo_us)
+                }
+                Kind::ImuMag => {
+                    assert_eq!(topic.message_type(), "exocal.MagneticField");
+                    let m = proto::MagneticField::decode(&*out).unwrap();
+                    (m.frame_id, [m.x, m.y, m.z], m.node_timestamp_lo_us)
+                }
+                Kind::ImuAccel => {
+                    assert_eq!(topic.message_type(), "exocal.Acceleration");
+                    let m = proto::Acceleration::decode(&*out).unwrap();
+                    (m.frame_id, [m.x, m.y, m.z], m.node_timestamp_lo_us)
+                }
+                other => panic!("{}: {other:?} is not a raw IMU vector", STREAMS[i].name),
+            };
+            assert_eq!(
+                (name.as_str(), xyz, ts),
+                (STREAMS[i].name, [1.0, -2.0, 3.0], 7)
+            );
+        }
+    }
 
     #[test]
     fn every_topic_has_a_unique_name_and_a_schema_that_defines_its_type() {

@@ -54,19 +54,11 @@ fn origin(out: &mut String, xyz: [f64; 3], rpy: (f64, f64, f64)) {
     );
 }
 
-/// The static part `Tz(d) Tx(a) Rx(α)` of a row, then `Rz(offset_next)`: translation and
-/// roll-pitch-yaw (URDF's fixed-axis convention, `R = Rz(yaw) Ry(pitch) Rx(roll)`).
-fn joint_origin(prev: Option<&calib_core::DhRow>, offset: f64) -> ([f64; 3], (f64, f64, f64)) {
-    let (p, r) = match prev {
-        Some(row) => (
-            [row.a, 0.0, row.d],
-            Rotation3::from_axis_angle(&nalgebra::Vector3::x_axis(), row.alpha),
-        ),
-        None => ([0.0; 3], Rotation3::identity()),
-    };
-    let r = r * Rotation3::from_axis_angle(&nalgebra::Vector3::z_axis(), offset);
-    // Tz(d) Tx(a) puts the origin at (a, 0, d) before Rx(α): the translation is in the parent.
-    (p, r.euler_angles())
+/// A joint's origin (a link's frame at zero reading, `calib_core::DhTable::links`): translation
+/// and roll-pitch-yaw (URDF's fixed-axis convention, `R = Rz(yaw) Ry(pitch) Rx(roll)`).
+fn joint_origin(frame: &calib_core::Frame) -> ([f64; 3], (f64, f64, f64)) {
+    let r = Rotation3::from_matrix_unchecked(frame.r);
+    ([frame.p.x, frame.p.y, frame.p.z], r.euler_angles())
 }
 
 /// URDF of the arm described by `table` (see the module docs). `limits` are the joint ranges
@@ -89,13 +81,14 @@ pub fn urdf(
         let _ = writeln!(out, "  <link name=\"link{i}\"/>");
     }
     let _ = writeln!(out, "  <link name=\"tool0\"/>");
-    for (i, row) in table.rows.iter().enumerate() {
+    let (links, tool) = table.links(&[0.0; JOINTS]);
+    for (i, link) in links.iter().enumerate() {
         let parent = if i == 0 {
             "base_link".to_string()
         } else {
             format!("link{i}")
         };
-        let (xyz, rpy) = joint_origin(i.checked_sub(1).map(|p| &table.rows[p]), row.theta_offset);
+        let (xyz, rpy) = joint_origin(link);
         let _ = writeln!(out, "  <joint name=\"joint{}\" type=\"revolute\">", i + 1);
         let _ = writeln!(out, "    <parent link=\"{parent}\"/>");
         let _ = writeln!(out, "    <child link=\"link{}\"/>", i + 1);
@@ -108,7 +101,7 @@ pub fn urdf(
         );
         let _ = writeln!(out, "  </joint>");
     }
-    let (xyz, rpy) = joint_origin(Some(&table.rows[JOINTS - 1]), 0.0);
+    let (xyz, rpy) = joint_origin(&tool);
     let _ = writeln!(out, "  <joint name=\"tool0_joint\" type=\"fixed\">");
     let _ = writeln!(out, "    <parent link=\"link{JOINTS}\"/>");
     let _ = writeln!(out, "    <child link=\"tool0\"/>");

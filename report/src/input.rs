@@ -7,7 +7,7 @@
 
 use calib_core::DhTable;
 pub use exocal_log::proto::NodePush;
-pub use exocal_session::outcome::{
+pub use exocal_session::detail::{
     Calibration, Correlation, EmDetail, LsDetail, Quality, StreamQuality, TimedSample,
 };
 pub use exocal_session::{JOINTS, PARAMS};

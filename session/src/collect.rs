@@ -14,13 +14,13 @@
 //! - [`Collected::from_samples`] is the same for samples that need no alignment (a CSV file):
 //!   no frames, no clocks.
 
-use crate::outcome::{Quality, StreamQuality};
+use crate::detail::{Quality, StreamQuality};
 use exocal_dbc::Received;
 
 use crate::align::{AlignParams, AlignedSample};
+use crate::gate::{Dropped, StreamGate};
 use crate::ingest::{ClockReport, Event, FrameStats, Ingest, Reading, StallReport};
 use crate::stream::{Column, STREAMS};
-use crate::verify::{Dropped, StreamGate};
 use crate::window::{Shortfall, Window};
 use crate::Settings;
 
@@ -81,7 +81,7 @@ impl Collector {
     /// What the stream gate says against calibrating on this collection (empty without a
     /// gate): a [`Shortfall::SecondSender`] for every node on whose identifiers frames it did
     /// not sign arrived, and [`Shortfall::Unverified`] when spans were dropped and either the
-    /// window `failed` or they exceed [`crate::verify::MAX_DROPPED_FRACTION`] of all spans. A
+    /// window `failed` or they exceed [`crate::gate::MAX_DROPPED_FRACTION`] of all spans. A
     /// session with any of these is refused: its data were attacked or too much is missing.
     pub fn unverified(&self, failed: bool) -> Vec<Shortfall> {
         let Some(s) = self.gate.as_ref().map(StreamGate::stats) else {

@@ -33,7 +33,7 @@ use calib_core::{Frame, Sample};
 use exocal_dbc::Received;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
-use crate::outcome::TimedSample;
+use crate::detail::TimedSample;
 use crate::rules::{Budget, WindowRules};
 use crate::JOINTS;
 
@@ -420,7 +420,7 @@ mod tests {
                 2,
                 "quaternion norm",
             ),
-            // Issue 50, item 4: degrees and millimetres get a hint naming the unit.
+            // Degrees and millimetres get a hint naming the unit.
             (
                 format!(
                     "{CSV_HEADER}\n{ok}\n{}",
@@ -453,7 +453,7 @@ mod tests {
 
     /// A recording longer than one session (the default window: at most 180 s, + 1 s) is
     /// refused at its first line beyond, naming the line and the rule: a candump log whose
-    /// first lines are at time 0 (the alignment grid once sized itself from that span), more
+    /// first lines are at time 0 (the alignment grid would size itself from that span), more
     /// frames than a saturated bus carries, and CSV samples beyond the grid's count or span.
     #[test]
     fn recordings_longer_than_a_session_are_refused_at_the_first_line_beyond() {

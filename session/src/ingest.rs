@@ -131,8 +131,8 @@ pub enum Reading {
     },
     /// A complete end-effector pose.
     Pose(exocal_dbc::pose::Pose),
-    /// An angular rate vector (rad/s) in the sensor's frame.
-    Rate([f64; 3]),
+    /// A raw IMU vector in the sensor's frame, in its message's unit ([`Column::Vector`]).
+    Vector([f64; 3]),
 }
 
 /// One stream's samples in arrival order: node clock and host time, and its values
@@ -431,9 +431,11 @@ impl Ingest {
                 }
                 None => Event::Partial,
             },
-            Message::ImuGyro(v) if !repeated => {
+            Message::ImuGyro(v) | Message::ImuAccel(v) | Message::ImuMag(v) if !repeated => {
                 let source = self.source(v.node);
-                if let (Some(Source::Joint(j)), Some(g)) = (source, self.joint_gyros.as_mut()) {
+                if let (Message::ImuGyro(_), Some(Source::Joint(j)), Some(g)) =
+                    (message, source, self.joint_gyros.as_mut())
+                {
                     let series = &mut g.series[j];
                     if series
                         .last()
@@ -443,7 +445,7 @@ impl Ingest {
                         series.push((host_s, v.xyz[0] * a[0] + v.xyz[1] * a[1] + v.xyz[2] * a[2]));
                     }
                 }
-                let Some(stream) = source.and_then(|source| stream_of(source, Kind::ImuGyro))
+                let Some(stream) = source.and_then(|source| stream_of(source, message.kind()))
                 else {
                     return Event::Message(message);
                 };
@@ -452,7 +454,7 @@ impl Ingest {
                 Event::Sample {
                     stream,
                     node_timestamp_us: ts,
-                    reading: Reading::Rate(v.xyz),
+                    reading: Reading::Vector(v.xyz),
                 }
             }
             Message::Heartbeat(hb) => {
@@ -612,7 +614,7 @@ impl Ingest {
                     poses = series.mapped(track, pose_of);
                     poses.len()
                 }
-                Column::Rate => 0,
+                Column::Vector => 0,
             };
             reports.push(clock_report(STREAMS[i].name, series.len(), mapped, track));
         }
@@ -684,7 +686,7 @@ mod tests {
     }
 
     #[test]
-    fn the_end_effectors_gyro_is_a_stream_and_a_joints_is_not() {
+    fn the_end_effectors_gyro_and_magnetometer_are_streams_and_a_joints_gyro_is_not() {
         // STREAMS takes the end effector's IMU rate, not a joint node's: the table decides.
         let mut ing = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
         let gyro = |node: NodeId, lo: u16, z: f64| {
@@ -703,7 +705,7 @@ mod tests {
                 0.01 * f64::from(k),
             ));
             assert!(
-                matches!(e, Event::Sample { stream, reading: Reading::Rate([_, _, z]), .. } if stream == ee && z == f64::from(k)),
+                matches!(e, Event::Sample { stream, reading: Reading::Vector([_, _, z]), .. } if stream == ee && z == f64::from(k)),
                 "{e:?}"
             );
         }
@@ -714,6 +716,25 @@ mod tests {
         assert!(ing.stream_rates()[ee].0.is_some());
         let (_, clocks) = ing.align(&AlignParams::default(), 100.0, 0.05, usize::MAX);
         assert!(clocks.iter().all(|c| c.node != STREAMS[ee].name));
+        // Any IMU vector the table names is a stream of its own; one it does not, a message.
+        let mag = crate::stream::stream_of(Source::EndEffector, Kind::ImuMag).unwrap();
+        let imu = |m: fn(exocal_dbc::ImuVector) -> Message| {
+            m(exocal_dbc::ImuVector {
+                node: NodeId::END_EFFECTOR,
+                xyz: [20.0, -5.0, 43.0],
+                timestamp_lo: 99,
+            })
+            .to_frame::<Frame>()
+            .unwrap()
+        };
+        let e = ing.on_frame(&rx(imu(Message::ImuMag), 0.2));
+        assert!(
+            matches!(e, Event::Sample { stream, reading: Reading::Vector([20.0, -5.0, 43.0]), .. } if stream == mag),
+            "{e:?}"
+        );
+        assert_eq!(ing.stream_samples(mag), 1);
+        let e = ing.on_frame(&rx(imu(Message::ImuAccel), 0.2));
+        assert!(matches!(e, Event::Message(Message::ImuAccel(_))), "{e:?}");
     }
 
     #[test]

@@ -11,8 +11,8 @@
 //! | module | stage |
 //! |---|---|
 //! | [`rules`] | what the data path reads: node ids, nominal table, bounds, window and validation rules |
-//! | [`stream`] | the streams a session takes in, declared once: source node, message, column |
-//! | [`verify`] | the stream gate: a node's data frames pass only once the digest covering them verifies |
+//! | [`stream`] | the streams a session takes in, declared once: source node, message, column, log topic |
+//! | [`gate`] | the stream gate (authentication): a node's data frames pass only once the digest covering them verifies |
 //! | [`ingest`] | frames → decoded messages → per-node streams; counts unknown/malformed frames |
 //! | [`align`] | per-node clock models, resampling onto one grid |
 //! | [`window`] | the collection window: coverage, sample counts, ready/failed and why |
@@ -23,23 +23,23 @@
 //! | [`parallel`] | the LS linearisation in sample blocks on several cores (std scoped threads) |
 //! | [`replay`] | a recorded session (frames or samples) through the same stages, judged by the same rules |
 //! | [`validate`] | bounds, condition number and held-out accuracy before any push; typed refusals |
-//! | [`outcome`] | the detail every consumer reads (LS, EM, correlations, data quality) |
+//! | [`detail`] | the calibration's detail every consumer reads (LS, EM, correlations, data quality) |
 
 #![warn(missing_docs)]
 
 pub mod align;
 pub mod collect;
+pub mod detail;
 pub mod estimate;
 pub mod formats;
+pub mod gate;
 pub mod ingest;
-pub mod outcome;
 pub mod parallel;
 pub mod pipeline;
 pub mod replay;
 pub mod rules;
 pub mod stream;
 pub mod validate;
-pub mod verify;
 pub mod window;
 
 pub use rules::{Bounds, SensorSpec, Settings, ValidationRules, WindowRules};

@@ -28,7 +28,7 @@
 //! it the drift was not observed either, and the fill's own error, when the arm moves fast,
 //! is what the EM then sees as a step.
 
-use crate::outcome::{Calibration, Correlation, EmDetail, LsDetail, TimedSample};
+use crate::detail::{Calibration, Correlation, EmDetail, LsDetail, TimedSample};
 use crate::parallel::Parallel;
 use calib_core::drift_conf::Z_95;
 use calib_core::{
@@ -65,19 +65,6 @@ pub struct NodeRow {
     pub tau: f64,
     /// The paper's σ (eq. 8, rad/s).
     pub sigma: f64,
-}
-
-/// Summary of the LS step.
-#[derive(Debug, Clone, Serialize)]
-pub struct LsSummary {
-    /// Trial steps taken, accepted or not.
-    pub iterations: usize,
-    /// Numerical rank ([`PARAMS`] when every parameter is identifiable).
-    pub rank: usize,
-    /// Condition number of the column-scaled Jacobian.
-    pub condition_number: f64,
-    /// RMS of the pose-error components after the fit (m, rad).
-    pub rms: f64,
 }
 
 /// Summary of the EM step.
@@ -227,7 +214,7 @@ pub struct Outcome {
     /// Samples held out to judge it (the end). The pushed table is fitted on both.
     pub heldout_samples: usize,
     /// The least-squares step of the fit on every sample.
-    pub ls: LsSummary,
+    pub ls: LsDetail,
     /// `None` when the EM failed (the reason is in `em_error`); the LS table is then used.
     pub em: Option<EmSummary>,
     /// Why the EM failed; `None` when it succeeded.
@@ -285,17 +272,16 @@ impl std::fmt::Display for AtRest {
     /// Without a run: `never still for 1 s: the gyro bias of joints 1, 3, 5 not measured, their
     /// heading not taken out (stand still for a few seconds at the start)`.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let joints = (0..JOINTS).filter(|&j| self.joints[j]);
         if self.runs == 0 {
-            let names: Vec<String> = joints.map(|j| (j + 1).to_string()).collect();
             return write!(
                 f,
                 "never still for {} s: the gyro bias of joints {} not measured, their heading not \
                  taken out (stand still for a few seconds at the start)",
                 calib_core::rest::MIN_REST_S,
-                names.join(", ")
+                crate::rules::joint_list(&self.joints)
             );
         }
+        let joints = (0..JOINTS).filter(|&j| self.joints[j]);
         write!(f, "still {:.1} s: gyro bias", self.still_s)?;
         let mut sep = " ";
         for j in joints {
@@ -523,13 +509,6 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
         });
         detail.calibrated = inside;
     }
-    let ls = &detail.ls;
-    let ls_summary = LsSummary {
-        iterations: ls.iterations,
-        rank: ls.rank,
-        condition_number: ls.condition,
-        rms: ls.rms,
-    };
     let (em, em_error, tau, sigma) = match &detail.em {
         Ok(r) => {
             let tau = r.drift.map(|d| d.tau);
@@ -573,7 +552,7 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
         table: &judged,
         samples: &held,
     };
-    let mut verdict = validate(&table, ls.condition, expected, heldout, settings);
+    let mut verdict = validate(&table, detail.ls.condition, expected, heldout, settings);
     let unaided = settings.sensors.unaided;
     if at_rest.is_none() && unaided.iter().any(|&u| u) {
         verdict
@@ -610,7 +589,7 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
     let outcome = Outcome {
         fit_samples: fit.len(),
         heldout_samples: held.len(),
-        ls: ls_summary,
+        ls: detail.ls.clone(),
         em,
         em_error,
         before: rows_of(&settings.nominal, [0.0; JOINTS], [0.0; JOINTS]),
@@ -1009,7 +988,7 @@ mod tests {
         assert!(judged.is_empty(), "{judged:?}");
     }
 
-    /// Slow drift in the reading is not a sensor that jumped, a step is (issue 46, item 4): τ 3
+    /// Slow drift in the reading is not a sensor that jumped, a step is: τ 3
     /// and 10 s, 7 mrad, at 50 Hz with reading and pose noise, 60 s, 4 seeds each, none refused
     /// for a jump (measured, with τ 5 s and 100 Hz too, 60 sessions: the largest normalised
     /// drift innovation 5.4 against the limit of 6); the same session with joint 2's sensor
@@ -1057,8 +1036,8 @@ mod tests {
 
     /// A heading (0.05 °/s on joints 1, 3, 5, integrated without bound, 60 s at 50 Hz, the drift
     /// in the reading) is the EM's to fit, not a reason to keep LS's table: LS's is tens of
-    /// millimetres off where the EM's holds its statement. Before issue 46 the session kept
-    /// LS's table and stated LS's sandwich (±2.7 mm for a table 17.6 mm off, reported).
+    /// millimetres off where the EM's holds its statement. Keeping LS's table would state LS's
+    /// sandwich: ±2.7 mm for a table 17.6 mm off.
     #[test]
     fn a_heading_keeps_the_ems_table_and_its_statement_holds() {
         use calib_core::{Discretisation, DriftSite, GaussMarkov};
@@ -1304,7 +1283,7 @@ mod tests {
 
     #[test]
     fn a_session_without_drift_has_a_stated_accuracy_and_is_pushed() {
-        // Issue 30: degenerate drift (none at all, a little pose noise) never leaves a session
+        // Degenerate drift (none at all, a little pose noise) never leaves a session
         // without an expected accuracy; the table is accepted on it.
         let mut cfg = ScenarioConfig::paper();
         cfg.drift.sigma = 0.0;
@@ -1320,7 +1299,7 @@ mod tests {
 
     #[test]
     fn a_glitching_reference_is_discounted_counted_and_timed() {
-        // Issue 30: 2 % of the poses jump by centimetres; the EM discounts them, the summary
+        // 2 % of the poses jump by centimetres; the EM discounts them, the summary
         // counts them and says when.
         let mut cfg = ScenarioConfig::paper();
         cfg.outliers = calib_core::Outliers {
@@ -1393,8 +1372,8 @@ mod tests {
 
     #[test]
     fn a_near_nominal_suit_the_calibration_improves_is_pushed() {
-        // Issue 18: errors a fifth of the paper's, 30 s of motion. The old rule (held-out
-        // pose error 50% below nominal's) refused this suit ("26.9% better").
+        // Errors a fifth of the paper's, 30 s of motion: a fixed-improvement rule (held-out
+        // pose error 50% below nominal's) would refuse this suit ("26.9% better").
         let nominal = DhTable::paper_nominal();
         let paper = DhTable::paper_actual();
         let mut truth = nominal;

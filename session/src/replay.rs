@@ -14,7 +14,7 @@ use exocal_dbc::Received;
 
 use crate::align::AlignedSample;
 use crate::collect::{Collected, Collector};
-use crate::outcome::TimedSample;
+use crate::detail::TimedSample;
 use crate::window::{Shortfall, Window};
 use crate::Settings;
 
@@ -51,12 +51,12 @@ pub fn replay(recording: &Recording, settings: &Settings) -> Replay {
 }
 
 /// [`replay`] with the live session's stream gate re-applied to the frames
-/// ([`crate::verify::StreamGate::replaying`]): the frames the live session's gate passed, and
+/// ([`crate::gate::StreamGate::replaying`]): the frames the live session's gate passed, and
 /// only those, reach ingest.
 pub fn replay_gated(
     recording: &Recording,
     settings: &Settings,
-    gate: Option<crate::verify::StreamGate>,
+    gate: Option<crate::gate::StreamGate>,
 ) -> Replay {
     let mut settings = settings.clone();
     match recording {

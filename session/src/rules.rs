@@ -274,7 +274,7 @@ pub const UNCONFIGURED_RATE_BIAS_DEG_S: f64 = 0.01;
 /// optional `[sensors]`): a rate bias left after fusion, from the sensors' spec. The drift EM
 /// then keeps a rate bias in every joint's model whatever one session's data say: a small
 /// ramp over half a minute is too weak for the data alone to choose, yet shifts the joint
-/// offsets by millimetres (calib-core's README, issue 30's field sweep).
+/// offsets by millimetres (calib-core's README, the field sweep).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct SensorSpec {
     /// The rate bias (none by default).
@@ -284,6 +284,16 @@ pub struct SensorSpec {
     /// still, their rates measure the gyro's bias, which is then taken out of their readings
     /// (`pipeline::gyro_at_rest`). None by default.
     pub unaided: [bool; JOINTS],
+}
+
+/// The joints of `set` as people number them, `1, 3, 5` (the configuration's, the summary's and
+/// the refusals' form); empty for none.
+pub fn joint_list(set: &[bool; JOINTS]) -> String {
+    let names: Vec<String> = (0..JOINTS)
+        .filter(|&j| set[j])
+        .map(|j| (j + 1).to_string())
+        .collect();
+    names.join(", ")
 }
 
 /// Everything the data path reads: the suit and the session's rules.

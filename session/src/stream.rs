@@ -2,13 +2,17 @@
 //!
 //! Contract: [`STREAMS`] is the one table of what the suit sends that a session uses — which
 //! node sends it (by its role on the suit), in which message of the protocol, which column of
-//! the session it fills, and the log topic it is recorded on. Every stage reads this table:
-//! ingest files each decoded message under its stream ([`stream_of`]), alignment resamples the
-//! streams whose column is part of the calibration sample ([`Column::calibrates`]), the window
-//! counts them, the log and the live view record each on its topic, the data-quality summary
-//! and the report list them by name. A stream the suit already sends is added as one entry here
-//! (and, for a column of a new kind, one arm in each stage that shows it: the log's topic for it
-//! is the log's own, `exocald`'s `log::records`).
+//! the session it fills, and the log topic (and live-view channel) it is recorded on. Every
+//! stage reads this table: ingest files each decoded message under its stream ([`stream_of`]),
+//! alignment resamples the streams whose column is part of the calibration sample
+//! ([`Column::calibrates`]), the window counts them, the log and the live view record each on
+//! its [`Stream::topic`], the data-quality summary and the report list them by name.
+//!
+//! A raw IMU vector the suit already sends (`ImuGyro`, `ImuAccel`, `ImuMag` of any node) is
+//! added as one [`Column::Vector`] entry here: ingest, the log, the live view and the
+//! data-quality table follow. The log's schema for it is chosen by the message
+//! (`exocal_log::vector_schema`), so a quantity the log has no schema for yet is that one
+//! message in `exocal.proto` and its arm there.
 
 use exocal_dbc::spec::Kind;
 
@@ -31,8 +35,9 @@ pub enum Column {
     Angle(usize),
     /// The measured end-effector pose: a column of the calibration sample.
     Pose,
-    /// An angular rate vector (rad/s), recorded and shown, not calibrated on.
-    Rate,
+    /// A raw 3-axis IMU vector in the sensor's frame, in the unit of its message (`ImuGyro`
+    /// rad/s, `ImuAccel` m/s², `ImuMag` µT): recorded and shown, not calibrated on.
+    Vector,
 }
 
 impl Column {
@@ -41,7 +46,7 @@ impl Column {
         match self {
             Column::Angle(_) => 1,
             Column::Pose => 7,
-            Column::Rate => 3,
+            Column::Vector => 3,
         }
     }
 
@@ -62,6 +67,10 @@ pub struct Stream {
     pub message: Kind,
     /// What it fills.
     pub column: Column,
+    /// The log topic it is recorded on, and the live view's channel of the same name. The
+    /// joints share one topic: the log writes a sample of the arm (every joint's latest
+    /// reading) as one message.
+    pub topic: &'static str,
 }
 
 const fn joint(i: usize, name: &'static str) -> Stream {
@@ -70,12 +79,16 @@ const fn joint(i: usize, name: &'static str) -> Stream {
         source: Source::Joint(i),
         message: Kind::JointState,
         column: Column::Angle(i),
+        topic: JOINT_TOPIC,
     }
 }
 
+/// The log topic of the joint readings.
+const JOINT_TOPIC: &str = "/joint_states";
+
 /// Every stream a session takes in: the seven joint readings, the end-effector pose (the
-/// calibration's sample), and the end-effector IMU's angular rate.
-pub const STREAMS: [Stream; JOINTS + 2] = [
+/// calibration's sample), and the end-effector IMU's angular rate and magnetic field.
+pub const STREAMS: [Stream; JOINTS + 3] = [
     joint(0, "Joint1"),
     joint(1, "Joint2"),
     joint(2, "Joint3"),
@@ -88,12 +101,21 @@ pub const STREAMS: [Stream; JOINTS + 2] = [
         source: Source::EndEffector,
         message: Kind::EePose,
         column: Column::Pose,
+        topic: "/ee_pose",
     },
     Stream {
         name: "EndEffector gyro",
         source: Source::EndEffector,
         message: Kind::ImuGyro,
-        column: Column::Rate,
+        column: Column::Vector,
+        topic: "/ee_gyro",
+    },
+    Stream {
+        name: "EndEffector mag",
+        source: Source::EndEffector,
+        message: Kind::ImuMag,
+        column: Column::Vector,
+        topic: "/ee_mag",
     },
 ];
 
@@ -112,6 +134,11 @@ pub const fn angle(i: usize) -> usize {
 /// The stream of the end-effector pose.
 pub const POSE: usize = JOINTS;
 
+/// The streams recorded as raw IMU vectors ([`Column::Vector`]), in [`STREAMS`] order.
+pub fn vectors() -> impl Iterator<Item = usize> {
+    (0..STREAMS.len()).filter(|&i| STREAMS[i].column == Column::Vector)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -128,7 +155,8 @@ mod tests {
         assert_eq!(STREAMS[POSE].column, Column::Pose);
         let calibrating = STREAMS.iter().filter(|s| s.column.calibrates()).count();
         assert_eq!(calibrating, JOINTS + 1);
-        // No two streams share a source and message, or a name.
+        // No two streams share a source and message, or a name; the joints share a topic
+        // (one message per sample of the arm), no other two do.
         for (i, a) in STREAMS.iter().enumerate() {
             for b in &STREAMS[i + 1..] {
                 assert!(
@@ -136,7 +164,10 @@ mod tests {
                     "{a:?} {b:?}"
                 );
                 assert_ne!(a.name, b.name);
+                let joints = matches!((a.column, b.column), (Column::Angle(_), Column::Angle(_)));
+                assert_eq!(a.topic == b.topic, joints, "{a:?} {b:?}");
             }
         }
+        assert!(vectors().all(|i| STREAMS[i].topic.starts_with('/')));
     }
 }

@@ -181,15 +181,11 @@ impl fmt::Display for Refusal {
                 at_s: Some(t),
             } => write!(f, "{why} ({t:.2} s into the session)"),
             Refusal::NeverStill { joints } => {
-                let names: Vec<String> = (0..JOINTS)
-                    .filter(|&j| joints[j])
-                    .map(|j| (j + 1).to_string())
-                    .collect();
                 write!(
                     f,
                     "joints {} integrate their gyro unaided and the suit was never still for {} s: \
                      their heading is not measured (stand still for a few seconds at the start)",
-                    names.join(", "),
+                    crate::rules::joint_list(&joints),
                     calib_core::rest::MIN_REST_S
                 )
             }

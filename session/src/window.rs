@@ -126,7 +126,7 @@ pub enum Shortfall {
         need: usize,
     },
     /// Spans of the sensor streams failed authentication and were dropped
-    /// ([`crate::verify`]): the window counted verified samples only.
+    /// ([`crate::gate`]): the window counted verified samples only.
     Unverified {
         /// Spans dropped.
         spans: u64,
@@ -137,7 +137,7 @@ pub enum Shortfall {
         /// Spans in all (verified and dropped).
         of: u64,
     },
-    /// Frames the node did not sign arrived on its identifiers ([`crate::verify`]): a second
+    /// Frames the node did not sign arrived on its identifiers ([`crate::gate`]): a second
     /// sender on the bus. Its spans were dropped; the session is refused all the same.
     SecondSender {
         /// The node whose identifiers were used.
@@ -506,7 +506,7 @@ mod tests {
         (-1.0, 2.6)
     }
 
-    /// Issue 33: on an 80-column terminal the bar's line keeps every joint's coverage, the
+    /// On an 80-column terminal the bar's line keeps every joint's coverage, the
     /// expected error and the joint to move, at its widest.
     #[test]
     fn the_short_line_fits_beside_the_bar_at_its_widest() {

@@ -432,12 +432,13 @@ fn frame_of(v: &serde_json::Value) -> (u32, Vec<u8>) {
     (id, data)
 }
 
-const TOPICS: [&str; 10] = [
+const TOPICS: [&str; 11] = [
     "/can/rx",
     "/can/tx",
     "/joint_states",
     "/ee_pose",
     "/ee_gyro",
+    "/ee_mag",
     "/tf",
     "/aligned",
     "/progress",

@@ -113,8 +113,10 @@ pub fn build(t: &Target) -> Result<Vec<PathBuf>> {
 /// (cargo then interleaves the targets' crates on the cores, where one build alone leaves a core
 /// idle in its serial stretches), as they ship: without default features, so the daemon links
 /// no emulator (`exocald demo` is the workspace build's, not the package's). Each target's
-/// binaries are then copied to [`binaries`]'s place, apart from the workspace build's
-/// `target/release` (whose `exocald` has the demo).
+/// binaries are then copied to [`binaries`]'s place. For the build machine's own target the
+/// build lands in `target/release` too, replacing the `exocald` there with the one without the
+/// demo: [`build_demo`] builds it back where the demo is needed (cargo's
+/// `cargo run --release -p exocald -- demo` does the same).
 pub fn build_all(targets: &[Target]) -> Result<()> {
     let root = paths::workspace_root();
     let mut cmd = Command::new(paths::cargo());
@@ -123,7 +125,8 @@ pub fn build_all(targets: &[Target]) -> Result<()> {
         .stdin(Stdio::null());
     for t in targets {
         // The build machine's own binaries are built in target/release, beside the tests' (the
-        // same dependencies; only the daemon differs, without its demo).
+        // same dependencies; only the daemon differs, without its demo, and replaces the one
+        // there until `build_demo`).
         if t.qemu.is_some() {
             cmd.args(["--target", t.triple]);
         }

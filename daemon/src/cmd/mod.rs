@@ -158,6 +158,7 @@ fn offline(
         export_toml: args.export_toml,
         export_urdf: args.export_urdf,
         export_candump: args.export_candump,
+        export_csv: args.export_csv,
         quiet: !matches!(output, crate::shell::summary::Output::Text),
     };
     let result = crate::cmd::offline::run(&config, &text, &opts).map_err(|e| *e);
@@ -331,7 +332,7 @@ pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError
         return Ok(());
     }
     let mut nodes = config.joint_node_ids();
-    // The end effector signs its stream (session::verify) with a key of its own.
+    // The end effector signs its stream (session::gate) with a key of its own.
     nodes.push(exocal_dbc::NodeId::END_EFFECTOR);
     config.push.keys = crate::keys::load_credential(&nodes, trigger)?;
     let Some(state) = crate::state::from_env() else {
@@ -353,11 +354,11 @@ pub fn attach_keys(config: &mut Config, trigger: bool) -> Result<(), DaemonError
 }
 
 /// The daemon's runtime: one thread drives the bus, the timers and the log, polling the socket
-/// itself. With worker threads, a worker woke from epoll for every batch of frames and woke the
-/// loop's thread in turn: in the emulated guest that handoff (context switches, futexes) was a
-/// quarter of the daemon's CPU while ingesting (perf, benches/ingest.sh's load). Calibration
-/// and the in-collection estimates run on tokio's blocking pool (`spawn_blocking`), the live
-/// view on a runtime of its own.
+/// itself. With worker threads, a worker would wake from epoll for every batch of frames and
+/// wake the loop's thread in turn: in the emulated guest that handoff (context switches,
+/// futexes) is a quarter of the daemon's CPU while ingesting (perf, benches/ingest.sh's load).
+/// Calibration and the in-collection estimates run on tokio's blocking pool (`spawn_blocking`),
+/// the live view on a runtime of its own.
 fn runtime() -> Result<tokio::runtime::Runtime, DaemonError> {
     tokio::runtime::Builder::new_current_thread()
         .enable_all()

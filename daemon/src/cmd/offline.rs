@@ -37,7 +37,8 @@
 //! - the report is always written once the input is read: for a refused table it shows the
 //!   table as refused, for a recording that misses the session rules (66) it says which and
 //!   shows the data's quality and excitation; the TOML and URDF exports only for a validated
-//!   table.
+//!   table. `--export-csv` writes the aligned samples (what the calibration was given, from any
+//!   input) in the CSV format this command reads, whatever the verdict.
 
 use std::collections::HashMap;
 use std::io::{BufRead, BufReader, Read, Seek};
@@ -48,10 +49,10 @@ use exocal_log::read::{read_mcap_session, McapSession, Phase};
 use exocal_log::scan::Scan;
 use exocal_session::collect::Collected;
 use exocal_session::formats::{self, CandumpReader, CsvReader, InputKind, ReadError};
+use exocal_session::gate::{RejectRun, StreamGate};
 use exocal_session::pipeline::{self, Calibrated};
 use exocal_session::replay::{replay_gated, Recording};
 use exocal_session::rules::Budget;
-use exocal_session::verify::{RejectRun, StreamGate};
 use exocal_session::{Settings, WindowRules};
 
 pub use crate::cli::Format;
@@ -185,7 +186,7 @@ pub fn read_input(
 
 /// [`read_input`], with the live session's stream gate to re-apply when the log has one (an
 /// MCAP log of a session whose sensor streams were authenticated): the replay then takes
-/// exactly the frames the live session took ([`exocal_session::verify`]).
+/// exactly the frames the live session took ([`exocal_session::gate`]).
 pub fn read_input_gated(
     path: &Path,
     input: impl Read,
@@ -266,7 +267,7 @@ fn replay_gate(s: &exocal_log::proto::StreamVerification) -> Result<StreamGate, 
         return Err(format!(
             "the stream gate's record of rejected digests is incomplete (more than {} runs): a \
              replay cannot take the frames the live session took",
-            exocal_session::verify::MAX_REJECT_RUNS
+            exocal_session::gate::MAX_REJECT_RUNS
         ));
     }
     let runs: Vec<RejectRun> = s
@@ -361,6 +362,8 @@ pub struct OfflineOptions {
     pub export_urdf: Option<PathBuf>,
     /// Where to write the replayed frames as a `candump -L` log (`None`: not written).
     pub export_candump: Option<PathBuf>,
+    /// Where to write the aligned samples as CSV (`None`: not written).
+    pub export_csv: Option<PathBuf>,
     /// No progress on stderr (`--quiet`, `--json`): warnings and errors still go there.
     pub quiet: bool,
 }
@@ -441,6 +444,10 @@ pub fn run(
     }
     let export_gate = gate.clone();
     let replayed = replay_gated(&input, &config.calibration, gate);
+    if let Some(out) = &opts.export_csv {
+        let samples = pipeline::timed(&replayed.collected.samples);
+        write_file(out, "CSV samples", formats::csv_text(&samples).as_bytes())?;
+    }
     let report_path = opts
         .report
         .clone()
@@ -539,9 +546,9 @@ mod tests {
     use super::*;
     use exocal_log::proto;
 
-    /// Issue 48, item 2: where the live gate's record of rejected digests was cut short, a
-    /// replay would pass the frames of the rejects left out (two injected frames, taken
-    /// offline and exported into a table); such a log is refused (65), naming why.
+    /// Where the live gate's record of rejected digests was cut short, a replay would pass
+    /// the frames of the rejects left out (two injected frames, taken offline and exported
+    /// into a table); such a log is refused (65), naming why.
     #[test]
     fn a_full_reject_record_is_refused_offline() {
         let full = proto::StreamVerification {

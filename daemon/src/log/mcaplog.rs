@@ -36,7 +36,7 @@
 //! | `/can/rx`, `/can/tx` | `exocal.CanFrames` | every raw frame received / sent, in batches of a few milliseconds: id, flags, DLC, data, kernel and host timestamps |
 //! | `/joint_states` | `foxglove.JointStates` | the decoded joint readings (`jointN`: position, velocity, as the exported URDF names the joints), one message per sample of the arm (the readings within a few milliseconds, each joint once) |
 //! | `/ee_pose` | `foxglove.PoseInFrame` | each assembled end-effector reference pose, frame `base_link` |
-//! | `/ee_gyro` | `exocal.AngularRate` | the end effector's IMU rate (a stream of `exocal_session::stream::STREAMS`) |
+//! | `/ee_gyro`, `/ee_mag` | `exocal.AngularRate`, `exocal.MagneticField` | the end effector's raw IMU vectors: rate (rad/s), field (µT); one topic per raw IMU stream of `exocal_session::stream::STREAMS` |
 //! | `/tf` | `foxglove.FrameTransforms` | the arm's frames on the calibrated table (`base_link → link1 … link7 → tool0`, the URDF's): Foxglove's 3D panel draws the arm |
 //! | `/aligned` | `exocal.AlignedSample` | samples on the common time grid, as fed to the calibration |
 //! | `/progress` | `exocal.Progress` | collection progress: coverage per joint, samples, condition number |
@@ -121,18 +121,6 @@ fn quat(q: [f64; 4]) -> fox::Quaternion {
 /// The name of joint `joint` (1-based), as the exported URDF names it.
 pub fn joint_name(joint: usize) -> String {
     format!("joint{joint}")
-}
-
-/// `exocal.AngularRate` of one IMU rate sample.
-pub fn angular_rate(stream: &str, node_timestamp_lo_us: u32, xyz: [f64; 3]) -> proto::AngularRate {
-    let [x, y, z] = xyz;
-    proto::AngularRate {
-        frame_id: stream.to_string(),
-        x,
-        y,
-        z,
-        node_timestamp_lo_us,
-    }
 }
 
 /// `foxglove.JointStates` of one joint reading.
@@ -442,10 +430,18 @@ impl<W: Write + Seek> SessionLog<W> {
         log_ns: u64,
         message: &M,
     ) -> Result<(), LogError> {
-        self.buffer.clear();
+        let mut buffer = std::mem::take(&mut self.buffer);
+        buffer.clear();
         message
-            .encode(&mut self.buffer)
+            .encode(&mut buffer)
             .expect("a Vec grows to fit any message");
+        let written = self.put_encoded(topic, log_ns, &buffer);
+        self.buffer = buffer;
+        written
+    }
+
+    /// Writes one encoded message on `topic` at log time `log_ns`, uncounted.
+    fn put_encoded(&mut self, topic: Topic, log_ns: u64, data: &[u8]) -> Result<(), LogError> {
         let i = topic.index();
         self.sequences[i] = self.sequences[i].wrapping_add(1);
         let header = mcap::records::MessageHeader {
@@ -454,7 +450,7 @@ impl<W: Write + Seek> SessionLog<W> {
             log_time: log_ns,
             publish_time: log_ns,
         };
-        self.writer.write_to_known_channel(&header, &self.buffer)?;
+        self.writer.write_to_known_channel(&header, data)?;
         Ok(())
     }
 
@@ -535,15 +531,18 @@ impl<W: Write + Seek> SessionLog<W> {
             Record::Frame { sent, frame } => self.batch(sent, log_ns, frame),
             Record::Joint { joint, angle, rate } => self.joint(log_ns, (joint, angle, rate)),
             Record::EePose(pose) => self.write(Topic::EePose, log_ns, &pose_in_frame(log_ns, pose)),
-            Record::Rate {
+            Record::Vector {
                 stream,
                 node_timestamp_lo_us,
                 xyz,
-            } => self.write(
-                Topic::EeGyro,
-                log_ns,
-                &angular_rate(stream, node_timestamp_lo_us, xyz),
-            ),
+            } => {
+                let mut buffer = std::mem::take(&mut self.buffer);
+                exocal_log::encode_vector(stream, node_timestamp_lo_us, xyz, &mut buffer);
+                let written = self.put_encoded(Topic::Vector(stream), log_ns, &buffer);
+                self.buffer = buffer;
+                self.counts[Topic::Vector(stream).index()] += 1;
+                written
+            }
             Record::Arm(links) => self.write(Topic::Tf, log_ns, &frame_transforms(log_ns, links)),
             Record::Aligned(s) => self.write(Topic::Aligned, log_ns, &aligned_sample(s)),
             Record::Progress(p) => self.write(Topic::Progress, log_ns, &progress(p)),
@@ -701,12 +700,14 @@ mod tests {
             };
             log.write_record(ns, &joint).unwrap();
             if k % 10 == 0 {
-                let gyro = Record::Rate {
-                    stream: "EndEffector gyro",
-                    node_timestamp_lo_us: (k * 10_000 % 65_536) as u32,
-                    xyz: [0.1, -0.2, 0.3],
-                };
-                log.write_record(ns, &gyro).unwrap();
+                for stream in exocal_session::stream::vectors() {
+                    let imu = Record::Vector {
+                        stream,
+                        node_timestamp_lo_us: (k * 10_000 % 65_536) as u32,
+                        xyz: [0.1, -0.2, 0.3],
+                    };
+                    log.write_record(ns, &imu).unwrap();
+                }
             }
             if k % 5 == 0 {
                 let p = Transform {
@@ -770,6 +771,7 @@ mod tests {
             ("/joint_states", 250),
             ("/ee_pose", 50),
             ("/ee_gyro", 25),
+            ("/ee_mag", 25),
             ("/tf", 50),
             ("/aligned", 50),
             ("/progress", 1),
@@ -792,7 +794,10 @@ mod tests {
             }
             Topic::JointStates => drop(fox::JointStates::decode(data).unwrap()),
             Topic::EePose => drop(fox::PoseInFrame::decode(data).unwrap()),
-            Topic::EeGyro => drop(proto::AngularRate::decode(data).unwrap()),
+            Topic::Vector(i) => match exocal_session::stream::STREAMS[i].message {
+                exocal_dbc::spec::Kind::ImuMag => drop(proto::MagneticField::decode(data).unwrap()),
+                _ => drop(proto::AngularRate::decode(data).unwrap()),
+            },
             Topic::Tf => drop(fox::FrameTransforms::decode(data).unwrap()),
             Topic::Aligned => drop(proto::AlignedSample::decode(data).unwrap()),
             Topic::Progress => drop(proto::Progress::decode(data).unwrap()),

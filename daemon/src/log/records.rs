@@ -75,14 +75,15 @@ pub enum Record<'a> {
     },
     /// A measured end-effector pose in [`BASE_FRAME`].
     EePose(&'a Transform),
-    /// An IMU's angular rate (rad/s): the stream's name (`exocal_session::stream::STREAMS`),
-    /// the low 16 bits of the node's clock (µs) and the vector in the sensor's frame.
-    Rate {
-        /// The stream's name, the sensor's frame.
-        stream: &'a str,
+    /// A raw IMU vector of a stream of `exocal_session::stream::STREAMS` (its column
+    /// `Column::Vector`), on the stream's topic: the low 16 bits of the node's clock (µs) and
+    /// the vector in the sensor's frame, in its message's unit.
+    Vector {
+        /// The stream, an index of `STREAMS`.
+        stream: usize,
         /// The low 16 bits of the node's clock at sampling (µs).
         node_timestamp_lo_us: u32,
-        /// x, y, z (rad/s).
+        /// x, y, z.
         xyz: [f64; 3],
     },
     /// The arm's frames ([`arm_transforms`]).
@@ -117,7 +118,7 @@ pub fn urdf(table: &calib_core::DhTable<JOINTS>, limits: &[(f64, f64); JOINTS]) 
 }
 
 /// The `/collection` record of what the stream gate passed and dropped.
-pub fn stream_verification(gate: &exocal_session::verify::StreamGate) -> proto::StreamVerification {
+pub fn stream_verification(gate: &exocal_session::gate::StreamGate) -> proto::StreamVerification {
     let g = gate.stats();
     proto::StreamVerification {
         verified_spans: g.verified_spans,
@@ -166,49 +167,28 @@ fn quat_wxyz(r: &nalgebra::Matrix3<f64>) -> [f64; 4] {
     [q.w, q.i, q.j, q.k]
 }
 
-/// The arm's frames at joint readings `q` for `table`, in the exported URDF's convention: link
-/// `i` turns about its z axis by reading `q[i-1]` (plus the row's θ offset) at the previous row's
-/// `Tz(d) Tx(a) Rx(α)`; [`TOOL_FRAME`] sits at the last row's. Composed, they are the table's
-/// forward kinematics.
+/// The arm's frames at joint readings `q` for `table`, in the exported URDF's convention
+/// (`calib_core::DhTable::links`: link `i` turns about its z axis by `q[i-1]` plus the row's θ
+/// offset at the previous row's `Tz(d) Tx(a) Rx(α)`; [`TOOL_FRAME`] sits at the last row's).
+/// Composed, they are the table's forward kinematics.
 pub fn arm_transforms(table: &calib_core::DhTable<JOINTS>, q: &[f64; JOINTS]) -> Vec<Link> {
-    use nalgebra::{Matrix3, Rotation3, Vector3};
-    let tail = |row: &calib_core::DhRow| -> (Matrix3<f64>, Vector3<f64>) {
-        (
-            *Rotation3::from_axis_angle(&Vector3::x_axis(), row.alpha).matrix(),
-            Vector3::new(row.a, 0.0, row.d),
-        )
-    };
     let name = |i: usize| match i {
         0 => BASE_FRAME.to_string(),
         i if i > JOINTS => TOOL_FRAME.to_string(),
         i => format!("link{i}"),
     };
-    let mut links = Vec::with_capacity(JOINTS + 1);
-    for (i, (row, &qi)) in table.rows.iter().zip(q).enumerate() {
-        let (r0, p) = match i.checked_sub(1) {
-            None => (Matrix3::identity(), Vector3::zeros()),
-            Some(prev) => tail(&table.rows[prev]),
-        };
-        let rz = Rotation3::from_axis_angle(&Vector3::z_axis(), qi + row.theta_offset);
-        links.push(Link {
+    let (links, tool) = table.links(q);
+    (links.iter().chain([&tool]))
+        .enumerate()
+        .map(|(i, frame)| Link {
             parent: name(i),
             child: name(i + 1),
             transform: Transform {
-                translation: [p.x, p.y, p.z],
-                rotation_wxyz: quat_wxyz(&(r0 * rz.matrix())),
+                translation: [frame.p.x, frame.p.y, frame.p.z],
+                rotation_wxyz: quat_wxyz(&frame.r),
             },
-        });
-    }
-    let (r, p) = tail(&table.rows[JOINTS - 1]);
-    links.push(Link {
-        parent: name(JOINTS),
-        child: name(JOINTS + 1),
-        transform: Transform {
-            translation: [p.x, p.y, p.z],
-            rotation_wxyz: quat_wxyz(&r),
-        },
-    });
-    links
+        })
+        .collect()
 }
 
 fn dh_row(r: &NodeRow) -> proto::DhRow {
@@ -410,7 +390,7 @@ mod tests {
             "s".into(),
             &settings,
             &c,
-            exocal_session::outcome::Quality::default(),
+            exocal_session::detail::Quality::default(),
             None,
         ));
         let [lo, hi] = drift[0].tau_95_s;

@@ -42,12 +42,9 @@ pub fn config_line(c: &exocal_session::Settings) -> String {
         v.max_expected_rotation_error_mrad,
         v.max_condition_number
     );
-    let unaided: Vec<String> = (0..exocal_session::JOINTS)
-        .filter(|&j| c.sensors.unaided[j])
-        .map(|j| (j + 1).to_string())
-        .collect();
+    let unaided = exocal_session::rules::joint_list(&c.sensors.unaided);
     if !unaided.is_empty() {
-        line += &format!(", unaided joints {}", unaided.join(", "));
+        line += &format!(", unaided joints {unaided}");
     }
     line
 }

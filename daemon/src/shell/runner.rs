@@ -39,9 +39,9 @@ use crate::shell::throttle::Throttle;
 use exocal_dbc::stream_auth;
 use exocal_session::collect::{Collected, Collector};
 use exocal_session::estimate::{Estimate, EstimateJob};
+use exocal_session::gate::{GateStats, StreamGate};
 use exocal_session::ingest::{ClockReport, Event, FrameStats, StallReport};
 use exocal_session::pipeline::{self, Calibrated, Outcome};
-use exocal_session::verify::{GateStats, StreamGate};
 use exocal_session::window::{Phase, Shortfall};
 
 /// Real time between two turns of the housekeeping tick.
@@ -263,8 +263,8 @@ impl Io<'_> {
         // The housekeeping turn (time-gated: a clock read when nothing is due) after every frame
         // as well as on the tick: with a backlog of frames the socket is always ready, and tokio
         // fires timers only when the task yields and the runtime turns its driver (after its
-        // co-operative budget, every few thousand frames): on a starved controller that was
-        // seconds, and systemd's watchdog killed the daemon (issue 34, item 7).
+        // co-operative budget, every few thousand frames): on a starved controller that can be
+        // seconds, longer than systemd's watchdog allows.
         self.housekeeping();
     }
 
@@ -300,7 +300,7 @@ impl Io<'_> {
             }
             Event::Message(exocal_dbc::Message::StreamNonce(n)) => {
                 // Never ours (a socket does not receive its own frames): forged or replayed,
-                // and the node takes neither (exocal_session::verify).
+                // and the node takes neither (exocal_session::gate).
                 if let Some(k) = self.foreign_nonces.occur() {
                     let line = Throttle::line(
                         &format!(
@@ -403,14 +403,11 @@ pub async fn run_session_with<T: Transport>(
     };
     io.reporter
         .message(&format!("logging to {}", log_path.display()));
-    let unaided: Vec<String> = (0..exocal_session::JOINTS)
-        .filter(|&j| config.calibration.sensors.unaided[j])
-        .map(|j| (j + 1).to_string())
-        .collect();
+    let unaided = exocal_session::rules::joint_list(&config.calibration.sensors.unaided);
     if !unaided.is_empty() {
         io.reporter.message(&format!(
-            "stand still for a few seconds before moving: the gyro bias of joints {} is measured then",
-            unaided.join(", ")
+            "stand still for a few seconds before moving: the gyro bias of joints {unaided} is \
+             measured then"
         ));
     }
     io.event(
@@ -1608,11 +1605,11 @@ mod tests {
         Nonces,
     }
 
-    /// Issue 48, item 1: forged `StreamNonce` frames for every node (unsigned, a nonce far
-    /// ahead) and replays of the daemon's own, every 10 s. Every node used to obey an unsigned
-    /// nonce: 0 of 40 later spans verified and the session failed authentication, the frame
-    /// never named. Now no node takes them: no span is lost, the session validates and pushes,
-    /// and the summary counts the frames from another sender.
+    /// Forged `StreamNonce` frames for every node (unsigned, a nonce far ahead) and replays of
+    /// the daemon's own, every 10 s. A node that obeyed an unsigned nonce would verify none of
+    /// the 40 later spans and the session would fail authentication, the frame never named. No
+    /// node takes them: no span is lost, the session validates and pushes, and the summary
+    /// counts the frames from another sender.
     #[tokio::test(start_paused = true)]
     async fn spoofed_nonces_on_the_bus_change_nothing_and_are_counted() {
         let (result, _, _) = authenticated_session("stream-nonces", Rogue::Nonces).await;

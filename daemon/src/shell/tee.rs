@@ -42,9 +42,9 @@ impl<'a, W: Write + std::io::Seek> Recorder<'a, W> {
         self.record(frame.host_ns, Record::Frame { sent, frame })
     }
 
-    /// Records a sample of stream `stream` (an index of `exocal_session::stream::STREAMS`) as
-    /// its column is recorded: a joint reading on `/joint_states`, a pose on `/ee_pose`, a
-    /// rate on `/ee_gyro`.
+    /// Records a sample of stream `stream` (an index of `exocal_session::stream::STREAMS`) on
+    /// the stream's topic: a joint reading in the arm's sample on `/joint_states`, a pose on
+    /// `/ee_pose`, a raw IMU vector on its own (`/ee_gyro`, `/ee_mag`).
     pub fn sample(
         &mut self,
         log_ns: u64,
@@ -66,7 +66,14 @@ impl<'a, W: Write + std::io::Seek> Recorder<'a, W> {
                 };
                 self.ee_pose(log_ns, &pose)
             }
-            (Column::Rate, Reading::Rate(xyz)) => self.rate(log_ns, s.name, node_timestamp_us, xyz),
+            (Column::Vector, Reading::Vector(xyz)) => self.record(
+                log_ns,
+                Record::Vector {
+                    stream,
+                    node_timestamp_lo_us: node_timestamp_us,
+                    xyz,
+                },
+            ),
             _ => Ok(()),
         }
     }
@@ -85,22 +92,6 @@ impl<'a, W: Write + std::io::Seek> Recorder<'a, W> {
     /// Records a measured end-effector pose.
     pub fn ee_pose(&mut self, log_ns: u64, pose: &Transform) -> Result<(), LogError> {
         self.record(log_ns, Record::EePose(pose))
-    }
-
-    /// Records an IMU's angular rate on stream `stream` (see [`Record::Rate`]).
-    pub fn rate(
-        &mut self,
-        log_ns: u64,
-        stream: &str,
-        node_timestamp_lo_us: u32,
-        xyz: [f64; 3],
-    ) -> Result<(), LogError> {
-        let record = Record::Rate {
-            stream,
-            node_timestamp_lo_us,
-            xyz,
-        };
-        self.record(log_ns, record)
     }
 
     /// Records the arm's frames ([`crate::log::records::arm_transforms`]).

@@ -328,8 +328,8 @@ impl StreamGate {
     }
 
     /// A digest over no held frames passes and drops nothing whatever its verdict, so the
-    /// verdict is counted ([`GateStats::empty_rejects`]), never recorded: one forged digest
-    /// after each genuine span filled the record in half a second (issue 48, item 2). Live it
+    /// verdict is counted ([`GateStats::empty_rejects`]), never recorded (one forged digest
+    /// after each genuine span would otherwise fill the record in half a second). Live it
     /// is checked (a genuine one moves the verifier's sequence on); replaying, it is skipped.
     /// Either way it takes its ordinal and its sequence number, so replay and live stay in
     /// step, and it verifies no span (`verified`, `verified_spans` are of spans with frames).
@@ -708,11 +708,11 @@ mod tests {
         assert_eq!(pass.len(), 1);
     }
 
-    /// The attack of issue 48, item 1: a keyless sender injects into 3 spans in 10 and spoofs
-    /// two heartbeats (a new boot count, then the old one) before each of their digests. The
-    /// held frames, rogue ones included, used to be dropped as start frames: 0 spans dropped,
-    /// no second sender, no heavy loss. Now they are loss: the 3 spans show, and heavy loss
-    /// refuses the session; the new nonces the spoofs ask for stop at [`MAX_RENONCES`].
+    /// A keyless sender injects into 3 spans in 10 and spoofs two heartbeats (a new boot
+    /// count, then the old one) before each of their digests. The held frames, rogue ones
+    /// included, count as loss, not as start frames (which would hide the injection: 0 spans
+    /// dropped, no second sender, no heavy loss): the 3 spans show, and heavy loss refuses the
+    /// session; the new nonces the spoofs ask for stop at [`MAX_RENONCES`].
     #[test]
     fn spoofed_heartbeats_do_not_hide_an_injection() {
         let (mut g, mut s) = setup();
@@ -758,11 +758,11 @@ mod tests {
         assert!(g.stats().renonces_capped);
     }
 
-    /// Issue 48, item 1: one unsigned `StreamNonce` frame, and a replay of a genuine one from
-    /// before. Every node used to obey any `StreamNonce`: 0 of 40 later spans verified and the
-    /// session ended as failed authentication, the frame never named. Now the node takes
-    /// neither, the stream goes on verifying with no span lost and no new nonce, and the gate
-    /// counts both for the daemon to name.
+    /// One unsigned `StreamNonce` frame, and a replay of a genuine one from before. A node
+    /// that obeyed any `StreamNonce` would verify none of the 40 later spans, and the session
+    /// would end as failed authentication, the frame never named. The node takes neither, the
+    /// stream goes on verifying with no span lost and no new nonce, and the gate counts both
+    /// for the daemon to name.
     #[test]
     fn a_spoofed_nonce_or_a_replayed_one_changes_nothing() {
         let (mut g, mut s) = setup();
@@ -875,11 +875,11 @@ mod tests {
         assert_eq!(r.stats().dropped_frames, g.stats().dropped_frames);
     }
 
-    /// Issue 48, item 2: a forged digest after each genuine span, over no frames, drops
-    /// nothing but was recorded as a run of its own; 4,097 of them (half a second of bus)
-    /// filled the record, later rejects went unrecorded, and an offline replay passed the
-    /// injected frames live had dropped. Now they are counted, the record keeps the one span
-    /// that was attacked, and the replay passes exactly what live passed.
+    /// A forged digest after each genuine span, over no frames, drops nothing; recorded as a
+    /// run of its own, 4,097 of them (half a second of bus) would fill the record, leave later
+    /// rejects unrecorded, and let an offline replay pass the injected frames live dropped.
+    /// They are counted instead, the record keeps the one span that was attacked, and the
+    /// replay passes exactly what live passed.
     #[test]
     fn a_full_reject_record_cannot_be_filled_by_digests_over_no_frames() {
         let (mut g, mut s) = setup();

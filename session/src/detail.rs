@@ -33,20 +33,25 @@ impl TimedSample {
     }
 }
 
-/// Least-squares step, as the report shows it.
-#[derive(Debug, Clone, PartialEq)]
+/// The least-squares step, as the report shows it and the daemon's `--json` prints it (there
+/// without the table and the standard errors, which the node rows carry).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct LsDetail {
     /// The LS table.
+    #[serde(skip)]
     pub table: DhTable<JOINTS>,
-    /// Gauss–Newton/LM iterations taken.
+    /// Gauss–Newton/LM trial steps taken, accepted or not.
     pub iterations: usize,
-    /// Numerical rank of the column-scaled Jacobian.
+    /// Numerical rank of the column-scaled Jacobian ([`PARAMS`] when every parameter is
+    /// identifiable).
     pub rank: usize,
     /// Column-scaled condition number.
+    #[serde(rename = "condition_number")]
     pub condition: f64,
-    /// RMS of the 6-vector pose residual at the solution.
+    /// RMS of the 6-vector pose residual at the solution (m, rad).
     pub rms: f64,
     /// 1σ of each parameter from the information matrix (white-noise model), `kind·7 + joint`.
+    #[serde(skip)]
     pub std_errors: [f64; PARAMS],
 }
 
