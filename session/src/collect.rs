@@ -24,18 +24,19 @@ use crate::stream::{Column, STREAMS};
 use crate::window::{Shortfall, Window};
 use crate::Settings;
 
-/// A session's frames so far: the decoded streams and the collection window.
+/// A session's frames so far: the decoded streams and the collection window. The
+/// [`crate::Session`] drives it; nothing outside the crate reaches into it.
 #[derive(Debug, Clone)]
 pub struct Collector {
     /// The decoded streams and the frame counters.
-    pub ingest: Ingest,
+    pub(crate) ingest: Ingest,
     /// The collection window: coverage, sample counts, ready/failed.
-    pub window: Window,
+    pub(crate) window: Window,
     /// The stream gate, when the sensor streams are authenticated: frames reach
     /// [`Collector::on_frame`] only through it ([`Collector::take`]).
-    pub gate: Option<StreamGate>,
+    pub(crate) gate: Option<StreamGate>,
     /// Frames taken through [`Collector::take`] (the received frames, before the gate).
-    pub taken: u64,
+    pub(crate) taken: u64,
 }
 
 impl Collector {
@@ -62,7 +63,11 @@ impl Collector {
 
     /// Takes one received frame through the stream gate, if there is one: `each` sees every
     /// frame ingest takes now with its [`Event`]; returns the spans the gate dropped.
-    pub fn take(&mut self, rx: &Received, mut each: impl FnMut(&Received, Event)) -> Vec<Dropped> {
+    pub(crate) fn take(
+        &mut self,
+        rx: &Received,
+        mut each: impl FnMut(&Received, Event),
+    ) -> Vec<Dropped> {
         self.taken += 1;
         let Some(gate) = self.gate.as_mut() else {
             let event = self.on_frame(rx);
@@ -83,7 +88,7 @@ impl Collector {
     /// not sign arrived, and [`Shortfall::Unverified`] when spans were dropped and either the
     /// window `failed` or they exceed [`crate::gate::MAX_DROPPED_FRACTION`] of all spans. A
     /// session with any of these is refused: its data were attacked or too much is missing.
-    pub fn unverified(&self, failed: bool) -> Vec<Shortfall> {
+    pub(crate) fn unverified(&self, failed: bool) -> Vec<Shortfall> {
         let Some(s) = self.gate.as_ref().map(StreamGate::stats) else {
             return Vec::new();
         };
@@ -103,7 +108,7 @@ impl Collector {
     }
 
     /// Takes one received frame (see the module docs); returns what ingest made of it.
-    pub fn on_frame(&mut self, rx: &Received) -> Event {
+    pub(crate) fn on_frame(&mut self, rx: &Received) -> Event {
         let event = self.ingest.on_frame(rx);
         if let Event::Sample {
             stream, reading, ..

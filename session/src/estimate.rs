@@ -104,7 +104,7 @@ impl EstimateJob {
     }
 
     /// The estimate of `collector` so far under `settings` (cheap; see the module docs).
-    pub fn of(collector: &Collector, settings: &Settings) -> EstimateJob {
+    pub(crate) fn of(collector: &Collector, settings: &Settings) -> EstimateJob {
         if settings.window.stop_at_expected_error.is_some() {
             EstimateJob::Expected {
                 collector: Box::new(collector.clone()),

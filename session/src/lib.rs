@@ -17,6 +17,7 @@
 //! | [`align`] | per-node clock models, resampling onto one grid |
 //! | [`window`] | the collection window: coverage, sample counts, ready/failed and why |
 //! | [`collect`] | frames → aligned samples and their data quality, live or replayed |
+//! | [`session`] | the [`Session`]: frames and ticks in; progress, phase, estimate jobs out; their results back |
 //! | [`estimate`] | the in-collection estimates: condition number, expected table error so far |
 //! | [`pipeline`] | aligned samples → split, LS, drift EM, validation, node rows, report detail |
 //! | [`formats`] | the text formats of recorded sessions: `candump -L` logs, CSV samples |
@@ -38,11 +39,13 @@ pub mod parallel;
 pub mod pipeline;
 pub mod replay;
 pub mod rules;
+pub mod session;
 pub mod stream;
 pub mod validate;
 pub mod window;
 
 pub use rules::{Bounds, SensorSpec, Settings, ValidationRules, WindowRules};
+pub use session::Session;
 
 /// Joints of the suit, declared once for the workspace (calib-core's model of the arm).
 pub const JOINTS: usize = calib_core::SUIT_JOINTS;

@@ -1,22 +1,22 @@
 //! A recorded session replayed through the live data path.
 //!
 //! Contract:
-//! - recorded frames are taken in file order, with their recorded receive times, by the live
-//!   session's own [`Collector`]: the live code path minus the bus, so the same frames give the
+//! - recorded frames are taken in file order, with their recorded receive times, by a
+//!   [`Session`] as the live one: the live code path minus the bus, so the same frames give the
 //!   same samples (and, through [`crate::pipeline::run`], the same table) bit for bit;
 //! - recorded samples (a CSV file) bypass alignment; the EM then steps at the recording's
 //!   median sample interval (`window.grid_hz` when the two agree to [`CSV_RATE_TOLERANCE`]);
-//! - the recording is judged by the live session's window rules at its end
-//!   ([`Window::at_end`]): one the live daemon would not have calibrated has
+//! - the recording is judged by the live session's rules at its end ([`Session::at_end`]: the
+//!   window's and the stream gate's): one the live daemon would not have calibrated has
 //!   [`Replay::shortfalls`] saying why.
 
 use exocal_dbc::Received;
 
 use crate::align::AlignedSample;
-use crate::collect::{Collected, Collector};
+use crate::collect::Collected;
 use crate::detail::TimedSample;
 use crate::window::{Shortfall, Window};
-use crate::Settings;
+use crate::{Session, Settings};
 
 /// Relative difference between a recording's sample rate and `window.grid_hz` below which the
 /// configured rate is kept (a CSV `t` column's decimal rounding, not a different rate).
@@ -61,23 +61,20 @@ pub fn replay_gated(
     let mut settings = settings.clone();
     match recording {
         Recording::Frames(frames) => {
-            let mut collector = Collector::new(&settings);
-            collector.gate = gate;
+            let mut session = Session::new(&settings);
+            if let Some(gate) = gate {
+                session.authenticate(gate);
+            }
             for rx in frames {
-                collector.take(rx, |_, _| {});
+                session.take(rx, |_, _| {});
             }
             let duration_s = match (frames.first(), frames.last()) {
                 (Some(a), Some(b)) => b.timestamp.saturating_sub(a.timestamp).as_secs_f64(),
                 _ => 0.0,
             };
             Replay {
-                collected: collector.collected(&settings),
-                shortfalls: {
-                    let mut s = collector.window.at_end(duration_s);
-                    let failed = !s.is_empty();
-                    s.extend(collector.unverified(failed));
-                    s
-                },
+                collected: session.collected(),
+                shortfalls: session.at_end(duration_s),
                 settings,
                 duration_s,
             }

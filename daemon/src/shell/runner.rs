@@ -37,12 +37,13 @@ use crate::shell::notify::{Notifier, Reporter};
 use crate::shell::tee::Recorder;
 use crate::shell::throttle::Throttle;
 use exocal_dbc::stream_auth;
-use exocal_session::collect::{Collected, Collector};
-use exocal_session::estimate::{Estimate, EstimateJob};
+use exocal_session::collect::Collected;
+use exocal_session::estimate::Estimate;
 use exocal_session::gate::{GateStats, StreamGate};
 use exocal_session::ingest::{ClockReport, Event, FrameStats, StallReport};
 use exocal_session::pipeline::{self, Calibrated, Outcome};
 use exocal_session::window::{Phase, Shortfall};
+use exocal_session::Session;
 
 /// Real time between two turns of the housekeeping tick.
 pub const TICK: Duration = Duration::from_millis(100);
@@ -244,18 +245,15 @@ impl Io<'_> {
 
     /// Logs one received frame and feeds it to the collection through the stream gate (the
     /// frames it passes now; a warning for each of the first spans it drops).
-    fn take_frame(&mut self, rx: &Received, collector: &mut Collector) {
+    fn take_frame(&mut self, rx: &Received, session: &mut Session) {
         self.frame(false, &rx.frame, rx.timestamp);
         let mut events = Vec::new();
-        let dropped = collector.take(rx, |rx, event| events.push((rx.timestamp, event)));
+        let dropped = session.take(rx, |rx, event| events.push((rx.timestamp, event)));
         for (at, event) in events {
-            self.take_event(at, event, collector);
+            self.take_event(at, event, session);
         }
         for d in dropped {
-            let spans = collector
-                .gate
-                .as_ref()
-                .map_or(0, |g| g.stats().dropped_spans);
+            let spans = session.gate().map_or(0, |g| g.stats().dropped_spans);
             if spans <= 10 {
                 self.event(rx.timestamp, Level::Warning, &format!("stream span {d}"));
             }
@@ -268,7 +266,7 @@ impl Io<'_> {
         self.housekeeping();
     }
 
-    fn take_event(&mut self, at: Duration, event: Event, collector: &Collector) {
+    fn take_event(&mut self, at: Duration, event: Event, session: &Session) {
         let t = ns(at);
         match event {
             Event::Sample {
@@ -281,7 +279,7 @@ impl Io<'_> {
             }
             Event::Unknown(e) | Event::Malformed(e) => {
                 // The first few are worth a line each; the counters carry the rest.
-                let s = collector.ingest.stats();
+                let s = session.stats();
                 if s.unknown + s.malformed <= 10 {
                     self.event(at, Level::Warning, &format!("bad frame: {e}"));
                 }
@@ -431,7 +429,7 @@ pub async fn run_session_with<T: Transport>(
         clock,
         config,
         io: &mut io,
-        collector: Collector::new(&config.calibration),
+        session: Session::new(&config.calibration),
         stream_nonce: 0,
         origin: Duration::ZERO,
         start,
@@ -478,7 +476,7 @@ struct Running<'a, 'io, T> {
     clock: &'a Clock,
     config: &'a Config,
     io: &'a mut Io<'io>,
-    collector: Collector,
+    session: Session,
     /// The last stream nonce sent (0: none yet; the streams are authenticated once one was).
     stream_nonce: u32,
     /// Bus time of the collection's first frame: aligned sample times are relative to it.
@@ -500,7 +498,7 @@ impl<T: Transport> Running<'_, '_, T> {
         mut shutdown: Pin<&mut S>,
     ) -> Result<(), DaemonError> {
         if let Err(e) = self.collect(shutdown.as_mut()).await {
-            self.summary.frames = self.collector.ingest.stats().clone();
+            self.summary.frames = self.session.stats().clone();
             if matches!(e, DaemonError::Interrupted) {
                 self.interrupted_report(start);
             }
@@ -552,8 +550,6 @@ impl<T: Transport> Running<'_, '_, T> {
         self.authenticate_streams().await?;
         let required = self.config.calibration.window.excitation_required;
         let mut estimate_job: Option<tokio::task::JoinHandle<Option<Estimate>>> = None;
-        let mut last_estimate_s = 0.0;
-        let every = EstimateJob::every_s(&self.config.calibration);
         loop {
             tokio::select! {
                 biased;
@@ -561,46 +557,25 @@ impl<T: Transport> Running<'_, '_, T> {
                 _ = self.tick.tick() => {
                     self.io.housekeeping();
                     let elapsed = self.clock.monotonic().saturating_sub(started).as_secs_f64();
-                    let session = &self.collector.window;
-                    let progress = session.progress(elapsed);
-                    self.io.reporter.update(&progress, required, self.io.notifier);
-                    let r = self.io.log.progress(ns(self.clock.now()), &progress);
+                    let tick = self.session.on_tick(elapsed);
+                    self.io.reporter.update(&tick.progress, required, self.io.notifier);
+                    let r = self.io.log.progress(ns(self.clock.now()), &tick.progress);
                     self.io.check(r);
-                    // A collection the stream gate speaks against (a second sender, heavy
-                    // loss) is refused when its window closes, naming why.
-                    let phase = match session.phase(elapsed) {
-                        Phase::Ready => match self.collector.unverified(false) {
-                            why if why.is_empty() => Phase::Ready,
-                            why => Phase::Failed(why),
-                        },
-                        p => p,
-                    };
-                    match phase {
-                        // An estimate only while collecting: one started on the tick the
-                        // window closes would run beside the calibration for nothing.
-                        Phase::Collecting => {
-                            if estimate_job.is_none() && elapsed - last_estimate_s >= every {
-                                last_estimate_s = elapsed;
-                                let job = EstimateJob::of(&self.collector, &self.config.calibration);
-                                estimate_job = Some(tokio::task::spawn_blocking(|| job.run()));
-                            }
-                        }
+                    if let Some(job) = tick.estimate {
+                        estimate_job = Some(tokio::task::spawn_blocking(|| job.run()));
+                    }
+                    match tick.phase {
+                        Phase::Collecting => {}
                         Phase::Ready => {
-                            self.io.reporter.closed(&progress, required);
+                            self.io.reporter.closed(&tick.progress, required);
                             break;
                         }
-                        Phase::Failed(mut why) => {
-                            if !why.iter().any(|w| {
-                                matches!(w, Shortfall::Unverified { .. } | Shortfall::SecondSender { .. })
-                            }) {
-                                why.extend(self.collector.unverified(true));
-                            }
-                            self.summary.stream =
-                                self.collector.gate.as_ref().map(|g| g.stats().clone());
+                        Phase::Failed(why) => {
+                            self.summary.stream = self.session.gate().map(|g| g.stats().clone());
                             if let Some(job) = estimate_job.take() {
                                 job.abort();
                             }
-                            self.summary.frames = self.collector.ingest.stats().clone();
+                            self.summary.frames = self.session.stats().clone();
                             self.session_report(&why, shutdown.as_mut()).await?;
                             return Err(DaemonError::Session(why));
                         }
@@ -608,49 +583,33 @@ impl<T: Transport> Running<'_, '_, T> {
                 }
                 done = async { estimate_job.as_mut().expect("guarded").await }, if estimate_job.is_some() => {
                     estimate_job = None;
-                    if let Ok(Some(e)) = done {
-                        self.collector.window.set_condition_number(e.condition);
-                        if let Some(x) = e.expected {
-                            self.collector.window.set_expected(x);
-                        }
-                        if let Some(g) = e.guidance {
-                            self.collector.window.set_guidance(g);
-                        }
-                    }
+                    self.session.estimated(done.ok().flatten());
                 }
                 rx = self.bus.recv() => {
                     let rx = rx.map_err(|source| DaemonError::Bus { what: "receiving CAN".into(), source })?;
-                    self.io.take_frame(&rx, &mut self.collector);
+                    self.io.take_frame(&rx, &mut self.session);
                     // A node rebooted (it lost the nonce with its RAM), or another sender set
                     // one: every node gets a new one.
-                    if self.collector.gate.as_mut().is_some_and(StreamGate::nonce_wanted) {
+                    if self.session.nonce_wanted() {
                         self.send_stream_nonce().await?;
                     }
                 }
             }
             self.io.log_failed()?;
         }
-        let s = self.collector.ingest.stats().clone();
+        let s = self.session.stats().clone();
         let now = self.clock.now();
         // The record `exocald offline` honours: a replay of this log calibrates on the first
         // `frames` frames of /can/rx, as this session did.
         // With the stream gate, the frames received (as logged), not those ingest took yet.
         let end = CollectionEnd {
-            frames: if self.collector.gate.is_some() {
-                self.collector.taken
-            } else {
-                s.received
-            },
+            frames: self.session.frames_received(),
             window_end_ns: ns(now),
             unknown: s.unknown,
             malformed: s.malformed,
             invalid_angles: s.invalid_angles,
             dropped: self.bus.dropped(),
-            stream: self
-                .collector
-                .gate
-                .as_ref()
-                .map(records::stream_verification),
+            stream: self.session.gate().map(records::stream_verification),
         };
         let r = self.io.log.collection_end(&end);
         self.io.check(r);
@@ -662,7 +621,7 @@ impl<T: Transport> Running<'_, '_, T> {
                 s.received, s.unknown, s.malformed, s.invalid_angles, end.dropped
             ),
         );
-        if let Some(g) = self.collector.gate.as_ref().map(|g| g.stats().clone()) {
+        if let Some(g) = self.session.gate().map(|g| g.stats().clone()) {
             self.io.event(
                 now,
                 Level::Info,
@@ -741,7 +700,7 @@ impl<T: Transport> Running<'_, '_, T> {
             return Ok(());
         };
         // The gate's nonce is set with the first one sent.
-        self.collector.gate = Some(StreamGate::new(keys, 0));
+        self.session.authenticate(StreamGate::new(keys, 0));
         self.send_stream_nonce().await
     }
 
@@ -749,16 +708,16 @@ impl<T: Transport> Running<'_, '_, T> {
     /// it to the stream gate (at the collection's start, and again when a node rebooted). The
     /// nonce is above every one sent before ([`crate::state::next_stream_nonce`]).
     async fn send_stream_nonce(&mut self) -> Result<(), DaemonError> {
-        let Some(gate) = self.collector.gate.as_mut() else {
+        if self.session.gate().is_none() {
             return Ok(());
-        };
+        }
         let nonce = crate::state::next_stream_nonce(
             self.config.push.state_dir.as_deref(),
             self.stream_nonce,
             std::time::SystemTime::now(),
         )?;
         self.stream_nonce = nonce;
-        gate.renonce(nonce);
+        self.session.renonce(nonce);
         let keys = &self.config.push.keys;
         for node in NodeId::ALL {
             let Some(key) = keys.node(node) else { continue };
@@ -835,21 +794,15 @@ impl<T: Transport> Running<'_, '_, T> {
 
     /// The collection, aligned on a blocking thread while the loop keeps the bus drained, the
     /// log flushed and the watchdog fed. The collection moves to the job (no copy of a long
-    /// session); a fresh collector decodes, for the log, what arrives afterwards.
+    /// session); a fresh one decodes, for the log, what arrives afterwards.
     async fn aligned_off_loop<S: Future<Output = ()>>(
         &mut self,
         shutdown: Pin<&mut S>,
     ) -> Result<Collected, DaemonError> {
-        self.origin = self.collector.ingest.origin().unwrap_or_default();
-        let collector = std::mem::replace(
-            &mut self.collector,
-            Collector::new(&self.config.calibration),
-        );
-        let config = self.config.clone();
-        self.off_loop("aligning", shutdown, move || {
-            collector.collected(&config.calibration)
-        })
-        .await
+        self.origin = self.session.origin().unwrap_or_default();
+        let session = std::mem::replace(&mut self.session, Session::new(&self.config.calibration));
+        self.off_loop("aligning", shutdown, move || session.collected())
+            .await
     }
 
     /// Runs `job` on tokio's blocking pool while this thread keeps the bus drained (and
@@ -881,7 +834,7 @@ impl<T: Transport> Running<'_, '_, T> {
                 _ = self.tick.tick() => self.io.housekeeping(),
                 rx = self.bus.recv() => {
                     if let Ok(rx) = rx {
-                        self.io.take_frame(&rx, &mut self.collector);
+                        self.io.take_frame(&rx, &mut self.session);
                     }
                 }
             }
@@ -1050,20 +1003,16 @@ impl<T: Transport> Running<'_, '_, T> {
         shutdown: Pin<&mut S>,
     ) -> Result<(), DaemonError> {
         let (title, source) = self.report_titles("session");
-        self.origin = self.collector.ingest.origin().unwrap_or_default();
-        let collector = std::mem::replace(
-            &mut self.collector,
-            Collector::new(&self.config.calibration),
-        );
-        let config = self.config.clone();
+        self.origin = self.session.origin().unwrap_or_default();
+        let session = std::mem::replace(&mut self.session, Session::new(&self.config.calibration));
         let why: Vec<String> = why.iter().map(Shortfall::to_string).collect();
         let (collected, html) = self
             .off_loop("session report", shutdown, move || {
-                let collected = collector.collected(&config.calibration);
+                let collected = session.collected();
                 let html = crate::shell::html_report::render(
                     title,
                     source,
-                    &config.calibration,
+                    session.settings(),
                     &collected,
                     Err(&why),
                 );
@@ -1081,7 +1030,7 @@ impl<T: Transport> Running<'_, '_, T> {
     /// controller could exceed; `exocald offline` on the log shows the rest.
     fn interrupted_report(&mut self, start: Duration) {
         let (title, source) = self.report_titles("session");
-        let stats = self.collector.ingest.stats();
+        let stats = self.session.stats();
         let seconds = self.clock.now().saturating_sub(start).as_secs_f64();
         let reasons = vec![format!(
             "stopped {seconds:.1} s into the collection, with {} frames received ({} decoded)",
