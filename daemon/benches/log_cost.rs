@@ -10,8 +10,8 @@
 
 use std::time::Duration;
 
+use exocal_log::write::SessionLog;
 use exocal_session::ingest::{Event, Ingest};
-use exocald::log::mcaplog::SessionLog;
 use exocald::log::records::frame_record;
 use exocald::shell::tee::Recorder;
 

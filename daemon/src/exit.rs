@@ -8,8 +8,8 @@ use std::fmt;
 
 use crate::config::ConfigError;
 use crate::keys::KeyError;
-use crate::log::mcaplog::LogError;
 use exocal_bus::BusError;
+use exocal_log::write::LogError;
 use exocal_session::pipeline::CalibrateError;
 use exocal_session::validate::Refusal;
 use exocal_session::window::Shortfall;

@@ -23,12 +23,10 @@
 //! | [`shell::tee`] | every record to every observer: the log, the live view |
 //! | [`shell::html_report`] | the HTML report of a session (live or offline), rendered from what the session computed |
 //! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
-//! | [`keys`] | the node and trigger keys, from the systemd credential `exocal-keys` |
+//! | [`log`] | the session's records from the daemon's types, for the log (`exocal_log`) and the live view |
 //! | [`log`] | the session log: what is recorded, how it is written, how a cut log is recovered |
-//! | [`log::records`] | what a session records, once: the records and their content (frames, arm, calibration) |
+//! | [`log::records`] | the session's records built from the daemon's types (frames, arm, calibration, push); the log itself — schema, records, writer, readers, recovery — is `exocal_log`'s |
 //! | [`shell::tee`] | every record to every observer: the log, the live view |
-//! | [`log::mcaplog`] | the per-session MCAP log (zstd chunks, flushed on an interval, protobuf with Foxglove's schemas) |
-//! | [`log::recover`] | a session log cut short (kill -9, power loss) read record by record and rewritten complete |
 //! | [`live`] | the live view: the session over the Foxglove WebSocket protocol (`[live]`) |
 
 #![warn(missing_docs)]

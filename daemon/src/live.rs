@@ -41,8 +41,9 @@ use parking_lot::Mutex;
 use prost::Message as _;
 
 use crate::config::{Config, JOINTS};
+use crate::log::records;
 use crate::log::records::{arm_transforms, Observer, Record};
-use crate::log::{mcaplog, records};
+use exocal_log::write;
 
 /// Messages queued per client; beyond, its oldest are dropped (the SDK's backlog).
 pub const LIVE_BACKLOG: usize = 256;
@@ -389,7 +390,7 @@ impl Observer for LiveView {
                 c.vectors[k].1.log_with_meta(&bytes, at);
             }
             Record::Progress(p) => {
-                let bytes = mcaplog::progress(p).encode_to_vec();
+                let bytes = write::progress(p).encode_to_vec();
                 c.progress.log_with_meta(&bytes, at);
                 state.latch(Topic::Progress.name(), bytes);
             }
@@ -400,7 +401,7 @@ impl Observer for LiveView {
                 self.calibrated(&mut state, cal);
             }
             Record::Event { level, message } => {
-                let bytes = mcaplog::log_message(log_ns, level, message).encode_to_vec();
+                let bytes = write::log_message(log_ns, level, message).encode_to_vec();
                 c.events.log_with_meta(&bytes, at);
             }
             Record::RobotDescription(urdf) => {
@@ -440,19 +441,14 @@ impl LiveView {
             .enumerate()
             .filter_map(|(i, j)| j.map(|(a, r, _)| (i + 1, a, r)))
             .collect();
-        c.joint_states.log_with_meta(
-            &mcaplog::joint_states(log_ns, &readings).encode_to_vec(),
-            at,
-        );
+        c.joint_states
+            .log_with_meta(&write::joint_states(log_ns, &readings).encode_to_vec(), at);
         let q: [f64; JOINTS] = std::array::from_fn(|i| q[i]);
         let links = arm_transforms(&state.table, &q);
-        c.tf.log_with_meta(
-            &mcaplog::frame_transforms(log_ns, &links).encode_to_vec(),
-            at,
-        );
+        c.tf.log_with_meta(&write::frame_transforms(log_ns, &links).encode_to_vec(), at);
         if let Some((pose, _)) = state.pose {
             c.ee_pose
-                .log_with_meta(&mcaplog::pose_in_frame(log_ns, &pose).encode_to_vec(), at);
+                .log_with_meta(&write::pose_in_frame(log_ns, &pose).encode_to_vec(), at);
         }
     }
 

@@ -5,8 +5,8 @@
 use calib_core::DhTable;
 use exocal_bus::embedded_can::Frame as _;
 use exocal_log::read::read_mcap_session;
+use exocal_log::write::{CanFrameRecord, CollectionEnd, Level, SessionLog};
 use exocald::config::{with_nominal, Config, CALIBRATED_NOTE, DEFAULT_TOML};
-use exocald::log::mcaplog::{CanFrameRecord, CollectionEnd, Level, SessionLog};
 use exocald::log::records::Record;
 
 #[test]

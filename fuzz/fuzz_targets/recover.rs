@@ -7,7 +7,7 @@
 use std::io::Cursor;
 
 use exocal_log::scan::{scan, End, Record};
-use exocald::log::recover::{is_finished, recover, RecoverError};
+use exocal_log::recover::{is_finished, recover, RecoverError};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

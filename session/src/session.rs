@@ -209,7 +209,10 @@ mod tests {
         let settings = Settings::suit_default();
         let every = EstimateJob::every_s(&settings);
         let mut session = Session::new(&settings);
-        assert!(session.on_tick(0.5 * every).estimate.is_none(), "not due yet");
+        assert!(
+            session.on_tick(0.5 * every).estimate.is_none(),
+            "not due yet"
+        );
         let tick = session.on_tick(every);
         assert_eq!(tick.phase, Phase::Collecting);
         assert!(tick.estimate.is_some(), "due");

@@ -936,10 +936,7 @@ mod tests {
         // The log reads back with every channel, and as many raw frames as ingest counted.
         let bytes = std::fs::read(&s.log_path).unwrap();
         let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
-        assert_eq!(
-            summary.channels.len(),
-            crate::log::mcaplog::Topic::ALL.len()
-        );
+        assert_eq!(summary.channels.len(), exocal_log::write::Topic::ALL.len());
         let rx = s.log_counts.iter().find(|(t, _)| t == "/can/rx").unwrap().1;
         assert!(rx >= s.frames.received, "{rx} < {}", s.frames.received);
         // Foxglove's 3D panel draws the arm from `/robot_description`: the nominal table's URDF

@@ -485,18 +485,18 @@ fn recover_log(args: &RecoverArgs) -> Result<(), DaemonError> {
     let written = (|| {
         let file =
             std::fs::File::create(&temp).map_err(io(format!("creating {}", temp.display())))?;
-        let (recovery, out) = crate::log::recover::recover(
+        let (recovery, out) = exocal_log::recover::recover(
             std::io::BufReader::new(input),
             std::io::BufWriter::new(file),
             Some(mcap::Compression::Zstd),
         )
         .map_err(|e| match e {
-            crate::log::recover::RecoverError::NotMcap => {
+            exocal_log::recover::RecoverError::NotMcap => {
                 DaemonError::Input(format!("{}: {e}", args.input.display()))
             }
-            crate::log::recover::RecoverError::Write(e) => DaemonError::Log {
+            exocal_log::recover::RecoverError::Write(e) => DaemonError::Log {
                 what: format!("writing {}", temp.display()),
-                source: crate::log::mcaplog::LogError::Mcap(e),
+                source: exocal_log::write::LogError::Mcap(e),
             },
         })?;
         out.into_inner()

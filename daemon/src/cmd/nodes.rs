@@ -15,7 +15,7 @@
 //!   in an answer whose MAC verified (`verified_crc`). Never a readback found in `/can/rx`: any
 //!   sender on the bus can put one there after the verified one. A node the push
 //!   proved nothing of is shown with its outcome and compared with nothing. A log cut short is
-//!   read through [`crate::log::recover`]. `--log FILE` names the log instead;
+//!   read through [`exocal_log::recover`]. `--log FILE` names the log instead;
 //! - a node that does not answer is named; [`read_tables`] never fails for a silent node, only
 //!   for the bus ([`exocal_bus::BusError`]).
 

@@ -1,6 +1,4 @@
-//! The session log: what a session records (once), the MCAP writer, and the recovery of a log
-//! cut short.
+//! The session's records built from the daemon's types (the outcome, the push, the arm), for
+//! the log (`exocal_log`: schema, records, writer, readers, recovery) and the live view.
 
-pub mod mcaplog;
 pub mod records;
-pub mod recover;

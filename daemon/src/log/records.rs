@@ -1,6 +1,6 @@
 //! What a session records, once: each thing a session logs is one [`Record`], handed by the
 //! [`crate::shell::tee::Recorder`] to every observer of the session's data — the MCAP log
-//! ([`crate::log::mcaplog::SessionLog`]) and, when enabled, the live view ([`crate::live::LiveView`]).
+//! ([`exocal_log::write::SessionLog`]) and, when enabled, the live view ([`crate::live::LiveView`]).
 //!
 //! Contract:
 //! - a record carries its log time (host wall-clock ns, the session clock) and borrows its data;
@@ -13,99 +13,20 @@
 //!   URDF of the same table describe one tree.
 
 use exocal_bus::Frame;
-use exocal_log::{proto, CanFrameRecord, CollectionEnd, Level};
+use exocal_log::{proto, CanFrameRecord};
+
+pub use exocal_log::record::{Link, Record, Transform, BASE_FRAME, TOOL_FRAME};
 
 use crate::config::JOINTS;
 use crate::push::{Holds, PushReport};
-use exocal_session::align::AlignedSample;
 use exocal_session::ingest::ClockReport;
 use exocal_session::pipeline::{NodeRow, Outcome};
-use exocal_session::window::Progress;
 
 /// Whoever takes a session's records besides its log (the live view; in a demo, the emulated
 /// wearer's ear): called with each record and its log time, it never fails the session.
 pub trait Observer {
     /// Takes `record`, logged at `log_ns`.
     fn observe(&self, log_ns: u64, record: &Record<'_>);
-}
-
-/// The root of the arm's frames (frame 0 of the D-H table), as in the exported URDF.
-pub const BASE_FRAME: &str = "base_link";
-/// The tool frame (after the last row), as in the exported URDF.
-pub const TOOL_FRAME: &str = "tool0";
-
-/// A rigid transform: translation (m) and unit quaternion `[w, x, y, z]`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Transform {
-    /// Translation (m).
-    pub translation: [f64; 3],
-    /// Rotation, unit quaternion `[w, x, y, z]`.
-    pub rotation_wxyz: [f64; 4],
-}
-
-/// One frame of the arm relative to its parent.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Link {
-    /// The parent frame's name.
-    pub parent: String,
-    /// This frame's name.
-    pub child: String,
-    /// Pose of `child` in `parent`.
-    pub transform: Transform,
-}
-
-/// One thing a session records.
-#[derive(Debug, Clone, Copy)]
-pub enum Record<'a> {
-    /// A raw frame received (`sent == false`) or sent.
-    Frame {
-        /// Whether the daemon sent it (`false`: received).
-        sent: bool,
-        /// The frame and its timestamps.
-        frame: &'a CanFrameRecord,
-    },
-    /// A decoded joint reading: joint `joint` (1-based), angle (rad) and rate (rad/s).
-    Joint {
-        /// Joint number, 1-based.
-        joint: usize,
-        /// Joint angle (rad).
-        angle: f64,
-        /// Joint rate (rad/s).
-        rate: f64,
-    },
-    /// A measured end-effector pose in [`BASE_FRAME`].
-    EePose(&'a Transform),
-    /// A raw IMU vector of a stream of `exocal_session::stream::STREAMS` (its column
-    /// `Column::Vector`), on the stream's topic: the low 16 bits of the node's clock (µs) and
-    /// the vector in the sensor's frame, in its message's unit.
-    Vector {
-        /// The stream, an index of `STREAMS`.
-        stream: usize,
-        /// The low 16 bits of the node's clock at sampling (µs).
-        node_timestamp_lo_us: u32,
-        /// x, y, z.
-        xyz: [f64; 3],
-    },
-    /// The arm's frames ([`arm_transforms`]).
-    Arm(&'a [Link]),
-    /// A sample on the common grid, as fed to the calibration.
-    Aligned(&'a AlignedSample),
-    /// Collection progress.
-    Progress(&'a Progress),
-    /// The end of the collection window.
-    CollectionEnd(&'a CollectionEnd),
-    /// The calibration result (and, once pushed, the push report).
-    Calibration(&'a proto::Calibration),
-    /// The arm's URDF ([`urdf`]): the nominal table's at the session's start, the calibrated
-    /// table's with the calibration.
-    RobotDescription(&'a str),
-    /// What happened, human-readable.
-    Event {
-        /// Severity.
-        level: Level,
-        /// The text.
-        message: &'a str,
-    },
 }
 
 /// The robot name of the suit's URDF.

@@ -30,13 +30,13 @@ use serde::Serialize;
 use crate::config::Config;
 use crate::exit::DaemonError;
 use crate::live::LiveView;
-use crate::log::mcaplog::{CollectionEnd, Counts, Level, LogError, SessionLog};
 use crate::log::records::{self, Observer};
 use crate::push::{push_tables, PushObserver, PushReport};
 use crate::shell::notify::{Notifier, Reporter};
 use crate::shell::tee::Recorder;
 use crate::shell::throttle::Throttle;
 use exocal_dbc::stream_auth;
+use exocal_log::write::{CollectionEnd, Counts, Level, LogError, SessionLog};
 use exocal_session::collect::Collected;
 use exocal_session::estimate::Estimate;
 use exocal_session::gate::{GateStats, StreamGate};
@@ -213,7 +213,7 @@ impl Io<'_> {
     }
 
     /// The watchdog first: the log's flush writes a chunk (its sync runs on the log's own
-    /// thread, `crate::log::mcaplog`).
+    /// thread, `exocal_log::write`).
     fn housekeeping(&mut self) {
         let now = self.started.elapsed();
         self.notifier.watchdog(now);
@@ -1075,7 +1075,7 @@ impl<T: Transport> Running<'_, '_, T> {
             format!(
                 "live session on {}, started {}, logged to {}; {}",
                 self.config.interface,
-                crate::log::mcaplog::utc_time(ns(self.start)),
+                exocal_log::write::utc_time(ns(self.start)),
                 path.display(),
                 crate::shell::html_report::config_line(&self.config.calibration)
             ),
@@ -1265,10 +1265,7 @@ mod tests {
         let summary = mcap::Summary::read(&bytes)
             .unwrap()
             .expect("a finished file");
-        assert_eq!(
-            summary.channels.len(),
-            crate::log::mcaplog::Topic::ALL.len()
-        );
+        assert_eq!(summary.channels.len(), exocal_log::write::Topic::ALL.len());
         summary
     }
 

@@ -9,8 +9,8 @@ use std::io::{BufWriter, Write};
 
 use exocal_log::{proto, CanFrameRecord, CollectionEnd, Level};
 
-use crate::log::mcaplog::{Counts, LogError, SessionLog};
 use crate::log::records::{Link, Observer, Record, Transform};
+use exocal_log::write::{Counts, LogError, SessionLog};
 use exocal_session::align::AlignedSample;
 use exocal_session::ingest::Reading;
 use exocal_session::stream::{Column, STREAMS};

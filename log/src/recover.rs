@@ -1,7 +1,7 @@
 //! Recovery of a session log cut short (`kill -9`, power loss, OOM kill).
 //!
 //! The daemon closes, flushes and syncs a chunk at least every `output.flush_interval_s`
-//! ([`crate::log::mcaplog`]), so a killed session's file is a run of complete records followed by
+//! ([`crate::write`]), so a killed session's file is a run of complete records followed by
 //! the chunk that was open: its length field never written, its compressed stream unfinished,
 //! and no summary or footer. Readers that start from the footer refuse it.
 //!
@@ -9,7 +9,7 @@
 //! - works on MCAP records only — header, schemas, channels, messages, chunks, attachments,
 //!   metadata — and never decodes a message, so it does not depend on the log's message
 //!   encoding;
-//! - reads the input through the bounded scan ([`exocal_log::scan`]: one record at a time,
+//! - reads the input through the bounded scan ([`crate::scan`]: one record at a time,
 //!   every length, chunk size and CRC checked, a chunk kept whole or not at all) and keeps
 //!   every record up to the first one that is cut short or damaged (a bad CRC, a chunk that
 //!   does not decompress, ids that disagree, a tail of zeroes) or up to the data end;
@@ -24,10 +24,10 @@ use std::collections::BTreeMap;
 use std::fmt;
 use std::io::{Cursor, Read, Seek, Write};
 
-pub use exocal_log::scan::End;
-use exocal_log::scan::{self, Record};
+pub use crate::scan::End;
+use crate::scan::{self, Record};
 
-/// What a recovery kept: [`exocal_log::scan::Scan`].
+/// What a recovery kept: [`crate::scan::Scan`].
 pub type Recovery = scan::Scan;
 
 /// Why nothing could be recovered.
@@ -186,8 +186,8 @@ mod tests {
 
     /// Opcode and length of a record header: 1 + 8 bytes.
     const RECORD_HEADER: usize = 9;
-    use crate::log::mcaplog::{CanFrameRecord, Level, SessionLog, Topic};
-    use crate::log::records::Record;
+    use crate::record::Record;
+    use crate::write::{CanFrameRecord, Level, SessionLog, Topic};
     use std::collections::BTreeMap;
 
     /// A finished session log of 30 flushed chunks (two message kinds each), its bytes.
@@ -409,7 +409,7 @@ mod tests {
         let path =
             std::env::temp_dir().join(format!("exocald-recovered-{}.mcap", std::process::id()));
         std::fs::write(&path, &out).unwrap();
-        let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tools/check_mcap.py");
+        let script = concat!(env!("CARGO_MANIFEST_DIR"), "/../daemon/tools/check_mcap.py");
         let run = std::process::Command::new(&python)
             .arg(script)
             .arg(&path)

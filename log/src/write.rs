@@ -16,7 +16,7 @@
 //!   it on every exit path, SIGTERM/SIGINT included;
 //! - message indexes are written, as the indexed readers need (`@mcap/core`'s, which Foxglove
 //!   and Lichtblick open files with); the raw frames, most of the log, go in batches of a few
-//!   milliseconds (`exocal_log::CAN_BATCH_NS`) so that their 16 uncompressed bytes of index
+//!   milliseconds (`crate::CAN_BATCH_NS`) so that their 16 uncompressed bytes of index
 //!   per message stay small, and the joint readings of one sample of the arm in one message.
 //!   A batch is written when it is full or old (by log time), before the collection end and
 //!   the calibration (so every frame received before them is before them in the file), and by
@@ -53,10 +53,10 @@ use std::fs::File;
 use std::io::{BufWriter, Seek, Write};
 use std::path::{Path, PathBuf};
 
-use exocal_log::{fox, timestamp, CAN_BATCH_FRAMES, CAN_BATCH_NS, MESSAGE_ENCODING};
-pub use exocal_log::{proto, CanFrameRecord, CollectionEnd, Level, Topic};
+use crate::{fox, timestamp, CAN_BATCH_FRAMES, CAN_BATCH_NS, MESSAGE_ENCODING};
+pub use crate::{proto, CanFrameRecord, CollectionEnd, Level, Topic};
 
-use crate::log::records::{Record, Transform, BASE_FRAME};
+use crate::record::{Record, Transform, BASE_FRAME};
 
 /// zstd level of the chunks: the best size per CPU time on the demo's log (BENCHMARKS.md,
 /// "Session log").
@@ -152,7 +152,7 @@ pub fn pose_in_frame(log_ns: u64, pose: &Transform) -> fox::PoseInFrame {
 }
 
 /// `foxglove.FrameTransforms` of the arm's frames.
-pub fn frame_transforms(log_ns: u64, links: &[crate::log::records::Link]) -> fox::FrameTransforms {
+pub fn frame_transforms(log_ns: u64, links: &[crate::record::Link]) -> fox::FrameTransforms {
     fox::FrameTransforms {
         transforms: links
             .iter()
@@ -483,7 +483,7 @@ impl<W: Write + Seek> SessionLog<W> {
         if self.batches[b].1.is_empty() {
             return Ok(());
         }
-        let message = exocal_log::can_batch(&self.batches[b].1);
+        let message = crate::can_batch(&self.batches[b].1);
         let first = self.batches[b].0;
         self.batches[b].1.clear();
         let topic = if b == 1 { Topic::CanTx } else { Topic::CanRx };
@@ -537,7 +537,7 @@ impl<W: Write + Seek> SessionLog<W> {
                 xyz,
             } => {
                 let mut buffer = std::mem::take(&mut self.buffer);
-                exocal_log::encode_vector(stream, node_timestamp_lo_us, xyz, &mut buffer);
+                crate::encode_vector(stream, node_timestamp_lo_us, xyz, &mut buffer);
                 let written = self.put_encoded(Topic::Vector(stream), log_ns, &buffer);
                 self.buffer = buffer;
                 self.counts[Topic::Vector(stream).index()] += 1;
@@ -626,7 +626,7 @@ impl<W: Write + Seek> SessionLog<W> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::log::records::Link;
+    use crate::record::Link;
     use exocal_session::align::{AlignedSample, Pose};
     use prost::Message as _;
     use std::io::Cursor;
@@ -788,7 +788,7 @@ mod tests {
         match Topic::from_name(topic).unwrap() {
             Topic::CanRx | Topic::CanTx => {
                 let frames =
-                    exocal_log::decode_can_frames("exocal.CanFrames", "protobuf", data).unwrap();
+                    crate::decode_can_frames("exocal.CanFrames", "protobuf", data).unwrap();
                 assert!(!frames.is_empty(), "an empty batch on {topic}");
                 return frames.len() as u64;
             }
@@ -1009,7 +1009,7 @@ mod tests {
         let (path, mut log) = SessionLog::create_in(&dir, t0, 500_000_000).unwrap();
         let expected = write_session(&mut log);
         log.finish().unwrap();
-        let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tools/check_mcap.py");
+        let script = concat!(env!("CARGO_MANIFEST_DIR"), "/../daemon/tools/check_mcap.py");
         let out = std::process::Command::new(&python)
             .arg(script)
             .arg(&path)
