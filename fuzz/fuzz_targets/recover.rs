@@ -6,7 +6,7 @@
 
 use std::io::Cursor;
 
-use exocal_log::scan::{scan, End, Record};
+use exocal_log::scan::{scan, End, McapRecord};
 use exocal_log::recover::{is_finished, recover, RecoverError};
 use libfuzzer_sys::fuzz_target;
 
@@ -21,7 +21,7 @@ fuzz_target!(|data: &[u8]| {
             let again = scan(out.as_slice(), |records| {
                 messages += records
                     .iter()
-                    .filter(|r| matches!(r, Record::Message { .. }))
+                    .filter(|r| matches!(r, McapRecord::Message { .. }))
                     .count() as u64;
                 Ok::<(), ()>(())
             })

@@ -19,7 +19,7 @@ use std::time::Duration;
 
 use exocal_dbc::Received;
 
-use crate::scan::{self, Record, Scan};
+use crate::scan::{self, McapRecord, Scan};
 use crate::Topic;
 
 /// A session log that does not read: what is wrong.
@@ -116,11 +116,11 @@ fn read(
     let scanned = scan::scan(input, |records| {
         for r in records {
             let (channel_id, data) = match *r {
-                Record::Schema { id, name, .. } => {
+                McapRecord::Schema { id, name, .. } => {
                     schemas.insert(id, name.to_string());
                     continue;
                 }
-                Record::Channel {
+                McapRecord::Channel {
                     id,
                     schema_id,
                     topic,
@@ -145,7 +145,7 @@ fn read(
                     channels.insert(id, carries);
                     continue;
                 }
-                Record::Message {
+                McapRecord::Message {
                     channel_id, data, ..
                 } => (channel_id, data),
                 _ => continue,

@@ -25,7 +25,7 @@ use std::fmt;
 use std::io::{Cursor, Read, Seek, Write};
 
 pub use crate::scan::End;
-use crate::scan::{self, Record};
+use crate::scan::{self, McapRecord};
 
 /// What a recovery kept: [`crate::scan::Scan`].
 pub type Recovery = scan::Scan;
@@ -73,13 +73,13 @@ fn owned(pairs: &[(&str, &str)]) -> BTreeMap<String, String> {
 /// Copies one unit the scan handed out into `w` (the scan checked its ids: only I/O can fail).
 fn copy<W: Write + Seek>(
     w: &mut mcap::Writer<W>,
-    records: &[Record<'_>],
+    records: &[McapRecord<'_>],
 ) -> Result<(), mcap::McapError> {
     for r in records {
         match r {
             // The new file has its own header (with the input's profile: see `recover`).
-            Record::Header { .. } => {}
-            Record::Schema {
+            McapRecord::Header { .. } => {}
+            McapRecord::Schema {
                 id,
                 name,
                 encoding,
@@ -87,7 +87,7 @@ fn copy<W: Write + Seek>(
             } => {
                 w.add_schema_with_id(*id, name, encoding, data)?;
             }
-            Record::Channel {
+            McapRecord::Channel {
                 id,
                 schema_id,
                 topic,
@@ -96,7 +96,7 @@ fn copy<W: Write + Seek>(
             } => {
                 w.add_channel_with_id(*id, *schema_id, topic, encoding, &owned(metadata))?;
             }
-            Record::Message {
+            McapRecord::Message {
                 channel_id,
                 sequence,
                 log_time,
@@ -111,7 +111,7 @@ fn copy<W: Write + Seek>(
                 };
                 w.write_to_known_channel(&header, data)?;
             }
-            Record::Attachment {
+            McapRecord::Attachment {
                 log_time,
                 create_time,
                 name,
@@ -124,10 +124,12 @@ fn copy<W: Write + Seek>(
                 media_type: media_type.to_string(),
                 data: Cow::Borrowed(data),
             })?,
-            Record::Metadata { name, metadata } => w.write_metadata(&mcap::records::Metadata {
-                name: name.to_string(),
-                metadata: owned(metadata),
-            })?,
+            McapRecord::Metadata { name, metadata } => {
+                w.write_metadata(&mcap::records::Metadata {
+                    name: name.to_string(),
+                    metadata: owned(metadata),
+                })?
+            }
         }
     }
     Ok(())

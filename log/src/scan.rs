@@ -49,7 +49,7 @@ const RECORD_HEADER: u64 = 9;
 
 /// A record of the data section, parsed; strings and bytes borrowed from the scan's buffers.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Record<'a> {
+pub enum McapRecord<'a> {
     /// The file's header.
     Header {
         /// Profile.
@@ -348,27 +348,27 @@ impl<'a> Fields<'a> {
 
 /// Parses the body of a record of kind `opcode`; `None` for the kinds the scan skips (indexes,
 /// statistics, the footer, summary offsets, unknown opcodes).
-fn parse(opcode: u8, body: &[u8]) -> Result<Option<Record<'_>>, String> {
+fn parse(opcode: u8, body: &[u8]) -> Result<Option<McapRecord<'_>>, String> {
     let mut f = Fields::new(body);
     let record = match opcode {
-        op::HEADER => Record::Header {
+        op::HEADER => McapRecord::Header {
             profile: f.string("profile")?,
             library: f.string("library")?,
         },
-        op::SCHEMA => Record::Schema {
+        op::SCHEMA => McapRecord::Schema {
             id: f.u16("schema id")?,
             name: f.string("schema name")?,
             encoding: f.string("schema encoding")?,
             data: f.bytes32("schema data")?,
         },
-        op::CHANNEL => Record::Channel {
+        op::CHANNEL => McapRecord::Channel {
             id: f.u16("channel id")?,
             schema_id: f.u16("schema id")?,
             topic: f.string("topic")?,
             encoding: f.string("message encoding")?,
             metadata: f.map("channel metadata")?,
         },
-        op::MESSAGE => Record::Message {
+        op::MESSAGE => McapRecord::Message {
             channel_id: f.u16("channel id")?,
             sequence: f.u32("sequence")?,
             log_time: f.u64("log time")?,
@@ -376,7 +376,7 @@ fn parse(opcode: u8, body: &[u8]) -> Result<Option<Record<'_>>, String> {
             data: f.rest(),
         },
         op::ATTACHMENT => {
-            let record = Record::Attachment {
+            let record = McapRecord::Attachment {
                 log_time: f.u64("log time")?,
                 create_time: f.u64("create time")?,
                 name: f.string("name")?,
@@ -391,7 +391,7 @@ fn parse(opcode: u8, body: &[u8]) -> Result<Option<Record<'_>>, String> {
             }
             record
         }
-        op::METADATA => Record::Metadata {
+        op::METADATA => McapRecord::Metadata {
             name: f.string("name")?,
             metadata: f.map("metadata")?,
         },
@@ -405,7 +405,7 @@ fn crc_mismatch(saved: u32, computed: u32) -> String {
 }
 
 /// A chunk's records, decompressed, CRC-checked and parsed into `buf` and the returned list.
-fn chunk<'b>(body: &[u8], buf: &'b mut Vec<u8>) -> Result<Vec<Record<'b>>, String> {
+fn chunk<'b>(body: &[u8], buf: &'b mut Vec<u8>) -> Result<Vec<McapRecord<'b>>, String> {
     let mut f = Fields::new(body);
     let _start = f.u64("message start time")?;
     let _end = f.u64("message end time")?;
@@ -484,7 +484,7 @@ struct Ids {
 impl Ids {
     /// Checks `records` (a unit: one record or a chunk's) against the ids defined so far and
     /// in `records` itself; on success, defines theirs.
-    fn admit(&mut self, records: &[Record<'_>]) -> Result<(), String> {
+    fn admit(&mut self, records: &[McapRecord<'_>]) -> Result<(), String> {
         // The unit's own definitions, by id (a chunk may define all 65,535 of each and hold
         // hundreds of thousands of messages: every lookup is by key).
         let mut schemas: HashMap<u16, u32> = HashMap::new();
@@ -494,7 +494,7 @@ impl Ids {
         };
         for r in records {
             match r {
-                Record::Schema {
+                McapRecord::Schema {
                     id,
                     name,
                     encoding,
@@ -507,7 +507,7 @@ impl Ids {
                     }
                     schemas.insert(*id, key);
                 }
-                Record::Channel {
+                McapRecord::Channel {
                     id,
                     schema_id,
                     topic,
@@ -530,7 +530,7 @@ impl Ids {
                     }
                     channels.insert(*id, key);
                 }
-                Record::Message { channel_id, .. }
+                McapRecord::Message { channel_id, .. }
                     if find(&self.channels, &channels, *channel_id).is_none() =>
                 {
                     return Err(format!("a message on channel {channel_id} never defined"));
@@ -618,7 +618,7 @@ impl<R: Read> Input<R> {
 /// of a chunk — to `f`. Stops early only if `f` fails.
 pub fn scan<R: Read, E>(
     input: R,
-    mut f: impl FnMut(&[Record<'_>]) -> Result<(), E>,
+    mut f: impl FnMut(&[McapRecord<'_>]) -> Result<(), E>,
 ) -> Result<Scan, E> {
     let mut input = Input {
         inner: input,
@@ -724,7 +724,7 @@ pub fn scan<R: Read, E>(
             f(&records)?;
             out.chunks += u64::from(opcode == op::CHUNK);
             for r in &records {
-                if let Record::Message { log_time: t, .. } = *r {
+                if let McapRecord::Message { log_time: t, .. } = *r {
                     out.messages += 1;
                     out.log_times =
                         Some(out.log_times.map_or((t, t), |(a, b)| (a.min(t), b.max(t))));
@@ -758,7 +758,7 @@ pub fn header(prefix: &[u8]) -> Option<(&str, &str)> {
     let opcode = f.array::<1>("opcode").ok()?[0];
     let body = f.bytes64("header").ok()?;
     match (opcode, parse(opcode, body)) {
-        (op::HEADER, Ok(Some(Record::Header { profile, library }))) => Some((profile, library)),
+        (op::HEADER, Ok(Some(McapRecord::Header { profile, library }))) => Some((profile, library)),
         _ => None,
     }
 }
@@ -770,7 +770,7 @@ mod tests {
     /// `/dev/zero`, or a sparse file's hole after a magic: the scan ends in bounded time.
     #[test]
     fn an_endless_input_ends_the_scan() {
-        let none = |_: &[Record<'_>]| Ok::<(), ()>(());
+        let none = |_: &[McapRecord<'_>]| Ok::<(), ()>(());
         let s = scan(std::io::repeat(0), none).unwrap();
         assert!(matches!(s.end, End::NotMcap));
         assert_eq!(s.file_bytes, mcap::MAGIC.len() as u64);
@@ -844,7 +844,7 @@ mod tests {
         let s = scan(bytes, |records| {
             sizes.push(records.len());
             for r in records {
-                if let Record::Message { data: d, .. } = r {
+                if let McapRecord::Message { data: d, .. } = r {
                     data.push(d.to_vec());
                 }
             }
@@ -886,14 +886,14 @@ mod tests {
         scan(bytes.as_slice(), |records| {
             for r in records {
                 match r {
-                    Record::Header { profile, .. } => seen.push(format!("header {profile}")),
-                    Record::Channel {
+                    McapRecord::Header { profile, .. } => seen.push(format!("header {profile}")),
+                    McapRecord::Channel {
                         topic, metadata, ..
                     } => seen.push(format!("channel {topic} {metadata:?}")),
-                    Record::Metadata { metadata, .. } => {
+                    McapRecord::Metadata { metadata, .. } => {
                         seen.push(format!("metadata {metadata:?}"))
                     }
-                    Record::Attachment { name, data, .. } => {
+                    McapRecord::Attachment { name, data, .. } => {
                         seen.push(format!("attachment {name} {}", data.len()))
                     }
                     _ => {}
