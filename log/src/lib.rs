@@ -1,13 +1,13 @@
 //! The session log, in one crate: the MCAP topics of an exocald session log, their message
 //! types, schemas and encoding (this module), what a session records ([`record`]), the writer
-//! ([`write`]), the readers ([`read`], and [`scan`] for files cut short) and the rewriting of a
+//! ([`write`](mod@write)), the readers ([`read`], and [`scan`] for files cut short) and the rewriting of a
 //! cut file ([`recover`]). The daemon writes with it, every reader reads with it (the offline
 //! replay and the report's readers); a change of the log's layout or encoding is a change here.
 //!
 //! | module | what |
 //! |---|---|
 //! | [`record`] | what a session records, once: frames, joints, poses, raw IMU vectors, the arm, progress, the calibration |
-//! | [`write`] | the per-session MCAP log (zstd chunks, flushed on an interval, protobuf with Foxglove's schemas) |
+//! | [`write`](mod@write) | the per-session MCAP log (zstd chunks, flushed on an interval, protobuf with Foxglove's schemas) |
 //! | [`read`] | bounded readers of recorded sessions (the `mcap` crate's for a whole file) |
 //! | [`scan`] | the linear scan of a file cut short, record by record, with its own bounds |
 //! | [`recover`] | a session log cut short (kill -9, power loss) read record by record and rewritten complete |

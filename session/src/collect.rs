@@ -2,7 +2,7 @@
 //! and their data quality out.
 //!
 //! Contract:
-//! - [`Collector::on_frame`] is the one place a received frame is taken: decoded by
+//! - `Collector::on_frame` is the one place a received frame is taken: decoded by
 //!   [`Ingest`], and each joint angle and pose counted by the [`Window`]. The live
 //!   session feeds it from the bus (and logs the [`Event`] it returns); `exocald offline`
 //!   feeds it the frames of a recording. The same frames give the same [`Collected`], bit for

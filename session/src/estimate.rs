@@ -1,7 +1,8 @@
 //! What the collection knows of the calibration to come, estimated on the data so far.
 //!
-//! Contract: [`EstimateJob::of`] takes what an estimate needs from the collection now (cheap:
-//! a few thousand joint readings, or for stop-when-good-enough a copy of the collection), and
+//! Contract: `EstimateJob::of` (called by [`crate::Session::on_tick`]) takes what an estimate
+//! needs from the collection now (cheap: a few thousand joint readings, or for
+//! stop-when-good-enough a copy of the collection), and
 //! [`EstimateJob::run`] computes it — the heavy part, which a live session runs off its event
 //! loop. Without `window.stop_at_expected_error`, the estimate is the condition number of the
 //! identification problem at the nominal table over at most [`CONDITION_SAMPLES`]

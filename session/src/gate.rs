@@ -57,9 +57,9 @@ pub use exocal_dbc::stream_auth::MAX_COVERED;
 /// period, with room for a loaded controller.
 pub const START_GRACE: Duration = Duration::from_secs(1);
 /// Most dropped spans, as a fraction of all spans, a collection may have and still calibrate
-/// ([`crate::collect::Collector::unverified`]). On a CAN bus frames are not lost on the wire;
-/// a node's reboot costs its stream for a second or two (a few % of a 15-s session); beyond
-/// this the receiver or the bus is failing, or someone is on it.
+/// ([`crate::Session::on_tick`], [`crate::Session::at_end`]). On a CAN bus frames are not lost
+/// on the wire; a node's reboot costs its stream for a second or two (a few % of a 15-s
+/// session); beyond this the receiver or the bus is failing, or someone is on it.
 pub const MAX_DROPPED_FRACTION: f64 = 0.05;
 
 /// Most new nonces a collection sends after its first ([`StreamGate::nonce_wanted`]): nodes
