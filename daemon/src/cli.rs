@@ -80,7 +80,8 @@ pub enum Command {
     ///
     /// Frames are replayed through the daemon's own ingest, alignment and calibration (an MCAP
     /// log up to the end of its collection window), so the same data gives the live run's
-    /// table. Writes the HTML report and, for a validated table, the requested exports.
+    /// table. Writes the HTML report and the requested exports: TOML and URDF for a validated
+    /// table, the candump log and CSV samples whatever the verdict.
     /// Exit status: 0 validated; 64 options that do not go together (--export-candump of CSV
     /// samples); 65 refused by validation, or the input does not parse; 66 the recording misses the session rules (duration, excitation, samples); 74 I/O
     /// error; 78 bad configuration.

@@ -22,11 +22,8 @@
 //! | [`shell::summary`] | a session's summary as printed on stdout |
 //! | [`shell::tee`] | every record to every observer: the log, the live view |
 //! | [`shell::html_report`] | the HTML report of a session (live or offline), rendered from what the session computed |
-//! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
 //! | [`log`] | the session's records from the daemon's types, for the log (`exocal_log`) and the live view |
-//! | [`log`] | the session log: what is recorded, how it is written, how a cut log is recovered |
 //! | [`log::records`] | the session's records built from the daemon's types (frames, arm, calibration, push); the log itself — schema, records, writer, readers, recovery — is `exocal_log`'s |
-//! | [`shell::tee`] | every record to every observer: the log, the live view |
 //! | [`live`] | the live view: the session over the Foxglove WebSocket protocol (`[live]`) |
 
 #![warn(missing_docs)]

@@ -257,6 +257,7 @@ fn the_default_config_prints_and_checks() {
 /// out, with a figure: what a rate bias of 0.01 °/s, too small for the session to show, would
 /// add to the table error (calib-core's consider allowance); with `[sensors]` it does not.
 #[test]
+#[cfg(feature = "demo")]
 fn the_summary_says_when_the_sensors_rate_bias_is_not_configured() {
     let dir = std::env::temp_dir().join(format!("exocald-cli-sensors-{}", std::process::id()));
     let with = format!(

@@ -171,6 +171,20 @@ const VECTORS: usize = {
     n
 };
 
+// Every raw IMU stream of the table is an IMU message's, so each has a vector type.
+const _: () = {
+    let mut i = 0;
+    while i < STREAMS.len() {
+        if matches!(STREAMS[i].column, Column::Vector) {
+            assert!(matches!(
+                STREAMS[i].message,
+                Kind::ImuGyro | Kind::ImuAccel | Kind::ImuMag
+            ));
+        }
+        i += 1;
+    }
+};
+
 impl Topic {
     /// Every topic, in channel order: the fixed topics, then one per raw IMU stream in
     /// [`STREAMS`] order.
@@ -244,18 +258,24 @@ impl Topic {
         }
     }
 
-    /// Position in [`Topic::ALL`] (the channel order).
+    /// Position in [`Topic::ALL`] (the channel order). A [`Topic::Vector`] of a stream that is
+    /// not a raw IMU stream has none: a caller's bug, never a frame's (the stream comes from
+    /// the table, not from the bus).
     pub fn index(self) -> usize {
-        Topic::ALL.iter().position(|&t| t == self).unwrap_or(0)
+        let i = Topic::ALL.iter().position(|&t| t == self);
+        debug_assert!(i.is_some(), "{self:?} is not a topic of the log");
+        i.unwrap_or(0)
     }
 }
 
 /// The message type of a raw IMU vector of `message` (`ImuGyro`, `ImuAccel`, `ImuMag`).
+/// Only raw IMU kinds are [`Column::Vector`] streams (checked at compile time above).
 const fn vector_type(message: Kind) -> &'static str {
     match message {
+        Kind::ImuGyro => "exocal.AngularRate",
         Kind::ImuMag => "exocal.MagneticField",
         Kind::ImuAccel => "exocal.Acceleration",
-        _ => "exocal.AngularRate",
+        _ => panic!("a raw IMU stream is an ImuGyro, ImuAccel or ImuMag stream"),
     }
 }
 
@@ -285,7 +305,7 @@ pub fn encode_vector(stream: usize, node_timestamp_lo_us: u32, xyz: [f64; 3], ou
             node_timestamp_lo_us,
         }
         .encode(out),
-        _ => proto::AngularRate {
+        Kind::ImuGyro => proto::AngularRate {
             frame_id,
             x,
             y,
@@ -293,6 +313,7 @@ pub fn encode_vector(stream: usize, node_timestamp_lo_us: u32, xyz: [f64; 3], ou
             node_timestamp_lo_us,
         }
         .encode(out),
+        other => unreachable!("{other:?} is not a raw IMU vector (see vector_type)"),
     };
     encoded.expect("a Vec grows to fit any message");
 }

@@ -400,7 +400,7 @@ mod tests {
 
     /// Cross-check with another implementation: Python's `mcap` opens the recovered file by its
     /// summary (indexed read, every CRC validated) and counts what the Rust side kept.
-    /// Run: `EXOCAL_PYTHON=<venv>/bin/python cargo test -p exocald -- --ignored python`.
+    /// Run: `EXOCAL_PYTHON=<venv>/bin/python cargo test -p exocal-log -- --ignored python`.
     #[test]
     #[ignore = "needs the project venv (EXOCAL_PYTHON): `cargo xtask test` runs it"]
     fn python_mcap_reader_opens_a_recovered_file() {
@@ -411,6 +411,7 @@ mod tests {
         let path =
             std::env::temp_dir().join(format!("exocald-recovered-{}.mcap", std::process::id()));
         std::fs::write(&path, &out).unwrap();
+        // The daemon's tool (its README documents it for users), run on what this crate wrote.
         let script = concat!(env!("CARGO_MANIFEST_DIR"), "/../daemon/tools/check_mcap.py");
         let run = std::process::Command::new(&python)
             .arg(script)

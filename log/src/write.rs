@@ -540,8 +540,9 @@ impl<W: Write + Seek> SessionLog<W> {
                 crate::encode_vector(stream, node_timestamp_lo_us, xyz, &mut buffer);
                 let written = self.put_encoded(Topic::Vector(stream), log_ns, &buffer);
                 self.buffer = buffer;
+                written?;
                 self.counts[Topic::Vector(stream).index()] += 1;
-                written
+                Ok(())
             }
             Record::Arm(links) => self.write(Topic::Tf, log_ns, &frame_transforms(log_ns, links)),
             Record::Aligned(s) => self.write(Topic::Aligned, log_ns, &aligned_sample(s)),
@@ -999,7 +1000,7 @@ mod tests {
 
     /// Cross-check with another implementation: Python's `mcap`, every CRC validated, every
     /// message decoded by `mcap-protobuf-support` from the schemas in the file alone.
-    /// Run: `EXOCAL_PYTHON=<venv>/bin/python cargo test -p exocald -- --ignored python`.
+    /// Run: `EXOCAL_PYTHON=<venv>/bin/python cargo test -p exocal-log -- --ignored python`.
     #[test]
     #[ignore = "needs the project venv (EXOCAL_PYTHON): `cargo xtask test` runs it"]
     fn python_mcap_reader_validates_crcs_and_decodes_the_samples() {
@@ -1009,6 +1010,7 @@ mod tests {
         let (path, mut log) = SessionLog::create_in(&dir, t0, 500_000_000).unwrap();
         let expected = write_session(&mut log);
         log.finish().unwrap();
+        // The daemon's tool (its README documents it for users), run on what this crate wrote.
         let script = concat!(env!("CARGO_MANIFEST_DIR"), "/../daemon/tools/check_mcap.py");
         let out = std::process::Command::new(&python)
             .arg(script)

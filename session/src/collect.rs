@@ -24,8 +24,9 @@ use crate::stream::{Column, STREAMS};
 use crate::window::{Shortfall, Window};
 use crate::Settings;
 
-/// A session's frames so far: the decoded streams and the collection window. The
-/// [`crate::Session`] drives it; nothing outside the crate reaches into it.
+/// A session's frames so far: the decoded streams, the collection window and the stream gate.
+/// Fed only by a [`crate::Session`] (`Session::take`), which is what callers drive; outside the
+/// crate it is the copy an `EstimateJob` works on.
 #[derive(Debug, Clone)]
 pub struct Collector {
     /// The decoded streams and the frame counters.

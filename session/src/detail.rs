@@ -33,8 +33,8 @@ impl TimedSample {
     }
 }
 
-/// The least-squares step, as the report shows it and the daemon's `--json` prints it (there
-/// without the table and the standard errors, which the node rows carry).
+/// The least-squares step, as the report shows it and the outcome serializes it (there without
+/// the table and the standard errors, which the node rows carry).
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct LsDetail {
     /// The LS table.

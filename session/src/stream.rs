@@ -10,9 +10,9 @@
 //!
 //! A raw IMU vector the suit already sends (`ImuGyro`, `ImuAccel`, `ImuMag` of any node) is
 //! added as one [`Column::Vector`] entry here: ingest, the log, the live view and the
-//! data-quality table follow. The log's schema for it is chosen by the message
-//! (`exocal_log::vector_schema`), so a quantity the log has no schema for yet is that one
-//! message in `exocal.proto` and its arm there.
+//! data-quality table follow. The log's message for it is chosen by the protocol message
+//! (`exocal_log::encode_vector` and the topic's type beside it), so a quantity the log has no
+//! message for yet is that one message in `exocal.proto` and its arms there.
 
 use exocal_dbc::spec::Kind;
 

@@ -444,10 +444,6 @@ pub fn run(
     }
     let export_gate = gate.clone();
     let replayed = replay_gated(&input, &config.calibration, gate);
-    if let Some(out) = &opts.export_csv {
-        let samples = pipeline::timed(&replayed.collected.samples);
-        write_file(out, "CSV samples", formats::csv_text(&samples).as_bytes())?;
-    }
     let report_path = opts
         .report
         .clone()
@@ -482,6 +478,10 @@ pub fn run(
         what: format!("writing the report {}", report_path.display()),
         source,
     })?;
+    if let Some(out) = &opts.export_csv {
+        let samples = pipeline::timed(&replayed.collected.samples);
+        write_file(out, "CSV samples", formats::csv_text(&samples).as_bytes())?;
+    }
     let calibrated = match calibrated {
         Ok(c) => c,
         Err(error) => {

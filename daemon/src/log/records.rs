@@ -1,6 +1,8 @@
-//! What a session records, once: each thing a session logs is one [`Record`], handed by the
-//! [`crate::shell::tee::Recorder`] to every observer of the session's data — the MCAP log
-//! ([`exocal_log::write::SessionLog`]) and, when enabled, the live view ([`crate::live::LiveView`]).
+//! The session's records built from the daemon's types: each thing a session logs is one
+//! [`Record`] (defined in `exocal_log::record`), handed by the [`crate::shell::tee::Recorder`]
+//! to every observer of the session's data — the MCAP log ([`exocal_log::write::SessionLog`])
+//! and, when enabled, the live view ([`crate::live::LiveView`]). Here: the arm's frames, the
+//! URDF, the raw frame's record, the calibration record with its push.
 //!
 //! Contract:
 //! - a record carries its log time (host wall-clock ns, the session clock) and borrows its data;

@@ -17,7 +17,7 @@
 //!   logging) the bus, feeding the watchdog and flushing the log.
 
 use std::future::Future;
-use std::io::{BufWriter, Write};
+use std::io::BufWriter;
 use std::path::PathBuf;
 use std::pin::Pin;
 use std::time::{Duration, Instant};
@@ -1112,12 +1112,6 @@ fn futures_ready<F: Future<Output = ()>>(f: &mut Pin<&mut F>) -> bool {
     let waker = std::task::Waker::noop();
     let mut cx = std::task::Context::from_waker(waker);
     f.as_mut().poll(&mut cx).is_ready()
-}
-
-/// Writes `summary` as pretty JSON to `out` (for `--report`).
-pub fn write_summary(summary: &SessionSummary, out: &mut impl Write) -> std::io::Result<()> {
-    serde_json::to_writer_pretty(&mut *out, summary)?;
-    writeln!(out)
 }
 
 #[cfg(test)]
