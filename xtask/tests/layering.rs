@@ -279,7 +279,11 @@ fn module_table(root: &str) -> Option<Vec<String>> {
         rows.iter()
             .skip(2)
             .filter_map(|r| r.split('|').next())
-            .map(|c| c.trim().trim_matches(['[', ']', '`']).to_string())
+            // `[`name`]`, or `[`name`](mod@name)` where a macro shares the name.
+            .map(|c| {
+                let c = c.trim();
+                c.split('`').nth(1).unwrap_or(c).to_string()
+            })
             .collect(),
     )
 }
