@@ -193,6 +193,20 @@ impl std::error::Error for DaemonError {
     }
 }
 
+impl From<crate::push::PushError> for DaemonError {
+    fn from(e: crate::push::PushError) -> Self {
+        use crate::push::PushError;
+        match e {
+            PushError::Unpushable(why) => DaemonError::Unpushable(why),
+            PushError::Incomplete(failed) => DaemonError::Push(failed),
+            PushError::Bus(source) => DaemonError::Bus {
+                what: "pushing tables (what each node was sent and holds is in the log)".into(),
+                source,
+            },
+        }
+    }
+}
+
 impl From<crate::state::StateError> for DaemonError {
     fn from(e: crate::state::StateError) -> Self {
         DaemonError::Io {

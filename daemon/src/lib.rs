@@ -13,13 +13,16 @@
 //! | [`cmd::nodes`] | `exocald nodes`: every joint node's table, read over the bus, against the last push |
 //! | `cmd::demo` | exocal-hil and the daemon in one process on the in-process bus (feature `demo`, on by default) |
 //! | [`shell`] | one live session and what it needs around the data path |
-//! | [`shell::runner`] | one session on any transport: collect, align, calibrate, validate, push, log |
+//! | [`shell::runner`] | one session on any transport: the loop that drives the `Session`, runs its jobs off the loop, pushes and reports |
+//! | [`shell::io`] | the loop's outputs in one place: the log (opened and finished on every path), systemd, the console |
+//! | [`shell::lines`] | what each step says in the log, as lines (renderers, no decisions) |
+//! | [`shell::stream_nonce`] | the controller's side of stream authentication: the nonces, signed per node |
 //! | [`push`] | table transfer to every node: retries, backoff, CRC readback, per-node report |
 //! | [`keys`] | the node and trigger keys, from the systemd credential `exocal-keys` |
 //! | [`state`] | the state directory: the nodes' proved and signed freshness counters, the trigger counter (fsynced) |
 //! | [`shell::notify`] | progress bar / systemd `STATUS=` / plain lines; READY and WATCHDOG |
 //! | [`shell::shutdown`] | SIGTERM/SIGINT as a flag a session waits on |
-//! | [`shell::summary`] | a session's summary as printed on stdout |
+//! | [`shell::summary`] | what a session did (`SessionSummary`), and how it is printed on stdout |
 //! | [`shell::tee`] | every record to every observer: the log, the live view |
 //! | [`shell::html_report`] | the HTML report of a session (live or offline), rendered from what the session computed |
 //! | [`log`] | the session's records from the daemon's types, for the log (`exocal_log`) and the live view |

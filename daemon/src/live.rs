@@ -243,6 +243,14 @@ impl std::error::Error for LiveError {
 }
 
 impl LiveView {
+    /// The live view a session serves: started on `[live] listen` when `[live] enabled`.
+    pub fn for_session(config: &Config) -> Result<Option<LiveView>, LiveError> {
+        match config.live.enabled {
+            true => LiveView::start(config.live.listen, config).map(Some),
+            false => Ok(None),
+        }
+    }
+
     /// Starts the server on `listen` (with `config`'s `[live]` limits), the arm on `config`'s
     /// nominal table.
     pub fn start(listen: SocketAddr, config: &Config) -> Result<LiveView, LiveError> {

@@ -57,9 +57,10 @@ use exocal_dbc::message::{CmdCode, Command, Reply, TableCmd};
 use exocal_dbc::table::Table;
 use exocal_dbc::transfer::{RetryPolicy, Upload, UploadError};
 use exocal_dbc::{Message, NodeId};
+use exocal_session::pipeline::Outcome;
 use serde::Serialize;
 
-use crate::config::PushPolicy;
+use crate::config::{Config, PushPolicy};
 use crate::state::NodeCounters;
 
 /// Which table a node holds after the push.
@@ -113,6 +114,15 @@ impl PushReport {
         self.nodes.iter().all(|n| n.holds == Holds::New)
     }
 
+    /// The lines of the nodes that do not hold their new table, joined by "; ".
+    pub fn failures(&self) -> String {
+        let lines = self.lines().into_iter().zip(&self.nodes);
+        let failed: Vec<String> = (lines.filter(|(_, n)| n.holds != Holds::New))
+            .map(|(l, _)| l)
+            .collect();
+        failed.join("; ")
+    }
+
     /// One line per node.
     pub fn lines(&self) -> Vec<String> {
         self.nodes
@@ -132,6 +142,22 @@ impl PushReport {
             })
             .collect()
     }
+}
+
+/// Node tables to push, from the calibrated rows.
+pub fn node_tables(outcome: &Outcome, config: &Config) -> Result<Vec<(NodeId, Table)>, String> {
+    outcome
+        .node_rows
+        .iter()
+        .enumerate()
+        .map(|(i, r)| {
+            let node = NodeId::new(config.calibration.joint_nodes[i])
+                .ok_or_else(|| format!("joint {}: no node id", i + 1))?;
+            let table = Table::from_si(r.a, r.alpha, r.d, r.theta_offset, r.tau, r.sigma)
+                .map_err(|e| format!("{node}: the table does not fit the DBC: {e}"))?;
+            Ok((node, table))
+        })
+        .collect()
 }
 
 /// Watches the push: every frame sent or received (for the log) and every loop turn (to feed
@@ -215,6 +241,44 @@ impl std::error::Error for PushFailed {
     fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
         Some(&self.error)
     }
+}
+
+/// Why a calibration's push did not leave every node holding its new table.
+#[derive(Debug)]
+pub enum PushError {
+    /// A table does not fit the DBC, or a joint has no node: nothing was pushed.
+    Unpushable(String),
+    /// The nodes that do not hold their new table, a line each, joined by "; ".
+    Incomplete(String),
+    /// The bus failed mid-way ([`PushFailed`]).
+    Bus(exocal_bus::BusError),
+}
+
+/// Pushes a validated calibration's tables ([`node_tables`]) with [`push_tables`]. Returns the
+/// report as far as the push went (`None` when the tables could not be made) and how it ended.
+pub async fn push_calibration<T: Transport>(
+    bus: &mut T,
+    clock: &Clock,
+    outcome: &Outcome,
+    config: &Config,
+    first_session: u8,
+    observer: &mut dyn PushObserver,
+) -> (Option<PushReport>, Result<(), PushError>) {
+    let tables = match node_tables(outcome, config) {
+        Ok(tables) => tables,
+        Err(why) => return (None, Err(PushError::Unpushable(why))),
+    };
+    let pushed = push_tables(bus, clock, &tables, &config.push, first_session, observer).await;
+    // A push the bus stopped mid-way is reported as far as it went, per node, then fails.
+    let (report, result) = match pushed {
+        Ok(report) if report.complete() => (report, Ok(())),
+        Ok(report) => {
+            let failed = report.failures();
+            (report, Err(PushError::Incomplete(failed)))
+        }
+        Err(failed) => (failed.report, Err(PushError::Bus(failed.error))),
+    };
+    (Some(report), result)
 }
 
 /// Pushes `tables` to their nodes; `first_session` numbers the transfer sessions (incremented

@@ -27,7 +27,7 @@ use exocal_hil::Hil;
 use exocald::cmd::demo::{session_against_suit, RunningSuit, SuitSession};
 use exocald::config::Config;
 use exocald::push::Holds;
-use exocald::shell::runner::SessionSummary;
+use exocald::shell::summary::SessionSummary;
 
 const SPEED: f64 = 10.0;
 const SESSION_S: f64 = 40.0;

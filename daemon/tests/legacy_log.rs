@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use exocald::cmd::offline::{self, OfflineOptions};
 use exocald::config::Config;
 use exocald::exit::DaemonError;
-use exocald::shell::runner::SessionError;
+use exocald::shell::summary::SessionError;
 
 fn fixture(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

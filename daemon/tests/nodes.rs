@@ -17,7 +17,7 @@ use exocal_dbc::table::{Field, Table};
 use exocal_dbc::NodeId;
 use exocald::cmd::nodes::Listing;
 use exocald::config::Config;
-use exocald::shell::runner::SessionSummary;
+use exocald::shell::summary::SessionSummary;
 
 /// The demo's seed: the suit's scenario and the keys it derives.
 const SEED: u64 = 2;

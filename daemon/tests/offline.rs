@@ -14,7 +14,7 @@ use exocal_session::pipeline::Outcome;
 use exocald::cmd::offline::{self, Format, OfflineOptions};
 use exocald::config::Config;
 use exocald::exit::{code, DaemonError};
-use exocald::shell::runner::{SessionError, SessionSummary};
+use exocald::shell::summary::{SessionError, SessionSummary};
 
 use common::live_session;
 

@@ -158,32 +158,29 @@ const FIXED: [Topic; 11] = [
     Topic::RobotDescription,
 ];
 
-/// The raw IMU streams of [`STREAMS`].
-const VECTORS: usize = {
-    let mut n = 0;
-    let mut i = 0;
+/// The raw IMU streams of [`STREAMS`]: their indices in table order (the first `.1` of the
+/// array) and how many. Each is checked, at compile time, to be an IMU message's, so each has a
+/// vector type.
+const VECTOR_STREAMS: ([usize; STREAMS.len()], usize) = {
+    let mut at = [0; STREAMS.len()];
+    let (mut n, mut i) = (0, 0);
     while i < STREAMS.len() {
         if matches!(STREAMS[i].column, Column::Vector) {
+            let kind = STREAMS[i].message;
+            assert!(matches!(
+                kind,
+                Kind::ImuGyro | Kind::ImuAccel | Kind::ImuMag
+            ));
+            at[n] = i;
             n += 1;
         }
         i += 1;
     }
-    n
+    (at, n)
 };
 
-// Every raw IMU stream of the table is an IMU message's, so each has a vector type.
-const _: () = {
-    let mut i = 0;
-    while i < STREAMS.len() {
-        if matches!(STREAMS[i].column, Column::Vector) {
-            assert!(matches!(
-                STREAMS[i].message,
-                Kind::ImuGyro | Kind::ImuAccel | Kind::ImuMag
-            ));
-        }
-        i += 1;
-    }
-};
+/// How many raw IMU streams [`STREAMS`] has.
+const VECTORS: usize = VECTOR_STREAMS.1;
 
 impl Topic {
     /// Every topic, in channel order: the fixed topics, then one per raw IMU stream in
@@ -195,13 +192,10 @@ impl Topic {
             all[n] = FIXED[n];
             n += 1;
         }
-        let mut i = 0;
-        while i < STREAMS.len() {
-            if matches!(STREAMS[i].column, Column::Vector) {
-                all[n] = Topic::Vector(i);
-                n += 1;
-            }
-            i += 1;
+        let mut k = 0;
+        while k < VECTORS {
+            all[n + k] = Topic::Vector(VECTOR_STREAMS.0[k]);
+            k += 1;
         }
         all
     };
@@ -288,31 +282,23 @@ pub fn encode_vector(stream: usize, node_timestamp_lo_us: u32, xyz: [f64; 3], ou
     let frame_id = s.name.to_string();
     let [x, y, z] = xyz;
     out.clear();
+    // One message per quantity (each with its unit in its schema), all of one layout.
+    macro_rules! vector {
+        ($message:ident) => {
+            proto::$message {
+                frame_id,
+                x,
+                y,
+                z,
+                node_timestamp_lo_us,
+            }
+            .encode(out)
+        };
+    }
     let encoded = match s.message {
-        Kind::ImuMag => proto::MagneticField {
-            frame_id,
-            x,
-            y,
-            z,
-            node_timestamp_lo_us,
-        }
-        .encode(out),
-        Kind::ImuAccel => proto::Acceleration {
-            frame_id,
-            x,
-            y,
-            z,
-            node_timestamp_lo_us,
-        }
-        .encode(out),
-        Kind::ImuGyro => proto::AngularRate {
-            frame_id,
-            x,
-            y,
-            z,
-            node_timestamp_lo_us,
-        }
-        .encode(out),
+        Kind::ImuMag => vector!(MagneticField),
+        Kind::ImuAccel => vector!(Acceleration),
+        Kind::ImuGyro => vector!(AngularRate),
         other => unreachable!("{other:?} is not a raw IMU vector (see vector_type)"),
     };
     encoded.expect("a Vec grows to fit any message");

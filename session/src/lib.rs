@@ -45,7 +45,7 @@ pub mod validate;
 pub mod window;
 
 pub use rules::{Bounds, SensorSpec, Settings, ValidationRules, WindowRules};
-pub use session::Session;
+pub use session::{CalibrationJob, Session};
 
 /// Joints of the suit, declared once for the workspace (calib-core's model of the arm).
 pub const JOINTS: usize = calib_core::SUIT_JOINTS;

@@ -13,7 +13,9 @@
 //!   the caller's loop; [`Session::estimated`] takes its result;
 //! - [`Session::at_end`] judges a recording by the same rules at its end: the live session
 //!   and `exocald offline` refuse the same collections for the same reasons;
-//! - [`Session::collected`] aligns what was gathered (see `collect`), for the calibration.
+//! - [`Session::collected`] aligns what was gathered (see `collect`); [`Session::into_calibration`]
+//!   does so at the window's end and hands out the [`CalibrationJob`], which calibrates it
+//!   ([`crate::pipeline::run`]) off the caller's loop.
 //!
 //! The caller owns I/O and time: the daemon's loop reads the bus and the clock, writes the log,
 //! runs the jobs on a blocking thread and feeds the watchdog; a replay feeds recorded frames
@@ -27,6 +29,7 @@ use crate::collect::{Collected, Collector};
 use crate::estimate::{Estimate, EstimateJob};
 use crate::gate::{Dropped, StreamGate};
 use crate::ingest::{Event, FrameStats};
+use crate::pipeline::{CalibrateError, Calibrated};
 use crate::window::{Phase, Progress, Shortfall};
 use crate::Settings;
 
@@ -39,6 +42,32 @@ pub struct Session {
     last_estimate_s: f64,
     /// An estimate was handed out and its result is not back yet.
     estimating: bool,
+}
+
+/// The calibration of what a session collected ([`Session::into_calibration`]): the aligned
+/// collection and the settings, to calibrate off the caller's loop. It owns the collection, so
+/// a long session is never copied to be calibrated.
+#[derive(Debug, Clone)]
+pub struct CalibrationJob {
+    collected: Collected,
+    settings: Settings,
+}
+
+impl CalibrationJob {
+    /// What the session collected, aligned.
+    pub fn collected(&self) -> &Collected {
+        &self.collected
+    }
+
+    /// The settings the session ran with.
+    pub fn settings(&self) -> &Settings {
+        &self.settings
+    }
+
+    /// Calibrates the collection: least squares, the EM and validation ([`crate::pipeline::run`]).
+    pub fn run(&self) -> Result<Calibrated, CalibrateError> {
+        crate::pipeline::run(&self.collected.samples, &self.settings)
+    }
 }
 
 /// Where the collection stands at a tick.
@@ -149,6 +178,15 @@ impl Session {
         self.collector.collected(&self.settings)
     }
 
+    /// Ends the collection: aligns what was gathered (seconds of CPU on a slow controller, so
+    /// the caller runs this off its loop too) into the [`CalibrationJob`].
+    pub fn into_calibration(self) -> CalibrationJob {
+        CalibrationJob {
+            collected: self.collected(),
+            settings: self.settings,
+        }
+    }
+
     /// Frame counters so far.
     pub fn stats(&self) -> &FrameStats {
         self.collector.ingest.stats()
@@ -243,5 +281,18 @@ mod tests {
         assert_eq!(session.at_end(end + 1.0), why);
         assert_eq!(session.frames_received(), 0);
         assert!(!session.renonce(7), "no gate to give a nonce");
+    }
+
+    #[test]
+    fn the_calibration_job_holds_what_was_collected_and_judges_it_by_the_settings() {
+        let mut settings = Settings::suit_default();
+        settings.window.min_samples = 17;
+        let job = Session::new(&settings).into_calibration();
+        assert!(job.collected().samples.is_empty());
+        assert_eq!(job.settings().window.min_samples, 17);
+        match job.run() {
+            Err(CalibrateError::TooFewSamples { have: 0, need: 17 }) => {}
+            other => panic!("{other:?}"),
+        }
     }
 }

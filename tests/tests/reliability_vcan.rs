@@ -34,7 +34,7 @@ use exocal_hil::Hil;
 use exocald::cmd::demo::{session_against_suit, PushTally, RunningSuit, SuitSession};
 use exocald::config::{Config, PushPolicy};
 use exocald::push::{push_tables, Holds};
-use exocald::shell::runner::SessionSummary;
+use exocald::shell::summary::SessionSummary;
 
 #[path = "common/rogue.rs"]
 mod rogue;

@@ -44,7 +44,8 @@ use crate::live::LiveView;
 use crate::log::records::{Observer, Record};
 use crate::push::Holds;
 use crate::shell::notify::{Notifier, Reporter};
-use crate::shell::runner::{run_session_with, SessionError, SessionSummary};
+use crate::shell::runner::run_session_with;
+use crate::shell::summary::{SessionError, SessionSummary};
 
 /// Options of a demo run.
 #[derive(Debug, Clone)]

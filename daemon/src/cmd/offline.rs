@@ -58,7 +58,7 @@ use exocal_session::{Settings, WindowRules};
 pub use crate::cli::Format;
 use crate::config::Config;
 use crate::exit::DaemonError;
-use crate::shell::runner::{SessionError, SessionSummary};
+use crate::shell::summary::{SessionError, SessionSummary};
 
 const MCAP_MAGIC: &[u8] = b"\x89MCAP";
 /// Bytes from the start of the input that [`detect_format`] looks at.

@@ -15,7 +15,7 @@
 //!   URDF of the same table describe one tree.
 
 use exocal_bus::Frame;
-use exocal_log::{proto, CanFrameRecord};
+use exocal_log::{proto, CanFrameRecord, CollectionEnd};
 
 pub use exocal_log::record::{Link, Record, Transform, BASE_FRAME, TOOL_FRAME};
 
@@ -23,6 +23,7 @@ use crate::config::JOINTS;
 use crate::push::{Holds, PushReport};
 use exocal_session::ingest::ClockReport;
 use exocal_session::pipeline::{NodeRow, Outcome};
+use exocal_session::Session;
 
 /// Whoever takes a session's records besides its log (the live view; in a demo, the emulated
 /// wearer's ear): called with each record and its log time, it never fails the session.
@@ -38,6 +39,23 @@ pub const ROBOT_NAME: &str = "exocal_suit";
 /// when the table has a non-finite value (nothing to draw).
 pub fn urdf(table: &calib_core::DhTable<JOINTS>, limits: &[(f64, f64); JOINTS]) -> Option<String> {
     exocal_report::export::urdf(ROBOT_NAME, table, limits).ok()
+}
+
+/// The record of a collection's end (`exocald offline` honours it: a replay calibrates on the
+/// first `frames` frames of /can/rx, as the session did): the frames `session` received (as
+/// logged: with the stream gate, not only those ingest took yet), its counters and its gate's,
+/// the frames the receiver dropped, and the bus time the window closed.
+pub fn collection_end(session: &Session, dropped: u64, window_end_ns: u64) -> CollectionEnd {
+    let s = session.stats();
+    CollectionEnd {
+        frames: session.frames_received(),
+        window_end_ns,
+        unknown: s.unknown,
+        malformed: s.malformed,
+        invalid_angles: s.invalid_angles,
+        dropped,
+        stream: session.gate().map(stream_verification),
+    }
 }
 
 /// The `/collection` record of what the stream gate passed and dropped.

@@ -11,17 +11,63 @@
 //!   session, never a reason to withhold a validated table.
 
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use exocal_report::{Quality, ReportInput, SessionInput, VerdictSummary};
 
 use exocal_session::align::AlignedSample;
 use exocal_session::collect::Collected;
+use exocal_session::ingest::FrameStats;
 use exocal_session::pipeline::{timed, Calibrated};
 use exocal_session::Settings;
+
+use crate::config::Config;
 
 /// The report next to a session log: same folder and stem, extension `html`.
 pub fn report_path_for_log(log: &Path) -> PathBuf {
     log.with_extension("html")
+}
+
+/// Writes a session's report `html` next to its log (see [`report_path_for_log`]); the error
+/// names the file and why.
+pub fn write_next_to(log: &Path, html: &str) -> Result<PathBuf, String> {
+    let path = report_path_for_log(log);
+    match std::fs::write(&path, html) {
+        Ok(()) => Ok(path),
+        Err(e) => Err(format!("cannot write the report {}: {e}", path.display())),
+    }
+}
+
+/// The title and source line of a live session's report (`what`: "calibration" or "session"):
+/// its log, its interface, its start (`start`: bus time) and its configuration.
+pub fn live_titles(what: &str, log: &Path, start: Duration, config: &Config) -> (String, String) {
+    let name = log
+        .file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    let started = exocal_log::write::utc_time(start.as_nanos().min(u128::from(u64::MAX)) as u64);
+    (
+        format!("exocald {what} — {name}"),
+        format!(
+            "live session on {}, started {started}, logged to {}; {}",
+            config.interface,
+            log.display(),
+            config_line(&config.calibration)
+        ),
+    )
+}
+
+/// The report of a session stopped `seconds` into its collection: when and with how many
+/// frames (`stats`), and that the log has them. Rendered without aligning what was collected: a
+/// stop is given seconds (the unit's `TimeoutStopSec`), which aligning a long collection on a
+/// slow controller could exceed; `exocald offline` on the log shows the rest.
+pub fn interrupted(title: String, source: String, stats: &FrameStats, seconds: f64) -> String {
+    let reasons = vec![format!(
+        "stopped {seconds:.1} s into the collection, with {} frames received ({} decoded)",
+        stats.received, stats.decoded
+    )];
+    let mut input = session_input(title, source, &[], reasons, Quality::default());
+    input.interrupted = true;
+    exocal_report::html::render_session(&input)
 }
 
 /// The configuration a report was made under, in a line: the window, its stop target, the

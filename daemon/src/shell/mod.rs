@@ -2,9 +2,12 @@
 //! its records, systemd notification, signals, the printed summary and the HTML report file.
 
 pub mod html_report;
+pub mod io;
+pub mod lines;
 pub mod notify;
 pub mod runner;
 pub mod shutdown;
+pub mod stream_nonce;
 pub mod summary;
 pub mod tee;
 pub mod throttle;

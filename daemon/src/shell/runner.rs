@@ -17,331 +17,35 @@
 //!   logging) the bus, feeding the watchdog and flushing the log.
 
 use std::future::Future;
-use std::io::BufWriter;
-use std::path::PathBuf;
 use std::pin::Pin;
 use std::time::{Duration, Instant};
 
-use exocal_bus::{Clock, Frame, Received, Transport};
-use exocal_dbc::table::Table;
-use exocal_dbc::NodeId;
-use serde::Serialize;
+use exocal_bus::{Clock, Transport};
+use exocal_log::write::Level;
+use exocal_session::collect::Collected;
+use exocal_session::estimate::Estimate;
+use exocal_session::pipeline::{Calibrated, Outcome};
+use exocal_session::window::{Phase, Shortfall};
+use exocal_session::{CalibrationJob, Session};
 
 use crate::config::Config;
 use crate::exit::DaemonError;
 use crate::live::LiveView;
 use crate::log::records::{self, Observer};
-use crate::push::{push_tables, PushObserver, PushReport};
+use crate::push::{self, PushReport};
+use crate::shell::html_report;
+use crate::shell::io::{ns, Io};
+use crate::shell::lines;
 use crate::shell::notify::{Notifier, Reporter};
-use crate::shell::tee::Recorder;
-use crate::shell::throttle::Throttle;
-use exocal_dbc::stream_auth;
-use exocal_log::write::{CollectionEnd, Counts, Level, LogError, SessionLog};
-use exocal_session::collect::Collected;
-use exocal_session::estimate::Estimate;
-use exocal_session::gate::{GateStats, StreamGate};
-use exocal_session::ingest::{ClockReport, Event, FrameStats, StallReport};
-use exocal_session::pipeline::{self, Calibrated, Outcome};
-use exocal_session::window::{Phase, Shortfall};
-use exocal_session::Session;
+use crate::shell::shutdown;
+use crate::shell::stream_nonce::StreamNonces;
+use crate::shell::summary::{Latency, SessionError, SessionSummary};
 
 /// Real time between two turns of the housekeeping tick.
 pub const TICK: Duration = Duration::from_millis(100);
-/// A clock fit whose residual exceeds this (µs RMS) is reported as unreliable. Receive jitter
-/// averages out in the fit (an in-process bus whose hil sends frames in ~10 ms batches sees ~5 ms
-/// RMS and still aligns well); tens of ms mean the timestamps cannot be trusted.
-pub const CLOCK_RESIDUAL_WARN_US: f64 = 20_000.0;
-/// Records written in one go between two housekeeping turns (the log's flush, the watchdog).
-pub const RECORDS_PER_TURN: usize = 256;
 
 /// Rate (Hz) at which the arm's frames are written to `/tf` for Foxglove.
 pub const TF_HZ: f64 = 20.0;
-
-/// What a session did (also when it failed: see [`SessionError`]).
-#[derive(Debug, Clone, Serialize)]
-pub struct SessionSummary {
-    /// The session log (for an offline run, the input).
-    pub log_path: PathBuf,
-    /// Messages written to the log, per topic: `(topic, count)`.
-    pub log_counts: Vec<(String, u64)>,
-    /// Frames received in the collection window: those the calibration used (frames that
-    /// arrive while calibrating and pushing are not counted), as an offline replay of the log
-    /// counts them.
-    pub frames: FrameStats,
-    /// One report per node clock (joints, then the end effector).
-    pub clocks: Vec<ClockReport>,
-    /// Receiver stalls (not counted in any node's clock jumps).
-    pub stalls: StallReport,
-    /// Samples on the common grid.
-    pub aligned_samples: usize,
-    /// Grid points excluded as gaps.
-    pub gaps: usize,
-    /// The calibration; `None` when none was computed.
-    pub outcome: Option<Outcome>,
-    /// The push, per node; `None` when nothing was pushed.
-    pub push: Option<PushReport>,
-    /// The HTML calibration report, once written (next to the log for a live session).
-    pub report_path: Option<PathBuf>,
-    /// Stream verification: spans verified and dropped; `None` when the streams were not
-    /// authenticated (`[push] authenticate = false`, or an offline replay).
-    pub stream: Option<GateStats>,
-    /// What the user waited after the collection window, when every node's table was verified.
-    pub latency: Option<Latency>,
-}
-
-/// The power-up latency: from the end of the collection window until every node's table was
-/// verified (CRC read back) — alignment, calibration, validation, report and push.
-///
-/// `real` is this machine's monotonic clock over that span; `session` the session clock's. On
-/// the wall clock (SocketCAN) the two agree and the latency is `real`. On simulated time (the
-/// demo) the session clock stands still while the daemon computes and the real clock hardly
-/// moves while the emulated bus and nodes answer, so the latency a suit on a real bus would see
-/// is their sum: this machine's computing plus the bus's and the nodes' time as emulated.
-#[derive(Debug, Clone, Copy, Serialize)]
-pub struct Latency {
-    /// This machine's monotonic clock from the end of the window to the last verified table.
-    pub real: Duration,
-    /// The session clock over the same span.
-    pub session: Duration,
-    /// Whether the session clock was simulated.
-    pub simulated: bool,
-}
-
-impl Latency {
-    /// The latency a user waits: see [`Latency`].
-    pub fn total(&self) -> Duration {
-        if self.simulated {
-            self.real + self.session
-        } else {
-            self.real
-        }
-    }
-}
-
-impl SessionSummary {
-    /// The summary of a session logged to `log_path` (or replayed from it) that did nothing yet.
-    pub fn new(log_path: PathBuf) -> SessionSummary {
-        SessionSummary {
-            log_path,
-            log_counts: Vec::new(),
-            frames: FrameStats::default(),
-            clocks: Vec::new(),
-            stalls: StallReport::default(),
-            aligned_samples: 0,
-            gaps: 0,
-            outcome: None,
-            push: None,
-            report_path: None,
-            latency: None,
-            stream: None,
-        }
-    }
-
-    /// Records what the session collected.
-    pub fn collected(&mut self, c: &Collected) {
-        self.frames = c.frames.clone();
-        self.clocks = c.clocks.clone();
-        self.stalls = c.stalls;
-        self.aligned_samples = c.samples.len();
-        self.gaps = c.gaps;
-    }
-}
-
-/// A failed session: why, and what it did up to then (the log is finished).
-#[derive(Debug)]
-pub struct SessionError {
-    /// Why the session failed.
-    pub error: DaemonError,
-    /// What it did up to then; `None` when it failed before it started.
-    pub summary: Option<SessionSummary>,
-}
-
-impl From<DaemonError> for SessionError {
-    fn from(error: DaemonError) -> Self {
-        SessionError {
-            error,
-            summary: None,
-        }
-    }
-}
-
-impl From<DaemonError> for Box<SessionError> {
-    fn from(error: DaemonError) -> Self {
-        Box::new(SessionError::from(error))
-    }
-}
-
-fn io_err(what: &str, e: LogError) -> DaemonError {
-    DaemonError::Log {
-        what: what.to_string(),
-        source: e,
-    }
-}
-
-fn ns(d: Duration) -> u64 {
-    d.as_nanos().min(u128::from(u64::MAX)) as u64
-}
-
-/// The log (and the session's other observers), the notifier and the reporter, and the
-/// real-time start, bundled for the loop.
-struct Io<'a> {
-    log: Recorder<'a, BufWriter<std::fs::File>>,
-    notifier: &'a mut Notifier,
-    reporter: &'a mut Reporter,
-    started: Instant,
-    log_error: Option<LogError>,
-    /// Trigger frames during the session ([`Throttle`]: a flood is not a line each).
-    ignored_triggers: Throttle,
-    /// `StreamNonce` frames another sender put on the bus.
-    foreign_nonces: Throttle,
-}
-
-impl Io<'_> {
-    /// Remembers the first log error (the session then ends with it) and carries on.
-    fn check(&mut self, r: Result<(), LogError>) {
-        if let Err(e) = r {
-            self.log_error.get_or_insert(e);
-        }
-    }
-
-    /// The first log error, if any, as the session's error.
-    fn log_failed(&mut self) -> Result<(), DaemonError> {
-        match self.log_error.take() {
-            Some(e) => Err(io_err("writing the log", e)),
-            None => Ok(()),
-        }
-    }
-
-    /// The watchdog first: the log's flush writes a chunk (its sync runs on the log's own
-    /// thread, `exocal_log::write`).
-    fn housekeeping(&mut self) {
-        let now = self.started.elapsed();
-        self.notifier.watchdog(now);
-        let r = self.log.tick(ns(now)).map(|_| ());
-        self.check(r);
-    }
-
-    /// Between two of many records written in one go (a session's aligned samples, its arm
-    /// on the calibrated table): every [`RECORDS_PER_TURN`] records, the housekeeping turn
-    /// (flush, watchdog), so a long session's log writing cannot starve the watchdog.
-    fn between_records(&mut self, written: usize) {
-        if written % RECORDS_PER_TURN == RECORDS_PER_TURN - 1 {
-            self.housekeeping();
-        }
-    }
-
-    fn event(&mut self, t: Duration, level: Level, message: &str) {
-        if level >= Level::Warning {
-            self.reporter.message(message);
-        }
-        let r = self.log.event(ns(t), level, message);
-        self.check(r);
-    }
-
-    fn frame(&mut self, sent: bool, frame: &Frame, t: Duration) {
-        let r = self.log.can_frame(sent, &records::frame_record(frame, t));
-        self.check(r);
-    }
-
-    /// Logs one received frame and feeds it to the collection through the stream gate (the
-    /// frames it passes now; a warning for each of the first spans it drops).
-    fn take_frame(&mut self, rx: &Received, session: &mut Session) {
-        self.frame(false, &rx.frame, rx.timestamp);
-        let mut events = Vec::new();
-        let dropped = session.take(rx, |rx, event| events.push((rx.timestamp, event)));
-        for (at, event) in events {
-            self.take_event(at, event, session);
-        }
-        for d in dropped {
-            let spans = session.gate().map_or(0, |g| g.stats().dropped_spans);
-            if spans <= 10 {
-                self.event(rx.timestamp, Level::Warning, &format!("stream span {d}"));
-            }
-        }
-        // The housekeeping turn (time-gated: a clock read when nothing is due) after every frame
-        // as well as on the tick: with a backlog of frames the socket is always ready, and tokio
-        // fires timers only when the task yields and the runtime turns its driver (after its
-        // co-operative budget, every few thousand frames): on a starved controller that can be
-        // seconds, longer than systemd's watchdog allows.
-        self.housekeeping();
-    }
-
-    fn take_event(&mut self, at: Duration, event: Event, session: &Session) {
-        let t = ns(at);
-        match event {
-            Event::Sample {
-                stream,
-                node_timestamp_us,
-                reading,
-            } => {
-                let r = self.log.sample(t, stream, node_timestamp_us, reading);
-                self.check(r);
-            }
-            Event::Unknown(e) | Event::Malformed(e) => {
-                // The first few are worth a line each; the counters carry the rest.
-                let s = session.stats();
-                if s.unknown + s.malformed <= 10 {
-                    self.event(at, Level::Warning, &format!("bad frame: {e}"));
-                }
-            }
-            Event::Message(exocal_dbc::Message::Trigger(t))
-                if t.command == exocal_dbc::TriggerCommand::StartCalibration =>
-            {
-                // Anyone on the bus can send these: a line each for the first few only.
-                if let Some(n) = self.ignored_triggers.occur() {
-                    let line = Throttle::line(
-                        "trigger ignored (CAN Trigger frame): a session is running",
-                        n,
-                    );
-                    self.event(at, Level::Warning, &line);
-                }
-            }
-            Event::Message(exocal_dbc::Message::StreamNonce(n)) => {
-                // Never ours (a socket does not receive its own frames): forged or replayed,
-                // and the node takes neither (exocal_session::gate).
-                if let Some(k) = self.foreign_nonces.occur() {
-                    let line = Throttle::line(
-                        &format!(
-                            "a StreamNonce frame for {} this controller did not send (nonce {}): \
-                             another sender on the bus, forging or replaying; the node keeps its \
-                             nonce",
-                            n.node, n.nonce
-                        ),
-                        k,
-                    );
-                    self.event(at, Level::Warning, &line);
-                }
-            }
-            Event::Message(_) | Event::Partial => {}
-        }
-    }
-}
-
-impl PushObserver for Io<'_> {
-    fn frame(&mut self, sent: bool, frame: &Frame, t: Duration) {
-        Io::frame(self, sent, frame, t);
-    }
-
-    fn tick(&mut self) {
-        self.housekeeping();
-    }
-}
-
-/// Node tables to push, from the calibrated rows.
-pub fn node_tables(outcome: &Outcome, config: &Config) -> Result<Vec<(NodeId, Table)>, String> {
-    outcome
-        .node_rows
-        .iter()
-        .enumerate()
-        .map(|(i, r)| {
-            let node = NodeId::new(config.calibration.joint_nodes[i])
-                .ok_or_else(|| format!("joint {}: no node id", i + 1))?;
-            let table = Table::from_si(r.a, r.alpha, r.d, r.theta_offset, r.tau, r.sigma)
-                .map_err(|e| format!("{node}: the table does not fit the DBC: {e}"))?;
-            Ok((node, table))
-        })
-        .collect()
-}
 
 /// Runs one session on `bus` (see the module docs). `clock` is the bus clock. With
 /// `[live] enabled`, the live view serves the session (started here, stopped at its end).
@@ -354,10 +58,7 @@ pub async fn run_session<T: Transport>(
     notifier: &mut Notifier,
     reporter: &mut Reporter,
 ) -> Result<SessionSummary, SessionError> {
-    let live = match config.live.enabled {
-        true => Some(LiveView::start(config.live.listen, config).map_err(DaemonError::from)?),
-        false => None,
-    };
+    let live = LiveView::for_session(config).map_err(DaemonError::from)?;
     if let Some(live) = &live {
         reporter.message(&live.banner(config));
     }
@@ -382,46 +83,7 @@ pub async fn run_session_with<T: Transport>(
     observers: &[&dyn Observer],
 ) -> Result<SessionSummary, SessionError> {
     let start = clock.now();
-    let flush_ns = (config.output.flush_interval_s * 1e9) as u64;
-    let (log_path, log) = SessionLog::create_in(&config.output.directory, ns(start), flush_ns)
-        .map_err(|e| {
-            io_err(
-                &format!("creating the log in {}", config.output.directory.display()),
-                e,
-            )
-        })?;
-    let mut io = Io {
-        log: Recorder::new(log, observers),
-        notifier,
-        reporter,
-        started: Instant::now(),
-        log_error: None,
-        ignored_triggers: Throttle::default(),
-        foreign_nonces: Throttle::default(),
-    };
-    io.reporter
-        .message(&format!("logging to {}", log_path.display()));
-    let unaided = exocal_session::rules::joint_list(&config.calibration.sensors.unaided);
-    if !unaided.is_empty() {
-        io.reporter.message(&format!(
-            "stand still for a few seconds before moving: the gyro bias of joints {unaided} is \
-             measured then"
-        ));
-    }
-    io.event(
-        start,
-        Level::Info,
-        &format!("session started on {}", config.interface),
-    );
-    // The arm as built, for Foxglove's 3D panel until the calibrated one follows.
-    let limits = &config.calibration.bounds.joint_range.limits;
-    if let Some(urdf) = records::urdf(&config.calibration.nominal, limits) {
-        let r = io.log.robot_description(ns(start), &urdf);
-        io.check(r);
-    }
-    io.notifier.ready("collecting free motion");
-    io.housekeeping();
-
+    let (log_path, mut io) = Io::open(config, start, observers, notifier, reporter)?;
     let mut tick = tokio::time::interval(TICK);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut running = Running {
@@ -430,7 +92,7 @@ pub async fn run_session_with<T: Transport>(
         config,
         io: &mut io,
         session: Session::new(&config.calibration),
-        stream_nonce: 0,
+        nonces: StreamNonces::new(&config.push),
         origin: Duration::ZERO,
         start,
         tick,
@@ -440,25 +102,8 @@ pub async fn run_session_with<T: Transport>(
     tokio::pin!(shutdown);
     let result = running.run(dry_run, start, shutdown).await;
     let mut summary = running.summary;
-    io.reporter.finish();
-    if let Err(e) = &result {
-        // Into the log only: the caller reports the error (the binary prints it once).
-        let r = io.log.event(ns(clock.now()), Level::Error, &e.to_string());
-        io.check(r);
-    }
-    io.notifier.stopping();
-    let counts: Counts = io.log.counts();
-    let log_error = io.log_error.take();
-    let finished = io.log.finish();
-    summary.log_counts = counts
-        .iter()
-        .map(|(t, n)| (t.name().to_string(), *n))
-        .collect();
-    let result = match (result, log_error, finished) {
-        (Err(e), _, _) => Err(e),
-        (Ok(()), Some(e), _) | (Ok(()), None, Err(e)) => Err(io_err("writing the log", e)),
-        (Ok(()), None, Ok(_)) => Ok(()),
-    };
+    let (log_counts, result) = io.close(result, clock.now());
+    summary.log_counts = log_counts;
     match result {
         Ok(()) => Ok(summary),
         Err(error) => Err(SessionError {
@@ -469,7 +114,8 @@ pub async fn run_session_with<T: Transport>(
 }
 
 /// One live session in progress: the bus, the log and what was collected so far. Its steps
-/// run in order — [`Live::collect`], [`Live::align`], [`Live::calibrate`], [`Live::push`] —
+/// run in order — [`Running::collect`], [`Running::align`], [`Running::calibrate`],
+/// [`Running::push`] —
 /// and each keeps the bus drained, the log flushed and the watchdog fed while it waits.
 struct Running<'a, 'io, T> {
     bus: &'a mut T,
@@ -477,8 +123,8 @@ struct Running<'a, 'io, T> {
     config: &'a Config,
     io: &'a mut Io<'io>,
     session: Session,
-    /// The last stream nonce sent (0: none yet; the streams are authenticated once one was).
-    stream_nonce: u32,
+    /// The stream nonces sent to the nodes.
+    nonces: StreamNonces<'a>,
     /// Bus time of the collection's first frame: aligned sample times are relative to it.
     origin: Duration,
     /// Bus time the session started (its log's name).
@@ -497,18 +143,23 @@ impl<T: Transport> Running<'_, '_, T> {
         start: Duration,
         mut shutdown: Pin<&mut S>,
     ) -> Result<(), DaemonError> {
-        if let Err(e) = self.collect(shutdown.as_mut()).await {
-            self.summary.frames = self.session.stats().clone();
-            if matches!(e, DaemonError::Interrupted) {
-                self.interrupted_report(start);
+        match self.collect(shutdown.as_mut()).await {
+            // A refused collection was summed up with its report (the session was replaced).
+            Err(e @ DaemonError::Session(_)) => return Err(e),
+            Err(e) => {
+                self.summary.frames = self.session.stats().clone();
+                if matches!(e, DaemonError::Interrupted) {
+                    self.interrupted_report(start);
+                }
+                return Err(e);
             }
-            return Err(e);
+            Ok(()) => {}
         }
         let window_closed = (Instant::now(), self.clock.monotonic());
-        let collected = self.align(shutdown.as_mut()).await?;
-        self.summary.collected(&collected);
-        let calibrated = self.calibrate(&collected, shutdown.as_mut()).await?;
-        self.log_result(&collected, &calibrated);
+        let job = self.align(shutdown.as_mut()).await?;
+        self.summary.collected(job.collected());
+        let (job, calibrated) = self.calibrate(job, shutdown.as_mut()).await?;
+        self.log_result(job.collected(), &calibrated);
         let accepted = calibrated.outcome.verdict.accepted();
         let reasons = calibrated.outcome.verdict.reasons.clone();
         self.summary.outcome = Some(calibrated.outcome);
@@ -522,7 +173,7 @@ impl<T: Transport> Running<'_, '_, T> {
         }
         self.io.log_failed()?;
         // Last chance to stop before touching the nodes.
-        if futures_ready(&mut shutdown) {
+        if shutdown::is_done(&mut shutdown) {
             return Err(DaemonError::Interrupted);
         }
         let pushed = self.push(start).await;
@@ -597,79 +248,14 @@ impl<T: Transport> Running<'_, '_, T> {
             }
             self.io.log_failed()?;
         }
-        let s = self.session.stats().clone();
         let now = self.clock.now();
-        // The record `exocald offline` honours: a replay of this log calibrates on the first
-        // `frames` frames of /can/rx, as this session did.
-        // With the stream gate, the frames received (as logged), not those ingest took yet.
-        let end = CollectionEnd {
-            frames: self.session.frames_received(),
-            window_end_ns: ns(now),
-            unknown: s.unknown,
-            malformed: s.malformed,
-            invalid_angles: s.invalid_angles,
-            dropped: self.bus.dropped(),
-            stream: self.session.gate().map(records::stream_verification),
-        };
+        let end = records::collection_end(&self.session, self.bus.dropped(), ns(now));
+        let (s, gate) = (self.session.stats(), self.session.gate());
+        let lines = lines::collection_end(s, gate.map(|g| g.stats()), end.dropped);
+        self.summary.stream = gate.map(|g| g.stats().clone());
         let r = self.io.log.collection_end(&end);
         self.io.check(r);
-        self.io.event(
-            now,
-            Level::Info,
-            &format!(
-                "collection done: {} frames ({} unknown, {} malformed, {} invalid angles, {} dropped by the receiver)",
-                s.received, s.unknown, s.malformed, s.invalid_angles, end.dropped
-            ),
-        );
-        if let Some(g) = self.session.gate().map(|g| g.stats().clone()) {
-            self.io.event(
-                now,
-                Level::Info,
-                &format!(
-                    "stream verification: {} spans verified ({} frames); {} spans dropped \
-                     unverified ({} frames, {:.1} s: {} bad MAC, {} frames lost, {} without a \
-                     digest); {} replayed digests ignored; {} frames from before the nonce \
-                     dropped; {} new boot counts, {} StreamNonce frames from another sender, \
-                     {} new nonces sent{}",
-                    g.verified_spans,
-                    g.verified_frames,
-                    g.dropped_spans,
-                    g.dropped_frames,
-                    g.dropped_s,
-                    g.bad_mac,
-                    g.deficit,
-                    g.no_digest,
-                    g.stale,
-                    g.start_frames,
-                    g.reboots,
-                    g.foreign_nonces,
-                    g.renonces,
-                    if g.renonces_capped {
-                        " (the limit: more were wanted)"
-                    } else {
-                        ""
-                    }
-                ),
-            );
-            for (node, spans) in g.second_senders() {
-                self.io.event(
-                    now,
-                    Level::Warning,
-                    &format!(
-                        "a second sender on {node}'s identifiers: {spans} spans held more \
-                         frames than its digests cover (dropped)"
-                    ),
-                );
-            }
-            self.summary.stream = Some(g);
-        }
-        for (node, repeats) in s.babbling() {
-            self.io.event(
-                now,
-                Level::Warning,
-                &format!("{node} is babbling: {repeats} frames repeated verbatim"),
-            );
-        }
+        self.io.lines(now, lines);
         // An estimate still running: a blocking task cannot be aborted, and left to run it
         // would hold its copy of the collection and a core beside the calibration (the peak
         // memory, and the latency on a one-core controller, would depend on when it ends).
@@ -682,127 +268,51 @@ impl<T: Transport> Running<'_, '_, T> {
         Ok(())
     }
 
-    /// Opens the collection's stream authentication: a fresh nonce to every node
-    /// (`StreamNonce`) and the gate that holds each node's frames until its digest verifies.
-    /// With `[push] authenticate = false` the streams are taken unverified, with a warning.
+    /// Opens the collection's stream authentication ([`StreamNonces::open`]).
     async fn authenticate_streams(&mut self) -> Result<(), DaemonError> {
-        let now = self.clock.now();
-        let keys = &self.config.push.keys;
-        let keyed = NodeId::ALL.into_iter().any(|n| keys.node(n).is_some());
         let on = self.config.push.authenticate && self.config.verify_streams;
-        let (true, true) = (on, keyed) else {
-            self.io.event(
-                now,
-                Level::Warning,
-                "sensor streams are not authenticated ([push] authenticate = false, or no keys): any sender \
-                 on the bus can steer the calibration",
-            );
+        if !self.nonces.open(on, &mut self.session) {
+            let line = "sensor streams are not authenticated ([push] authenticate = false, or no \
+                        keys): any sender on the bus can steer the calibration";
+            self.io.event(self.clock.now(), Level::Warning, line);
             return Ok(());
-        };
-        // The gate's nonce is set with the first one sent.
-        self.session.authenticate(StreamGate::new(keys, 0));
+        }
         self.send_stream_nonce().await
     }
 
-    /// Sends a fresh nonce to every keyed node (`StreamNonce_<node>`, signed for it) and gives
-    /// it to the stream gate (at the collection's start, and again when a node rebooted). The
-    /// nonce is above every one sent before ([`crate::state::next_stream_nonce`]).
+    /// Sends every keyed node a fresh nonce ([`StreamNonces::next`]) and logs it.
     async fn send_stream_nonce(&mut self) -> Result<(), DaemonError> {
-        if self.session.gate().is_none() {
-            return Ok(());
-        }
-        let nonce = crate::state::next_stream_nonce(
-            self.config.push.state_dir.as_deref(),
-            self.stream_nonce,
-            std::time::SystemTime::now(),
-        )?;
-        self.stream_nonce = nonce;
-        self.session.renonce(nonce);
-        let keys = &self.config.push.keys;
-        for node in NodeId::ALL {
-            let Some(key) = keys.node(node) else { continue };
-            let signed = stream_auth::sign_nonce(&stream_auth::stream_key(key), node, nonce);
-            let frame: Frame = exocal_dbc::Message::StreamNonce(signed)
-                .to_frame()
-                .map_err(|e| DaemonError::Internal {
-                    what: "encoding the stream nonce".into(),
-                    source: e.to_string().into(),
-                })?;
-            self.bus
-                .send(&frame)
-                .await
-                .map_err(|source| DaemonError::Bus {
-                    what: format!("sending {node} its stream nonce"),
-                    source,
-                })?;
-            self.io.frame(true, &frame, self.clock.now());
+        for frame in self.nonces.next(&mut self.session)? {
+            let sent = self.bus.send(&frame.1).await;
+            sent.map_err(|source| DaemonError::Bus {
+                what: format!("sending {} its stream nonce", frame.0),
+                source,
+            })?;
+            self.io.frame(true, &frame.1, self.clock.now());
         }
         Ok(())
     }
 
-    /// Step 2: aligns what was collected (on a blocking thread: the clock fits and the
+    /// Step 2: ends the collection and aligns it on a blocking thread (the clock fits and the
     /// resampling are seconds of CPU on a slow controller); logs the aligned samples and what
-    /// the clocks showed.
+    /// the clocks showed. The collection moves to the job (no copy of a long session); a fresh
+    /// one decodes, for the log, what arrives afterwards.
     async fn align<S: Future<Output = ()>>(
         &mut self,
         shutdown: Pin<&mut S>,
-    ) -> Result<Collected, DaemonError> {
-        let collected = self.aligned_off_loop(shutdown).await?;
-        let now = self.clock.now();
-        let stalls = collected.stalls;
-        if stalls.count > 0 {
-            let line = format!(
-                "{stalls}: every node's frames arrived late together while their clocks ran on; \
-                 their samples are kept on the nodes' clocks (not clock jumps)"
-            );
-            self.io.event(now, Level::Warning, &line);
-        }
-        for c in &collected.clocks {
-            if let Some(r) = c.residual_rms_us.filter(|&r| r > CLOCK_RESIDUAL_WARN_US) {
-                let line = format!(
-                    "{}: receive-time residual {r:.0} µs RMS: timestamps are unreliable (a \
-                     lagging sender or a loaded receiver); expect a poor alignment",
-                    c.node
-                );
-                self.io.event(now, Level::Warning, &line);
-            }
-            if c.jumps > 0 || c.unmapped > 0 {
-                let line = format!(
-                    "{}: {} clock jump(s)/reboot(s), {} samples excluded",
-                    c.node, c.jumps, c.unmapped
-                );
-                self.io.event(now, Level::Warning, &line);
-            }
-        }
-        for (i, s) in collected.samples.iter().enumerate() {
+    ) -> Result<CalibrationJob, DaemonError> {
+        self.origin = self.session.origin().unwrap_or_default();
+        let session = std::mem::replace(&mut self.session, Session::new(&self.config.calibration));
+        let job = (self.off_loop("aligning", shutdown, move || session.into_calibration())).await?;
+        for (i, s) in job.collected().samples.iter().enumerate() {
             let r = self.io.log.aligned(self.log_time(s.t), s);
             self.io.check(r);
             self.io.between_records(i);
         }
-        self.io.event(
-            now,
-            Level::Info,
-            &format!(
-                "aligned {} samples on a {} Hz grid, {} grid points excluded as gaps",
-                collected.samples.len(),
-                self.config.calibration.window.grid_hz,
-                collected.gaps
-            ),
-        );
-        Ok(collected)
-    }
-
-    /// The collection, aligned on a blocking thread while the loop keeps the bus drained, the
-    /// log flushed and the watchdog fed. The collection moves to the job (no copy of a long
-    /// session); a fresh one decodes, for the log, what arrives afterwards.
-    async fn aligned_off_loop<S: Future<Output = ()>>(
-        &mut self,
-        shutdown: Pin<&mut S>,
-    ) -> Result<Collected, DaemonError> {
-        self.origin = self.session.origin().unwrap_or_default();
-        let session = std::mem::replace(&mut self.session, Session::new(&self.config.calibration));
-        self.off_loop("aligning", shutdown, move || session.collected())
-            .await
+        let grid_hz = self.config.calibration.window.grid_hz;
+        let lines = lines::aligned(job.collected(), grid_hz);
+        self.io.lines(self.clock.now(), lines);
+        Ok(job)
     }
 
     /// Runs `job` on tokio's blocking pool while this thread keeps the bus drained (and
@@ -849,39 +359,34 @@ impl<T: Transport> Running<'_, '_, T> {
     /// and the watchdog fed meanwhile; writes the report next to the log.
     async fn calibrate<S: Future<Output = ()>>(
         &mut self,
-        collected: &Collected,
+        job: CalibrationJob,
         shutdown: Pin<&mut S>,
-    ) -> Result<Calibrated, DaemonError> {
+    ) -> Result<(CalibrationJob, Calibrated), DaemonError> {
         self.io.notifier.status("calibrating");
         self.io
             .reporter
             .phase("calibrating", "least squares, then EM");
         let (calibration, source) = self.report_titles("calibration");
         let (session, _) = self.report_titles("session");
-        let (input, cfg) = (collected.clone(), self.config.clone());
         // The report is rendered on the blocking thread too: it is a few hundred ms of SVG.
-        let (calibrated, html) = self
+        let (job, calibrated, html) = self
             .off_loop("calibration", shutdown, move || {
-                let calibrated = pipeline::run(&input.samples, &cfg.calibration);
+                let calibrated = job.run();
                 let (title, reasons) = match &calibrated {
                     Err(e) => (session, vec![e.to_string()]),
                     Ok(_) => (calibration, Vec::new()),
                 };
-                let html = crate::shell::html_report::render(
-                    title,
-                    source,
-                    &cfg.calibration,
-                    &input,
-                    calibrated.as_ref().map_err(|_| reasons.as_slice()),
-                );
-                (calibrated, html)
+                let result = calibrated.as_ref().map_err(|_| reasons.as_slice());
+                let (settings, collected) = (job.settings(), job.collected());
+                let html = html_report::render(title, source, settings, collected, result);
+                (job, calibrated, html)
             })
             .await?;
         // The samples would not calibrate: the report says why, as for a session that ran out
         // of time.
         self.write_report(&html, "calibration report");
         self.report = Some(html);
-        Ok(calibrated?)
+        Ok((job, calibrated?))
     }
 
     /// The calibration's record, its line and the arm on the calibrated table, into the log.
@@ -894,105 +399,48 @@ impl<T: Transport> Running<'_, '_, T> {
             self.io.check(r);
             self.io.between_records(i);
         }
-        let s = &self.summary;
-        let record = records::calibration_record(
-            &calibrated.outcome,
-            &s.clocks,
-            s.aligned_samples,
-            s.gaps,
-            None,
-        );
         let now = self.clock.now();
-        let r = self.io.log.calibration(ns(now), &record);
-        self.io.check(r);
+        self.log_calibration(now, &calibrated.outcome, None);
         let limits = &self.config.calibration.bounds.joint_range.limits;
         if let Some(urdf) = records::urdf(&table, limits) {
             let r = self.io.log.robot_description(ns(now), &urdf);
             self.io.check(r);
         }
-        for moved in &calibrated.outcome.onto_bounds {
-            self.io.event(now, Level::Info, &moved.line());
-        }
-        let v = &calibrated.outcome.verdict;
-        self.io.event(
-            now,
-            Level::Info,
-            &format!(
-                "expected table error {}; held-out pose error {:.3e} → {:.3e} ({:.1}% better than nominal, paired t {:.1}), condition number {:.3e}",
-                v.expected
-                    .map_or_else(|| "unknown".to_string(), |e| e.to_string()),
-                v.nominal.mean_error,
-                v.candidate.mean_error,
-                v.improvement * 100.0,
-                v.heldout_t,
-                v.condition_number
-            ),
-        );
+        self.io.lines(now, lines::calibrated(&calibrated.outcome));
     }
 
-    /// Step 4: pushes the validated table to every node with CRC readback.
+    /// The calibration's record at `now`, with the push's `report` once there is one.
+    fn log_calibration(&mut self, now: Duration, outcome: &Outcome, report: Option<&PushReport>) {
+        let s = &self.summary;
+        let (clocks, samples, gaps) = (&s.clocks, s.aligned_samples, s.gaps);
+        let record = records::calibration_record(outcome, clocks, samples, gaps, report);
+        let r = self.io.log.calibration(ns(now), &record);
+        self.io.check(r);
+    }
+
+    /// Step 4: pushes the validated table to every node with CRC readback, and logs what each
+    /// node holds afterwards (also when the push fails).
     async fn push(&mut self, start: Duration) -> Result<(), DaemonError> {
-        let outcome = self
-            .summary
-            .outcome
-            .as_ref()
-            .ok_or(DaemonError::Interrupted)?;
-        let tables = node_tables(outcome, self.config).map_err(DaemonError::Unpushable)?;
+        let outcome = (self.summary.outcome.clone()).ok_or(DaemonError::Interrupted)?;
         self.io.notifier.status("pushing tables");
         self.io.reporter.phase("pushing", "the tables to the nodes");
         let first_session = (ns(start) / 1_000_000 % 251) as u8;
-        let pushed = push_tables(
-            self.bus,
-            self.clock,
-            &tables,
-            &self.config.push,
-            first_session,
-            self.io,
-        )
-        .await;
-        // A push the bus stopped mid-way is recorded as far as it went, per node, then fails.
-        let (report, bus_error) = match pushed {
-            Ok(report) => (report, None),
-            Err(failed) => (failed.report, Some(failed.error)),
-        };
+        let (bus, clock, config) = (&mut *self.bus, self.clock, self.config);
+        let pushed = push::push_calibration(bus, clock, &outcome, config, first_session, self.io);
+        let (report, result) = pushed.await;
         let now = self.clock.now();
-        for line in report.lines() {
-            self.io.event(now, Level::Info, &line);
+        if let Some(report) = report {
+            for line in report.lines() {
+                self.io.event(now, Level::Info, &line);
+            }
+            self.log_calibration(now, &outcome, Some(&report));
+            self.summary.push = Some(report);
         }
-        let s = &self.summary;
-        let record = records::calibration_record(
-            outcome,
-            &s.clocks,
-            s.aligned_samples,
-            s.gaps,
-            Some(&report),
-        );
-        let r = self.io.log.calibration(ns(now), &record);
-        self.io.check(r);
-        let failed: Vec<String> = report
-            .lines()
-            .into_iter()
-            .zip(&report.nodes)
-            .filter(|(_, n)| n.holds != crate::push::Holds::New)
-            .map(|(l, _)| l)
-            .collect();
-        let complete = report.complete();
-        self.summary.push = Some(report);
-        if let Some(source) = bus_error {
-            return Err(DaemonError::Bus {
-                what: "pushing tables (what each node was sent and holds is in the log)".into(),
-                source,
-            });
+        if result.is_ok() {
+            let line = "every node holds its new table (CRC read back)";
+            self.io.event(now, Level::Info, line);
         }
-        if !complete {
-            return Err(DaemonError::Push(failed.join("; ")));
-        }
-        self.io.event(
-            self.clock.now(),
-            Level::Info,
-            "every node holds its new table (CRC read back)",
-        );
-        Ok(())
+        Ok(result?)
     }
 
     /// The report of a session that ends without a calibration (`why`: the session rules it
@@ -1006,45 +454,24 @@ impl<T: Transport> Running<'_, '_, T> {
         self.origin = self.session.origin().unwrap_or_default();
         let session = std::mem::replace(&mut self.session, Session::new(&self.config.calibration));
         let why: Vec<String> = why.iter().map(Shortfall::to_string).collect();
-        let (collected, html) = self
+        let (job, html) = self
             .off_loop("session report", shutdown, move || {
-                let collected = session.collected();
-                let html = crate::shell::html_report::render(
-                    title,
-                    source,
-                    session.settings(),
-                    &collected,
-                    Err(&why),
-                );
-                (collected, html)
+                let job = session.into_calibration();
+                let (settings, collected) = (job.settings(), job.collected());
+                let html = html_report::render(title, source, settings, collected, Err(&why));
+                (job, html)
             })
             .await?;
         self.write_report(&html, "session report");
-        self.summary.collected(&collected);
+        self.summary.collected(job.collected());
         Ok(())
     }
 
-    /// The report of a session stopped during collection: when and with how many frames, and
-    /// that the log has them. Written at once, without aligning what was collected: a stop is
-    /// given seconds (the unit's `TimeoutStopSec`), which aligning a long collection on a slow
-    /// controller could exceed; `exocald offline` on the log shows the rest.
+    /// The report of a session stopped during collection ([`html_report::interrupted`]).
     fn interrupted_report(&mut self, start: Duration) {
         let (title, source) = self.report_titles("session");
-        let stats = self.session.stats();
         let seconds = self.clock.now().saturating_sub(start).as_secs_f64();
-        let reasons = vec![format!(
-            "stopped {seconds:.1} s into the collection, with {} frames received ({} decoded)",
-            stats.received, stats.decoded
-        )];
-        let mut input = crate::shell::html_report::session_input(
-            title,
-            source,
-            &[],
-            reasons,
-            exocal_report::Quality::default(),
-        );
-        input.interrupted = true;
-        let html = exocal_report::html::render_session(&input);
+        let html = html_report::interrupted(title, source, self.session.stats(), seconds);
         self.write_report(&html, "session report");
     }
 
@@ -1053,10 +480,8 @@ impl<T: Transport> Running<'_, '_, T> {
     /// (`exocal_report::html::with_push`: string work, no plot re-rendered, so it costs the
     /// slowest controller nothing). A report that cannot be written leaves the first in place.
     fn report_push(&mut self) {
-        let Some(push) = self.summary.push.as_ref().map(records::push_records) else {
-            return;
-        };
-        let Some(html) = self.report.take() else {
+        let push = self.summary.push.as_ref().map(records::push_records);
+        let (Some(push), Some(html)) = (push, self.report.take()) else {
             return;
         };
         if let Some(html) = exocal_report::html::with_push(&html, &push) {
@@ -1066,38 +491,21 @@ impl<T: Transport> Running<'_, '_, T> {
 
     /// The report's title and source line for a live session.
     fn report_titles(&self, what: &str) -> (String, String) {
-        let path = &self.summary.log_path;
-        let name = path
-            .file_name()
-            .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
-        (
-            format!("exocald {what} — {name}"),
-            format!(
-                "live session on {}, started {}, logged to {}; {}",
-                self.config.interface,
-                exocal_log::write::utc_time(ns(self.start)),
-                path.display(),
-                crate::shell::html_report::config_line(&self.config.calibration)
-            ),
-        )
+        let c = self.config;
+        html_report::live_titles(what, &self.summary.log_path, self.start, c)
     }
 
     /// Writes the report next to the log; a report that cannot be written is a warning, never
     /// a reason to withhold a validated table.
     fn write_report(&mut self, html: &str, what: &str) {
-        let path = crate::shell::html_report::report_path_for_log(&self.summary.log_path);
         let now = self.clock.now();
-        match std::fs::write(&path, html) {
-            Ok(()) => {
+        match html_report::write_next_to(&self.summary.log_path, html) {
+            Ok(path) => {
                 self.io
                     .event(now, Level::Info, &format!("{what}: {}", path.display()));
                 self.summary.report_path = Some(path);
             }
-            Err(e) => self.io.event(
-                now,
-                Level::Warning,
-                &format!("cannot write the report {}: {e}", path.display()),
-            ),
+            Err(e) => self.io.event(now, Level::Warning, &e),
         }
     }
 
@@ -1107,22 +515,18 @@ impl<T: Transport> Running<'_, '_, T> {
     }
 }
 
-/// Whether a pinned future is already complete (polled once, without waiting).
-fn futures_ready<F: Future<Output = ()>>(f: &mut Pin<&mut F>) -> bool {
-    let waker = std::task::Waker::noop();
-    let mut cx = std::task::Context::from_waker(waker);
-    f.as_mut().poll(&mut cx).is_ready()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
     use crate::shell::shutdown::Shutdown;
-    use exocal_bus::InProcessBus;
     use exocal_bus::SimClock;
+    use exocal_bus::{Frame, InProcessBus};
+    use exocal_dbc::table::Table;
+    use exocal_dbc::NodeId;
     use exocal_hil::{Hil, Scenario};
     use exocal_session::validate::Refusal;
+    use std::path::PathBuf;
 
     fn temp_dir(name: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("exocald-runner-{}-{name}", std::process::id()));
@@ -1397,6 +801,9 @@ mod tests {
             summary.aligned_samples
         );
         assert!(html.contains(&format!("<td>{}</td>", summary.aligned_samples)));
+        // The frames counted are the collection's (16 s of eight nodes at 100 Hz and more), not
+        // those that arrived while its report was rendered.
+        assert!(summary.frames.received > 16 * 800, "{:?}", summary.frames);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

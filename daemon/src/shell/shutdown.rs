@@ -2,7 +2,11 @@
 //!
 //! Contract: [`Shutdown::on_signals`] raises the flag on the first SIGTERM or SIGINT (inside a
 //! tokio runtime); [`Shutdown::manual`] gives tests and the demo a flag raised by hand;
-//! [`Shutdown::wait`] completes once the flag is up, for every clone, however late it is asked.
+//! [`Shutdown::wait`] completes once the flag is up, for every clone, however late it is asked;
+//! [`is_done`] tells, without waiting, whether a shutdown future has completed.
+
+use std::future::Future;
+use std::pin::Pin;
 
 use tokio::signal::unix::{signal, SignalKind};
 
@@ -49,4 +53,11 @@ impl Shutdown {
             }
         }
     }
+}
+
+/// Whether a pinned future is already complete (polled once, without waiting).
+pub fn is_done<F: Future<Output = ()>>(f: &mut Pin<&mut F>) -> bool {
+    let waker = std::task::Waker::noop();
+    let mut cx = std::task::Context::from_waker(waker);
+    f.as_mut().poll(&mut cx).is_ready()
 }

@@ -1,11 +1,135 @@
-//! The session summary as `exocald` prints it on stdout: what the user reads after a session
-//! (log path, frames, clocks, expected table error, push), one line per fact, and last the
-//! verdict ([`verdict`]); or only the verdict (`--quiet`), or one JSON object (`--json`,
-//! [`json`]). Used by every subcommand that runs a session and by the serve loop; it imports
-//! nothing of theirs.
+//! What a session did ([`SessionSummary`], or [`SessionError`] when it failed) and how it goes
+//! to stdout: what the user reads after a session (log path, frames, clocks, expected table
+//! error, push), one line per fact, and last the verdict ([`verdict`]); or only the verdict
+//! (`--quiet`), or one JSON object (`--json`, [`json`]). Used by every subcommand that runs a
+//! session and by the serve loop; it imports nothing of theirs.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use serde::Serialize;
+
+use exocal_session::collect::Collected;
+use exocal_session::gate::GateStats;
+use exocal_session::ingest::{ClockReport, FrameStats, StallReport};
+use exocal_session::pipeline::Outcome;
 
 use crate::exit::DaemonError;
-use crate::shell::runner::{SessionError, SessionSummary};
+use crate::push::PushReport;
+
+/// What a session did (also when it failed: see [`SessionError`]).
+#[derive(Debug, Clone, Serialize)]
+pub struct SessionSummary {
+    /// The session log (for an offline run, the input).
+    pub log_path: PathBuf,
+    /// Messages written to the log, per topic: `(topic, count)`.
+    pub log_counts: Vec<(String, u64)>,
+    /// Frames received in the collection window: those the calibration used (frames that
+    /// arrive while calibrating and pushing are not counted), as an offline replay of the log
+    /// counts them.
+    pub frames: FrameStats,
+    /// One report per node clock (joints, then the end effector).
+    pub clocks: Vec<ClockReport>,
+    /// Receiver stalls (not counted in any node's clock jumps).
+    pub stalls: StallReport,
+    /// Samples on the common grid.
+    pub aligned_samples: usize,
+    /// Grid points excluded as gaps.
+    pub gaps: usize,
+    /// The calibration; `None` when none was computed.
+    pub outcome: Option<Outcome>,
+    /// The push, per node; `None` when nothing was pushed.
+    pub push: Option<PushReport>,
+    /// The HTML calibration report, once written (next to the log for a live session).
+    pub report_path: Option<PathBuf>,
+    /// Stream verification: spans verified and dropped; `None` when the streams were not
+    /// authenticated (`[push] authenticate = false`, or an offline replay).
+    pub stream: Option<GateStats>,
+    /// What the user waited after the collection window, when every node's table was verified.
+    pub latency: Option<Latency>,
+}
+
+/// The power-up latency: from the end of the collection window until every node's table was
+/// verified (CRC read back) — alignment, calibration, validation, report and push.
+///
+/// `real` is this machine's monotonic clock over that span; `session` the session clock's. On
+/// the wall clock (SocketCAN) the two agree and the latency is `real`. On simulated time (the
+/// demo) the session clock stands still while the daemon computes and the real clock hardly
+/// moves while the emulated bus and nodes answer, so the latency a suit on a real bus would see
+/// is their sum: this machine's computing plus the bus's and the nodes' time as emulated.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Latency {
+    /// This machine's monotonic clock from the end of the window to the last verified table.
+    pub real: Duration,
+    /// The session clock over the same span.
+    pub session: Duration,
+    /// Whether the session clock was simulated.
+    pub simulated: bool,
+}
+
+impl Latency {
+    /// The latency a user waits: see [`Latency`].
+    pub fn total(&self) -> Duration {
+        if self.simulated {
+            self.real + self.session
+        } else {
+            self.real
+        }
+    }
+}
+
+impl SessionSummary {
+    /// The summary of a session logged to `log_path` (or replayed from it) that did nothing yet.
+    pub fn new(log_path: PathBuf) -> SessionSummary {
+        SessionSummary {
+            log_path,
+            log_counts: Vec::new(),
+            frames: FrameStats::default(),
+            clocks: Vec::new(),
+            stalls: StallReport::default(),
+            aligned_samples: 0,
+            gaps: 0,
+            outcome: None,
+            push: None,
+            report_path: None,
+            latency: None,
+            stream: None,
+        }
+    }
+
+    /// Records what the session collected.
+    pub fn collected(&mut self, c: &Collected) {
+        self.frames = c.frames.clone();
+        self.clocks = c.clocks.clone();
+        self.stalls = c.stalls;
+        self.aligned_samples = c.samples.len();
+        self.gaps = c.gaps;
+    }
+}
+
+/// A failed session: why, and what it did up to then (the log is finished).
+#[derive(Debug)]
+pub struct SessionError {
+    /// Why the session failed.
+    pub error: DaemonError,
+    /// What it did up to then; `None` when it failed before it started.
+    pub summary: Option<SessionSummary>,
+}
+
+impl From<DaemonError> for SessionError {
+    fn from(error: DaemonError) -> Self {
+        SessionError {
+            error,
+            summary: None,
+        }
+    }
+}
+
+impl From<DaemonError> for Box<SessionError> {
+    fn from(error: DaemonError) -> Self {
+        Box::new(SessionError::from(error))
+    }
+}
 
 /// How a session's result goes to stdout.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]

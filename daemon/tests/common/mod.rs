@@ -6,7 +6,7 @@ use std::path::Path;
 
 use exocald::config::Config;
 use exocald::exit::DaemonError;
-use exocald::shell::runner::{SessionError, SessionSummary};
+use exocald::shell::summary::{SessionError, SessionSummary};
 
 /// One live session of the paper scenario with `seed`, as `exocald demo` runs it (the emulated
 /// suit and the daemon on the in-process bus, on simulated time, as fast as the machine

@@ -3,7 +3,7 @@
 //! with its HTML report. Both pinned to CPU 0, the release binary.
 //!
 //! The latency is the daemon's own figure (its summary line "end of collection to every table
-//! verified", `exocald::shell::runner::Latency`): this machine's real time computing (alignment, LS,
+//! verified", `exocald::shell::summary::Latency`): this machine's real time computing (alignment, LS,
 //! EM, validation, refit, report, push) plus the simulated time the emulated bus and nodes
 //! took. The offline CPU is the child's user + system time (`getrusage(RUSAGE_CHILDREN)` around
 //! each run).
