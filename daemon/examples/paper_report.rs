@@ -42,6 +42,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             ..Quality::default()
         },
         verdict: None,
+        at_rest: None,
         push: None,
     };
     let started = std::time::Instant::now();

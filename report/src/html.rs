@@ -16,8 +16,8 @@ use calib_core::drift_conf::Z_95;
 use calib_core::{pose_error, DhTable, TableError};
 
 use crate::input::{
-    excitation, param_name, param_value, Calibration, EmDetail, NodePush, Quality, ReportInput,
-    SessionInput, TimedSample, JOINTS, PARAMS,
+    excitation, param_name, param_value, AtRest, Calibration, EmDetail, NodePush, Quality,
+    ReportInput, SessionInput, TimedSample, JOINTS, PARAMS,
 };
 use crate::plot::{
     bars, esc, histogram, line_panels, Binning, Distribution, Panel, PlotError, Series, ACTUAL,
@@ -770,6 +770,9 @@ pub fn render(input: &ReportInput) -> String {
     if let Ok(em) = &c.em {
         ls_against_em(&mut out, em);
     }
+    if let Some(r) = &input.at_rest {
+        at_rest(&mut out, r);
+    }
     figure(
         &mut out,
         FIGURES[5],
@@ -903,6 +906,40 @@ fn push_table(out: &mut String, push: &[NodePush]) {
 }
 
 /// Each joint's fitted τ and σ, with their 95% intervals when the EM gave their confidence.
+/// The unaided joints' gyro bias measured at rest: per joint, the bias and its standard error,
+/// and how long the suit was still; or that it never was, and what that leaves in the table.
+fn at_rest(out: &mut String, r: &AtRest) {
+    out.push_str("<h3>Gyro bias at rest</h3>\n");
+    if r.runs == 0 {
+        let _ = writeln!(out, "<p class=\"note\">{}.</p>", esc(&r.to_string()));
+        return;
+    }
+    let _ = writeln!(
+        out,
+        "<p class=\"note\">The suit was still for {:.1} s ({} run{}): there the unaided joints' \
+         gyros read their bias alone. It was taken out of their readings before least squares \
+         and the EM, and what is left of it (its standard error) is the rate-bias spec the \
+         stated error allows for.</p>",
+        r.still_s,
+        r.runs,
+        if r.runs == 1 { "" } else { "s" }
+    );
+    out.push_str(
+        "<table class=\"at-rest\"><thead><tr><th>joint</th><th>bias (°/s)</th>\
+         <th>standard error (°/s)</th></tr></thead><tbody>",
+    );
+    for j in (0..JOINTS).filter(|&j| r.joints[j]) {
+        let _ = write!(
+            out,
+            "<tr><td>{}</td><td>{:+.4}</td><td>{:.4}</td></tr>",
+            j + 1,
+            r.bias_deg_s[j],
+            r.se_deg_s[j]
+        );
+    }
+    out.push_str("</tbody></table>\n");
+}
+
 fn drift_table(out: &mut String, em: &EmDetail) {
     let ci = em.drift_confidence.is_some();
     out.push_str("<table class=\"drift\"><thead><tr><th>joint</th><th>τ (s)</th>");
@@ -1095,5 +1132,47 @@ mod tests {
             Some("<tr><th>receiver stalls</th><td>2 (longest 412 ms)</td></tr>")
         );
         assert_eq!(row(&q(0, None)), None);
+    }
+
+    #[test]
+    fn the_gyro_at_rest_shows_each_unaided_joints_bias_or_that_the_suit_was_never_still() {
+        let mut joints = [false; JOINTS];
+        (joints[0], joints[2]) = (true, true);
+        let mut r = AtRest {
+            still_s: 4.56,
+            runs: 2,
+            joints,
+            bias_deg_s: [
+                0.0251,
+                f64::NAN,
+                -0.0183,
+                f64::NAN,
+                f64::NAN,
+                f64::NAN,
+                f64::NAN,
+            ],
+            se_deg_s: [
+                0.0041,
+                f64::NAN,
+                0.0052,
+                f64::NAN,
+                f64::NAN,
+                f64::NAN,
+                f64::NAN,
+            ],
+        };
+        let mut out = String::new();
+        at_rest(&mut out, &r);
+        assert!(out.contains("still for 4.6 s (2 runs)"), "{out}");
+        let rows: Vec<&str> = out.matches("<tr><td>").collect();
+        assert_eq!(rows.len(), 2, "a row per unaided joint: {out}");
+        assert!(out.contains("<tr><td>1</td><td>+0.0251</td><td>0.0041</td></tr>"));
+        assert!(out.contains("<tr><td>3</td><td>-0.0183</td><td>0.0052</td></tr>"));
+        r.runs = 0;
+        let mut out = String::new();
+        at_rest(&mut out, &r);
+        assert!(out.contains("never still for"), "{out}");
+        assert!(out.contains("joints 1, 3 not measured"), "{out}");
+        assert!(!out.contains("<table"));
     }
 }

@@ -10,6 +10,7 @@ pub use exocal_log::proto::NodePush;
 pub use exocal_session::detail::{
     Calibration, Correlation, EmDetail, LsDetail, Quality, StreamQuality, TimedSample,
 };
+pub use exocal_session::pipeline::AtRest;
 pub use exocal_session::{JOINTS, PARAMS};
 
 /// The validation verdict, if the caller validated the table.
@@ -46,6 +47,9 @@ pub struct ReportInput {
     pub quality: Quality,
     /// The validation verdict, if the caller validated the table.
     pub verdict: Option<VerdictSummary>,
+    /// The gyros' bias measured where the suit was still, for the unaided joints
+    /// (`[sensors] unaided_joints`); `None` when no joint is unaided.
+    pub at_rest: Option<AtRest>,
     /// The push's outcome per node (the log's `/calibration` push records), once the table
     /// was pushed; `None` before the push, in a dry run and offline.
     pub push: Option<Vec<NodePush>>,

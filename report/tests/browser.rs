@@ -94,6 +94,7 @@ fn input() -> ReportInput {
             accepted: false,
             reasons: vec!["a test reason".into()],
         }),
+        at_rest: None,
         push: None,
     }
 }

@@ -623,16 +623,21 @@ pub fn separate_readings(samples: &mut [Sample<JOINTS>], settings: &Settings) ->
     .map(|j| j.correction_rms)
 }
 
-/// The gyros' bias where the suit was still in `samples` (calib-core's `rest`: the joints'
-/// rates and the measured pose), when `[sensors]` names unaided joints; `None` otherwise, or
-/// where the suit was never still for `calib_core::rest::MIN_REST_S`.
-pub fn gyro_at_rest(samples: &[AlignedSample], settings: &Settings) -> Option<GyroBias<JOINTS>> {
+/// The gyros' bias where the suit was still (calib-core's `rest`: the joints' rates of
+/// `samples` and the measured pose of `plain`, the same samples as calib-core takes them), when
+/// `[sensors]` names unaided joints; `None` otherwise, or where the suit was never still for
+/// `calib_core::rest::MIN_REST_S`.
+pub fn gyro_at_rest(
+    samples: &[AlignedSample],
+    plain: &[Sample<JOINTS>],
+    settings: &Settings,
+) -> Option<GyroBias<JOINTS>> {
     if !settings.sensors.unaided.iter().any(|&u| u) {
         return None;
     }
     let mut rest = GyroAtRest::new(1.0 / settings.window.grid_hz);
-    for s in samples {
-        rest.push(&s.sample().pose, &s.rates);
+    for (s, p) in samples.iter().zip(plain) {
+        rest.push(&p.pose, &s.rates);
     }
     rest.estimate()
 }
@@ -644,7 +649,7 @@ pub fn take_out_gyro_bias(
     plain: &mut [Sample<JOINTS>],
     settings: &Settings,
 ) -> Option<GyroBias<JOINTS>> {
-    let bias = gyro_at_rest(samples, settings)?;
+    let bias = gyro_at_rest(samples, plain, settings)?;
     let t0 = samples.first().map_or(0.0, |s| s.t);
     for (s, a) in plain.iter_mut().zip(samples) {
         bias.correct(s, a.t - t0, &settings.sensors.unaided);

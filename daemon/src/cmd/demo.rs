@@ -726,6 +726,12 @@ mod tests {
                         j + 1
                     );
                 }
+                // The report shows them too.
+                let report = r.summary.report_path.as_ref().expect("a report");
+                let html = std::fs::read_to_string(report).unwrap();
+                assert!(html.contains("<h3>Gyro bias at rest</h3>"));
+                let row = format!("<tr><td>3</td><td>{:+.4}</td>", rest.bias_deg_s[2]);
+                assert!(html.contains(&row), "{row}");
             } else {
                 assert!(outcome.at_rest.is_none());
             }

@@ -121,6 +121,7 @@ pub fn report_input(
                 .map(ToString::to_string)
                 .collect(),
         }),
+        at_rest: calibrated.outcome.at_rest,
         push,
     }
 }
