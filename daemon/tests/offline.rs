@@ -184,7 +184,8 @@ fn offline_recalibration_agrees_with_the_live_session() {
     let samples: Vec<_> = exocal_session::pipeline::timed(
         &offline::recalibrate(&recording, gate, &config)
             .unwrap()
-            .collected
+            .job
+            .collected()
             .samples,
     );
     assert_eq!(std::fs::read_to_string(&csv).unwrap(), csv_text(&samples));

@@ -16,7 +16,7 @@ use crate::align::AlignedSample;
 use crate::collect::Collected;
 use crate::detail::TimedSample;
 use crate::window::{Shortfall, Window};
-use crate::{Session, Settings};
+use crate::{CalibrationJob, Session, Settings};
 
 /// Relative difference between a recording's sample rate and `window.grid_hz` below which the
 /// configured rate is kept (a CSV `t` column's decimal rounding, not a different rate).
@@ -34,10 +34,10 @@ pub enum Recording {
 /// The recording as the live session would have collected it, before calibrating.
 #[derive(Debug, Clone)]
 pub struct Replay {
-    /// What the live session would have gathered (for samples: unaligned).
-    pub collected: Collected,
-    /// The settings the calibration runs with (for samples, `window.grid_hz` is theirs).
-    pub settings: Settings,
+    /// What the live session would have gathered (for samples: unaligned), with the settings
+    /// the calibration runs with (for samples, `window.grid_hz` is theirs): the calibration
+    /// the live session would have run.
+    pub job: CalibrationJob,
     /// First to last frame (or sample), seconds.
     pub duration_s: f64,
     /// The window rules the recording does not meet: empty when the live daemon would have
@@ -73,9 +73,8 @@ pub fn replay_gated(
                 _ => 0.0,
             };
             Replay {
-                collected: session.collected(),
                 shortfalls: session.at_end(duration_s),
-                settings,
+                job: session.into_calibration(),
                 duration_s,
             }
         }
@@ -103,10 +102,10 @@ pub fn replay_gated(
                 .iter()
                 .map(|s| AlignedSample::of(s.t, &s.sample))
                 .collect();
+            let collected = Collected::from_samples(aligned, &settings);
             Replay {
-                collected: Collected::from_samples(aligned, &settings),
+                job: CalibrationJob::new(collected, settings),
                 shortfalls: window.at_end(duration_s),
-                settings,
                 duration_s,
             }
         }

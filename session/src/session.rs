@@ -54,6 +54,15 @@ pub struct CalibrationJob {
 }
 
 impl CalibrationJob {
+    /// The calibration of `collected` under `settings` (samples that needed no session: a
+    /// CSV's; a session hands out its own, [`Session::into_calibration`]).
+    pub fn new(collected: Collected, settings: Settings) -> CalibrationJob {
+        CalibrationJob {
+            collected,
+            settings,
+        }
+    }
+
     /// What the session collected, aligned.
     pub fn collected(&self) -> &Collected {
         &self.collected

@@ -3,8 +3,8 @@
 //! Contract:
 //! - frame-level inputs — the daemon's MCAP session log (`/can/rx`) or a `candump -L` log — are
 //!   replayed frame by frame, in file order and with their recorded receive times, through the
-//!   live session's own collector (`exocal_session::replay`) and calibrated by [`pipeline::run`]: the live session's
-//!   code path, minus the bus. The same frames give the same table, bit for bit;
+//!   live session's own `Session` (`exocal_session::replay`) and calibrated by the same
+//!   [`CalibrationJob`]: the live session's code path, minus the bus. The same frames give the same table, bit for bit;
 //! - an MCAP log is replayed up to the end of its collection window: the live session writes
 //!   an `exocal_log::CollectionEnd` record on `/collection` when it stops collecting, and
 //!   calibrated on exactly the first `frames` received frames
@@ -47,13 +47,12 @@ use std::path::{Path, PathBuf};
 use exocal_dbc::Received;
 use exocal_log::read::{read_mcap_session, McapSession, Phase};
 use exocal_log::scan::Scan;
-use exocal_session::collect::Collected;
 use exocal_session::formats::{self, CandumpReader, CsvReader, InputKind, ReadError};
 use exocal_session::gate::{RejectRun, StreamGate};
 use exocal_session::pipeline::{self, Calibrated};
 use exocal_session::replay::{replay_gated, Recording};
 use exocal_session::rules::Budget;
-use exocal_session::{Settings, WindowRules};
+use exocal_session::{CalibrationJob, WindowRules};
 
 pub use crate::cli::Format;
 use crate::config::Config;
@@ -318,10 +317,9 @@ fn export_frames(frames: &[Received], gate: Option<StreamGate>) -> (Vec<Received
 /// What a recalibration produced.
 #[derive(Debug, Clone)]
 pub struct Recalibration {
-    /// What the replay gathered: the aligned samples and their quality.
-    pub collected: Collected,
-    /// The settings the calibration ran with (for CSV, `session.grid_hz` is the file's).
-    pub settings: Settings,
+    /// What the replay gathered (the aligned samples and their quality) and the settings the
+    /// calibration ran with (for CSV, `session.grid_hz` is the file's).
+    pub job: CalibrationJob,
     /// What the pipeline computed from them.
     pub calibrated: Calibrated,
 }
@@ -339,10 +337,9 @@ pub fn recalibrate(
     if !r.shortfalls.is_empty() {
         return Err(DaemonError::Session(r.shortfalls));
     }
-    let calibrated = pipeline::run(&r.collected.samples, &r.settings)?;
+    let calibrated = r.job.run()?;
     Ok(Recalibration {
-        collected: r.collected,
-        settings: r.settings,
+        job: r.job,
         calibrated,
     })
 }
@@ -453,10 +450,10 @@ pub fn run(
         .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
     let title = format!("exocald offline recalibration — {name}");
     let mut summary = SessionSummary::new(path.clone());
-    summary.collected(&replayed.collected);
+    summary.collected(replayed.job.collected());
     summary.report_path = Some(report_path.clone());
     let calibrated = if replayed.shortfalls.is_empty() {
-        pipeline::run(&replayed.collected.samples, &replayed.settings).map_err(DaemonError::from)
+        replayed.job.run().map_err(DaemonError::from)
     } else {
         Err(DaemonError::Session(replayed.shortfalls.clone()))
     };
@@ -470,8 +467,8 @@ pub fn run(
     let html = crate::shell::html_report::render(
         title,
         source,
-        &replayed.settings,
-        &replayed.collected,
+        replayed.job.settings(),
+        replayed.job.collected(),
         calibrated.as_ref().map_err(|_| reasons.as_slice()),
     );
     std::fs::write(&report_path, html).map_err(|source| DaemonError::Io {
@@ -479,7 +476,7 @@ pub fn run(
         source,
     })?;
     if let Some(out) = &opts.export_csv {
-        let samples = pipeline::timed(&replayed.collected.samples);
+        let samples = pipeline::timed(&replayed.job.collected().samples);
         write_file(out, "CSV samples", formats::csv_text(&samples).as_bytes())?;
     }
     let calibrated = match calibrated {
@@ -521,7 +518,7 @@ pub fn run(
             continue;
         }
         let text = if what == "URDF" {
-            let limits = &replayed.settings.bounds.joint_range.limits;
+            let limits = &replayed.job.settings().bounds.joint_range.limits;
             exocal_report::export::urdf("exocal_suit", &table, limits).map_err(|e| e.to_string())
         } else {
             crate::config::with_nominal(config_text, &table).map_err(|e| e.to_string())
