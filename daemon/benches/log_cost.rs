@@ -42,7 +42,7 @@ fn pass(frames: &[exocal_bus::Received], log: bool, dir: &std::path::Path) -> (D
         let t = rx.timestamp.as_nanos() as u64;
         let event = ingest.on_frame(rx);
         if let Some(s) = session.as_mut() {
-            // As the session's loop records each frame (runner.rs, `take_frame`).
+            // As the session's loop records each frame (`shell::io`, `Io::take_frame`).
             s.can_frame(false, &frame_record(&rx.frame, rx.timestamp))
                 .expect("write");
             if let Event::Sample {

@@ -197,7 +197,6 @@ impl From<crate::push::PushError> for DaemonError {
     fn from(e: crate::push::PushError) -> Self {
         use crate::push::PushError;
         match e {
-            PushError::Unpushable(why) => DaemonError::Unpushable(why),
             PushError::Incomplete(failed) => DaemonError::Push(failed),
             PushError::Bus(source) => DaemonError::Bus {
                 what: "pushing tables (what each node was sent and holds is in the log)".into(),
@@ -237,6 +236,21 @@ impl From<CalibrateError> for DaemonError {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_push_that_ends_short_is_a_push_failure_and_a_bus_that_fails_a_bus_error() {
+        use crate::push::PushError;
+        let incomplete = DaemonError::from(PushError::Incomplete("joint 2: Old".into()));
+        assert!(matches!(&incomplete, DaemonError::Push(why) if why == "joint 2: Old"));
+        assert_eq!(incomplete.to_string(), "push failed: joint 2: Old");
+        let bus = DaemonError::from(PushError::Bus(exocal_bus::BusError::Closed));
+        let DaemonError::Bus { what, .. } = &bus else {
+            panic!("{bus:?}")
+        };
+        assert!(what.starts_with("pushing tables"), "{what}");
+        assert_eq!(bus.exit_code(), code::IOERR);
+        assert_eq!(incomplete.exit_code(), code::UNAVAILABLE);
+    }
 
     #[test]
     fn each_failure_has_its_own_status() {

@@ -45,6 +45,9 @@
 //!   it went, per node — `Old` where no Commit went out and the node's answer says so,
 //!   `Unknown` where a Commit went out and nothing was heard since — which the session logs
 //!   before it fails;
+//! - a calibration is pushed with [`push_calibration`]: its tables ([`node_tables`]) to every
+//!   node, the report per node, and how the push ended ([`PushError`]: nodes that do not hold
+//!   their new table, or a bus that failed mid-way);
 //! - time comes from the bus clock (simulated in the demo), never from the system directly;
 //!   timeouts and backoffs run on its monotonic reading ([`Clock::monotonic`]), so a step of
 //!   the wall clock cannot stall or hurry a push.
@@ -243,42 +246,44 @@ impl std::error::Error for PushFailed {
     }
 }
 
-/// Why a calibration's push did not leave every node holding its new table.
+/// Why a push did not leave every node holding its new table ([`push_calibration`]).
 #[derive(Debug)]
 pub enum PushError {
-    /// A table does not fit the DBC, or a joint has no node: nothing was pushed.
-    Unpushable(String),
     /// The nodes that do not hold their new table, a line each, joined by "; ".
     Incomplete(String),
     /// The bus failed mid-way ([`PushFailed`]).
     Bus(exocal_bus::BusError),
 }
 
-/// Pushes a validated calibration's tables ([`node_tables`]) with [`push_tables`]. Returns the
-/// report as far as the push went (`None` when the tables could not be made) and how it ended.
+impl std::fmt::Display for PushError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PushError::Incomplete(failed) => write!(f, "not every node holds its table: {failed}"),
+            PushError::Bus(e) => write!(f, "the bus failed mid-way through the push: {e}"),
+        }
+    }
+}
+
+impl std::error::Error for PushError {}
+
+/// Pushes a calibration's `tables` ([`node_tables`]) with [`push_tables`]. Returns the report
+/// (as far as the push went, when the bus failed mid-way) and how the push ended.
 pub async fn push_calibration<T: Transport>(
     bus: &mut T,
     clock: &Clock,
-    outcome: &Outcome,
-    config: &Config,
+    tables: &[(NodeId, Table)],
+    policy: &PushPolicy,
     first_session: u8,
     observer: &mut dyn PushObserver,
-) -> (Option<PushReport>, Result<(), PushError>) {
-    let tables = match node_tables(outcome, config) {
-        Ok(tables) => tables,
-        Err(why) => return (None, Err(PushError::Unpushable(why))),
-    };
-    let pushed = push_tables(bus, clock, &tables, &config.push, first_session, observer).await;
-    // A push the bus stopped mid-way is reported as far as it went, per node, then fails.
-    let (report, result) = match pushed {
+) -> (PushReport, Result<(), PushError>) {
+    match push_tables(bus, clock, tables, policy, first_session, observer).await {
         Ok(report) if report.complete() => (report, Ok(())),
         Ok(report) => {
             let failed = report.failures();
             (report, Err(PushError::Incomplete(failed)))
         }
         Err(failed) => (failed.report, Err(PushError::Bus(failed.error))),
-    };
-    (Some(report), result)
+    }
 }
 
 /// Pushes `tables` to their nodes; `first_session` numbers the transfer sessions (incremented

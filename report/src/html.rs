@@ -905,7 +905,6 @@ fn push_table(out: &mut String, push: &[NodePush]) {
     out.push_str("</table>\n");
 }
 
-/// Each joint's fitted τ and σ, with their 95% intervals when the EM gave their confidence.
 /// The unaided joints' gyro bias measured at rest: per joint, the bias and its standard error,
 /// and how long the suit was still; or that it never was, and what that leaves in the table.
 fn at_rest(out: &mut String, r: &AtRest) {
@@ -940,6 +939,7 @@ fn at_rest(out: &mut String, r: &AtRest) {
     out.push_str("</tbody></table>\n");
 }
 
+/// Each joint's fitted τ and σ, with their 95% intervals when the EM gave their confidence.
 fn drift_table(out: &mut String, em: &EmDetail) {
     let ci = em.drift_confidence.is_some();
     out.push_str("<table class=\"drift\"><thead><tr><th>joint</th><th>τ (s)</th>");

@@ -635,6 +635,11 @@ pub fn gyro_at_rest(
     if !settings.sensors.unaided.iter().any(|&u| u) {
         return None;
     }
+    debug_assert_eq!(
+        samples.len(),
+        plain.len(),
+        "one calib-core sample per aligned sample"
+    );
     let mut rest = GyroAtRest::new(1.0 / settings.window.grid_hz);
     for (s, p) in samples.iter().zip(plain) {
         rest.push(&p.pose, &s.rates);

@@ -13,8 +13,8 @@
 //!   the caller's loop; [`Session::estimated`] takes its result;
 //! - [`Session::at_end`] judges a recording by the same rules at its end: the live session
 //!   and `exocald offline` refuse the same collections for the same reasons;
-//! - [`Session::collected`] aligns what was gathered (see `collect`); [`Session::into_calibration`]
-//!   does so at the window's end and hands out the [`CalibrationJob`], which calibrates it
+//! - [`Session::into_calibration`] ends the collection: it aligns what was gathered (see
+//!   `collect`) and hands out the [`CalibrationJob`], which calibrates it
 //!   ([`crate::pipeline::run`]) off the caller's loop.
 //!
 //! The caller owns I/O and time: the daemon's loop reads the bus and the clock, writes the log,
@@ -183,7 +183,7 @@ impl Session {
     }
 
     /// What was gathered, aligned (see the module docs).
-    pub fn collected(&self) -> Collected {
+    fn collected(&self) -> Collected {
         self.collector.collected(&self.settings)
     }
 

@@ -4,7 +4,8 @@
 //! - frame-level inputs — the daemon's MCAP session log (`/can/rx`) or a `candump -L` log — are
 //!   replayed frame by frame, in file order and with their recorded receive times, through the
 //!   live session's own `Session` (`exocal_session::replay`) and calibrated by the same
-//!   [`CalibrationJob`]: the live session's code path, minus the bus. The same frames give the same table, bit for bit;
+//!   [`CalibrationJob`]: the live session's code path, minus the bus. The same frames give the
+//!   same table, bit for bit;
 //! - an MCAP log is replayed up to the end of its collection window: the live session writes
 //!   an `exocal_log::CollectionEnd` record on `/collection` when it stops collecting, and
 //!   calibrated on exactly the first `frames` received frames

@@ -88,10 +88,15 @@ pub fn stream_verification(gate: &exocal_session::gate::StreamGate) -> proto::St
     }
 }
 
+/// A bus time as the log's nanoseconds (saturating).
+pub fn ns(t: std::time::Duration) -> u64 {
+    t.as_nanos().min(u128::from(u64::MAX)) as u64
+}
+
 /// The raw frame `frame` seen at `t` (host time; on SocketCAN also the kernel's timestamp).
 pub fn frame_record(frame: &Frame, t: std::time::Duration) -> CanFrameRecord {
     use exocal_bus::embedded_can::Frame as _;
-    let ns = t.as_nanos().min(u128::from(u64::MAX)) as u64;
+    let ns = ns(t);
     CanFrameRecord {
         id: frame.raw_id(),
         extended: frame.is_extended(),

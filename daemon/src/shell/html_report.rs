@@ -21,6 +21,8 @@ use exocal_session::ingest::FrameStats;
 use exocal_session::pipeline::{timed, Calibrated};
 use exocal_session::Settings;
 
+use exocal_log::write::Level;
+
 use crate::config::Config;
 
 /// The report next to a session log: same folder and stem, extension `html`.
@@ -28,32 +30,74 @@ pub fn report_path_for_log(log: &Path) -> PathBuf {
     log.with_extension("html")
 }
 
-/// Writes a session's report `html` next to its log (see [`report_path_for_log`]); the error
-/// names the file and why.
-pub fn write_next_to(log: &Path, html: &str) -> Result<PathBuf, String> {
-    let path = report_path_for_log(log);
-    match std::fs::write(&path, html) {
-        Ok(()) => Ok(path),
-        Err(e) => Err(format!("cannot write the report {}: {e}", path.display())),
-    }
+/// A live session's report file, next to its log ([`report_path_for_log`]): its titles, its
+/// writes, and the calibration report kept to be rewritten with the push. A report that cannot
+/// be written is a warning in the session, never a reason to withhold a validated table.
+pub struct ReportFile {
+    log: PathBuf,
+    /// The source line: the interface, the start, the log and the configuration.
+    source: String,
+    /// The calibration report as written before the push ([`ReportFile::with_push`]).
+    before_push: Option<String>,
+    /// The report, once written.
+    pub path: Option<PathBuf>,
 }
 
-/// The title and source line of a live session's report (`what`: "calibration" or "session"):
-/// its log, its interface, its start (`start`: bus time) and its configuration.
-pub fn live_titles(what: &str, log: &Path, start: Duration, config: &Config) -> (String, String) {
-    let name = log
-        .file_name()
-        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
-    let started = exocal_log::write::utc_time(start.as_nanos().min(u128::from(u64::MAX)) as u64);
-    (
-        format!("exocald {what} — {name}"),
-        format!(
-            "live session on {}, started {started}, logged to {}; {}",
+impl ReportFile {
+    /// The report of the live session logged to `log`, started at bus time `start`.
+    pub fn new(log: &Path, start: Duration, config: &Config) -> ReportFile {
+        let source = format!(
+            "live session on {}, started {}, logged to {}; {}",
             config.interface,
+            exocal_log::write::utc_time(crate::log::records::ns(start)),
             log.display(),
             config_line(&config.calibration)
-        ),
-    )
+        );
+        ReportFile {
+            log: log.to_path_buf(),
+            source,
+            before_push: None,
+            path: None,
+        }
+    }
+
+    /// The title (`what`: "calibration" or "session") and source line.
+    pub fn titles(&self, what: &str) -> (String, String) {
+        let name = (self.log.file_name()).map_or_else(String::new, |n| n.to_string_lossy().into());
+        (format!("exocald {what} — {name}"), self.source.clone())
+    }
+
+    /// Writes `html` (`what` the report is) next to the log; the line to log.
+    pub fn write(&mut self, html: &str, what: &str) -> (Level, String) {
+        let path = report_path_for_log(&self.log);
+        match std::fs::write(&path, html) {
+            Ok(()) => {
+                let line = format!("{what}: {}", path.display());
+                self.path = Some(path);
+                (Level::Info, line)
+            }
+            Err(e) => {
+                let line = format!("cannot write the report {}: {e}", path.display());
+                (Level::Warning, line)
+            }
+        }
+    }
+
+    /// Writes the calibration report `html` and keeps it for [`ReportFile::with_push`].
+    pub fn write_calibration(&mut self, html: String) -> (Level, String) {
+        let line = self.write(&html, "calibration report");
+        self.before_push = Some(html);
+        line
+    }
+
+    /// Once pushed (completely or not), the calibration report with the push's outcome per
+    /// node: its banner replaced and the push table added (`exocal_report::html::with_push`:
+    /// string work, no plot re-rendered, so it costs the slowest controller nothing). `None`
+    /// when there is nothing to rewrite; a report that cannot be written leaves the first.
+    pub fn with_push(&mut self, push: &[exocal_report::NodePush]) -> Option<(Level, String)> {
+        let html = exocal_report::html::with_push(&self.before_push.take()?, push)?;
+        Some(self.write(&html, "calibration report, with the push"))
+    }
 }
 
 /// The report of a session stopped `seconds` into its collection: when and with how many
@@ -163,5 +207,41 @@ pub fn session_input(
         interrupted: false,
         samples: timed(samples),
         quality,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_report_file_sits_beside_its_log_and_a_failed_write_is_a_warning() {
+        let dir = std::env::temp_dir().join(format!("exocal-report-file-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let log = dir.join("exocal-20261129T100000Z.mcap");
+        let config = Config::default_config();
+        let mut file = ReportFile::new(&log, Duration::from_secs(1_764_410_400), &config);
+        let (title, source) = file.titles("session");
+        assert_eq!(title, "exocald session — exocal-20261129T100000Z.mcap");
+        assert!(source.starts_with("live session on "), "{source}");
+        assert!(source.contains("started 2025-11-29"), "{source}");
+        assert!(
+            file.with_push(&[]).is_none(),
+            "no calibration report to rewrite"
+        );
+        let (level, line) = file.write_calibration("<html>".into());
+        assert_eq!(level, Level::Info);
+        assert!(line.starts_with("calibration report: "), "{line}");
+        let written = dir.join("exocal-20261129T100000Z.html");
+        assert_eq!(file.path.as_deref(), Some(written.as_path()));
+        assert_eq!(std::fs::read_to_string(&written).unwrap(), "<html>");
+        // A page without the report's push marks is left as it was.
+        assert!(file.with_push(&[]).is_none());
+        let mut lost = ReportFile::new(&dir.join("gone/x.mcap"), Duration::ZERO, &config);
+        let (level, line) = lost.write("<html>", "session report");
+        assert_eq!(level, Level::Warning);
+        assert!(line.starts_with("cannot write the report "), "{line}");
+        assert!(lost.path.is_none());
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -22,7 +22,7 @@ use exocal_session::Session;
 
 use crate::config::Config;
 use crate::exit::DaemonError;
-use crate::log::records::{self, Observer};
+use crate::log::records::{self, ns, Observer};
 use crate::push::PushObserver;
 use crate::shell::notify::{Notifier, Reporter};
 use crate::shell::tee::Recorder;
@@ -37,11 +37,6 @@ pub fn io_err(what: &str, e: LogError) -> DaemonError {
         what: what.to_string(),
         source: e,
     }
-}
-
-/// A bus time as the log's nanoseconds (saturating).
-pub fn ns(d: Duration) -> u64 {
-    d.as_nanos().min(u128::from(u64::MAX)) as u64
 }
 
 /// The log (and the session's other observers), the notifier and the reporter, and the

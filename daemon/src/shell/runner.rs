@@ -31,10 +31,11 @@ use exocal_session::{CalibrationJob, Session};
 use crate::config::Config;
 use crate::exit::DaemonError;
 use crate::live::LiveView;
+use crate::log::records::ns;
 use crate::log::records::{self, Observer};
 use crate::push::{self, PushReport};
-use crate::shell::html_report;
-use crate::shell::io::{ns, Io};
+use crate::shell::html_report::{self, ReportFile};
+use crate::shell::io::Io;
 use crate::shell::lines;
 use crate::shell::notify::{Notifier, Reporter};
 use crate::shell::shutdown;
@@ -94,14 +95,15 @@ pub async fn run_session_with<T: Transport>(
         session: Session::new(&config.calibration),
         nonces: StreamNonces::new(&config.push),
         origin: Duration::ZERO,
-        start,
+        handed_off: false,
         tick,
+        report: ReportFile::new(&log_path, start, config),
         summary: SessionSummary::new(log_path),
-        report: None,
     };
     tokio::pin!(shutdown);
     let result = running.run(dry_run, start, shutdown).await;
     let mut summary = running.summary;
+    summary.report_path = running.report.path;
     let (log_counts, result) = io.close(result, clock.now());
     summary.log_counts = log_counts;
     match result {
@@ -127,12 +129,12 @@ struct Running<'a, 'io, T> {
     nonces: StreamNonces<'a>,
     /// Bus time of the collection's first frame: aligned sample times are relative to it.
     origin: Duration,
-    /// Bus time the session started (its log's name).
-    start: Duration,
+    /// Whether the collection was handed over ([`Running::end_collection`]).
+    handed_off: bool,
     tick: tokio::time::Interval,
     summary: SessionSummary,
-    /// The calibration report as written before the push, for [`Running::report_push`].
-    report: Option<String>,
+    /// The session's report file.
+    report: ReportFile,
 }
 
 impl<T: Transport> Running<'_, '_, T> {
@@ -143,17 +145,15 @@ impl<T: Transport> Running<'_, '_, T> {
         start: Duration,
         mut shutdown: Pin<&mut S>,
     ) -> Result<(), DaemonError> {
-        match self.collect(shutdown.as_mut()).await {
-            // A refused collection was summed up with its report (the session was replaced).
-            Err(e @ DaemonError::Session(_)) => return Err(e),
-            Err(e) => {
+        if let Err(e) = self.collect(shutdown.as_mut()).await {
+            // Until the collection is handed over; a refused one was summed up with its report.
+            if !self.handed_off {
                 self.summary.frames = self.session.stats().clone();
-                if matches!(e, DaemonError::Interrupted) {
-                    self.interrupted_report(start);
-                }
-                return Err(e);
             }
-            Ok(()) => {}
+            if matches!(e, DaemonError::Interrupted) {
+                self.interrupted_report(start);
+            }
+            return Err(e);
         }
         let window_closed = (Instant::now(), self.clock.monotonic());
         let job = self.align(shutdown.as_mut()).await?;
@@ -184,7 +184,10 @@ impl<T: Transport> Running<'_, '_, T> {
                 simulated: matches!(self.clock, Clock::Simulated(_)),
             });
         }
-        self.report_push();
+        let push = self.summary.push.as_ref().map(records::push_records);
+        if let Some(line) = push.and_then(|push| self.report.with_push(&push)) {
+            self.io.lines(self.clock.now(), vec![line]);
+        }
         pushed?;
         Ok(())
     }
@@ -301,18 +304,28 @@ impl<T: Transport> Running<'_, '_, T> {
         &mut self,
         shutdown: Pin<&mut S>,
     ) -> Result<CalibrationJob, DaemonError> {
-        self.origin = self.session.origin().unwrap_or_default();
-        let session = std::mem::replace(&mut self.session, Session::new(&self.config.calibration));
+        let session = self.end_collection();
         let job = (self.off_loop("aligning", shutdown, move || session.into_calibration())).await?;
+        let now = self.clock.now();
+        // The warnings first, the samples, then the grid they are on.
+        let mut lines = lines::aligned(job.collected(), self.config.calibration.window.grid_hz);
+        let grid = lines.pop();
+        self.io.lines(now, lines);
         for (i, s) in job.collected().samples.iter().enumerate() {
             let r = self.io.log.aligned(self.log_time(s.t), s);
             self.io.check(r);
             self.io.between_records(i);
         }
-        let grid_hz = self.config.calibration.window.grid_hz;
-        let lines = lines::aligned(job.collected(), grid_hz);
-        self.io.lines(self.clock.now(), lines);
+        self.io.lines(now, grid.into_iter().collect());
         Ok(job)
+    }
+
+    /// Hands the collection over (the aligned samples' times are relative to its first frame)
+    /// and starts a fresh one, which decodes for the log what arrives afterwards.
+    fn end_collection(&mut self) -> Session {
+        self.origin = self.session.origin().unwrap_or_default();
+        self.handed_off = true;
+        std::mem::replace(&mut self.session, Session::new(&self.config.calibration))
     }
 
     /// Runs `job` on tokio's blocking pool while this thread keeps the bus drained (and
@@ -366,8 +379,8 @@ impl<T: Transport> Running<'_, '_, T> {
         self.io
             .reporter
             .phase("calibrating", "least squares, then EM");
-        let (calibration, source) = self.report_titles("calibration");
-        let (session, _) = self.report_titles("session");
+        let (calibration, source) = self.report.titles("calibration");
+        let (session, _) = self.report.titles("session");
         // The report is rendered on the blocking thread too: it is a few hundred ms of SVG.
         let (job, calibrated, html) = self
             .off_loop("calibration", shutdown, move || {
@@ -384,8 +397,8 @@ impl<T: Transport> Running<'_, '_, T> {
             .await?;
         // The samples would not calibrate: the report says why, as for a session that ran out
         // of time.
-        self.write_report(&html, "calibration report");
-        self.report = Some(html);
+        let line = self.report.write_calibration(html);
+        self.io.lines(self.clock.now(), vec![line]);
         Ok((job, calibrated?))
     }
 
@@ -422,25 +435,23 @@ impl<T: Transport> Running<'_, '_, T> {
     /// node holds afterwards (also when the push fails).
     async fn push(&mut self, start: Duration) -> Result<(), DaemonError> {
         let outcome = (self.summary.outcome.clone()).ok_or(DaemonError::Interrupted)?;
+        let tables = push::node_tables(&outcome, self.config).map_err(DaemonError::Unpushable)?;
         self.io.notifier.status("pushing tables");
         self.io.reporter.phase("pushing", "the tables to the nodes");
         let first_session = (ns(start) / 1_000_000 % 251) as u8;
-        let (bus, clock, config) = (&mut *self.bus, self.clock, self.config);
-        let pushed = push::push_calibration(bus, clock, &outcome, config, first_session, self.io);
+        let (bus, clock, policy) = (&mut *self.bus, self.clock, &self.config.push);
+        let pushed = push::push_calibration(bus, clock, &tables, policy, first_session, self.io);
         let (report, result) = pushed.await;
         let now = self.clock.now();
-        if let Some(report) = report {
-            for line in report.lines() {
-                self.io.event(now, Level::Info, &line);
-            }
-            self.log_calibration(now, &outcome, Some(&report));
-            self.summary.push = Some(report);
+        for line in report.lines() {
+            self.io.event(now, Level::Info, &line);
         }
-        if result.is_ok() {
-            let line = "every node holds its new table (CRC read back)";
-            self.io.event(now, Level::Info, line);
-        }
-        Ok(result?)
+        self.log_calibration(now, &outcome, Some(&report));
+        self.summary.push = Some(report);
+        result?;
+        let line = "every node holds its new table (CRC read back)";
+        self.io.event(self.clock.now(), Level::Info, line);
+        Ok(())
     }
 
     /// The report of a session that ends without a calibration (`why`: the session rules it
@@ -450,9 +461,8 @@ impl<T: Transport> Running<'_, '_, T> {
         why: &[Shortfall],
         shutdown: Pin<&mut S>,
     ) -> Result<(), DaemonError> {
-        let (title, source) = self.report_titles("session");
-        self.origin = self.session.origin().unwrap_or_default();
-        let session = std::mem::replace(&mut self.session, Session::new(&self.config.calibration));
+        let (title, source) = self.report.titles("session");
+        let session = self.end_collection();
         let why: Vec<String> = why.iter().map(Shortfall::to_string).collect();
         let (job, html) = self
             .off_loop("session report", shutdown, move || {
@@ -462,51 +472,19 @@ impl<T: Transport> Running<'_, '_, T> {
                 (job, html)
             })
             .await?;
-        self.write_report(&html, "session report");
+        let line = self.report.write(&html, "session report");
+        self.io.lines(self.clock.now(), vec![line]);
         self.summary.collected(job.collected());
         Ok(())
     }
 
     /// The report of a session stopped during collection ([`html_report::interrupted`]).
     fn interrupted_report(&mut self, start: Duration) {
-        let (title, source) = self.report_titles("session");
+        let (title, source) = self.report.titles("session");
         let seconds = self.clock.now().saturating_sub(start).as_secs_f64();
-        let html = html_report::interrupted(title, source, self.session.stats(), seconds);
-        self.write_report(&html, "session report");
-    }
-
-    /// Step 5: once pushed (completely or not), the report with the push's outcome per node:
-    /// the report written before the push, its banner replaced and the push table added
-    /// (`exocal_report::html::with_push`: string work, no plot re-rendered, so it costs the
-    /// slowest controller nothing). A report that cannot be written leaves the first in place.
-    fn report_push(&mut self) {
-        let push = self.summary.push.as_ref().map(records::push_records);
-        let (Some(push), Some(html)) = (push, self.report.take()) else {
-            return;
-        };
-        if let Some(html) = exocal_report::html::with_push(&html, &push) {
-            self.write_report(&html, "calibration report, with the push");
-        }
-    }
-
-    /// The report's title and source line for a live session.
-    fn report_titles(&self, what: &str) -> (String, String) {
-        let c = self.config;
-        html_report::live_titles(what, &self.summary.log_path, self.start, c)
-    }
-
-    /// Writes the report next to the log; a report that cannot be written is a warning, never
-    /// a reason to withhold a validated table.
-    fn write_report(&mut self, html: &str, what: &str) {
-        let now = self.clock.now();
-        match html_report::write_next_to(&self.summary.log_path, html) {
-            Ok(path) => {
-                self.io
-                    .event(now, Level::Info, &format!("{what}: {}", path.display()));
-                self.summary.report_path = Some(path);
-            }
-            Err(e) => self.io.event(now, Level::Warning, &e),
-        }
+        let html = html_report::interrupted(title, source, &self.summary.frames, seconds);
+        let line = self.report.write(&html, "session report");
+        self.io.lines(self.clock.now(), vec![line]);
     }
 
     /// Log time of the aligned sample at `t` s of the session.
