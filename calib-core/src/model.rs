@@ -295,6 +295,15 @@ impl DhTable<7> {
 }
 
 impl<const N: usize> DhTable<N> {
+    /// The arm of the first `M` joints of this one (`M ≤ N`, checked at compile time): its
+    /// first `M` rows, the chain ending at joint `M`'s frame.
+    pub fn first<const M: usize>(&self) -> DhTable<M> {
+        const { assert!(M <= N, "an arm of at most N joints") };
+        DhTable {
+            rows: core::array::from_fn(|j| self.rows[j]),
+        }
+    }
+
     /// Number of parameters of this table (`4N`).
     pub const PARAMS: usize = 4 * N;
 
@@ -651,6 +660,15 @@ fn spread(i: usize, j: usize) -> f64 {
 }
 
 impl<const N: usize> JointRanges<N> {
+    /// The ranges of the first `M` joints (`M ≤ N`, checked at compile time), for
+    /// [`DhTable::first`].
+    pub fn first<const M: usize>(&self) -> JointRanges<M> {
+        const { assert!(M <= N, "an arm of at most N joints") };
+        JointRanges {
+            limits: core::array::from_fn(|j| self.limits[j]),
+        }
+    }
+
     /// Point `i` of a set spread evenly over the ranges (joint `j` at `frac((i + ½) · s_j)` of
     /// its range, `s_j` the fractional parts of √2, √3, √5, …: an additive recurrence, so any
     /// first `n` points cover the box about evenly). What "the poses a wearer will take" means
