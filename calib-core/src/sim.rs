@@ -190,6 +190,29 @@ pub struct ScenarioConfig<const N: usize> {
     pub slip: Option<Slip>,
 }
 
+impl<const N: usize> ScenarioConfig<N> {
+    /// The same session on the arm of the first `M` joints (`M ≤ N`, checked at compile
+    /// time): the table, ranges and headings of those joints, a slip only where it is one of
+    /// them, the rest as it is.
+    pub fn first<const M: usize>(&self) -> ScenarioConfig<M> {
+        ScenarioConfig {
+            actual: self.actual.first(),
+            ranges: self.ranges.first(),
+            heading: core::array::from_fn(|j| self.heading[j]),
+            slip: self.slip.filter(|s| s.joint < M),
+            drift: self.drift,
+            bias: self.bias,
+            site: self.site,
+            reading_noise: self.reading_noise,
+            gyro_noise: self.gyro_noise,
+            still_s: self.still_s,
+            position_noise: self.position_noise,
+            rotation_noise: self.rotation_noise,
+            outliers: self.outliers,
+        }
+    }
+}
+
 impl ScenarioConfig<7> {
     /// Section 4: Table 4 arm, Table 3 ranges, Δt = 0.01 s, τ = 1 s, σ = 1, the drift in the
     /// arm, no rate bias, no noise, no glitches.

@@ -13,22 +13,7 @@ use calib_core::*;
 
 /// The paper's Section 4 session on the arm of its first `N` joints.
 fn first_joints<const N: usize>() -> ScenarioConfig<N> {
-    let paper = ScenarioConfig::paper();
-    ScenarioConfig {
-        actual: paper.actual.first(),
-        ranges: paper.ranges.first(),
-        drift: paper.drift,
-        bias: paper.bias,
-        heading: [0.0; N],
-        site: paper.site,
-        reading_noise: paper.reading_noise,
-        gyro_noise: paper.gyro_noise,
-        still_s: paper.still_s,
-        position_noise: paper.position_noise,
-        rotation_noise: paper.rotation_noise,
-        outliers: paper.outliers,
-        slip: paper.slip,
-    }
+    ScenarioConfig::paper().first()
 }
 
 /// A 60 s session of the chain of `N` joints (`P = 4N` parameters), calibrated by LS then the

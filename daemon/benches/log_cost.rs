@@ -29,7 +29,7 @@ fn cpu_now() -> Duration {
 }
 
 fn pass(frames: &[exocal_bus::Received], log: bool, dir: &std::path::Path) -> (Duration, u64) {
-    let mut ingest = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
+    let mut ingest = Ingest::new(&[1, 2, 3, 4, 5, 6, 7]);
     let t0 = frames.first().map_or(0, |f| f.timestamp.as_nanos() as u64);
     let mut session = if log {
         let log = SessionLog::create_in(dir, t0, 500_000_000).expect("log").1;

@@ -18,7 +18,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let nominal = DhTable::paper_nominal();
     let fit_samples: Vec<_> = fit.iter().map(|s| s.sample).collect();
     let started = std::time::Instant::now();
-    let calibration = exocal_session::pipeline::ls_then_em(
+    let calibration = exocal_session::pipeline::ls_then_em::<7, 28>(
         &nominal,
         &fit_samples,
         &LsOptions::new(),
@@ -37,7 +37,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         quality: Quality {
             duration_s: seconds,
             grid_hz: 1.0 / cfg.drift.dt,
-            joint_ranges: calib_core::JointRanges::paper().limits,
+            joint_ranges: calib_core::JointRanges::<7>::paper().limits.to_vec(),
             excitation_required: Some(0.5),
             ..Quality::default()
         },

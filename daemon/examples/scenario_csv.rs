@@ -26,6 +26,6 @@ fn main() {
     let k = value("--samples", 6_000) as usize;
     let cfg = ScenarioConfig::paper();
     let samples: Vec<TimedSample> = TimedSample::simulated(cfg, value("--seed", 1), k);
-    std::fs::write(out, csv_text(&samples)).unwrap_or_else(|e| panic!("writing {out}: {e}"));
+    std::fs::write(out, csv_text(&samples, 7)).unwrap_or_else(|e| panic!("writing {out}: {e}"));
     eprintln!("{out}: {k} samples");
 }

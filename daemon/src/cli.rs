@@ -248,6 +248,10 @@ pub struct DemoArgs {
     /// they hold, as `exocald nodes` asks a suit's nodes on a bus (its listing, on stdout).
     #[arg(long)]
     pub nodes: bool,
+    /// Calibrate an arm of the configuration's first N joints (1–7; the emulated suit has N
+    /// joint nodes), as a configuration whose `[nodes] joints` lists N nodes would.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u8).range(1..=7))]
+    pub joints: Option<u8>,
 }
 
 /// A finite number above zero (`--speed`): a negative one reaches this parser, which names it.

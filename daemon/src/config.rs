@@ -20,7 +20,7 @@ use serde::Deserialize;
 use toml::de::{DeTable, DeValue};
 use toml_edit::{Array, DocumentMut, Item, Value};
 
-pub use exocal_session::{Bounds, SensorSpec, Settings, ValidationRules, WindowRules, JOINTS};
+pub use exocal_session::{Bounds, SensorSpec, Settings, ValidationRules, WindowRules, MAX_JOINTS};
 
 /// The configuration shipped with the daemon (`daemon/exocald.toml`).
 pub const DEFAULT_TOML: &str = include_str!("../exocald.toml");
@@ -316,26 +316,34 @@ struct RawCan {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawNodes {
-    joints: [u8; JOINTS],
+    joints: Vec<u8>,
 }
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawNominal {
-    a: [f64; JOINTS],
-    alpha_deg: [f64; JOINTS],
-    d: [f64; JOINTS],
-    offset_deg: [f64; JOINTS],
+    a: Vec<f64>,
+    alpha_deg: Vec<f64>,
+    d: Vec<f64>,
+    offset_deg: Vec<f64>,
+}
+
+/// `[nominal]`'s rows checked against the arm's length, padded.
+struct RawNominalRows {
+    a: [f64; MAX_JOINTS],
+    alpha_deg: [f64; MAX_JOINTS],
+    d: [f64; MAX_JOINTS],
+    offset_deg: [f64; MAX_JOINTS],
 }
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawBounds {
-    a: [Pair; JOINTS],
-    d: [Pair; JOINTS],
+    a: Vec<Pair>,
+    d: Vec<Pair>,
     alpha_deviation_deg: f64,
     offset_deviation_deg: f64,
-    joint_range_deg: [Pair; JOINTS],
+    joint_range_deg: Vec<Pair>,
 }
 
 #[derive(Deserialize)]
@@ -565,14 +573,22 @@ impl Checker<'_> {
     }
 
     /// A set of joints, numbered from 1, each once.
-    fn joint_set(&self, key: &str, joints: &[i64]) -> Result<[bool; JOINTS], ConfigError> {
-        let mut set = [false; JOINTS];
-        for &j in joints {
+    fn joint_set(
+        &self,
+        key: &str,
+        list: &[i64],
+        joints: usize,
+    ) -> Result<[bool; MAX_JOINTS], ConfigError> {
+        let mut set = [false; MAX_JOINTS];
+        for &j in list {
             let i = usize::try_from(j)
                 .ok()
-                .filter(|i| (1..=JOINTS).contains(i))
+                .filter(|i| (1..=joints).contains(i))
                 .ok_or_else(|| {
-                    self.err(key, format!("joint {j}: joints are numbered 1 to {JOINTS}"))
+                    self.err(
+                        key,
+                        format!("joint {j}: the arm's joints are numbered 1 to {joints}"),
+                    )
                 })?;
             if std::mem::replace(&mut set[i - 1], true) {
                 return Err(self.err(key, format!("joint {j} is listed twice")));
@@ -615,15 +631,38 @@ impl Checker<'_> {
         }
     }
 
+    /// A per-joint array of the arm's `joints` rows, padded with zeros ([`exocal_session::arm`]).
+    fn rows<T: Copy + Default>(
+        &self,
+        key: &str,
+        values: &[T],
+        joints: usize,
+    ) -> Result<[T; MAX_JOINTS], ConfigError> {
+        if values.len() != joints {
+            return Err(self.err(
+                key,
+                format!(
+                    "{} rows for an arm of {joints} joints (nodes.joints lists {joints})",
+                    values.len()
+                ),
+            ));
+        }
+        Ok(std::array::from_fn(|j| {
+            values.get(j).copied().unwrap_or_default()
+        }))
+    }
+
     fn intervals(
         &self,
         key: &str,
-        pairs: &[Pair; JOINTS],
+        pairs: &[Pair],
+        joints: usize,
         scale: f64,
         limit: f64,
-    ) -> Result<[(f64, f64); JOINTS], ConfigError> {
-        let mut out = [(0.0, 0.0); JOINTS];
-        for (i, [lo, hi]) in pairs.iter().copied().enumerate() {
+    ) -> Result<[(f64, f64); MAX_JOINTS], ConfigError> {
+        let pairs = self.rows(key, pairs, joints)?;
+        let mut out = [(0.0, 0.0); MAX_JOINTS];
+        for (i, [lo, hi]) in pairs.iter().copied().enumerate().take(joints) {
             let k = format!("{key}[{i}]");
             self.magnitude_at_most(&k, lo, limit)?;
             self.magnitude_at_most(&k, hi, limit)?;
@@ -653,9 +692,16 @@ impl Checker<'_> {
             ));
         }
 
-        let joint_nodes = raw.nodes.joints;
-        for (i, &id) in joint_nodes.iter().enumerate() {
-            if !(1..=JOINTS as u8).contains(&id) {
+        let joints = raw.nodes.joints.len();
+        if !(1..=MAX_JOINTS).contains(&joints) {
+            return Err(self.err(
+                "nodes.joints",
+                format!("{joints} joints: an arm has 1 to {MAX_JOINTS}"),
+            ));
+        }
+        let joint_nodes: [u8; MAX_JOINTS] = self.rows("nodes.joints", &raw.nodes.joints, joints)?;
+        for (i, &id) in raw.nodes.joints.iter().enumerate() {
+            if !(1..=MAX_JOINTS as u8).contains(&id) {
                 return Err(self.err(
                     format!("nodes.joints[{i}]"),
                     format!("node id {id}: the DBC's joint nodes are 1..=7"),
@@ -670,15 +716,16 @@ impl Checker<'_> {
         }
 
         let n = &raw.nominal;
-        let mut nominal = DhTable {
-            rows: [DhRow {
-                a: 0.0,
-                alpha: 0.0,
-                d: 0.0,
-                theta_offset: 0.0,
-            }; JOINTS],
+        let n = RawNominalRows {
+            a: self.rows("nominal.a", &n.a, joints)?,
+            alpha_deg: self.rows("nominal.alpha_deg", &n.alpha_deg, joints)?,
+            d: self.rows("nominal.d", &n.d, joints)?,
+            offset_deg: self.rows("nominal.offset_deg", &n.offset_deg, joints)?,
         };
-        for (i, row) in nominal.rows.iter_mut().enumerate() {
+        let mut nominal = DhTable {
+            rows: [exocal_session::arm::ZERO_ROW; MAX_JOINTS],
+        };
+        for (i, row) in nominal.rows.iter_mut().enumerate().take(joints) {
             *row = DhRow {
                 a: self.finite(&format!("nominal.a[{i}]"), n.a[i])?,
                 alpha: self.magnitude_at_most(
@@ -697,8 +744,8 @@ impl Checker<'_> {
 
         let b = &raw.bounds;
         let bounds = Bounds {
-            a: self.intervals("bounds.a", &b.a, 1.0, MAX_LENGTH_M)?,
-            d: self.intervals("bounds.d", &b.d, 1.0, MAX_LENGTH_M)?,
+            a: self.intervals("bounds.a", &b.a, joints, 1.0, MAX_LENGTH_M)?,
+            d: self.intervals("bounds.d", &b.d, joints, 1.0, MAX_LENGTH_M)?,
             alpha_deviation: self.positive_at_most(
                 "bounds.alpha_deviation_deg",
                 b.alpha_deviation_deg,
@@ -713,13 +760,14 @@ impl Checker<'_> {
                 limits: self.intervals(
                     "bounds.joint_range_deg",
                     &b.joint_range_deg,
+                    joints,
                     deg,
                     MAX_ANGLE_DEG,
                 )?,
             },
         };
         let within = |x: f64, (min, max): (f64, f64)| (min..=max).contains(&x);
-        for (i, row) in nominal.rows.iter().enumerate() {
+        for (i, row) in nominal.rows.iter().enumerate().take(joints) {
             if !within(row.a, bounds.a[i]) {
                 return Err(self.err(
                     format!("nominal.a[{i}]"),
@@ -972,7 +1020,7 @@ impl Checker<'_> {
                         )?
                         .to_radians(),
                 },
-                unaided: self.joint_set("sensors.unaided_joints", &r.unaided_joints)?,
+                unaided: self.joint_set("sensors.unaided_joints", &r.unaided_joints, joints)?,
             },
         };
         let trigger = TriggerRules {
@@ -986,6 +1034,7 @@ impl Checker<'_> {
         Ok(Config {
             interface,
             calibration: Settings {
+                joints,
                 joint_nodes,
                 nominal,
                 bounds,
@@ -1038,9 +1087,9 @@ pub const CALIBRATED_NOTE: &str =
 /// layout kept, except the comment above the table's first key: it described the table that
 /// was there (the shipped file's says "The paper's Table 1"), so it becomes [`CALIBRATED_NOTE`].
 /// The result is a complete configuration whose nominal table is the calibrated one (`exocald
-/// offline --export-toml`).
-pub fn with_nominal(base: &str, table: &DhTable<JOINTS>) -> Result<String, ExportError> {
-    for (i, r) in table.rows.iter().enumerate() {
+/// offline --export-toml`). `rows` are the arm's, joint 1 first.
+pub fn with_nominal(base: &str, rows: &[DhRow]) -> Result<String, ExportError> {
+    for (i, r) in rows.iter().enumerate() {
         let values = [
             ("a", r.a),
             ("alpha", r.alpha),
@@ -1066,7 +1115,7 @@ pub fn with_nominal(base: &str, table: &DhTable<JOINTS>) -> Result<String, Expor
         ("offset_deg", |r| r.theta_offset.to_degrees()),
     ];
     for (key, get) in columns {
-        let values: Array = table.rows.iter().map(get).collect();
+        let values: Array = rows.iter().map(get).collect();
         match nominal.get_mut(key).and_then(Item::as_value_mut) {
             // Keep the key's decoration (comments, spacing) and replace the value.
             Some(old) => {
@@ -1097,15 +1146,16 @@ impl Config {
         let deg = |r: f64| ((r / (std::f64::consts::PI / 180.0)) * 1e9).round() / 1e9;
         let list = |v: &mut dyn Iterator<Item = String>| v.collect::<Vec<_>>().join(", ");
         let num = |x: f64| format!("{x:?}");
-        let pairs = |v: &[(f64, f64); JOINTS], scale: &dyn Fn(f64) -> f64| {
+        let joints = self.calibration.joints;
+        let pairs = |v: &[(f64, f64); MAX_JOINTS], scale: &dyn Fn(f64) -> f64| {
             list(
-                &mut v
+                &mut v[..joints]
                     .iter()
                     .map(|&(min, max)| format!("[{}, {}]", num(scale(min)), num(scale(max)))),
             )
         };
         let text = |s: &str| toml::Value::String(s.to_string()).to_string();
-        let n = &self.calibration.nominal.rows;
+        let n = &self.calibration.nominal.rows[..joints];
         let b = &self.calibration.bounds;
         let s = &self.calibration.window;
         let v = &self.calibration.validation;
@@ -1117,7 +1167,11 @@ impl Config {
         let _ = writeln!(
             w,
             "[nodes]\njoints = [{}]\n",
-            list(&mut self.calibration.joint_nodes.iter().map(|j| j.to_string()))
+            list(
+                &mut self.calibration.joint_nodes[..joints]
+                    .iter()
+                    .map(|j| j.to_string())
+            )
         );
         let _ = writeln!(
             w,
@@ -1277,8 +1331,8 @@ mod tests {
     #[test]
     fn config_export_replaces_only_the_nominal_arrays() {
         let base = "# head\n[can]\ninterface = \"can0\" # keep me\n\n[nominal]\n# rows\na = [1.0]\nalpha_deg = [0.0] # twist\nd = [0.0]\noffset_deg = [0.0]\n\n[push]\nretries = 3\n";
-        let t = DhTable::<JOINTS>::paper_actual();
-        let out = with_nominal(base, &t).unwrap();
+        let t = DhTable::<MAX_JOINTS>::paper_actual();
+        let out = with_nominal(base, &t.rows).unwrap();
         assert!(out.contains("interface = \"can0\" # keep me"), "{out}");
         // The comment on the table that was there is replaced (it would mislabel the calibrated
         // table, e.g. as "The paper's Table 1"); the others are kept.
@@ -1309,19 +1363,19 @@ mod tests {
 
     #[test]
     fn config_export_errors_name_the_problem() {
-        let t = DhTable::<JOINTS>::paper_actual();
+        let t = DhTable::<MAX_JOINTS>::paper_actual();
         assert!(matches!(
-            with_nominal("a = [", &t),
+            with_nominal("a = [", &t.rows),
             Err(ExportError::BaseToml(_))
         ));
         assert_eq!(
-            with_nominal("[can]\nx = 1\n", &t),
+            with_nominal("[can]\nx = 1\n", &t.rows),
             Err(ExportError::NoNominal)
         );
         let mut bad = t;
         bad.rows[2].d = f64::NAN;
         assert_eq!(
-            with_nominal("[nominal]\n", &bad),
+            with_nominal("[nominal]\n", &bad.rows),
             Err(ExportError::NotFinite("d3".into()))
         );
     }
@@ -1364,7 +1418,10 @@ mod tests {
         assert_eq!(c.calibration.bounds.a[2], (0.377, 0.485));
         assert!((c.calibration.bounds.joint_range.limits[4].0 + 20f64.to_radians()).abs() < 1e-12);
         // The table bounds: a and d as configured, α and the offset around nominal.
-        let t = c.calibration.bounds.table(&c.calibration.nominal);
+        let t = c
+            .calibration
+            .bounds
+            .table(&c.calibration.nominal, c.calibration.joints);
         assert_eq!(t.limits[ParamKind::A as usize][2], Some((0.377, 0.485)));
         let (lo, hi) = t.limits[ParamKind::Alpha as usize][0].unwrap();
         assert!((0.5 * (lo + hi) - c.calibration.nominal.rows[0].alpha).abs() < 1e-12);
@@ -1513,13 +1570,16 @@ mod tests {
     #[test]
     fn a_short_array_is_named() {
         let text = edited(
-            "joints = [1, 2, 3, 4, 5, 6, 7]",
-            "joints = [1, 2, 3, 4, 5, 6]",
+            "d          = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]",
+            "d          = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]",
         );
         let (key, line, message) = invalid(&text);
-        assert_eq!(key, "nodes.joints");
-        assert_eq!(line, Some(line_containing(&text, "joints = [")));
-        assert!(message.contains("length"), "{message}");
+        assert_eq!(key, "nominal.d");
+        assert_eq!(line, Some(line_containing(&text, "d          = [")));
+        assert!(
+            message.contains("6 rows for an arm of 7 joints"),
+            "{message}"
+        );
     }
 
     #[test]
@@ -1544,6 +1604,50 @@ mod tests {
         let (key, line, _) = invalid(&text);
         assert_eq!(key, "bounds.a[2]");
         assert_eq!(line, Some(line_containing(&text, "[0.485, 0.377]")));
+    }
+
+    #[test]
+    fn an_arm_of_fewer_joints_is_its_rows_and_every_row_count_is_checked() {
+        let mut c = Config::default_config();
+        c.calibration = c.calibration.first(4);
+        let text = c.to_toml();
+        assert!(text.contains("[nodes]\njoints = [1, 2, 3, 4]\n"), "{text}");
+        assert!(text.contains("a = [0.04, 0.04, 0.431, 0.244]\n"), "{text}");
+        let back = Config::parse(&text).unwrap_or_else(|e| panic!("{e}\n{text}"));
+        assert_eq!(back, c);
+        assert_eq!(back.calibration.joints, 4);
+        assert!(back.calibration.nominal.rows[4..]
+            .iter()
+            .all(|r| *r == exocal_session::arm::ZERO_ROW));
+        // Every per-joint key must have one row per node.
+        for (from, to, key) in [
+            (
+                "a = [0.04, 0.04, 0.431, 0.244]",
+                "a = [0.04, 0.04, 0.431]",
+                "nominal.a",
+            ),
+            (
+                "offset_deg = [0.0, 90.0, 0.0, 0.0]",
+                "offset_deg = [0.0, 90.0, 0.0, 0.0, 0.0]",
+                "nominal.offset_deg",
+            ),
+            (
+                "joint_range_deg = [[-90.0, 90.0], ",
+                "joint_range_deg = [",
+                "bounds.joint_range_deg",
+            ),
+        ] {
+            let (k, _, message) = invalid(&edited_in(&text, from, to));
+            assert_eq!(k, key, "{message}");
+            assert!(message.contains("for an arm of 4 joints"), "{message}");
+        }
+        let (k, _, message) = invalid(&edited_in(&text, "joints = [1, 2, 3, 4]", "joints = []"));
+        assert_eq!(k, "nodes.joints");
+        assert!(message.contains("1 to 7"), "{message}");
+        let unaided = format!("{text}\n[sensors]\nunaided_joints = [5]\n");
+        let (k, _, message) = invalid(&unaided);
+        assert_eq!(k, "sensors.unaided_joints");
+        assert!(message.contains("numbered 1 to 4"), "{message}");
     }
 
     #[test]

@@ -40,7 +40,7 @@ use foxglove::{ChannelBuilder, Context, PartialMetadata, RawChannel, WebSocketSe
 use parking_lot::Mutex;
 use prost::Message as _;
 
-use crate::config::{Config, JOINTS};
+use crate::config::{Config, MAX_JOINTS};
 use crate::log::records;
 use crate::log::records::{arm_transforms, Observer, Record};
 use exocal_log::write;
@@ -87,9 +87,9 @@ struct Channels {
 
 /// What the view keeps between records.
 struct State {
-    table: calib_core::DhTable<JOINTS>,
-    /// Each joint's latest reading (angle, rate) and its log time.
-    joints: [Option<(f64, f64, u64)>; JOINTS],
+    table: calib_core::DhTable<MAX_JOINTS>,
+    /// Each joint's latest reading (angle, rate) and its log time, for the arm's joints.
+    joints: Vec<Option<(f64, f64, u64)>>,
     /// The latest end-effector pose and its log time.
     pose: Option<(crate::log::records::Transform, u64)>,
     /// One streaming message per this much log time.
@@ -214,10 +214,17 @@ async fn gate(listener: TcpListener, inner: SocketAddr, max: usize) {
     }
 }
 
-fn table_of(rows: impl Iterator<Item = calib_core::DhRow>) -> Option<calib_core::DhTable<JOINTS>> {
+/// The padded table of an arm's rows (`None` for more than [`MAX_JOINTS`]).
+fn table_of(
+    rows: impl Iterator<Item = calib_core::DhRow>,
+) -> Option<calib_core::DhTable<MAX_JOINTS>> {
     let rows: Vec<calib_core::DhRow> = rows.collect();
-    Some(calib_core::DhTable {
-        rows: rows.try_into().ok()?,
+    (rows.len() <= MAX_JOINTS).then(|| calib_core::DhTable {
+        rows: std::array::from_fn(|j| {
+            rows.get(j)
+                .copied()
+                .unwrap_or(exocal_session::arm::ZERO_ROW)
+        }),
     })
 }
 
@@ -289,14 +296,14 @@ impl LiveView {
         let limits = config.calibration.bounds.joint_range.limits;
         let mut state = State {
             table,
-            joints: [None; JOINTS],
+            joints: vec![None; config.calibration.joints],
             pose: None,
             period_ns: (1e9 / config.live.max_hz) as u64,
             last_sent_ns: None,
             last_vector_ns: vec![None; exocal_session::stream::vectors().count()],
             latched: Vec::new(),
         };
-        let nominal = records::urdf(&table, &limits).unwrap_or_default();
+        let nominal = records::urdf(&table, &limits, config.calibration.joints).unwrap_or_default();
         state.latch(ROBOT_DESCRIPTION, robot_description(&nominal));
         let shared = Arc::new(Shared {
             channels,
@@ -451,8 +458,8 @@ impl LiveView {
             .collect();
         c.joint_states
             .log_with_meta(&write::joint_states(log_ns, &readings).encode_to_vec(), at);
-        let q: [f64; JOINTS] = std::array::from_fn(|i| q[i]);
-        let links = arm_transforms(&state.table, &q);
+        let q: [f64; MAX_JOINTS] = std::array::from_fn(|i| q.get(i).copied().unwrap_or(0.0));
+        let links = arm_transforms(&state.table, &q, state.joints.len());
         c.tf.log_with_meta(&write::frame_transforms(log_ns, &links).encode_to_vec(), at);
         if let Some((pose, _)) = state.pose {
             c.ee_pose

@@ -478,7 +478,7 @@ fn recover_leaves_no_output_when_it_fails() {
 #[test]
 fn bit_flips_of_a_log_read_or_are_bad_input() {
     let log = small_log();
-    let rules = Config::default_config().calibration.window;
+    let rules = Config::default_config().calibration;
     let path = Path::new("flipped.mcap");
     let (mut read, mut bad) = (0, 0);
     let mut b = log.clone();

@@ -12,7 +12,7 @@ use exocald::log::records::Record;
 #[test]
 fn the_exported_configuration_loads_in_the_daemon_with_the_calibrated_table() {
     let calibrated = DhTable::<7>::paper_actual();
-    let text = with_nominal(DEFAULT_TOML, &calibrated).unwrap();
+    let text = with_nominal(DEFAULT_TOML, &calibrated.rows).unwrap();
     let loaded = Config::parse(&text).unwrap_or_else(|e| panic!("{e}\n{text}"));
     let default = Config::parse(DEFAULT_TOML).unwrap();
     for (row, want) in loaded.calibration.nominal.rows.iter().zip(&calibrated.rows) {

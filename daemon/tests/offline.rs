@@ -178,7 +178,7 @@ fn offline_recalibration_agrees_with_the_live_session() {
         &live.log_path,
         std::fs::File::open(&live.log_path).unwrap(),
         Format::Mcap,
-        &config.calibration.window,
+        &config.calibration,
     )
     .unwrap();
     let samples: Vec<_> = exocal_session::pipeline::timed(
@@ -188,7 +188,10 @@ fn offline_recalibration_agrees_with_the_live_session() {
             .collected()
             .samples,
     );
-    assert_eq!(std::fs::read_to_string(&csv).unwrap(), csv_text(&samples));
+    assert_eq!(
+        std::fs::read_to_string(&csv).unwrap(),
+        csv_text(&samples, 7)
+    );
     let from_csv = OfflineOptions {
         input: csv,
         report: Some(dir.join("csv.html")),
@@ -331,7 +334,7 @@ fn scenario_csv(path: &Path, seconds: f64) {
     let cfg = calib_core::ScenarioConfig::paper();
     let n = (seconds / cfg.drift.dt).round() as usize + 1;
     let samples: Vec<_> = exocal_report::TimedSample::simulated(cfg, 5, n);
-    std::fs::write(path, csv_text(&samples)).unwrap();
+    std::fs::write(path, csv_text(&samples, 7)).unwrap();
 }
 
 #[test]

@@ -87,17 +87,22 @@ pub struct Row {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Arm {
-    /// Preset table, used unless `rows` is given.
+    /// Joints of the arm, 1..=7 (default 7): nodes 1..=`joints` are on it and the end
+    /// effector at its end; the joint nodes past it are not on the bus.
+    #[serde(default = "Arm::longest")]
+    pub joints: usize,
+    /// Preset table (its first `joints` rows), used unless `rows` is given.
     pub preset: Preset,
-    /// Seven explicit rows (override `preset`).
+    /// Explicit rows, one per joint (override `preset`).
     pub rows: Option<Vec<Row>>,
-    /// Joint ranges `[min, max]` in degrees, seven entries (default: Table 3).
+    /// Joint ranges `[min, max]` in degrees, one per joint (default: Table 3's first).
     pub ranges_deg: Option<Vec<[f64; 2]>>,
 }
 
 impl Default for Arm {
     fn default() -> Self {
         Arm {
+            joints: Arm::longest(),
             preset: Preset::PaperActual,
             rows: None,
             ranges_deg: None,
@@ -106,29 +111,53 @@ impl Default for Arm {
 }
 
 impl Arm {
-    /// The true D-H table.
+    fn longest() -> usize {
+        7
+    }
+
+    /// The true D-H table, padded with zero rows past `joints` (the identity link at a zero
+    /// reading: the end effector is at joint `joints`'s frame).
     pub fn table(&self) -> DhTable<7> {
-        match &self.rows {
-            Some(rows) => DhTable {
-                rows: std::array::from_fn(|i| DhRow {
-                    a: rows[i].a_m,
-                    alpha: rows[i].alpha_deg * DEG,
-                    d: rows[i].d_m,
-                    theta_offset: rows[i].theta_offset_deg * DEG,
-                }),
+        let row = |i: usize| match &self.rows {
+            Some(rows) => DhRow {
+                a: rows[i].a_m,
+                alpha: rows[i].alpha_deg * DEG,
+                d: rows[i].d_m,
+                theta_offset: rows[i].theta_offset_deg * DEG,
             },
-            None => self.preset.table(),
+            None => self.preset.table().rows[i],
+        };
+        let zero = DhRow {
+            a: 0.0,
+            alpha: 0.0,
+            d: 0.0,
+            theta_offset: 0.0,
+        };
+        DhTable {
+            rows: std::array::from_fn(|i| if i < self.joints { row(i) } else { zero }),
         }
     }
 
-    /// Joint ranges, rad.
+    /// Joint ranges, rad; `(0, 0)` past `joints` (those joints read 0).
     pub fn ranges(&self) -> JointRanges<7> {
-        match &self.ranges_deg {
-            Some(r) => JointRanges {
-                limits: std::array::from_fn(|i| (r[i][0] * DEG, r[i][1] * DEG)),
-            },
-            None => JointRanges::paper(),
+        let range = |i: usize| match &self.ranges_deg {
+            Some(r) => (r[i][0] * DEG, r[i][1] * DEG),
+            None => JointRanges::<7>::paper().limits[i],
+        };
+        JointRanges {
+            limits: std::array::from_fn(|i| {
+                if i < self.joints {
+                    range(i)
+                } else {
+                    (0.0, 0.0)
+                }
+            }),
         }
+    }
+
+    /// Whether the node of joint index `j` (0-based) is on the arm.
+    pub fn has_joint(&self, j: usize) -> bool {
+        j < self.joints
     }
 }
 
@@ -610,11 +639,18 @@ impl Scenario {
                 return Err(invalid(k, format!("must be at most 1000 Hz, got {v}")));
             }
         }
+        let joints = self.arm.joints;
+        if !(1..=7).contains(&joints) {
+            return Err(invalid(
+                "arm.joints",
+                format!("an arm has 1 to 7 joints, got {joints}"),
+            ));
+        }
         if let Some(rows) = &self.arm.rows {
-            if rows.len() != 7 {
+            if rows.len() != joints {
                 return Err(invalid(
                     "arm.rows",
-                    format!("needs 7 rows, got {}", rows.len()),
+                    format!("needs {joints} rows (arm.joints), got {}", rows.len()),
                 ));
             }
             for (i, r) in rows.iter().enumerate() {
@@ -631,10 +667,10 @@ impl Scenario {
             }
         }
         if let Some(r) = &self.arm.ranges_deg {
-            if r.len() != 7 {
+            if r.len() != joints {
                 return Err(invalid(
                     "arm.ranges_deg",
-                    format!("needs 7 ranges, got {}", r.len()),
+                    format!("needs {joints} ranges (arm.joints), got {}", r.len()),
                 ));
             }
             for (i, [lo, hi]) in r.iter().enumerate() {

@@ -338,7 +338,7 @@ impl Suit {
                 }),
                 pose_seq: 0,
                 history: [None; 2],
-                up: true,
+                up: on_arm(&scenario, id),
                 boot_count,
                 stream: stream_auth::signer(
                     id,
@@ -559,6 +559,7 @@ impl Suit {
         match ev {
             Event::Jump(node, us) => self.nodes[usize::from(node - 1)].clock.jump_us += us,
             Event::Down(node) => self.nodes[usize::from(node - 1)].up = false,
+            Event::Up(node) if !on_arm(&self.scenario, self.nodes[usize::from(node - 1)].id) => {}
             Event::Up(node) => {
                 self.stats.reboots += 1;
                 let scenario = &self.scenario;
@@ -980,7 +981,16 @@ fn quaternion(r: &Matrix3<f64>) -> [f64; 4] {
     [q.w, q.i, q.j, q.k]
 }
 
+/// Whether node `id` is on the emulated arm: the end effector, and the joint nodes of its
+/// `arm.joints` joints (the others are not on the bus).
+fn on_arm(scenario: &Scenario, id: NodeId) -> bool {
+    id.joint_index().is_none_or(|j| scenario.arm.has_joint(j))
+}
+
 fn schedules(scenario: &Scenario, node: &mut Node, boot_s: f64) -> Vec<Schedule> {
+    if !on_arm(scenario, node.id) {
+        return Vec::new();
+    }
     let r = scenario.rates;
     let kinds: &[(Kind, f64)] = if node.id.joint_index().is_some() {
         &[
@@ -1079,6 +1089,57 @@ pub(crate) mod tests {
         }
         near(&spec::EE_POSE, NodeId::END_EFFECTOR, 4000.0, 8.0);
         assert_eq!(c.len(), 7 + 3 * 8 + 8 + 1, "no other identifiers");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn an_arm_of_four_joints_is_four_joint_nodes_and_the_end_effector_at_its_end() {
+        let dir = temp_dir("four");
+        let mut s = ideal(Scenario::paper());
+        s.arm.joints = 4;
+        let mut suit = Suit::new(s, &dir).unwrap();
+        let frames = suit.advance(5.0);
+        let senders: std::collections::BTreeSet<u8> = (frames.iter())
+            .filter_map(|f| decode_frame(f).unwrap().node().map(NodeId::raw))
+            .collect();
+        assert_eq!(
+            senders,
+            [1, 2, 3, 4, 8].into(),
+            "only the arm's nodes are on the bus"
+        );
+        let arm: calib_core::DhTable<4> = DhTable::<7>::paper_actual().first();
+        let mut poses = PoseAssembler::new();
+        let mut checked = 0;
+        for f in &frames {
+            if let Message::EePose(p) = decode_frame(f).unwrap() {
+                if let Some(pose) = poses.push(PoseFrame { ..p }) {
+                    let pose = pose.unwrap();
+                    let q = suit.true_joints(f64::from(pose.timestamp_us) * 1e-6);
+                    assert!(q[4..].iter().all(|&q| q == 0.0), "{q:?}");
+                    let fk = arm.fk(&[q[0], q[1], q[2], q[3]]);
+                    for k in 0..3 {
+                        assert!(
+                            (pose.position[k] - fk.p[k]).abs() <= 3e-6,
+                            "{pose:?} vs {fk:?}"
+                        );
+                    }
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked > 400, "{checked}");
+        let mut bad = Scenario::paper();
+        bad.arm.joints = 8;
+        assert!(bad
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("arm.joints"));
+        let mut rows = Scenario::paper();
+        rows.arm.joints = 4;
+        rows.arm.ranges_deg = Some(vec![[-10.0, 10.0]; 7]);
+        let e = rows.validate().unwrap_err().to_string();
+        assert!(e.contains("needs 4 ranges"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 

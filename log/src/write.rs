@@ -177,7 +177,7 @@ pub fn progress(p: &exocal_session::window::Progress) -> proto::Progress {
         readiness: p.readiness,
         expected_position_mm: p.expected.map(|e| e.position_mm),
         expected_rotation_mrad: p.expected.map(|e| e.rotation_mrad),
-        guidance: p.guidance.map_or_else(Vec::new, |g| g.to_vec()),
+        guidance: p.guidance.clone().unwrap_or_default(),
     }
 }
 
@@ -650,10 +650,10 @@ mod tests {
         exocal_session::window::Progress {
             elapsed_s,
             samples: 3,
-            coverage: [0.5; 7],
+            coverage: vec![0.5; 7],
             condition_number: None,
             expected: None,
-            guidance: Some([1.0, 0.9, 0.9, 0.9, 0.9, 0.9, 0.4]),
+            guidance: Some(vec![1.0, 0.9, 0.9, 0.9, 0.9, 0.9, 0.4]),
             readiness: 0.1,
             target: None,
         }

@@ -11,8 +11,6 @@ use std::fmt::{self, Write as _};
 use calib_core::DhTable;
 use nalgebra::Rotation3;
 
-use crate::input::JOINTS;
-
 /// Why an export failed.
 #[derive(Debug, Clone, PartialEq)]
 pub enum ExportError {
@@ -30,7 +28,7 @@ impl fmt::Display for ExportError {
 
 impl std::error::Error for ExportError {}
 
-fn check_finite(table: &DhTable<JOINTS>) -> Result<(), ExportError> {
+fn check_finite<const N: usize>(table: &DhTable<N>) -> Result<(), ExportError> {
     for (i, r) in table.rows.iter().enumerate() {
         for (name, v) in [
             ("a", r.a),
@@ -62,11 +60,11 @@ fn joint_origin(frame: &calib_core::Frame) -> ([f64; 3], (f64, f64, f64)) {
 }
 
 /// URDF of the arm described by `table` (see the module docs). `limits` are the joint ranges
-/// (rad) of the readings, written as the revolute joints' limits.
-pub fn urdf(
+/// (rad) of the readings, written as the revolute joints' limits. An arm of any length `N`.
+pub fn urdf<const N: usize>(
     robot: &str,
-    table: &DhTable<JOINTS>,
-    limits: &[(f64, f64); JOINTS],
+    table: &DhTable<N>,
+    limits: &[(f64, f64); N],
 ) -> Result<String, ExportError> {
     check_finite(table)?;
     let mut out = String::new();
@@ -77,11 +75,11 @@ pub fn urdf(
     );
     let _ = writeln!(out, "<robot name=\"{}\">", xml_escape(robot));
     let _ = writeln!(out, "  <link name=\"base_link\"/>");
-    for i in 1..=JOINTS {
+    for i in 1..=N {
         let _ = writeln!(out, "  <link name=\"link{i}\"/>");
     }
     let _ = writeln!(out, "  <link name=\"tool0\"/>");
-    let (links, tool) = table.links(&[0.0; JOINTS]);
+    let (links, tool) = table.links(&[0.0; N]);
     for (i, link) in links.iter().enumerate() {
         let parent = if i == 0 {
             "base_link".to_string()
@@ -103,7 +101,7 @@ pub fn urdf(
     }
     let (xyz, rpy) = joint_origin(&tool);
     let _ = writeln!(out, "  <joint name=\"tool0_joint\" type=\"fixed\">");
-    let _ = writeln!(out, "    <parent link=\"link{JOINTS}\"/>");
+    let _ = writeln!(out, "    <parent link=\"link{N}\"/>");
     let _ = writeln!(out, "    <child link=\"tool0\"/>");
     origin(&mut out, xyz, rpy);
     let _ = writeln!(out, "  </joint>");
@@ -121,9 +119,10 @@ fn xml_escape(s: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::input::MAX_JOINTS;
     use calib_core::Frame;
 
-    fn calibrated() -> DhTable<JOINTS> {
+    fn calibrated() -> DhTable<MAX_JOINTS> {
         DhTable::paper_actual()
     }
 
@@ -132,7 +131,7 @@ mod tests {
         let mut bad = calibrated();
         bad.rows[2].d = f64::NAN;
         assert_eq!(
-            urdf("x", &bad, &[(-1.0, 1.0); JOINTS])
+            urdf("x", &bad, &[(-1.0, 1.0); MAX_JOINTS])
                 .unwrap_err()
                 .to_string(),
             "parameter d3 is not finite"
@@ -140,7 +139,7 @@ mod tests {
     }
 
     /// Forward kinematics of a parsed URDF chain at readings `q`.
-    fn urdf_fk(robot: &urdf_rs::Robot, q: &[f64; JOINTS]) -> Frame {
+    fn urdf_fk(robot: &urdf_rs::Robot, q: &[f64; MAX_JOINTS]) -> Frame {
         let mut t = nalgebra::Isometry3::identity();
         let mut link = "base_link".to_string();
         let mut k = 0;
@@ -157,22 +156,22 @@ mod tests {
             link = j.child.link.clone();
         }
         assert_eq!(link, "tool0");
-        assert_eq!(k, JOINTS);
+        assert_eq!(k, MAX_JOINTS);
         Frame::from_isometry(&t)
     }
 
     #[test]
     fn the_urdf_parses_and_its_forward_kinematics_is_the_tables() {
         let t = calibrated();
-        let limits = [(-1.5, 1.5); JOINTS];
+        let limits = [(-1.5, 1.5); MAX_JOINTS];
         let text = urdf("exocal <suit>", &t, &limits).unwrap();
         let robot = urdf_rs::read_from_string(&text).unwrap();
         assert_eq!(robot.name, "exocal <suit>");
-        assert_eq!(robot.joints.len(), JOINTS + 1);
+        assert_eq!(robot.joints.len(), MAX_JOINTS + 1);
         assert_eq!(robot.joints[3].limit.lower, -1.5);
         let mut rng = calib_core::Rng::new(4);
         for _ in 0..20 {
-            let q: [f64; JOINTS] = std::array::from_fn(|_| 3.0 * rng.uniform() - 1.5);
+            let q: [f64; MAX_JOINTS] = std::array::from_fn(|_| 3.0 * rng.uniform() - 1.5);
             let a = urdf_fk(&robot, &q);
             let b = t.fk(&q);
             assert!((a.p - b.p).norm() < 1e-12, "{:?} vs {:?}", a.p, b.p);

@@ -17,7 +17,7 @@ use calib_core::{pose_error, DhTable, TableError};
 
 use crate::input::{
     excitation, param_name, param_value, AtRest, Calibration, EmDetail, NodePush, Quality,
-    ReportInput, SessionInput, TimedSample, JOINTS, PARAMS,
+    ReportInput, SessionInput, TimedSample, MAX_JOINTS, MAX_PARAMS,
 };
 use crate::plot::{
     bars, esc, histogram, line_panels, Binning, Distribution, Panel, PlotError, Series, ACTUAL,
@@ -39,7 +39,7 @@ const WIDE: u32 = 1040;
 const HALF: u32 = 515;
 
 /// Position (mm) and rotation (mrad) error of `table` on each sample.
-pub fn residuals(table: &DhTable<JOINTS>, samples: &[TimedSample]) -> Vec<(f64, f64)> {
+pub fn residuals(table: &DhTable<MAX_JOINTS>, samples: &[TimedSample]) -> Vec<(f64, f64)> {
     samples
         .iter()
         .map(|s| {
@@ -77,7 +77,7 @@ fn figure(out: &mut String, id: &str, caption: &str, svg: Result<String, PlotErr
 }
 
 /// The table the held-out slice judges: fitted without it.
-fn held_out_table(input: &ReportInput) -> &DhTable<JOINTS> {
+fn held_out_table(input: &ReportInput) -> &DhTable<MAX_JOINTS> {
     input
         .judged
         .as_ref()
@@ -157,7 +157,7 @@ fn error_over_time(input: &ReportInput) -> Result<String, PlotError> {
 /// The trajectories on two planes of the base frame: measured, nominal and calibrated.
 fn trajectories(input: &ReportInput) -> Result<String, PlotError> {
     let all = all_samples(input);
-    let fk = |table: &DhTable<JOINTS>| -> Vec<(f64, [f64; 3])> {
+    let fk = |table: &DhTable<MAX_JOINTS>| -> Vec<(f64, [f64; 3])> {
         all.iter()
             .map(|s| {
                 let p = table.fk(&s.sample.joints).p * 1e3;
@@ -304,7 +304,7 @@ fn em_charts(input: &ReportInput) -> (Result<String, PlotError>, Result<String, 
         .map(|s| s.t)
         .collect();
     // One panel per joint: seven drifts on one axis hide each other.
-    let drift: Vec<Panel> = (0..JOINTS)
+    let drift: Vec<Panel> = (0..em.drift.len())
         .map(|j| Panel {
             title: format!("joint {}: τ {:.2} s", j + 1, em.drift[j].tau),
             x_label: "time (s)".into(),
@@ -330,22 +330,22 @@ fn em_charts(input: &ReportInput) -> (Result<String, PlotError>, Result<String, 
 
 /// Value and standard deviation in display units: mm for lengths, degrees for angles.
 fn display(index: usize, v: f64) -> f64 {
-    if index < 2 * JOINTS {
+    if index < 2 * MAX_JOINTS {
         v * 1e3
     } else {
         v.to_degrees()
     }
 }
 
-fn parameter_table(out: &mut String, nominal: &DhTable<JOINTS>, c: &Calibration) {
+fn parameter_table(out: &mut String, nominal: &DhTable<MAX_JOINTS>, c: &Calibration) {
     out.push_str(
         "<table class=\"params\"><thead><tr><th>parameter</th><th>unit</th><th>nominal</th>\
          <th>least squares</th><th>± σ (LS)</th><th>calibrated</th><th>± σ (EM, CRB)</th>\
          <th>change</th></tr></thead><tbody>\n",
     );
     let em_std = c.em.as_ref().ok().map(|em| em.std_errors);
-    for p in 0..PARAMS {
-        let unit = if p < 2 * JOINTS { "mm" } else { "°" };
+    for p in (0..MAX_PARAMS).filter(|p| p % MAX_JOINTS < c.joints) {
+        let unit = if p < 2 * MAX_JOINTS { "mm" } else { "°" };
         let nom = display(p, param_value(nominal, p));
         let ls = display(p, param_value(&c.ls.table, p));
         let cal = display(p, param_value(&c.calibrated, p));
@@ -439,7 +439,7 @@ fn quality_section(
     }
     out.push_str("</tbody></table>\n");
     let exc = excitation(all, &q.joint_ranges);
-    let labels: Vec<String> = (1..=JOINTS).map(|j| format!("joint {j}")).collect();
+    let labels: Vec<String> = (1..=exc.len()).map(|j| format!("joint {j}")).collect();
     let chart = bars(
         "excitation",
         &labels,
@@ -656,7 +656,7 @@ pub fn render(input: &ReportInput) -> String {
     card(
         &mut out,
         format!("{:.1}", c.ls.condition),
-        format!("condition number (rank {}/{PARAMS})", c.ls.rank),
+        format!("condition number (rank {}/{})", c.ls.rank, 4 * c.joints),
     );
     card(
         &mut out,
@@ -927,7 +927,7 @@ fn at_rest(out: &mut String, r: &AtRest) {
         "<table class=\"at-rest\"><thead><tr><th>joint</th><th>bias (°/s)</th>\
          <th>standard error (°/s)</th></tr></thead><tbody>",
     );
-    for j in (0..JOINTS).filter(|&j| r.joints[j]) {
+    for j in (0..r.joints.len()).filter(|&j| r.joints[j]) {
         let _ = write!(
             out,
             "<tr><td>{}</td><td>{:+.4}</td><td>{:.4}</td></tr>",
@@ -960,7 +960,7 @@ fn drift_table(out: &mut String, em: &EmDetail) {
     };
     for (j, d) in em.drift.iter().enumerate() {
         let _ = write!(out, "<tr><td>{}</td><td>{:.3}</td>", j + 1, d.tau);
-        let c = em.drift_confidence.map(|c| c[j]);
+        let c = em.drift_confidence.as_ref().map(|c| c[j]);
         if let Some(c) = c {
             let _ = write!(out, "<td>{}</td>", range(c.tau_interval(Z_95), 1.0, 3));
         }
@@ -995,7 +995,6 @@ fn drift_table(out: &mut String, em: &EmDetail) {
          discounted as glitches (heavy-tailed model): {glitches}. Consistency (long-run variance \
          of each joint's normalised drift innovations, 1 under the model): {}.</p>",
         em.consistency
-            .joints
             .iter()
             .map(|c| format!("{:.2}", c.long_run))
             .collect::<Vec<_>>()
@@ -1091,7 +1090,7 @@ mod tests {
                 gaps: 0,
                 counters: Vec::new(),
                 streams: Vec::new(),
-                joint_ranges: JointRanges::<JOINTS>::paper().limits,
+                joint_ranges: JointRanges::<MAX_JOINTS>::paper().limits.to_vec(),
                 excitation_required: Some(0.5),
                 receiver_stalls: 0,
                 longest_stall_ms: None,
@@ -1115,7 +1114,7 @@ mod tests {
         let q = |receiver_stalls, longest_stall_ms| Quality {
             duration_s: 1.0,
             grid_hz: 100.0,
-            joint_ranges: JointRanges::<JOINTS>::paper().limits,
+            joint_ranges: JointRanges::<MAX_JOINTS>::paper().limits.to_vec(),
             receiver_stalls,
             longest_stall_ms,
             ..Quality::default()
@@ -1136,30 +1135,13 @@ mod tests {
 
     #[test]
     fn the_gyro_at_rest_shows_each_unaided_joints_bias_or_that_the_suit_was_never_still() {
-        let mut joints = [false; JOINTS];
-        (joints[0], joints[2]) = (true, true);
+        let nan = f64::NAN;
         let mut r = AtRest {
             still_s: 4.56,
             runs: 2,
-            joints,
-            bias_deg_s: [
-                0.0251,
-                f64::NAN,
-                -0.0183,
-                f64::NAN,
-                f64::NAN,
-                f64::NAN,
-                f64::NAN,
-            ],
-            se_deg_s: [
-                0.0041,
-                f64::NAN,
-                0.0052,
-                f64::NAN,
-                f64::NAN,
-                f64::NAN,
-                f64::NAN,
-            ],
+            joints: vec![true, false, true, false, false, false, false],
+            bias_deg_s: vec![0.0251, nan, -0.0183, nan, nan, nan, nan],
+            se_deg_s: vec![0.0041, nan, 0.0052, nan, nan, nan, nan],
         };
         let mut out = String::new();
         at_rest(&mut out, &r);

@@ -11,7 +11,7 @@ pub use exocal_session::detail::{
     Calibration, Correlation, EmDetail, LsDetail, Quality, StreamQuality, TimedSample,
 };
 pub use exocal_session::pipeline::AtRest;
-pub use exocal_session::{JOINTS, PARAMS};
+pub use exocal_session::{MAX_JOINTS, MAX_PARAMS};
 
 /// The validation verdict, if the caller validated the table.
 #[derive(Debug, Clone, PartialEq)]
@@ -33,12 +33,12 @@ pub struct ReportInput {
     /// Where the data came from (an interface, a file).
     pub source: String,
     /// The nominal table (the configuration's), the "before" of every comparison.
-    pub nominal: DhTable<JOINTS>,
+    pub nominal: DhTable<MAX_JOINTS>,
     /// The calibration; fitted on `fit` (and, when `judged` is given, `held_out` too).
     pub calibration: Calibration,
     /// When the calibrated table was refitted on every sample: the table fitted on `fit` only,
     /// which the held-out slice judged (the report's held-out figures show it).
-    pub judged: Option<DhTable<JOINTS>>,
+    pub judged: Option<DhTable<MAX_JOINTS>>,
     /// The start of the session: the samples the judged table was fitted on, time-ordered.
     pub fit: Vec<TimedSample>,
     /// The held-out slice (the end of the session), time-ordered; may be empty.
@@ -77,14 +77,14 @@ pub struct SessionInput {
 
 /// Name of parameter `index` (`kind·7 + joint`), e.g. `a3`, `θ7`.
 pub fn param_name(index: usize) -> String {
-    let kind = ["a", "d", "α", "θ"][(index / JOINTS).min(3)];
-    format!("{kind}{}", index % JOINTS + 1)
+    let kind = ["a", "d", "α", "θ"][(index / MAX_JOINTS).min(3)];
+    format!("{kind}{}", index % MAX_JOINTS + 1)
 }
 
 /// Value of parameter `index` (`kind·7 + joint`) of `table` (m or rad).
-pub fn param_value(table: &DhTable<JOINTS>, index: usize) -> f64 {
-    let row = &table.rows[index % JOINTS];
-    match index / JOINTS {
+pub fn param_value(table: &DhTable<MAX_JOINTS>, index: usize) -> f64 {
+    let row = &table.rows[index % MAX_JOINTS];
+    match index / MAX_JOINTS {
         0 => row.a,
         1 => row.d,
         2 => row.alpha,
@@ -94,20 +94,22 @@ pub fn param_value(table: &DhTable<JOINTS>, index: usize) -> f64 {
 
 /// Excitation of each joint: the fraction of its range covered by `samples` (max − min over
 /// the range width, clamped to [0, 1]); 0 without samples or with an empty range.
-pub fn excitation(samples: &[TimedSample], ranges: &[(f64, f64); JOINTS]) -> [f64; JOINTS] {
-    std::array::from_fn(|j| {
-        let (lo, hi) = samples
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), s| {
-                (lo.min(s.sample.joints[j]), hi.max(s.sample.joints[j]))
-            });
-        let width = ranges[j].1 - ranges[j].0;
-        if hi < lo || width <= 0.0 {
-            0.0
-        } else {
-            ((hi - lo) / width).clamp(0.0, 1.0)
-        }
-    })
+pub fn excitation(samples: &[TimedSample], ranges: &[(f64, f64)]) -> Vec<f64> {
+    (0..ranges.len().min(MAX_JOINTS))
+        .map(|j| {
+            let (lo, hi) = samples
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), s| {
+                    (lo.min(s.sample.joints[j]), hi.max(s.sample.joints[j]))
+                });
+            let width = ranges[j].1 - ranges[j].0;
+            if hi < lo || width <= 0.0 {
+                0.0
+            } else {
+                ((hi - lo) / width).clamp(0.0, 1.0)
+            }
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -117,7 +119,7 @@ mod tests {
 
     #[test]
     fn parameter_names_and_values_follow_kind_times_seven_plus_joint() {
-        let t = DhTable::<JOINTS>::paper_nominal();
+        let t = DhTable::<MAX_JOINTS>::paper_nominal();
         assert_eq!(param_name(0), "a1");
         assert_eq!(param_name(9), "d3");
         assert_eq!(param_name(20), "α7");
@@ -132,14 +134,14 @@ mod tests {
         let at = |q: f64| TimedSample {
             t: 0.0,
             sample: Sample {
-                joints: [q; JOINTS],
+                joints: [q; MAX_JOINTS],
                 pose: Frame::identity(),
             },
         };
-        let ranges = [(-1.0, 1.0); JOINTS];
+        let ranges = [(-1.0, 1.0); MAX_JOINTS];
         let e = excitation(&[at(-0.5), at(0.5), at(0.0)], &ranges);
         assert!(e.iter().all(|&x| (x - 0.5).abs() < 1e-12), "{e:?}");
-        assert_eq!(excitation(&[], &ranges), [0.0; JOINTS]);
-        assert_eq!(excitation(&[at(-9.0), at(9.0)], &ranges), [1.0; JOINTS]);
+        assert_eq!(excitation(&[], &ranges), [0.0; MAX_JOINTS]);
+        assert_eq!(excitation(&[at(-9.0), at(9.0)], &ranges), [1.0; MAX_JOINTS]);
     }
 }

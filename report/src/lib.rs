@@ -20,5 +20,5 @@ pub mod plot;
 
 pub use input::{
     Calibration, Correlation, EmDetail, LsDetail, NodePush, Quality, ReportInput, SessionInput,
-    StreamQuality, TimedSample, VerdictSummary, JOINTS, PARAMS,
+    StreamQuality, TimedSample, VerdictSummary, MAX_JOINTS, MAX_PARAMS,
 };

@@ -52,9 +52,14 @@ fn input() -> ReportInput {
         max_iterations: 8,
         ..DriftEmOptions::new(cfg.drift.dt)
     };
-    let calibration =
-        exocal_session::pipeline::ls_then_em(&nominal, &samples, &LsOptions::new(), &em, true)
-            .unwrap();
+    let calibration = exocal_session::pipeline::ls_then_em::<7, 28>(
+        &nominal,
+        &samples,
+        &LsOptions::new(),
+        &em,
+        true,
+    )
+    .unwrap();
     assert!(
         calibration.em.is_ok(),
         "{:?}",
@@ -84,7 +89,7 @@ fn input() -> ReportInput {
             gaps: 0,
             counters: vec![("frames received".into(), 3200), ("unknown".into(), 0)],
             streams: vec![stream("Joint1"), stream("EndEffector")],
-            joint_ranges: JointRanges::<7>::paper().limits,
+            joint_ranges: JointRanges::<7>::paper().limits.to_vec(),
             excitation_required: Some(0.5),
             receiver_stalls: 0,
             longest_stall_ms: None,

@@ -35,7 +35,7 @@
 //!   says how long its stream went unseen there ([`AlignedSample::unseen_s`], [`unseen`]): a
 //!   fill is not a measurement, and the jump test judges it as it judges a gap.
 
-use crate::JOINTS;
+use crate::MAX_JOINTS;
 use calib_core::median;
 
 /// Tuning of the clock tracker.
@@ -812,10 +812,10 @@ pub struct AlignedSample {
     /// Time of the grid point (host s).
     pub t: f64,
     /// Joint angles (rad), joint 1 first.
-    pub joints: [f64; JOINTS],
+    pub joints: [f64; MAX_JOINTS],
     /// Each joint node's gyro about its joint's axis (rad/s; [`crate::ingest::Ingest::with_joint_gyros`]);
     /// NaN where not kept (by default, and a CSV) or not interpolated at `t`.
-    pub rates: [f64; JOINTS],
+    pub rates: [f64; MAX_JOINTS],
     /// Measured end-effector pose at `t`.
     pub pose: Pose,
     /// How long the stream with the longest hole around `t` went unseen beyond its usual
@@ -826,12 +826,12 @@ pub struct AlignedSample {
 
 impl AlignedSample {
     /// The sample at `t` of calib-core's `sample` (its rotation as a unit quaternion).
-    pub fn of(t: f64, sample: &calib_core::Sample<JOINTS>) -> AlignedSample {
+    pub fn of(t: f64, sample: &calib_core::Sample<MAX_JOINTS>) -> AlignedSample {
         let q = nalgebra::UnitQuaternion::from_matrix(&sample.pose.r);
         AlignedSample {
             t,
             joints: sample.joints,
-            rates: [f64::NAN; JOINTS],
+            rates: [f64::NAN; MAX_JOINTS],
             pose: Pose {
                 position: sample.pose.p.into(),
                 orientation: [q.w, q.i, q.j, q.k],
@@ -841,7 +841,7 @@ impl AlignedSample {
     }
 
     /// As calib-core takes it (quaternion normalised): the inverse of [`AlignedSample::of`].
-    pub fn sample(&self) -> calib_core::Sample<JOINTS> {
+    pub fn sample(&self) -> calib_core::Sample<MAX_JOINTS> {
         let [w, x, y, z] = self.pose.orientation;
         let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z));
         calib_core::Sample {
@@ -894,13 +894,14 @@ pub struct Aligned {
     pub stalls: Vec<Stall>,
 }
 
-/// Resamples the joint streams and the pose stream (host time, sorted) onto one grid at `hz`
-/// over the span common to all streams, at most `max_points` of it from the span's start (the
-/// session's rules bound it: [`crate::WindowRules::max_samples`]); grid points where any stream
-/// has a gap are excluded.
+/// Resamples the joint streams of the arm (`joints`, at most [`MAX_JOINTS`]; the samples'
+/// readings past them are 0, [`crate::arm`]) and the pose stream (host time, sorted) onto one
+/// grid at `hz` over the span common to all streams, at most `max_points` of it from the
+/// span's start (the session's rules bound it: [`crate::WindowRules::max_samples`]); grid
+/// points where any stream has a gap are excluded.
 pub fn align(
-    joints: &[Vec<(f64, f64)>; JOINTS],
-    rates: &[Vec<(f64, f64)>; JOINTS],
+    joints: &[Vec<(f64, f64)>],
+    rates: &[Vec<(f64, f64)>; MAX_JOINTS],
     pose: &[(f64, Pose)],
     hz: f64,
     max_gap: f64,
@@ -945,7 +946,7 @@ pub fn align(
     let mut samples = Vec::with_capacity(g.len());
     for (k, &t) in g.iter().enumerate() {
         let Some(p) = poses[k] else { continue };
-        let mut q = [0.0; JOINTS];
+        let mut q = [0.0; MAX_JOINTS];
         if per_joint
             .iter()
             .zip(q.iter_mut())
@@ -1408,7 +1409,7 @@ mod tests {
             assert!((v - want).abs() < 1e-9, "grid point {k}: {v}");
         }
         // Through align: the fills are kept (40 ms < max_gap) and marked.
-        let joints: [Vec<(f64, f64)>; JOINTS] = core::array::from_fn(|j| {
+        let joints: [Vec<(f64, f64)>; MAX_JOINTS] = core::array::from_fn(|j| {
             (0..32)
                 .map(|k| (0.001 * j as f64 + k as f64 * 0.01, 0.0))
                 .collect()
@@ -1499,7 +1500,7 @@ mod tests {
     #[test]
     fn align_keeps_only_points_where_every_stream_has_data() {
         let hz = 100.0;
-        let mut joints: [Vec<(f64, f64)>; JOINTS] = Default::default();
+        let mut joints: [Vec<(f64, f64)>; MAX_JOINTS] = Default::default();
         for (j, s) in joints.iter_mut().enumerate() {
             // joint j: 1 kHz-ish samples from 10.0 s to 12.0 s, offset by j/7 ms
             *s = (0..2000)

@@ -43,7 +43,7 @@ pub struct Collector {
 impl Collector {
     /// An empty collection under `config`'s node ids, session rules and joint ranges.
     pub fn new(settings: &Settings) -> Collector {
-        let ingest = Ingest::new(settings.joint_nodes);
+        let ingest = Ingest::new(&settings.joint_nodes[..settings.joints]);
         Collector {
             // The gyro at rest needs the joint gyros where some joint is unaided: about each
             // joint's axis, `z_{j−1}` seen from link `j`, `R_x(α_j)ᵀ ẑ`.
@@ -56,7 +56,11 @@ impl Collector {
                 ),
                 false => ingest,
             },
-            window: Window::new(settings.window.clone(), settings.bounds.joint_range),
+            window: Window::new(
+                settings.window.clone(),
+                settings.bounds.joint_range,
+                settings.joints,
+            ),
             gate: None,
             taken: 0,
         }
@@ -182,8 +186,9 @@ impl Collected {
     }
 }
 
-fn ranges(settings: &Settings) -> [(f64, f64); crate::JOINTS] {
-    settings.bounds.joint_range.limits
+/// The arm's joint ranges.
+fn ranges(settings: &Settings) -> Vec<(f64, f64)> {
+    settings.bounds.joint_range.limits[..settings.joints].to_vec()
 }
 
 fn duration(samples: &[AlignedSample]) -> f64 {
@@ -219,6 +224,8 @@ fn frame_quality(
     .collect();
     let streams = (STREAMS.iter().enumerate())
         .zip(ingest.stream_rates())
+        // The streams of joints past the arm's are not the session's.
+        .filter(|((_, s), _)| !matches!(s.column, Column::Angle(j) if j >= settings.joints))
         .map(|((i, s), (rate, loss))| {
             let clock = clocks.iter().find(|c| c.node == s.name);
             StreamQuality {

@@ -3,11 +3,11 @@
 //! quality. The report renders these, the log records them; nothing here is computed.
 
 use calib_core::{
-    Consistency, DhTable, Discounted, DriftConfidence, DriftParams, JointDrift, Sample, Scenario,
-    ScenarioConfig, TableError,
+    DhTable, Discounted, DriftConfidence, DriftParams, JointConsistency, JointDrift, Sample,
+    Scenario, ScenarioConfig, TableError,
 };
 
-use crate::{JOINTS, PARAMS};
+use crate::{MAX_JOINTS, MAX_PARAMS};
 
 /// A calibration sample and its time (s since the start of the session).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -15,13 +15,13 @@ pub struct TimedSample {
     /// Seconds since the start of the session.
     pub t: f64,
     /// The joint angles and the measured end-effector pose.
-    pub sample: Sample<JOINTS>,
+    pub sample: Sample<MAX_JOINTS>,
 }
 
 impl TimedSample {
     /// The first `k` samples of calib-core's simulated session `cfg` with `seed`, timed at its
     /// sample period: a session for examples and tests without a suit.
-    pub fn simulated(cfg: ScenarioConfig<JOINTS>, seed: u64, k: usize) -> Vec<TimedSample> {
+    pub fn simulated(cfg: ScenarioConfig<MAX_JOINTS>, seed: u64, k: usize) -> Vec<TimedSample> {
         Scenario::new(cfg, seed)
             .take(k)
             .enumerate()
@@ -37,12 +37,12 @@ impl TimedSample {
 /// the table and the standard errors, which the node rows carry).
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct LsDetail {
-    /// The LS table.
+    /// The LS table (padded, [`crate::arm`]).
     #[serde(skip)]
-    pub table: DhTable<JOINTS>,
+    pub table: DhTable<MAX_JOINTS>,
     /// Gauss–Newton/LM trial steps taken, accepted or not.
     pub iterations: usize,
-    /// Numerical rank of the column-scaled Jacobian ([`PARAMS`] when every parameter is
+    /// Numerical rank of the column-scaled Jacobian ([`MAX_PARAMS`] when every parameter is
     /// identifiable).
     pub rank: usize,
     /// Column-scaled condition number.
@@ -50,16 +50,17 @@ pub struct LsDetail {
     pub condition: f64,
     /// RMS of the 6-vector pose residual at the solution (m, rad).
     pub rms: f64,
-    /// 1σ of each parameter from the information matrix (white-noise model), `kind·7 + joint`.
+    /// 1σ of each parameter from the information matrix (white-noise model), `kind·7 + joint`
+    /// (NaN past the arm's joints, [`crate::arm`]).
     #[serde(skip)]
-    pub std_errors: [f64; PARAMS],
+    pub std_errors: [f64; MAX_PARAMS],
 }
 
 /// Drift EM step, as the report shows it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EmDetail {
-    /// The EM table.
-    pub table: DhTable<JOINTS>,
+    /// The EM table (padded).
+    pub table: DhTable<MAX_JOINTS>,
     /// EM iterations taken.
     pub iterations: usize,
     /// Whether the EM met its tolerance (otherwise it hit its iteration limit).
@@ -69,12 +70,13 @@ pub struct EmDetail {
     pub log_likelihood: Vec<f64>,
     /// Where in `log_likelihood` each objective after the first starts.
     pub objectives: Vec<usize>,
-    /// τ and σ per joint.
-    pub drift: [DriftParams; JOINTS],
+    /// τ and σ per joint of the arm.
+    pub drift: Vec<DriftParams>,
     /// Their standard errors (calib-core's `drift_confidence`), when asked for.
-    pub drift_confidence: Option<[DriftConfidence; JOINTS]>,
-    /// Cramér-Rao 1σ of every parameter under the drift model, `kind·7 + joint`.
-    pub std_errors: [f64; PARAMS],
+    pub drift_confidence: Option<Vec<DriftConfidence>>,
+    /// Cramér-Rao 1σ of every parameter under the drift model, `kind·7 + joint` (NaN past
+    /// the arm's joints).
+    pub std_errors: [f64; MAX_PARAMS],
     /// Expected table error (1σ) under that bound, over poses spread over the joint ranges
     /// (calib-core's `ErrorPoses::Ranges`).
     pub expected_error: TableError,
@@ -86,11 +88,11 @@ pub struct EmDetail {
     /// `allowance`; zero otherwise). Not part of `stated_error`.
     pub allowance: TableError,
     /// Per joint, the drift model (the paper's Gauss-Markov, or with a rate bias) and why.
-    pub models: [JointDrift; JOINTS],
+    pub models: Vec<JointDrift>,
     /// The reference samples discounted as glitches: how many, runs of sample indices, ν.
     pub discounted: Discounted,
-    /// How well the data follow the fitted model, per joint and per pose component.
-    pub consistency: Consistency<JOINTS>,
+    /// How well each joint's drift follows the fitted model.
+    pub consistency: Vec<JointConsistency>,
     /// Where the data contradict the model (a sensor that jumped, too many glitches, a drift
     /// grossly off its model): each refuses the session.
     pub refusals: Vec<calib_core::Refusal>,
@@ -102,7 +104,7 @@ pub struct EmDetail {
     pub versus_ls: Option<calib_core::EmVersusLs>,
     /// Smoothed angle error (rad) per fitted sample: the Gauss-Markov drift plus, where the
     /// model has one, the integrated rate bias.
-    pub drift_series: Vec<[f64; JOINTS]>,
+    pub drift_series: Vec<[f64; MAX_JOINTS]>,
 }
 
 impl EmDetail {
@@ -134,13 +136,16 @@ pub struct Correlation {
 /// What the calibration produced.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Calibration {
+    /// Joints of the arm calibrated: the tables' first rows, the parameters `kind·7 + joint`
+    /// with `joint` below it ([`crate::arm`]).
+    pub joints: usize,
     /// The least-squares step.
     pub ls: LsDetail,
     /// The EM, or why it failed (the LS table is then the result).
     pub em: Result<EmDetail, calib_core::CalibError>,
     /// The resulting table: the EM's; the LS's when the EM failed or its table disagrees with
     /// LS's ([`Calibration::ls_kept`]).
-    pub calibrated: DhTable<JOINTS>,
+    pub calibrated: DhTable<MAX_JOINTS>,
     /// The expected table error (1σ) of `calibrated` to state: the EM's stated error; where
     /// LS's table was kept for disagreeing, LS's expected error under the drift the EM fitted;
     /// where the EM failed, what LS alone is worth with white residuals (calib-core's
@@ -194,7 +199,7 @@ pub struct Quality {
     /// Every data stream, in display order.
     pub streams: Vec<StreamQuality>,
     /// Anatomical range of each joint (rad), for the excitation figures.
-    pub joint_ranges: [(f64, f64); JOINTS],
+    pub joint_ranges: Vec<(f64, f64)>,
     /// The excitation the session rules require (fraction of each range), if any.
     pub excitation_required: Option<f64>,
     /// Times the receiver stalled (every node's frames late together; not counted as any

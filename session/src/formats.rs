@@ -22,8 +22,10 @@
 //! t,q1,q2,q3,q4,q5,q6,q7,x,y,z,qw,qx,qy,qz
 //! ```
 //!
-//! `t` is the time in seconds (strictly increasing), `q1`…`q7` the seven joint readings in
-//! radians (joint 1 = shoulder), `x,y,z` the measured end-effector position in metres in the
+//! for the paper's arm of seven joints; an arm of `n` joints has the columns `q1`…`qn`
+//! ([`csv_header`]), and a file of another arm is refused, naming both counts. `t` is the time
+//! in seconds (strictly increasing), `q1`…`qn` the joint readings in radians (joint 1 =
+//! shoulder), `x,y,z` the measured end-effector position in metres in the
 //! base frame, and `qw,qx,qy,qz` its orientation as a unit quaternion (scalar first; a norm
 //! within 1e-3 of 1 is normalised, anything else is an error).
 
@@ -35,7 +37,7 @@ use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
 use crate::detail::TimedSample;
 use crate::rules::{Budget, WindowRules};
-use crate::JOINTS;
+use crate::MAX_JOINTS;
 
 /// Largest joint reading a CSV sample may carry (rad): beyond it the file is in degrees.
 pub const MAX_JOINT_READING_RAD: f64 = core::f64::consts::TAU;
@@ -45,8 +47,17 @@ pub const MAX_POSITION_M: f64 = 5.0;
 /// Characters of a bad line quoted in its error.
 pub const MAX_QUOTED: usize = 80;
 
-/// The CSV header, exactly.
+/// The CSV header of the longest arm ([`MAX_JOINTS`] joints), exactly.
 pub const CSV_HEADER: &str = "t,q1,q2,q3,q4,q5,q6,q7,x,y,z,qw,qx,qy,qz";
+
+/// Most columns a CSV line has (the longest arm's).
+const MAX_COLUMNS: usize = 1 + MAX_JOINTS + 7;
+
+/// The CSV header of an arm of `joints` joints, exactly: `t,q1,…,qn,x,y,z,qw,qx,qy,qz`.
+pub fn csv_header(joints: usize) -> String {
+    let q: Vec<String> = (1..=joints).map(|j| format!("q{j}")).collect();
+    format!("t,{},x,y,z,qw,qx,qy,qz", q.join(","))
+}
 
 /// Which reader failed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -167,16 +178,20 @@ fn csv_err(line: usize, what: impl Into<String>) -> ReadError {
 #[derive(Debug, Clone)]
 pub struct CsvReader {
     budget: Budget,
+    /// Joints of the arm: its columns.
+    joints: usize,
     line: usize,
     header: bool,
     samples: Vec<TimedSample>,
 }
 
 impl CsvReader {
-    /// A reader bounded by `rules` ([`Budget::samples`]).
-    pub fn new(rules: &WindowRules) -> CsvReader {
+    /// A reader of an arm of `joints` joints (1..=[`MAX_JOINTS`]), bounded by `rules`
+    /// ([`Budget::samples`]).
+    pub fn new(rules: &WindowRules, joints: usize) -> CsvReader {
         CsvReader {
             budget: Budget::samples(rules),
+            joints: joints.clamp(1, MAX_JOINTS),
             line: 0,
             header: false,
             samples: Vec::new(),
@@ -191,7 +206,7 @@ impl CsvReader {
         if line.is_empty() || line.starts_with('#') {
             return Ok(());
         }
-        let mut fields = [""; 15];
+        let mut fields = [""; MAX_COLUMNS];
         let mut count = 0;
         for (i, field) in line.split(',').enumerate() {
             if let Some(f) = fields.get_mut(i) {
@@ -199,26 +214,32 @@ impl CsvReader {
             }
             count = i + 1;
         }
+        let header = csv_header(self.joints);
+        let width = 1 + self.joints + 7;
+        let fields = &fields[..width];
         if !self.header {
-            if count != fields.len()
-                || fields
-                    .iter()
-                    .zip(CSV_HEADER.split(','))
-                    .any(|(a, b)| *a != b)
-            {
-                return Err(csv_err(n, format!("header must be `{CSV_HEADER}`")));
+            if count != width || fields.iter().zip(header.split(',')).any(|(a, b)| *a != b) {
+                let theirs = (1..=MAX_JOINTS).find(|&m| line.replace(' ', "") == csv_header(m));
+                return Err(csv_err(
+                    n,
+                    match theirs {
+                        Some(m) => format!(
+                            "the file has {m} joint columns (q1…q{m}), the configured arm {} \
+                             joints ([nodes] joints): header must be `{header}`",
+                            self.joints
+                        ),
+                        None => format!("header must be `{header}`"),
+                    },
+                ));
             }
             self.header = true;
             return Ok(());
         }
-        if count != fields.len() {
-            return Err(csv_err(
-                n,
-                format!("{count} columns, expected {}", fields.len()),
-            ));
+        if count != width {
+            return Err(csv_err(n, format!("{count} columns, expected {width}")));
         }
-        let mut v = [0.0; 15];
-        for ((x, field), name) in v.iter_mut().zip(&fields).zip(CSV_HEADER.split(',')) {
+        let mut v = [0.0; MAX_COLUMNS];
+        for ((x, field), name) in v.iter_mut().zip(fields).zip(header.split(',')) {
             *x = field
                 .parse::<f64>()
                 .ok()
@@ -229,7 +250,8 @@ impl CsvReader {
                 })?;
         }
         // Unit mistakes get a hint naming the unit, not a calibration that fails later.
-        for (j, q) in v[1..8].iter().enumerate() {
+        let (q, pose) = v[1..width].split_at(self.joints);
+        for (j, q) in q.iter().enumerate() {
             if q.abs() > MAX_JOINT_READING_RAD {
                 return Err(csv_err(
                     n,
@@ -241,7 +263,7 @@ impl CsvReader {
                 ));
             }
         }
-        for (name, x) in ["x", "y", "z"].iter().zip(&v[8..11]) {
+        for (name, x) in ["x", "y", "z"].iter().zip(&pose[..3]) {
             if x.abs() > MAX_POSITION_M {
                 return Err(csv_err(
                     n,
@@ -261,7 +283,8 @@ impl CsvReader {
                 ));
             }
         }
-        let q = Quaternion::new(v[11], v[12], v[13], v[14]);
+        let joints: [f64; MAX_JOINTS] = std::array::from_fn(|j| q.get(j).copied().unwrap_or(0.0));
+        let q = Quaternion::new(pose[3], pose[4], pose[5], pose[6]);
         let norm = q.norm();
         if (norm - 1.0).abs() > 1e-3 {
             return Err(csv_err(n, format!("quaternion norm {norm:.6}, expected 1")));
@@ -273,10 +296,10 @@ impl CsvReader {
         self.samples.push(TimedSample {
             t,
             sample: Sample {
-                joints: std::array::from_fn(|j| v[1 + j]),
+                joints,
                 pose: Frame {
                     r: rot.to_rotation_matrix().into_inner(),
-                    p: Vector3::new(v[8], v[9], v[10]),
+                    p: Vector3::new(pose[0], pose[1], pose[2]),
                 },
             },
         });
@@ -298,24 +321,30 @@ impl CsvReader {
     }
 }
 
-/// Parses CSV samples ([`CsvReader`], line by line).
-pub fn parse_csv(text: &str, rules: &WindowRules) -> Result<Vec<TimedSample>, ReadError> {
-    let mut r = CsvReader::new(rules);
+/// Parses CSV samples of an arm of `joints` joints ([`CsvReader`], line by line).
+pub fn parse_csv(
+    text: &str,
+    rules: &WindowRules,
+    joints: usize,
+) -> Result<Vec<TimedSample>, ReadError> {
+    let mut r = CsvReader::new(rules, joints);
     for line in text.lines() {
         r.line(line)?;
     }
     r.finish()
 }
 
-/// `samples` in the CSV format [`parse_csv`] reads (full precision).
-pub fn csv_text(samples: &[TimedSample]) -> String {
+/// `samples` of an arm of `joints` joints in the CSV format [`parse_csv`] reads (full
+/// precision).
+pub fn csv_text(samples: &[TimedSample], joints: usize) -> String {
     use fmt::Write as _;
-    let mut out = format!("{CSV_HEADER}\n");
+    let joints = joints.clamp(1, MAX_JOINTS);
+    let mut out = format!("{}\n", csv_header(joints));
     for s in samples {
         let q = UnitQuaternion::from_matrix(&s.sample.pose.r);
         let p = s.sample.pose.p;
         let _ = write!(out, "{}", s.t);
-        for j in s.sample.joints.iter().take(JOINTS) {
+        for j in s.sample.joints.iter().take(joints) {
             let _ = write!(out, ",{j}");
         }
         let _ = writeln!(
@@ -392,8 +421,8 @@ mod tests {
     #[test]
     fn csv_round_trips_through_csv_text() {
         let s = samples(50);
-        let text = format!("# a comment\n\n{}", csv_text(&s));
-        let back = parse_csv(&text, &rules()).unwrap();
+        let text = format!("# a comment\n\n{}", csv_text(&s, 7));
+        let back = parse_csv(&text, &rules(), 7).unwrap();
         assert_eq!(back.len(), s.len());
         for (a, b) in back.iter().zip(&s) {
             assert_eq!(a.t, b.t);
@@ -437,15 +466,15 @@ mod tests {
             ),
         ];
         for (text, line, what) in cases {
-            let e = parse_csv(&text, &rules()).unwrap_err();
+            let e = parse_csv(&text, &rules(), 7).unwrap_err();
             assert_eq!(e.line, Some(line), "{text}");
             assert!(e.to_string().contains(what), "{e}");
         }
-        assert!(parse_csv("", &rules())
+        assert!(parse_csv("", &rules(), 7)
             .unwrap_err()
             .to_string()
             .contains("no header"));
-        assert!(parse_csv(CSV_HEADER, &rules())
+        assert!(parse_csv(CSV_HEADER, &rules(), 7)
             .unwrap_err()
             .to_string()
             .contains("no samples"));
@@ -480,7 +509,7 @@ mod tests {
         let row = |t: f64| format!("{t},0,0,0,0,0,0,0,0.1,0.2,0.3,1,0,0,0");
         let n = r.max_samples();
         assert_eq!(n, 18_101);
-        let mut csv = CsvReader::new(&r);
+        let mut csv = CsvReader::new(&r, 7);
         csv.line(CSV_HEADER).unwrap();
         for k in 0..n {
             csv.line(&row(k as f64 * 0.001)).unwrap();
@@ -489,7 +518,7 @@ mod tests {
         assert_eq!(e.line, Some(n + 2));
         assert!(e.to_string().contains("session.grid_hz"), "{e}");
         let text = format!("{CSV_HEADER}\n{}\n{}\n", row(0.0), row(181.5));
-        let e = parse_csv(&text, &r).unwrap_err();
+        let e = parse_csv(&text, &r, 7).unwrap_err();
         assert_eq!(e.line, Some(3));
         assert!(e.to_string().contains("181.5"), "{e}");
     }

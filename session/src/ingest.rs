@@ -29,7 +29,7 @@ use serde::Serialize;
 
 use crate::align::{self, AlignParams, Aligned, Pose, Stall, Unwrapper};
 use crate::stream::{angle, stream_of, Column, Source, POSE, STREAMS};
-use crate::JOINTS;
+use crate::MAX_JOINTS;
 use exocal_dbc::spec::Kind;
 
 /// Node clocks are 32-bit microsecond counters.
@@ -62,7 +62,7 @@ pub struct FrameStats {
     /// Poses refused (quaternion not of unit norm).
     pub bad_poses: u64,
     /// Joint-state frames per joint.
-    pub joint_frames: [u64; JOINTS],
+    pub joint_frames: [u64; MAX_JOINTS],
     /// Complete end-effector poses.
     pub poses: u64,
     /// Heartbeats per node id 1..=8 (index 0 unused).
@@ -276,6 +276,8 @@ pub struct Ingest {
     origin: Option<Duration>,
     /// Joint index of each node id (1..=7 → 0..7), from the configuration.
     joint_of_node: [Option<usize>; 9],
+    /// Joints of the arm: the streams of joints past them are never waited for.
+    joints: usize,
     /// One per [`STREAMS`] entry.
     streams: Vec<Series>,
     assembler: PoseAssembler,
@@ -297,14 +299,16 @@ pub const JOINT_GYRO_MIN_INTERVAL_S: f64 = 0.004;
 #[derive(Debug, Clone)]
 struct JointGyros {
     /// Joint `j`'s axis in its node's frame (unit).
-    axes: [[f64; 3]; JOINTS],
-    series: [Vec<(f64, f64)>; JOINTS],
+    axes: [[f64; 3]; MAX_JOINTS],
+    series: [Vec<(f64, f64)>; MAX_JOINTS],
 }
 
 impl Ingest {
-    /// A new session; `joint_nodes[i]` is the node id of joint `i`.
-    pub fn new(joint_nodes: [u8; JOINTS]) -> Ingest {
+    /// A new session of the arm whose joint `i` is on node `joint_nodes[i]` (at most
+    /// [`MAX_JOINTS`]; the nodes of joints past the arm's send nothing it waits for).
+    pub fn new(joint_nodes: &[u8]) -> Ingest {
         let mut joint_of_node = [None; 9];
+        let joint_nodes = &joint_nodes[..joint_nodes.len().min(MAX_JOINTS)];
         for (i, &id) in joint_nodes.iter().enumerate() {
             if let Some(slot) = joint_of_node.get_mut(usize::from(id)) {
                 *slot = Some(i);
@@ -324,6 +328,7 @@ impl Ingest {
         Ingest {
             origin: None,
             joint_of_node,
+            joints: joint_nodes.len(),
             streams,
             assembler: PoseAssembler::new(),
             stats: FrameStats::default(),
@@ -336,7 +341,7 @@ impl Ingest {
     /// joint's axis (`axes[j]`, a unit vector in the node's frame), which alignment resamples
     /// into [`crate::align::AlignedSample::rates`] (for the gyro at rest; they are not a
     /// stream of their own: their frames are in the log's `/can/rx`).
-    pub fn with_joint_gyros(mut self, axes: [[f64; 3]; JOINTS]) -> Ingest {
+    pub fn with_joint_gyros(mut self, axes: [[f64; 3]; MAX_JOINTS]) -> Ingest {
         self.joint_gyros = Some(JointGyros {
             axes,
             series: Default::default(),
@@ -501,7 +506,7 @@ impl Ingest {
 
     /// Joint samples received for joint `joint` (valid angles).
     pub fn joint_samples(&self, joint: usize) -> usize {
-        if joint < JOINTS {
+        if joint < MAX_JOINTS {
             self.streams[angle(joint)].len()
         } else {
             0
@@ -517,9 +522,10 @@ impl Ingest {
     /// receive instants from the first one at which every joint has reported to the last
     /// reading, every joint's latest angle by then. No clock model and no interpolation: for
     /// figures that depend on where the arm went and not on when, such as the condition number
-    /// of the identification problem. Empty until every joint has reported.
-    pub fn joint_snapshot(&self, n: usize) -> Vec<[f64; JOINTS]> {
-        let joints = &self.streams[angle(0)..angle(0) + JOINTS];
+    /// of the identification problem. Empty until every joint of the arm has reported; the
+    /// joints past it read 0 ([`crate::arm`]).
+    pub fn joint_snapshot(&self, n: usize) -> Vec<[f64; MAX_JOINTS]> {
+        let joints = &self.streams[angle(0)..angle(0) + self.joints];
         let span = joints.iter().try_fold((f64::MIN, f64::MIN), |(lo, hi), s| {
             let first = s.clock.first()?.1;
             let last = s.clock.last()?.1;
@@ -537,7 +543,7 @@ impl Ingest {
                     start + (end - start) * i as f64 / (n - 1) as f64
                 };
                 std::array::from_fn(|j| {
-                    let s = &joints[j];
+                    let Some(s) = joints.get(j) else { return 0.0 };
                     // Arrival order: host times ascend (a stepped clock only blurs the pick).
                     let k = s.clock.partition_point(|c| c.1 <= t).max(1);
                     s.value(k - 1)[0]
@@ -584,8 +590,10 @@ impl Ingest {
         max_gap: f64,
         max_points: usize,
     ) -> (Aligned, Vec<ClockReport>) {
+        // The arm's streams: a joint past it has no node on the bus.
         let calibrating: Vec<usize> = (0..STREAMS.len())
             .filter(|&i| STREAMS[i].column.calibrates())
+            .filter(|&i| !matches!(STREAMS[i].column, Column::Angle(j) if j >= self.joints))
             .collect();
         let clocks: Vec<&[(f64, f64)]> = calibrating
             .iter()
@@ -593,7 +601,7 @@ impl Ingest {
             .collect();
         let session = align::track_clocks(&clocks, params);
         let mut reports = Vec::with_capacity(calibrating.len());
-        let mut joints: [Vec<(f64, f64)>; JOINTS] = Default::default();
+        let mut joints: [Vec<(f64, f64)>; MAX_JOINTS] = Default::default();
         let mut rates = self
             .joint_gyros
             .as_ref()
@@ -618,7 +626,8 @@ impl Ingest {
             };
             reports.push(clock_report(STREAMS[i].name, series.len(), mapped, track));
         }
-        let mut aligned = align::align(&joints, &rates, &poses, hz, max_gap, max_points);
+        let arm = &joints[..self.joints];
+        let mut aligned = align::align(arm, &rates, &poses, hz, max_gap, max_points);
         aligned.stalls = session.stalls;
         (aligned, reports)
     }
@@ -664,10 +673,10 @@ mod tests {
             .unwrap()
         };
         let s = std::f64::consts::FRAC_1_SQRT_2;
-        let mut axes = [[0.0, 0.0, 1.0]; JOINTS];
+        let mut axes = [[0.0, 0.0, 1.0]; MAX_JOINTS];
         axes[2] = [0.0, s, s];
-        let mut asked = Ingest::new([1, 2, 3, 4, 5, 6, 7]).with_joint_gyros(axes);
-        let mut plain = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
+        let mut asked = Ingest::new(&[1, 2, 3, 4, 5, 6, 7]).with_joint_gyros(axes);
+        let mut plain = Ingest::new(&[1, 2, 3, 4, 5, 6, 7]);
         // 1000 frames in 0.1 s, then 10 at 100 Hz.
         let times = (0..1000)
             .map(|k| k as f64 * 1e-4)
@@ -688,7 +697,7 @@ mod tests {
     #[test]
     fn the_end_effectors_gyro_and_magnetometer_are_streams_and_a_joints_gyro_is_not() {
         // STREAMS takes the end effector's IMU rate, not a joint node's: the table decides.
-        let mut ing = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
+        let mut ing = Ingest::new(&[1, 2, 3, 4, 5, 6, 7]);
         let gyro = |node: NodeId, lo: u16, z: f64| {
             Message::ImuGyro(exocal_dbc::ImuVector {
                 node,
@@ -739,7 +748,7 @@ mod tests {
 
     #[test]
     fn the_joint_snapshot_takes_every_joints_latest_angle_once_all_have_reported() {
-        let mut ing = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
+        let mut ing = Ingest::new(&[1, 2, 3, 4, 5, 6, 7]);
         // Joints 1-6 report from t = 0 s; joint 7 only from t = 1 s: nothing until then.
         for k in 0..=20u32 {
             let t = 0.1 * f64::from(k);
@@ -772,7 +781,7 @@ mod tests {
 
     #[test]
     fn frames_are_counted_and_never_fatal() {
-        let mut ing = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
+        let mut ing = Ingest::new(&[1, 2, 3, 4, 5, 6, 7]);
         let e = ing.on_frame(&rx(joint_frame(3, 1000, 0.5), 0.0));
         assert!(matches!(
             e,
@@ -807,7 +816,7 @@ mod tests {
 
     #[test]
     fn a_node_repeating_its_frames_is_named_babbling_and_duplication_names_none() {
-        let mut ing = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
+        let mut ing = Ingest::new(&[1, 2, 3, 4, 5, 6, 7]);
         let mut t = 0.0;
         // Every joint sends fresh frames; every 20th frame is duplicated on the bus.
         for k in 0..400u32 {
@@ -839,7 +848,7 @@ mod tests {
 
     #[test]
     fn a_wiring_permutation_maps_nodes_to_joints() {
-        let mut ing = Ingest::new([7, 6, 5, 4, 3, 2, 1]);
+        let mut ing = Ingest::new(&[7, 6, 5, 4, 3, 2, 1]);
         let e = ing.on_frame(&rx(joint_frame(7, 10, 0.25), 0.0));
         assert!(matches!(
             e,
@@ -856,7 +865,7 @@ mod tests {
     /// the true signals.
     #[test]
     fn streams_align_through_skewed_clocks_and_rollover() {
-        let mut ing = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
+        let mut ing = Ingest::new(&[1, 2, 3, 4, 5, 6, 7]);
         let angle = |j: usize, t: f64| 0.3 * (t * (0.5 + 0.1 * j as f64)).sin();
         let skew = |node: usize| (node as f64 - 4.0) * 50e-6; // −150 .. +200 ppm
         let offset_us = |node: usize| {
@@ -873,7 +882,7 @@ mod tests {
         let mut frames = Vec::new();
         for k in 0..1000 {
             let t = k as f64 * 0.01;
-            for j in 0..JOINTS {
+            for j in 0..MAX_JOINTS {
                 let node = j + 1;
                 let f = joint_frame(node as u8, node_us(node, t), angle(j, t));
                 // receive latency 0.3 ms + up to 0.4 ms, deterministic
@@ -927,7 +936,7 @@ mod tests {
     /// its own clock offset and skew; `late(t)` is added to the receive time of every frame sent
     /// at `t`; node `reboot`, if any, goes silent at 15 s and restarts its clock 0.5 s later.
     fn ingest_session(late: impl Fn(f64) -> f64, reboot: Option<usize>) -> Ingest {
-        let mut ing = Ingest::new([1, 2, 3, 4, 5, 6, 7]);
+        let mut ing = Ingest::new(&[1, 2, 3, 4, 5, 6, 7]);
         let node_us = |node: usize, t: f64| {
             let us = if reboot == Some(node) && t >= 15.5 {
                 (t - 15.5) * 1e6 + 500.0
@@ -944,7 +953,7 @@ mod tests {
                     continue;
                 }
                 let rx = t + 3e-4 + late(t);
-                if node <= JOINTS {
+                if node <= MAX_JOINTS {
                     let f = joint_frame(node as u8, node_us(node, t), (0.3 * t).sin());
                     frames.push((rx, f));
                 } else {

@@ -10,6 +10,7 @@
 //!
 //! | module | stage |
 //! |---|---|
+//! | [`arm`] | an arm of 1–7 joints in fixed-size arrays: the padding, and calib-core at the arm's length |
 //! | [`rules`] | what the data path reads: node ids, nominal table, bounds, window and validation rules |
 //! | [`stream`] | the streams a session takes in, declared once: source node, message, column, log topic |
 //! | [`gate`] | the stream gate (authentication): a node's data frames pass only once the digest covering them verifies |
@@ -29,6 +30,7 @@
 #![warn(missing_docs)]
 
 pub mod align;
+pub mod arm;
 pub mod collect;
 pub mod detail;
 pub mod estimate;
@@ -47,10 +49,13 @@ pub mod window;
 pub use rules::{Bounds, SensorSpec, Settings, ValidationRules, WindowRules};
 pub use session::{CalibrationJob, Session};
 
-/// Joints of the suit, declared once for the workspace (calib-core's model of the arm).
-pub const JOINTS: usize = calib_core::SUIT_JOINTS;
-/// D-H parameters of the suit (`4 × JOINTS`), indexed `kind·JOINTS + joint` (kinds a, d, α, θ).
-pub const PARAMS: usize = calib_core::SUIT_PARAMS;
+/// The most joints an arm has (the paper's suit, calib-core's `SUIT_JOINTS`): the length of
+/// every per-joint array of the data path; an arm of fewer uses the first
+/// [`Settings::joints`] ([`arm`]).
+pub const MAX_JOINTS: usize = calib_core::SUIT_JOINTS;
+/// D-H parameters of the longest arm (`4 × MAX_JOINTS`), indexed `kind·MAX_JOINTS + joint`
+/// (kinds a, d, α, θ).
+pub const MAX_PARAMS: usize = calib_core::SUIT_PARAMS;
 
-// The protocol's joint nodes (from exocal.dbc) are the arm's joints.
-const _: () = assert!(exocal_dbc::NodeId::JOINTS.len() == JOINTS);
+// The protocol's joint nodes (from exocal.dbc) are the longest arm's joints.
+const _: () = assert!(exocal_dbc::NodeId::JOINTS.len() == MAX_JOINTS);

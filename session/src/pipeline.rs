@@ -40,12 +40,10 @@ use nalgebra::{DMatrix, SMatrix};
 use serde::Serialize;
 
 use crate::align::AlignedSample;
+use crate::arm::{narrow, narrow_sample, widen, widen_params, widen_sample, widen_table};
 use crate::rules::UNCONFIGURED_RATE_BIAS_DEG_S;
 use crate::validate::{onto_bounds, split_holdout, validate, HeldOut, OntoBound, Refusal, Verdict};
-use crate::{Settings, JOINTS};
-
-/// D-H parameters of the suit (`4 × JOINTS`).
-pub const PARAMS: usize = calib_core::SUIT_PARAMS;
+use crate::{with_joints, Settings, MAX_JOINTS};
 
 /// How many parameter correlations the report lists.
 pub const TOP_CORRELATIONS: usize = 10;
@@ -75,18 +73,18 @@ pub struct EmSummary {
     /// Whether the tolerance was reached.
     pub converged: bool,
     /// Drift correlation time τ of each joint (s).
-    pub tau: [f64; JOINTS],
+    pub tau: Vec<f64>,
     /// The paper's σ (eq. 8) of each joint (rad/s).
-    pub sigma_paper: [f64; JOINTS],
+    pub sigma_paper: Vec<f64>,
     /// Stationary deviation of each joint's angle error (rad).
-    pub sigma_stationary: [f64; JOINTS],
+    pub sigma_stationary: Vec<f64>,
     /// 95% confidence intervals of every joint's τ and stationary σ (calib-core's
     /// `drift_confidence`; a joint whose τ the session cannot pin down has `[0, ∞]`); `None`
     /// when they were not computed.
-    pub drift_95: Option<[DriftInterval; JOINTS]>,
+    pub drift_95: Option<Vec<DriftInterval>>,
     /// Per joint, the drift model and why (its line: `Gauss-Markov (2ΔlnL 3.1 ≤ 17.4)`).
     #[serde(serialize_with = "display_each")]
-    pub models: [JointDrift; JOINTS],
+    pub models: Vec<JointDrift>,
     /// Reference samples discounted as glitches (weight below calib-core's `DISCOUNT_WEIGHT`).
     pub discounted: usize,
     /// Where: the first and last time (s since the session's start) of each run of discounted
@@ -96,7 +94,7 @@ pub struct EmSummary {
     pub reference_dof: f64,
     /// Per joint, the long-run variance of its normalised drift innovations (1 when its drift
     /// follows the model).
-    pub consistency: [f64; JOINTS],
+    pub consistency: Vec<f64>,
     /// Log-likelihood at the first iterate of the EM's final objective (NaN if none).
     pub log_likelihood_first: f64,
     /// Log-likelihood at the last iterate (NaN if none); within one objective it never
@@ -220,10 +218,10 @@ pub struct Outcome {
     /// Why the EM failed; `None` when it succeeded.
     #[serde(serialize_with = "display_opt")]
     pub em_error: Option<calib_core::CalibError>,
-    /// Rows before (nominal) and after.
-    pub before: [NodeRow; JOINTS],
-    /// The calibrated table and drift model, as pushed.
-    pub node_rows: [NodeRow; JOINTS],
+    /// Rows before (nominal) and after, one per joint of the arm.
+    pub before: Vec<NodeRow>,
+    /// The calibrated table and drift model, as pushed: one row per joint of the arm.
+    pub node_rows: Vec<NodeRow>,
     /// Whether validation accepts the table, and why not.
     pub verdict: Verdict,
     /// The parameters estimated just outside their bounds and moved onto them before
@@ -231,7 +229,7 @@ pub struct Outcome {
     pub onto_bounds: Vec<OntoBound>,
     /// Per joint, the RMS of the rough drift taken out of its reading (rad; 0 where the
     /// reading is smooth).
-    pub reading_drift_rms: [f64; JOINTS],
+    pub reading_drift_rms: Vec<f64>,
     /// The gyros' bias measured while the suit was still and taken out of the unaided joints'
     /// readings ([`gyro_at_rest`]; no runs where the suit was never still long enough); `None`
     /// where no joint is unaided.
@@ -239,30 +237,31 @@ pub struct Outcome {
 }
 
 /// The gyro at rest, as the summary and the report show it.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct AtRest {
     /// How long the suit was counted still (s).
     pub still_s: f64,
     /// Runs of stillness counted (0: never still for `calib_core::rest::MIN_REST_S`, nothing
     /// taken out).
     pub runs: usize,
-    /// The joints corrected (`[sensors] unaided_joints`).
-    pub joints: [bool; JOINTS],
+    /// The joints corrected (`[sensors] unaided_joints`), one per joint of the arm.
+    pub joints: Vec<bool>,
     /// Each joint's bias (°/s) and its standard error (°/s).
-    pub bias_deg_s: [f64; JOINTS],
+    pub bias_deg_s: Vec<f64>,
     /// Standard errors of [`AtRest::bias_deg_s`] (°/s).
-    pub se_deg_s: [f64; JOINTS],
+    pub se_deg_s: Vec<f64>,
 }
 
 impl AtRest {
     /// `None` where no joint is unaided.
-    fn of(b: Option<&GyroBias<JOINTS>>, joints: &[bool; JOINTS]) -> Option<AtRest> {
+    fn of<const N: usize>(b: Option<&GyroBias<N>>, joints: &[bool; N]) -> Option<AtRest> {
+        let deg = |v: [f64; N]| v.map(f64::to_degrees).to_vec();
         joints.iter().any(|&u| u).then(|| AtRest {
             still_s: b.map_or(0.0, |b| b.seconds),
             runs: b.map_or(0, |b| b.runs),
-            joints: *joints,
-            bias_deg_s: b.map_or([f64::NAN; JOINTS], |b| b.bias.map(f64::to_degrees)),
-            se_deg_s: b.map_or([f64::NAN; JOINTS], |b| b.se.map(f64::to_degrees)),
+            joints: joints.to_vec(),
+            bias_deg_s: b.map_or(vec![f64::NAN; N], |b| deg(b.bias)),
+            se_deg_s: b.map_or(vec![f64::NAN; N], |b| deg(b.se)),
         })
     }
 }
@@ -281,7 +280,7 @@ impl std::fmt::Display for AtRest {
                 crate::rules::joint_list(&self.joints)
             );
         }
-        let joints = (0..JOINTS).filter(|&j| self.joints[j]);
+        let joints = (0..self.joints.len()).filter(|&j| self.joints[j]);
         write!(f, "still {:.1} s: gyro bias", self.still_s)?;
         let mut sep = " ";
         for j in joints {
@@ -299,14 +298,18 @@ impl std::fmt::Display for AtRest {
 }
 
 impl Outcome {
-    /// The calibrated D-H table (the rows' geometry).
-    pub fn table(&self) -> DhTable<JOINTS> {
+    /// The calibrated D-H table (the rows' geometry), padded ([`crate::arm`]).
+    pub fn table(&self) -> DhTable<MAX_JOINTS> {
         DhTable {
-            rows: self.node_rows.map(|r| calib_core::DhRow {
-                a: r.a,
-                alpha: r.alpha,
-                d: r.d,
-                theta_offset: r.theta_offset,
+            rows: std::array::from_fn(|j| {
+                self.node_rows
+                    .get(j)
+                    .map_or(crate::arm::ZERO_ROW, |r| calib_core::DhRow {
+                        a: r.a,
+                        alpha: r.alpha,
+                        d: r.d,
+                        theta_offset: r.theta_offset,
+                    })
             }),
         }
     }
@@ -338,8 +341,8 @@ pub struct Calibrated {
     pub outcome: Outcome,
     /// The detail the report shows, of the table fitted on every sample.
     pub detail: Calibration,
-    /// The table fitted without the held-out slice, which the slice judged.
-    pub judged: DhTable<JOINTS>,
+    /// The table fitted without the held-out slice, which the slice judged (padded).
+    pub judged: DhTable<MAX_JOINTS>,
     /// Every sample, time-ordered, as calib-core takes them: the first
     /// [`Outcome::fit_samples`] were fitted, the rest held out.
     pub samples: Vec<TimedSample>,
@@ -402,18 +405,18 @@ pub fn timed(samples: &[AlignedSample]) -> Vec<TimedSample> {
         .collect()
 }
 
-fn rows_of(table: &DhTable<JOINTS>, tau: [f64; JOINTS], sigma: [f64; JOINTS]) -> [NodeRow; JOINTS] {
-    std::array::from_fn(|i| {
-        let r = table.rows[i];
-        NodeRow {
+/// The first `tau.len()` rows of `table`, with their drift.
+fn rows_of(table: &DhTable<MAX_JOINTS>, tau: &[f64], sigma: &[f64]) -> Vec<NodeRow> {
+    (table.rows.iter().zip(tau).zip(sigma))
+        .map(|((r, &tau), &sigma)| NodeRow {
             a: r.a,
             alpha: r.alpha,
             d: r.d,
             theta_offset: r.theta_offset,
-            tau: tau[i],
-            sigma: sigma[i],
-        }
-    })
+            tau,
+            sigma,
+        })
+        .collect()
 }
 
 /// Grid points before a drift step where a gap can still show in it: the smoothed drift
@@ -465,7 +468,8 @@ pub fn jump_beyond_gap(
     sigma / ratio.sqrt() > max_jump
 }
 
-/// Runs the pipeline on `samples` (time-ordered, on the grid; see the module docs).
+/// Runs the pipeline on `samples` (time-ordered, on the grid; see the module docs), for the
+/// arm of `settings.joints` joints.
 pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated, CalibrateError> {
     let need = settings.window.min_samples;
     if samples.len() < need {
@@ -474,26 +478,36 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
             need,
         });
     }
+    with_joints!(settings.joints, |N, P| run_arm::<N, P>(samples, settings))
+}
+
+/// [`run`] for an arm of `N` joints (`P = 4N` parameters): calib-core at the arm's length,
+/// its results padded ([`crate::arm`]).
+fn run_arm<const N: usize, const P: usize>(
+    samples: &[AlignedSample],
+    settings: &Settings,
+) -> Result<Calibrated, CalibrateError> {
     let mut all = timed(samples);
-    let mut plain: Vec<Sample<JOINTS>> = all.iter().map(|s| s.sample).collect();
+    let mut plain: Vec<Sample<N>> = all.iter().map(|s| narrow_sample(&s.sample)).collect();
     let at_rest = take_out_gyro_bias(samples, &mut plain, settings);
     let reading_drift_rms = separate_readings(&mut plain, settings);
-    for (s, moved) in all.iter_mut().zip(plain) {
-        s.sample = moved;
+    for (s, moved) in all.iter_mut().zip(&plain) {
+        s.sample = widen_sample(moved);
     }
     let (fit, held) = split_holdout(&all, settings.validation.holdout_fraction);
-    let fit: Vec<Sample<JOINTS>> = fit.iter().map(|s| s.sample).collect();
-    let held: Vec<Sample<JOINTS>> = held.iter().map(|s| s.sample).collect();
-    let (ls_opts, em_opts) = options(settings, at_rest.as_ref());
+    let fit: Vec<Sample<N>> = fit.iter().map(|s| narrow_sample(&s.sample)).collect();
+    let held: Vec<Sample<MAX_JOINTS>> = held.iter().map(|s| s.sample).collect();
+    let (ls_opts, em_opts) = options::<N>(settings, at_rest.as_ref());
     // The judged pass states nothing: the allowance is the detail pass's alone (`consider` changes
     // neither table nor stated error, calib-core's tests check it bit for bit).
     let judged_opts = DriftEmOptions {
         consider: RateBias::NONE,
         ..em_opts
     };
-    let judged = ls_then_em(&settings.nominal, &fit, &ls_opts, &judged_opts, false)?.calibrated;
-    let every: Vec<Sample<JOINTS>> = all.iter().map(|s| s.sample).collect();
-    let mut detail = ls_then_em(&judged, &every, &ls_opts, &em_opts, true)?;
+    let nominal = settings.nominal.first::<N>();
+    let judged = ls_then_em::<N, P>(&nominal, &fit, &ls_opts, &judged_opts, false)?.calibrated;
+    let every = &plain;
+    let mut detail = ls_then_em::<N, P>(&judged.first(), every, &ls_opts, &em_opts, true)?;
     // A parameter just outside its bound, by chance, goes onto it (validate's `onto_bounds`),
     // by the standard errors of the table kept; the stated error grows by the move.
     let sigmas = match &detail.em {
@@ -502,7 +516,11 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
     };
     let (inside, onto_bounds) = onto_bounds(&detail.calibrated, &sigmas, settings);
     if !onto_bounds.is_empty() {
-        let moved = table_error(&inside, &detail.calibrated, em_opts.error_poses.of(&every));
+        let moved = table_error(
+            &inside.first::<N>(),
+            &detail.calibrated.first::<N>(),
+            em_opts.error_poses.of(every),
+        );
         detail.stated = detail.stated.map(|s| TableError {
             position_m: s.position_m + moved.position_m,
             rotation_rad: s.rotation_rad + moved.rotation_rad,
@@ -511,13 +529,13 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
     }
     let (em, em_error, tau, sigma) = match &detail.em {
         Ok(r) => {
-            let tau = r.drift.map(|d| d.tau);
-            let sigma = r.drift.map(|d| d.paper_sigma);
+            let tau: Vec<f64> = r.drift.iter().map(|d| d.tau).collect();
+            let sigma: Vec<f64> = r.drift.iter().map(|d| d.paper_sigma).collect();
             let at = |k: usize| all.get(k).map_or(f64::NAN, |s| s.t);
             let summary = EmSummary {
                 iterations: r.iterations,
                 converged: r.converged,
-                models: r.models,
+                models: r.models.clone(),
                 discounted: r.discounted.count,
                 discounted_s: r
                     .discounted
@@ -526,11 +544,12 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
                     .map(|&(a, b)| [at(a), at(b)])
                     .collect(),
                 reference_dof: r.discounted.dof,
-                consistency: r.consistency.joints.map(|c| c.long_run),
-                tau,
-                sigma_paper: sigma,
-                sigma_stationary: r.drift.map(|d| d.stationary_sigma),
-                drift_95: r.drift_confidence.map(|c| c.map(|c| DriftInterval::of(&c))),
+                consistency: r.consistency.iter().map(|c| c.long_run).collect(),
+                tau: tau.clone(),
+                sigma_paper: sigma.clone(),
+                sigma_stationary: r.drift.iter().map(|d| d.stationary_sigma).collect(),
+                drift_95: (r.drift_confidence.as_ref())
+                    .map(|c| c.iter().map(DriftInterval::of).collect()),
                 log_likelihood_first: r.last_objective().first().copied().unwrap_or(f64::NAN),
                 log_likelihood_last: r.last_objective().last().copied().unwrap_or(f64::NAN),
                 unmodelled_rate_bias: (r.allowance.position_m > 0.0).then_some(
@@ -544,7 +563,7 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
             };
             (Some(summary), None, tau, sigma)
         }
-        Err(e) => (None, Some(*e), [0.0; JOINTS], [0.0; JOINTS]),
+        Err(e) => (None, Some(*e), vec![0.0; N], vec![0.0; N]),
     };
     let table = detail.calibrated;
     let expected = detail.stated;
@@ -554,7 +573,7 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
     };
     let mut verdict = validate(&table, detail.ls.condition, expected, heldout, settings);
     let unaided = settings.sensors.unaided;
-    if at_rest.is_none() && unaided.iter().any(|&u| u) {
+    if at_rest.is_none() && unaided[..N].iter().any(|&u| u) {
         verdict
             .reasons
             .push(Refusal::NeverStill { joints: unaided });
@@ -592,12 +611,12 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
         ls: detail.ls.clone(),
         em,
         em_error,
-        before: rows_of(&settings.nominal, [0.0; JOINTS], [0.0; JOINTS]),
-        node_rows: rows_of(&table, tau, sigma),
+        before: rows_of(&settings.nominal, &[0.0; N], &[0.0; N]),
+        node_rows: rows_of(&table, &tau, &sigma),
         verdict,
         onto_bounds,
-        reading_drift_rms,
-        at_rest: AtRest::of(at_rest.as_ref(), &settings.sensors.unaided),
+        reading_drift_rms: reading_drift_rms.to_vec(),
+        at_rest: AtRest::of(at_rest.as_ref(), &narrow(&settings.sensors.unaided)),
     };
     Ok(Calibrated {
         outcome,
@@ -610,12 +629,15 @@ pub fn run(samples: &[AlignedSample], settings: &Settings) -> Result<Calibrated,
 /// Moves each joint's readings in `samples` (a session on the grid, in time order) off the
 /// rough part of its drift, and each pose with them (calib-core's `separate`, through the
 /// nominal table's FK, with the EM's starting τ); returns the RMS move per joint (rad).
-pub fn separate_readings(samples: &mut [Sample<JOINTS>], settings: &Settings) -> [f64; JOINTS] {
-    let (_, em_opts) = options(settings, None);
+pub fn separate_readings<const N: usize>(
+    samples: &mut [Sample<N>],
+    settings: &Settings,
+) -> [f64; N] {
+    let (_, em_opts) = options::<N>(settings, None);
     let mut slots = vec![SeparationSlot::default(); samples.len()];
     separate(
         samples,
-        &settings.nominal,
+        &settings.nominal.first(),
         em_opts.dt,
         em_opts.initial_tau,
         &mut slots,
@@ -627,12 +649,12 @@ pub fn separate_readings(samples: &mut [Sample<JOINTS>], settings: &Settings) ->
 /// `samples` and the measured pose of `plain`, the same samples as calib-core takes them), when
 /// `[sensors]` names unaided joints; `None` otherwise, or where the suit was never still for
 /// `calib_core::rest::MIN_REST_S`.
-pub fn gyro_at_rest(
+pub fn gyro_at_rest<const N: usize>(
     samples: &[AlignedSample],
-    plain: &[Sample<JOINTS>],
+    plain: &[Sample<N>],
     settings: &Settings,
-) -> Option<GyroBias<JOINTS>> {
-    if !settings.sensors.unaided.iter().any(|&u| u) {
+) -> Option<GyroBias<N>> {
+    if !settings.sensors.unaided[..N].iter().any(|&u| u) {
         return None;
     }
     debug_assert_eq!(
@@ -642,22 +664,23 @@ pub fn gyro_at_rest(
     );
     let mut rest = GyroAtRest::new(1.0 / settings.window.grid_hz);
     for (s, p) in samples.iter().zip(plain) {
-        rest.push(&p.pose, &s.rates);
+        rest.push(&p.pose, &narrow(&s.rates));
     }
     rest.estimate()
 }
 
 /// [`gyro_at_rest`] on `samples`, its bias taken out of the unaided joints of `plain` (the
 /// same samples as calib-core takes them), in seconds from the first sample.
-pub fn take_out_gyro_bias(
+pub fn take_out_gyro_bias<const N: usize>(
     samples: &[AlignedSample],
-    plain: &mut [Sample<JOINTS>],
+    plain: &mut [Sample<N>],
     settings: &Settings,
-) -> Option<GyroBias<JOINTS>> {
+) -> Option<GyroBias<N>> {
     let bias = gyro_at_rest(samples, plain, settings)?;
     let t0 = samples.first().map_or(0.0, |s| s.t);
+    let unaided = narrow(&settings.sensors.unaided);
     for (s, a) in plain.iter_mut().zip(samples) {
-        bias.correct(s, a.t - t0, &settings.sensors.unaided);
+        bias.correct(s, a.t - t0, &unaided);
     }
     Some(bias)
 }
@@ -666,17 +689,20 @@ pub fn take_out_gyro_bias(
 /// joint ranges (the error stated over them), the EM step `1 / window.grid_hz`, the sensors'
 /// rate-bias spec; where the gyros' bias was measured at rest (`at_rest`) and no spec is
 /// configured, what is left of it (its standard error) is the spec.
-pub fn options(
+pub fn options<const N: usize>(
     settings: &Settings,
-    at_rest: Option<&GyroBias<JOINTS>>,
-) -> (LsOptions<JOINTS>, DriftEmOptions<JOINTS>) {
-    let checks = InputChecks::new(Some(settings.bounds.joint_range));
+    at_rest: Option<&GyroBias<N>>,
+) -> (LsOptions<N>, DriftEmOptions<N>) {
+    let ranges = settings.bounds.joint_range.first::<N>();
+    let checks = InputChecks::new(Some(ranges));
     let ls_opts = LsOptions {
         checks,
         ..LsOptions::new()
     };
     let spec = match at_rest {
-        Some(b) if settings.sensors.rate_bias.is_none() => b.residual(&settings.sensors.unaided),
+        Some(b) if settings.sensors.rate_bias.is_none() => {
+            b.residual(&narrow(&settings.sensors.unaided))
+        }
         _ => settings.sensors.rate_bias,
     };
     let em_opts = DriftEmOptions {
@@ -693,7 +719,7 @@ pub fn options(
         },
         // A table is worn over the joints' whole ranges, however much of them its session went
         // through: its error is stated there.
-        error_poses: ErrorPoses::Ranges(settings.bounds.joint_range),
+        error_poses: ErrorPoses::Ranges(ranges),
         ..DriftEmOptions::new(1.0 / settings.window.grid_hz)
     };
     (ls_opts, em_opts)
@@ -705,54 +731,61 @@ pub fn options(
 /// disagrees with LS's beyond LS's own error, LS's table is the result, stated by LS's
 /// expected error ([`Calibration::ls_kept`]). With `detail` (the pushed table's pass, the one
 /// summaries show), also the confidence of every joint's τ and σ: `6N + 1` more filter passes,
-/// skipped where nobody shows them.
-pub fn ls_then_em(
-    nominal: &DhTable<JOINTS>,
-    fit: &[Sample<JOINTS>],
-    ls_opts: &LsOptions<JOINTS>,
-    em_opts: &DriftEmOptions<JOINTS>,
+/// skipped where nobody shows them. Computed for the arm of `N` joints, returned padded
+/// ([`crate::arm`]).
+pub fn ls_then_em<const N: usize, const P: usize>(
+    nominal: &DhTable<N>,
+    fit: &[Sample<N>],
+    ls_opts: &LsOptions<N>,
+    em_opts: &DriftEmOptions<N>,
     detail: bool,
 ) -> Result<Calibration, CalibrateError> {
     let lin = Parallel::on_all_cores(fit);
-    let ls = identify_ls_with::<JOINTS, PARAMS>(nominal, fit, ls_opts, &lin)
-        .map_err(CalibrateError::Ls)?;
+    let ls = identify_ls_with::<N, P>(nominal, fit, ls_opts, &lin).map_err(CalibrateError::Ls)?;
+    let ls_table = ls.table;
     let ls = LsDetail {
-        table: ls.table,
+        table: widen_table(&ls.table),
         iterations: ls.iterations,
         rank: ls.rank,
         condition: ls.condition,
         rms: ls.rms,
-        std_errors: ls.std_errors,
+        std_errors: widen_params::<N>(&ls.std_errors, f64::NAN),
     };
     let mut workspace = vec![DriftSlot::default(); fit.len()];
-    let em = em_drift::<JOINTS, PARAMS>(&ls.table, fit, em_opts, &mut workspace).map(|r| {
+    let em = em_drift::<N, P>(&ls_table, fit, em_opts, &mut workspace).map(|r| {
         let slots = &workspace[..fit.len()];
         let k = fit.len();
         let drift_series = (slots.iter().enumerate())
             .map(|(i, slot)| {
                 let (drift, trend) = (slot.drift(), r.rate_bias_at(i, k));
-                std::array::from_fn(|j| drift[j] + trend[j])
+                widen(
+                    &std::array::from_fn::<f64, N, _>(|j| drift[j] + trend[j]),
+                    0.0,
+                )
             })
             .collect();
         // Against LS's table, over the poses the EM stated its error on (the report's LS
         // figures, and whether the EM's table is to be believed).
-        let versus_ls = em_versus_ls::<JOINTS, PARAMS>(&ls.table, &r, fit, &em_opts.error_poses);
+        let versus_ls = em_versus_ls::<N, P>(&ls_table, &r, fit, &em_opts.error_poses);
+        let std_errors: [f64; P] = std::array::from_fn(|p| r.std_errors[p / N][p % N]);
         EmDetail {
-            table: r.table,
+            table: widen_table(&r.table),
             iterations: r.iterations,
             converged: r.converged,
             log_likelihood: r.log_likelihood.to_vec(),
             objectives: r.objectives.to_vec(),
-            drift: r.drift,
+            drift: r.drift.to_vec(),
             // Only fails for slots of another session: these are this one's.
-            drift_confidence: detail.then(|| drift_confidence(&r, slots).ok()).flatten(),
-            std_errors: std::array::from_fn(|p| r.std_errors[p / JOINTS][p % JOINTS]),
+            drift_confidence: (detail.then(|| drift_confidence(&r, slots).ok()))
+                .flatten()
+                .map(|c| c.to_vec()),
+            std_errors: widen_params::<N>(&std_errors, f64::NAN),
             expected_error: r.expected_error,
             stated_error: r.stated_error,
             allowance: r.allowance,
-            models: r.models,
+            models: r.models.to_vec(),
             discounted: r.discounted.clone(),
-            consistency: r.consistency,
+            consistency: r.consistency.joints.to_vec(),
             // The arbiter's refusal beside the EM's own: a rate bias the EM found that its model
             // does not reconcile with LS's table.
             refusals: r
@@ -776,11 +809,12 @@ pub fn ls_then_em(
         },
         Err(_) => (
             ls.table,
-            ls_white_expected_error::<JOINTS, PARAMS>(&ls.table, fit, &em_opts.error_poses),
+            ls_white_expected_error::<N, P>(&ls_table, fit, &em_opts.error_poses),
         ),
     };
-    let correlations = strongest_correlations(&calibrated, fit, TOP_CORRELATIONS);
+    let correlations = strongest_correlations::<N, P>(&calibrated.first(), fit, TOP_CORRELATIONS);
     Ok(Calibration {
+        joints: N,
         ls,
         em,
         calibrated,
@@ -791,22 +825,27 @@ pub fn ls_then_em(
 
 /// The `top` strongest parameter correlations of the linearised problem at `table`:
 /// information matrix `Σ JᵀJ` of the tool-frame pose Jacobian over `samples`, pseudo-inverted
-/// in column-scaled coordinates (directions outside the numerical rank are left out).
-pub fn strongest_correlations(
-    table: &DhTable<JOINTS>,
-    samples: &[Sample<JOINTS>],
+/// in column-scaled coordinates (directions outside the numerical rank are left out). The
+/// parameters are named in the padded order ([`crate::arm`]).
+pub fn strongest_correlations<const N: usize, const P: usize>(
+    table: &DhTable<N>,
+    samples: &[Sample<N>],
     top: usize,
 ) -> Vec<Correlation> {
-    let mut info = SMatrix::<f64, PARAMS, PARAMS>::zeros();
+    let mut info = SMatrix::<f64, P, P>::zeros();
     for s in samples {
         let (_, cols) = table.fk_jacobian(&s.joints);
-        let mut j = SMatrix::<f64, 6, PARAMS>::zeros();
-        for p in 0..PARAMS {
-            j.set_column(p, &cols[p / JOINTS][p % JOINTS]);
+        let mut j = SMatrix::<f64, 6, P>::zeros();
+        for p in 0..P {
+            j.set_column(p, &cols[p / N][p % N]);
         }
         info += j.transpose() * j;
     }
-    let scale: Vec<f64> = (0..PARAMS)
+    let padded = |p: usize| {
+        let (kind, joint) = calib_core::ParamKind::of_index(p, N);
+        kind.index(joint, MAX_JOINTS)
+    };
+    let scale: Vec<f64> = (0..P)
         .map(|p| {
             let d = info[(p, p)];
             if d > 0.0 {
@@ -816,10 +855,10 @@ pub fn strongest_correlations(
             }
         })
         .collect();
-    let scaled = DMatrix::from_fn(PARAMS, PARAMS, |r, c| info[(r, c)] * scale[r] * scale[c]);
+    let scaled = DMatrix::from_fn(P, P, |r, c| info[(r, c)] * scale[r] * scale[c]);
     let eig = scaled.symmetric_eigen();
     let max = eig.eigenvalues.iter().fold(0.0f64, |m, &v| m.max(v));
-    let mut cov = DMatrix::<f64>::zeros(PARAMS, PARAMS);
+    let mut cov = DMatrix::<f64>::zeros(P, P);
     for (k, &lambda) in eig.eigenvalues.iter().enumerate() {
         if lambda > 1e-10 * max {
             let v = eig.eigenvectors.column(k);
@@ -827,14 +866,14 @@ pub fn strongest_correlations(
         }
     }
     let mut out = Vec::new();
-    for a in 0..PARAMS {
-        for b in a + 1..PARAMS {
+    for a in 0..P {
+        for b in a + 1..P {
             let denom = (cov[(a, a)] * cov[(b, b)]).sqrt();
             if denom > 0.0 && denom.is_finite() {
                 let r = (cov[(a, b)] / denom).clamp(-1.0, 1.0);
                 out.push(Correlation {
-                    first: a,
-                    second: b,
+                    first: padded(a),
+                    second: padded(b),
                     r,
                 });
             }
@@ -849,6 +888,7 @@ pub fn strongest_correlations(
 mod tests {
     use super::*;
     use crate::validate::Expected;
+    use crate::MAX_PARAMS;
     use calib_core::{identify_ls, Scenario, ScenarioConfig, SUIT_PARAMS};
 
     /// Aligned samples from calib-core's Section 4 scenario (Table 4 arm, drift, noise).
@@ -857,7 +897,7 @@ mod tests {
     }
 
     /// Aligned samples of a simulated session of `cfg`.
-    fn scenario_of(cfg: ScenarioConfig<JOINTS>, seconds: f64, seed: u64) -> Vec<AlignedSample> {
+    fn scenario_of(cfg: ScenarioConfig<MAX_JOINTS>, seconds: f64, seed: u64) -> Vec<AlignedSample> {
         let k = (seconds / cfg.drift.dt).round() as usize;
         Scenario::new(cfg, seed)
             .take(k)
@@ -871,7 +911,7 @@ mod tests {
     /// pose FK(q), the reading `q − δ`. (The Scenario's own convention is the other one: the
     /// smooth q read, the arm at q + δ.)
     fn drift_in_the_reading(
-        cfg: ScenarioConfig<JOINTS>,
+        cfg: ScenarioConfig<MAX_JOINTS>,
         seconds: f64,
         seed: u64,
     ) -> Vec<AlignedSample> {
@@ -897,8 +937,8 @@ mod tests {
         let dt = 0.01;
         let at = |t: f64| AlignedSample {
             t,
-            joints: [0.0; JOINTS],
-            rates: [0.0; JOINTS],
+            joints: [0.0; MAX_JOINTS],
+            rates: [0.0; MAX_JOINTS],
             pose: crate::align::Pose {
                 position: [0.0; 3],
                 orientation: [1.0, 0.0, 0.0, 0.0],
@@ -1070,8 +1110,8 @@ mod tests {
         s.window.grid_hz = 1.0 / dt;
         let out = super::run(&scenario_of(cfg, 60.0, 3), &s).unwrap();
         let ranges = calib_core::JointRanges::paper();
-        let poses: Vec<[f64; JOINTS]> = (0..256).map(|i| ranges.spread(i)).collect();
-        let real = |t: &DhTable<JOINTS>| table_error(t, &cfg.actual, poses.iter());
+        let poses: Vec<[f64; MAX_JOINTS]> = (0..256).map(|i| ranges.spread(i)).collect();
+        let real = |t: &DhTable<MAX_JOINTS>| table_error(t, &cfg.actual, poses.iter());
         let em = out.detail.em.as_ref().unwrap();
         let v = em.versus_ls.unwrap();
         assert_eq!(v.choice(), TableChoice::Em, "{v:?}");
@@ -1117,7 +1157,7 @@ mod tests {
         // The Scenario's smooth readings: nothing to take out, the samples fitted as given.
         let given = scenario(30.0, 3);
         let arm = super::run(&given, &settings()).unwrap();
-        assert_eq!(arm.outcome.reading_drift_rms, [0.0; JOINTS]);
+        assert_eq!(arm.outcome.reading_drift_rms, [0.0; MAX_JOINTS]);
         assert!(arm
             .samples
             .iter()
@@ -1148,6 +1188,57 @@ mod tests {
         let mut c = Settings::suit_default();
         c.window.min_samples = 500;
         c
+    }
+
+    /// A 40 s Section 4 session of the arm of the paper's first `N` joints through the
+    /// pipeline configured for that arm: accepted, one row per joint, every parameter
+    /// identified, the rows past the arm's zero, and the table as close to the true one as it
+    /// states (one session: within 3× its 1σ).
+    fn an_arm_of<const N: usize>(seed: u64) {
+        let cfg = ScenarioConfig::paper().first::<N>();
+        let k = (40.0 / cfg.drift.dt).round() as usize;
+        let samples: Vec<AlignedSample> = (Scenario::new(cfg, seed).take(k).enumerate())
+            .map(|(i, s)| AlignedSample::of(i as f64 * cfg.drift.dt, &widen_sample(&s.sample)))
+            .collect();
+        let settings = settings().first(N);
+        let c = super::run(&samples, &settings).unwrap();
+        let out = &c.outcome;
+        assert!(
+            out.verdict.accepted(),
+            "{N} joints: {:?}",
+            out.verdict.reasons
+        );
+        assert_eq!(out.node_rows.len(), N);
+        assert_eq!(out.before.len(), N);
+        assert_eq!(out.ls.rank, 4 * N, "{N} joints: every parameter identified");
+        assert_eq!(c.detail.joints, N);
+        let em = out.em.as_ref().expect("the EM ran");
+        assert_eq!((em.tau.len(), em.models.len()), (N, N));
+        for table in [out.table(), c.detail.calibrated, c.judged] {
+            assert!(table.rows[N..].iter().all(|r| *r == crate::arm::ZERO_ROW));
+        }
+        assert!((c.detail.correlations.iter())
+            .all(|r| r.first % MAX_JOINTS < N && r.second % MAX_JOINTS < N));
+        let poses: Vec<[f64; N]> = (0..256).map(|i| cfg.ranges.spread(i)).collect();
+        let real = table_error(&out.table().first::<N>(), &cfg.actual, poses.iter());
+        let stated = c.detail.stated.expect("a stated error");
+        let before = table_error(&settings.nominal.first::<N>(), &cfg.actual, poses.iter());
+        assert!(
+            real.position_m < 0.2 * before.position_m,
+            "{N}: {real:?} from {before:?}"
+        );
+        assert!(
+            real.position_m < 3.0 * stated.position_m
+                && real.rotation_rad < 3.0 * stated.rotation_rad,
+            "{N} joints: {real:?} against ±{stated:?}"
+        );
+    }
+
+    #[test]
+    fn arms_of_six_four_and_one_joints_calibrate_and_state_their_error() {
+        an_arm_of::<6>(21);
+        an_arm_of::<4>(22);
+        an_arm_of::<1>(23);
     }
 
     #[test]
@@ -1259,11 +1350,14 @@ mod tests {
 
     #[test]
     fn the_summary_states_every_joints_drift_with_its_confidence() {
-        let truth = ScenarioConfig::<JOINTS>::paper().drift;
+        let truth = ScenarioConfig::<MAX_JOINTS>::paper().drift;
         let (tau, sigma_mrad) = (truth.tau, truth.stationary_variance().sqrt() * 1e3);
         let c = super::run(&scenario(30.0, 7), &settings()).unwrap();
         let em = c.outcome.em.as_ref().expect("the EM ran");
-        let drift = em.drift_95.expect("the pushed table's pass has them");
+        let drift = em
+            .drift_95
+            .clone()
+            .expect("the pushed table's pass has them");
         let mut covered = (0, 0);
         for (j, d) in drift.iter().enumerate() {
             // Each interval brackets its estimate, bounded on a 30-τ session.
@@ -1285,9 +1379,10 @@ mod tests {
             "{covered:?} of 7: {drift:?}"
         );
         // The judged fit (the collection estimates too) skips them: `detail` only.
-        let fit: Vec<Sample<JOINTS>> = c.samples.iter().map(|s| s.sample).collect();
+        let fit: Vec<Sample<MAX_JOINTS>> = c.samples.iter().map(|s| s.sample).collect();
         let (ls_opts, em_opts) = options(&settings(), None);
-        let quick = ls_then_em(&settings().nominal, &fit, &ls_opts, &em_opts, false).unwrap();
+        let quick =
+            ls_then_em::<7, 28>(&settings().nominal, &fit, &ls_opts, &em_opts, false).unwrap();
         assert!(quick.em.unwrap().drift_confidence.is_none());
     }
 
@@ -1329,7 +1424,7 @@ mod tests {
                 "{a} {b}"
             );
         }
-        assert_eq!(em.models.len(), JOINTS);
+        assert_eq!(em.models.len(), MAX_JOINTS);
     }
 
     #[test]
@@ -1362,16 +1457,16 @@ mod tests {
     }
 
     /// Table error (mm, mrad) of `rows` against `truth` over fresh poses of the paper's motion.
-    fn table_error_of(rows: &[NodeRow; JOINTS], truth: &DhTable<JOINTS>) -> (f64, f64) {
+    fn table_error_of(rows: &[NodeRow], truth: &DhTable<MAX_JOINTS>) -> (f64, f64) {
         let table = DhTable {
-            rows: rows.map(|r| calib_core::DhRow {
-                a: r.a,
-                alpha: r.alpha,
-                d: r.d,
-                theta_offset: r.theta_offset,
+            rows: std::array::from_fn(|j| calib_core::DhRow {
+                a: rows[j].a,
+                alpha: rows[j].alpha,
+                d: rows[j].d,
+                theta_offset: rows[j].theta_offset,
             }),
         };
-        let poses: Vec<[f64; JOINTS]> = calib_core::Scenario::new(ScenarioConfig::paper(), 999)
+        let poses: Vec<[f64; MAX_JOINTS]> = calib_core::Scenario::new(ScenarioConfig::paper(), 999)
             .step_by(7)
             .take(500)
             .map(|s| s.sample.joints)
@@ -1513,7 +1608,7 @@ mod tests {
         );
     }
 
-    fn paper_samples(k: usize, seed: u64) -> Vec<Sample<JOINTS>> {
+    fn paper_samples(k: usize, seed: u64) -> Vec<Sample<MAX_JOINTS>> {
         Scenario::new(ScenarioConfig::paper(), seed)
             .take(k)
             .map(|s| s.sample)
@@ -1529,8 +1624,8 @@ mod tests {
             max_iterations: 15,
             ..DriftEmOptions::new(0.01)
         };
-        let c = ls_then_em(&nominal, &fit, &ls_opts, &em_opts, false).unwrap();
-        let ls = identify_ls::<JOINTS, PARAMS>(&nominal, &fit, &ls_opts).unwrap();
+        let c = ls_then_em::<7, 28>(&nominal, &fit, &ls_opts, &em_opts, false).unwrap();
+        let ls = identify_ls::<MAX_JOINTS, MAX_PARAMS>(&nominal, &fit, &ls_opts).unwrap();
         assert_eq!(c.ls.table, ls.table);
         let em = c.em.as_ref().unwrap();
         assert_eq!(c.calibrated, em.table);
@@ -1554,9 +1649,10 @@ mod tests {
         for s in &mut fit {
             s.joints[6] = 0.0;
         }
-        let c = strongest_correlations(&DhTable::paper_nominal(), &fit, 3);
+        let c = strongest_correlations::<7, 28>(&DhTable::paper_nominal(), &fit, 3);
         assert!(c[0].r.abs() > 0.999, "{c:?}");
-        let moving = strongest_correlations(&DhTable::paper_nominal(), &paper_samples(400, 5), 1);
+        let moving =
+            strongest_correlations::<7, 28>(&DhTable::paper_nominal(), &paper_samples(400, 5), 1);
         assert!(moving[0].r.abs() < c[0].r.abs());
     }
 

@@ -87,7 +87,11 @@ pub fn replay_gated(
                     settings.window.grid_hz = hz;
                 }
             }
-            let mut window = Window::new(settings.window.clone(), settings.bounds.joint_range);
+            let mut window = Window::new(
+                settings.window.clone(),
+                settings.bounds.joint_range,
+                settings.joints,
+            );
             for s in samples {
                 for (j, &q) in s.sample.joints.iter().enumerate() {
                     window.joint_sample(j, q);

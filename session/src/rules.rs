@@ -11,7 +11,7 @@ use std::fmt;
 
 use calib_core::{DhTable, JointRanges, ParamKind, RateBias};
 
-use crate::JOINTS;
+use crate::MAX_JOINTS;
 
 /// How much a recording's span may differ from the window's and still count as that long: a
 /// live window runs from the daemon's start to the tick that ends it, a recording from its
@@ -29,24 +29,29 @@ pub const MAX_BUS_FRAMES_PER_S: f64 = 1.0e6 / 47.0;
 #[derive(Debug, Clone, PartialEq)]
 pub struct Bounds {
     /// Allowed `a_i` (m), `(min, max)`.
-    pub a: [(f64, f64); JOINTS],
+    pub a: [(f64, f64); MAX_JOINTS],
     /// Allowed `d_i` (m), `(min, max)`.
-    pub d: [(f64, f64); JOINTS],
+    pub d: [(f64, f64); MAX_JOINTS],
     /// Largest |α_i − nominal α_i| (rad).
     pub alpha_deviation: f64,
     /// Largest |offset_i − nominal offset_i| (rad).
     pub offset_deviation: f64,
     /// Anatomical rotation range of each joint (rad).
-    pub joint_range: JointRanges<JOINTS>,
+    pub joint_range: JointRanges<MAX_JOINTS>,
 }
 
 impl Bounds {
     /// The per-parameter bounds of a table whose nominal is `nominal`: `a` and `d` as
     /// configured, `α` and the joint offset within their deviation of nominal (calib-core
-    /// compares angles modulo 2π).
-    pub fn table(&self, nominal: &DhTable<JOINTS>) -> calib_core::Bounds<JOINTS> {
+    /// compares angles modulo 2π), for the first `joints` rows (the arm's; the padding is
+    /// unbounded, [`crate::arm`]).
+    pub fn table(
+        &self,
+        nominal: &DhTable<MAX_JOINTS>,
+        joints: usize,
+    ) -> calib_core::Bounds<MAX_JOINTS> {
         let mut b = calib_core::Bounds::none();
-        for (j, row) in nominal.rows.iter().enumerate() {
+        for (j, row) in nominal.rows.iter().enumerate().take(joints) {
             let around = |x: f64, dev: f64| Some((x - dev, x + dev));
             b.limits[ParamKind::A as usize][j] = Some(self.a[j]);
             b.limits[ParamKind::D as usize][j] = Some(self.d[j]);
@@ -283,13 +288,13 @@ pub struct SensorSpec {
     /// (no gravity reference about a vertical axis, no magnetometer): where the suit holds
     /// still, their rates measure the gyro's bias, which is then taken out of their readings
     /// (`pipeline::gyro_at_rest`). None by default.
-    pub unaided: [bool; JOINTS],
+    pub unaided: [bool; MAX_JOINTS],
 }
 
 /// The joints of `set` as people number them, `1, 3, 5` (the configuration's, the summary's and
 /// the refusals' form); empty for none.
-pub fn joint_list(set: &[bool; JOINTS]) -> String {
-    let names: Vec<String> = (0..JOINTS)
+pub fn joint_list(set: &[bool]) -> String {
+    let names: Vec<String> = (0..set.len())
         .filter(|&j| set[j])
         .map(|j| (j + 1).to_string())
         .collect();
@@ -299,10 +304,13 @@ pub fn joint_list(set: &[bool; JOINTS]) -> String {
 /// Everything the data path reads: the suit and the session's rules.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Settings {
+    /// Joints of the arm (1..=[`MAX_JOINTS`]): every per-joint array's first `joints` entries
+    /// are the arm's, the rest zero ([`crate::arm`]).
+    pub joints: usize,
     /// CAN node id of the node on joint `i + 1`.
-    pub joint_nodes: [u8; JOINTS],
+    pub joint_nodes: [u8; MAX_JOINTS],
     /// The nominal D-H table the suit was built to.
-    pub nominal: DhTable<JOINTS>,
+    pub nominal: DhTable<MAX_JOINTS>,
     /// Anatomical bounds a pushed table must respect.
     pub bounds: Bounds,
     /// The collection window's rules.
@@ -314,6 +322,23 @@ pub struct Settings {
 }
 
 impl Settings {
+    /// The same suit's arm of its first `joints` joints (at most [`Settings::joints`]): the
+    /// rows, ranges, node ids and unaided joints past them cleared ([`crate::arm`]).
+    pub fn first(&self, joints: usize) -> Settings {
+        let joints = joints.clamp(1, self.joints);
+        let mut s = self.clone();
+        s.joints = joints;
+        for j in joints..MAX_JOINTS {
+            s.joint_nodes[j] = 0;
+            s.nominal.rows[j] = crate::arm::ZERO_ROW;
+            s.bounds.a[j] = (0.0, 0.0);
+            s.bounds.d[j] = (0.0, 0.0);
+            s.bounds.joint_range.limits[j] = (0.0, 0.0);
+            s.sensors.unaided[j] = false;
+        }
+        s
+    }
+
     /// The shipped configuration's values (`daemon/exocald.toml`): the paper's Table 1 arm,
     /// Table 2 and 3 bounds, a minute's window on a 100 Hz grid.
     pub fn suit_default() -> Settings {
@@ -321,6 +346,7 @@ impl Settings {
         let nominal = DhTable::paper_nominal();
         let small = (-0.05, 0.05);
         Settings {
+            joints: MAX_JOINTS,
             joint_nodes: core::array::from_fn(|i| i as u8 + 1),
             nominal,
             bounds: Bounds {
@@ -333,7 +359,7 @@ impl Settings {
                     small,
                     small,
                 ],
-                d: [small; JOINTS],
+                d: [small; MAX_JOINTS],
                 alpha_deviation: deg(10.0),
                 offset_deviation: deg(15.0),
                 joint_range: JointRanges::paper(),

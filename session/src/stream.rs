@@ -16,7 +16,7 @@
 
 use exocal_dbc::spec::Kind;
 
-use crate::JOINTS;
+use crate::MAX_JOINTS;
 
 /// Which node sends a stream, by its role on the suit (the configuration maps joint roles to
 /// node ids; the end effector is the DBC's `EndEffector` node).
@@ -88,7 +88,7 @@ const JOINT_TOPIC: &str = "/joint_states";
 
 /// Every stream a session takes in: the seven joint readings, the end-effector pose (the
 /// calibration's sample), and the end-effector IMU's angular rate and magnetic field.
-pub const STREAMS: [Stream; JOINTS + 3] = [
+pub const STREAMS: [Stream; MAX_JOINTS + 3] = [
     joint(0, "Joint1"),
     joint(1, "Joint2"),
     joint(2, "Joint3"),
@@ -132,7 +132,7 @@ pub const fn angle(i: usize) -> usize {
 }
 
 /// The stream of the end-effector pose.
-pub const POSE: usize = JOINTS;
+pub const POSE: usize = MAX_JOINTS;
 
 /// The streams recorded as raw IMU vectors ([`Column::Vector`]), in [`STREAMS`] order.
 pub fn vectors() -> impl Iterator<Item = usize> {
@@ -145,7 +145,7 @@ mod tests {
 
     #[test]
     fn every_joint_has_its_angle_stream_and_the_calibration_sample_is_complete() {
-        for i in 0..JOINTS {
+        for i in 0..MAX_JOINTS {
             assert_eq!(STREAMS[angle(i)].column, Column::Angle(i));
             assert_eq!(
                 stream_of(Source::Joint(i), Kind::JointState),
@@ -154,7 +154,7 @@ mod tests {
         }
         assert_eq!(STREAMS[POSE].column, Column::Pose);
         let calibrating = STREAMS.iter().filter(|s| s.column.calibrates()).count();
-        assert_eq!(calibrating, JOINTS + 1);
+        assert_eq!(calibrating, MAX_JOINTS + 1);
         // No two streams share a source and message, or a name; the joints share a topic
         // (one message per sample of the arm), no other two do.
         for (i, a) in STREAMS.iter().enumerate() {

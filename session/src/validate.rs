@@ -34,7 +34,7 @@ use std::fmt;
 
 use serde::Serialize;
 
-use crate::{Settings, JOINTS};
+use crate::{Settings, MAX_JOINTS};
 
 /// Fewest held-out samples a verdict may rest on.
 pub const MIN_HELDOUT: usize = 50;
@@ -140,7 +140,7 @@ pub enum Refusal {
     /// cannot tell from the geometry, is unmeasured.
     NeverStill {
         /// The unaided joints.
-        joints: [bool; JOINTS],
+        joints: [bool; MAX_JOINTS],
     },
     /// On the held-out slice the judged table is significantly worse than nominal.
     WorseThanNominal {
@@ -248,7 +248,7 @@ pub fn split_holdout<T>(samples: &[T], fraction: f64) -> (&[T], &[T]) {
 }
 
 /// Held-out accuracy of `table` on `samples` (zeros when there are none).
-pub fn accuracy(table: &DhTable<JOINTS>, samples: &[Sample<JOINTS>]) -> Accuracy {
+pub fn accuracy(table: &DhTable<MAX_JOINTS>, samples: &[Sample<MAX_JOINTS>]) -> Accuracy {
     if samples.is_empty() {
         return Accuracy {
             mean_error: 0.0,
@@ -273,9 +273,9 @@ pub fn accuracy(table: &DhTable<JOINTS>, samples: &[Sample<JOINTS>]) -> Accuracy
 /// Paired t statistic over [`HELDOUT_BATCHES`] batch means of `candidate − nominal` pose-error
 /// norms (`+∞` when every batch is worse by the same amount, 0 when none differs).
 fn paired_t(
-    candidate: &DhTable<JOINTS>,
-    nominal: &DhTable<JOINTS>,
-    heldout: &[Sample<JOINTS>],
+    candidate: &DhTable<MAX_JOINTS>,
+    nominal: &DhTable<MAX_JOINTS>,
+    heldout: &[Sample<MAX_JOINTS>],
 ) -> f64 {
     let b = HELDOUT_BATCHES;
     let means: Vec<f64> = (0..b)
@@ -369,15 +369,15 @@ impl Serialize for OntoBound {
 /// [`validate`] to refuse. The move is along that parameter alone: the caller adds the table
 /// error it makes to the stated error (it is systematic, so added, not in quadrature).
 pub fn onto_bounds(
-    table: &DhTable<JOINTS>,
-    std_errors: &[f64; crate::PARAMS],
+    table: &DhTable<MAX_JOINTS>,
+    std_errors: &[f64; crate::MAX_PARAMS],
     settings: &Settings,
-) -> (DhTable<JOINTS>, Vec<OntoBound>) {
-    let bounds = settings.bounds.table(&settings.nominal);
+) -> (DhTable<MAX_JOINTS>, Vec<OntoBound>) {
+    let bounds = settings.bounds.table(&settings.nominal, settings.joints);
     let mut moved = *table;
     let mut moves = Vec::new();
     for v in bound_violations(table, &bounds).filter(|v| v.value.is_finite()) {
-        let sigma = std_errors[v.kind.index(v.joint, JOINTS)];
+        let sigma = std_errors[v.kind.index(v.joint, MAX_JOINTS)];
         // Angles as bounds compare them: within π of the interval's centre.
         let centre = 0.5 * (v.min + v.max);
         let compared = if v.kind.is_angle() {
@@ -436,15 +436,15 @@ fn wrap_angle(x: f64) -> f64 {
 #[derive(Debug, Clone, Copy)]
 pub struct HeldOut<'a> {
     /// The table fitted without the slice.
-    pub table: &'a DhTable<JOINTS>,
+    pub table: &'a DhTable<MAX_JOINTS>,
     /// The held-out samples.
-    pub samples: &'a [Sample<JOINTS>],
+    pub samples: &'a [Sample<MAX_JOINTS>],
 }
 
 /// Checks `candidate`, whose expected table error is `expected` and whose identification has
 /// `condition_number`, and judges `heldout` (see the module docs).
 pub fn validate(
-    candidate: &DhTable<JOINTS>,
+    candidate: &DhTable<MAX_JOINTS>,
     condition_number: f64,
     expected: Option<TableError>,
     heldout: HeldOut<'_>,
@@ -460,7 +460,7 @@ pub fn validate(
             });
         }
     }
-    let bounds = settings.bounds.table(&settings.nominal);
+    let bounds = settings.bounds.table(&settings.nominal, settings.joints);
     for v in bound_violations(candidate, &bounds).filter(|v| v.value.is_finite()) {
         reasons.push(Refusal::Bound(v));
     }
@@ -535,12 +535,12 @@ mod tests {
     use super::*;
 
     /// Samples of the paper's "actual" arm (Table 4) along a deterministic sweep, exact poses.
-    fn samples(n: usize) -> Vec<Sample<JOINTS>> {
+    fn samples(n: usize) -> Vec<Sample<MAX_JOINTS>> {
         let actual = DhTable::paper_actual();
         let ranges = Settings::suit_default().bounds.joint_range.limits;
         (0..n)
             .map(|k| {
-                let joints: [f64; JOINTS] = std::array::from_fn(|j| {
+                let joints: [f64; MAX_JOINTS] = std::array::from_fn(|j| {
                     let u = 0.5 + 0.45 * ((k as f64) * 0.013 * (j as f64 + 1.0) + j as f64).sin();
                     let (min, max) = ranges[j];
                     min + u * (max - min)
@@ -555,7 +555,10 @@ mod tests {
 
     /// An expected accuracy well within the default limits.
     /// The held-out slice `samples`, judging `table` itself.
-    fn judging<'a>(table: &'a DhTable<JOINTS>, samples: &'a [Sample<JOINTS>]) -> HeldOut<'a> {
+    fn judging<'a>(
+        table: &'a DhTable<MAX_JOINTS>,
+        samples: &'a [Sample<MAX_JOINTS>],
+    ) -> HeldOut<'a> {
         HeldOut { table, samples }
     }
 
@@ -658,7 +661,7 @@ mod tests {
         let config = Settings::suit_default();
         let held = samples(200);
         let sigma = 1.5e-3;
-        let std_errors = [sigma; crate::PARAMS];
+        let std_errors = [sigma; crate::MAX_PARAMS];
         let (a4_max, alpha_dev) = (config.bounds.a[3].1, config.bounds.alpha_deviation);
         // The paper's a_4 estimated 0.2 mm above its 267 mm (the power-up test's refused
         // session), α_2 0.5σ beyond its allowed deviation the negative way, d_5 2σ out.
@@ -678,7 +681,9 @@ mod tests {
         assert!((moved.rows[1].alpha - alpha_min).abs() < 1e-9);
         assert_eq!(moved.rows[4].d, t.rows[4].d, "2σ out stays for validate");
         // Nothing else moved.
-        for p in (0..crate::PARAMS).filter(|&p| ![3, 2 * JOINTS + 1, JOINTS + 4].contains(&p)) {
+        for p in (0..crate::MAX_PARAMS)
+            .filter(|&p| ![3, 2 * MAX_JOINTS + 1, MAX_JOINTS + 4].contains(&p))
+        {
             assert_eq!(moved.param(p), t.param(p), "parameter {p}");
         }
         assert!(lines[0].starts_with("joint 4: a = 0.2672 m outside [0.211, 0.267] by 0.13σ"));
@@ -690,7 +695,7 @@ mod tests {
         assert_eq!(reasons.len(), 1, "{reasons:?}");
         assert!(reasons[0].starts_with("joint 5: d = "), "{reasons:?}");
         // A parameter without a standard error is never moved.
-        let (_, onto) = onto_bounds(&t, &[f64::NAN; crate::PARAMS], &config);
+        let (_, onto) = onto_bounds(&t, &[f64::NAN; crate::MAX_PARAMS], &config);
         assert!(onto.is_empty());
         // A table inside its bounds is left as it is.
         assert_eq!(

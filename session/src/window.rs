@@ -26,7 +26,7 @@ use serde::Serialize;
 use calib_core::JointRanges;
 
 use crate::validate::Expected;
-use crate::{WindowRules, JOINTS};
+use crate::{WindowRules, MAX_JOINTS};
 
 /// Bins of a joint's range.
 pub const COVERAGE_BINS: usize = 36;
@@ -207,15 +207,15 @@ pub struct Progress {
     pub elapsed_s: f64,
     /// Samples of the scarcest stream (joints and pose).
     pub samples: u64,
-    /// Coverage of each joint, 0..1.
-    pub coverage: [f64; JOINTS],
+    /// Coverage of each joint of the arm, 0..1.
+    pub coverage: Vec<f64>,
     /// Condition number of the identification problem, when computed.
     pub condition_number: Option<f64>,
     /// Expected table error of the motion so far, when estimated (stop when good enough).
     pub expected: Option<Expected>,
     /// Per joint, the expected table error after more motion of that joint as a fraction of
-    /// now's, when estimated (`exocal_session::estimate`'s guidance).
-    pub guidance: Option<[f64; JOINTS]>,
+    /// now's, when estimated (`exocal_session::estimate`'s guidance), for each joint of the arm.
+    pub guidance: Option<Vec<f64>>,
     /// Overall readiness 0..1: the least advanced of time, coverage and samples.
     pub readiness: f64,
     /// The expected table error the window stops at (stop when good enough), if it does.
@@ -290,9 +290,7 @@ impl Progress {
     /// error after it as a fraction of now's, when that gains at least [`GUIDANCE_MIN_GAIN`]:
     /// what [`Progress::advice`] says.
     pub fn best_move(&self) -> Option<(usize, f64)> {
-        let (j, r) = self
-            .guidance?
-            .iter()
+        let (j, r) = (self.guidance.as_ref()?.iter())
             .copied()
             .enumerate()
             .min_by(|a, b| a.1.total_cmp(&b.1))?;
@@ -328,23 +326,31 @@ pub const SHORT_LINE_MAX: usize = 53;
 #[derive(Debug, Clone)]
 pub struct Window {
     rules: WindowRules,
-    coverage: [Coverage; JOINTS],
-    joint_samples: [u64; JOINTS],
+    /// Per joint of the arm.
+    coverage: Vec<Coverage>,
+    /// Per joint of the arm.
+    joint_samples: Vec<u64>,
     pose_samples: u64,
     condition_number: Option<f64>,
     expected: Option<Expected>,
-    guidance: Option<[f64; JOINTS]>,
+    guidance: Option<Vec<f64>>,
     /// Consecutive estimates within the limits, up to the latest.
     within: u32,
 }
 
 impl Window {
-    /// A new window with these rules over these joint ranges (rad).
-    pub fn new(rules: WindowRules, ranges: JointRanges<JOINTS>) -> Window {
+    /// A new window with these rules over the ranges (rad) of the arm's `joints` first joints:
+    /// the joints past them are not the arm's, and their streams are not waited for.
+    pub fn new(rules: WindowRules, ranges: JointRanges<MAX_JOINTS>, joints: usize) -> Window {
+        let joints = joints.min(MAX_JOINTS);
         Window {
             rules,
-            coverage: ranges.limits.map(Coverage::new),
-            joint_samples: [0; JOINTS],
+            coverage: ranges.limits[..joints]
+                .iter()
+                .copied()
+                .map(Coverage::new)
+                .collect(),
+            joint_samples: vec![0; joints],
             pose_samples: 0,
             condition_number: None,
             expected: None,
@@ -386,9 +392,9 @@ impl Window {
         self.within = if within { self.within + 1 } else { 0 };
     }
 
-    /// Records the latest guidance (see [`Progress::guidance`]).
-    pub fn set_guidance(&mut self, g: [f64; JOINTS]) {
-        self.guidance = Some(g);
+    /// Records the latest guidance (see [`Progress::guidance`]; padded, [`crate::arm`]).
+    pub fn set_guidance(&mut self, g: [f64; MAX_JOINTS]) {
+        self.guidance = Some(g[..self.coverage.len()].to_vec());
     }
 
     /// Whether the expected table error was within `stop_at_expected_error` at the latest
@@ -397,8 +403,8 @@ impl Window {
         self.within >= STOP_GUARD
     }
 
-    /// Per-joint coverage.
-    pub fn coverage(&self) -> &[Coverage; JOINTS] {
+    /// Per-joint coverage, for each joint of the arm.
+    pub fn coverage(&self) -> &[Coverage] {
         &self.coverage
     }
 
@@ -414,7 +420,7 @@ impl Window {
 
     /// The snapshot at `elapsed_s`.
     pub fn progress(&self, elapsed_s: f64) -> Progress {
-        let coverage = self.coverage.each_ref().map(Coverage::fraction);
+        let coverage: Vec<f64> = self.coverage.iter().map(Coverage::fraction).collect();
         let r = &self.rules;
         let time = (elapsed_s / r.min_duration_s).clamp(0.0, 1.0);
         let cov = coverage
@@ -428,7 +434,7 @@ impl Window {
             coverage,
             condition_number: self.condition_number,
             expected: self.expected,
-            guidance: self.guidance,
+            guidance: self.guidance.clone(),
             readiness: time.min(cov).min(samples),
             target: r.stop_at_expected_error.map(|(mm, mrad)| Expected {
                 position_mm: mm,
@@ -513,13 +519,13 @@ mod tests {
         let widest = Progress {
             elapsed_s: 359.6,
             samples: 999_999,
-            coverage: [0.995; JOINTS],
+            coverage: vec![0.995; MAX_JOINTS],
             condition_number: Some(1.234e5),
             expected: Some(Expected {
                 position_mm: 99.99,
                 rotation_mrad: 999.9,
             }),
-            guidance: Some([0.99, 0.99, 0.99, 0.99, 0.99, 0.99, 0.949]),
+            guidance: Some(vec![0.99, 0.99, 0.99, 0.99, 0.99, 0.99, 0.949]),
             readiness: 0.5,
             target: Some(Expected {
                 position_mm: 2.0,
@@ -530,9 +536,9 @@ mod tests {
         assert_eq!(line, "360 s cov 99 99 99 99 99 99 99/100 ±100.0 mm j7→94.9");
         assert!(line.chars().count() <= SHORT_LINE_MAX, "{line}");
         let early = Progress {
-            coverage: [0.95, 0.2, 0.8, 0.8, 0.8, 0.8, 0.8],
+            coverage: vec![0.95, 0.2, 0.8, 0.8, 0.8, 0.8, 0.8],
             expected: None,
-            guidance: Some([1.0, 0.7, 1.0, 1.0, 1.0, 1.0, 1.0]),
+            guidance: Some(vec![1.0, 0.7, 1.0, 1.0, 1.0, 1.0, 1.0]),
             ..widest
         };
         assert_eq!(early.short(0.8), "360 s cov ✓ 20 ✓ ✓ ✓ ✓ ✓/80 move j2 −30%");
@@ -578,7 +584,7 @@ mod tests {
             stop_at_expected_error: None,
             ..c.window
         };
-        Window::new(rules, c.bounds.joint_range)
+        Window::new(rules, c.bounds.joint_range, c.joints)
     }
 
     /// Sweeps every joint over `fraction` of its range, `n` samples per joint, and as many poses.
@@ -630,7 +636,7 @@ mod tests {
             stop_at_expected_error: Some((2.0, 6.0)),
             ..c.window
         };
-        let mut s = Window::new(rules.clone(), c.bounds.joint_range);
+        let mut s = Window::new(rules.clone(), c.bounds.joint_range, c.joints);
         sweep(&mut s, 1.0, 3000);
         // Motion suffices, nothing estimated yet: keep collecting.
         assert_eq!(s.phase(30.0), Phase::Collecting);
@@ -670,7 +676,7 @@ mod tests {
         assert_eq!(s.phase(15.0), Phase::Collecting);
         assert_eq!(s.phase(20.0), Phase::Ready);
         // Good enough but a joint never moved: fails at the maximum as without the rule.
-        let mut frozen = Window::new(rules, c.bounds.joint_range);
+        let mut frozen = Window::new(rules, c.bounds.joint_range, c.joints);
         for _ in 0..STOP_GUARD {
             frozen.set_expected(Expected {
                 position_mm: 1.0,

@@ -183,6 +183,7 @@ async fn session(
         source,
     })?;
     let mut scenario = Scenario::paper();
+    scenario.arm.joints = config.calibration.joints;
     scenario.seed = opts.seed;
     scenario.wearer = opts.wearer.clone();
     scenario.drift = opts.drift.clone();
@@ -252,9 +253,8 @@ async fn session(
         .ok();
     }
     let summary = run.result?;
-    let flash_crc = run
-        .flash
-        .into_iter()
+    // The arm's nodes: the others are not on the emulated bus.
+    let flash_crc = (run.flash.into_iter().take(config.calibration.joints))
         .map(|(n, crc)| (n, crc.ok().flatten()))
         .collect();
     Ok(DemoResult { summary, flash_crc })
@@ -534,6 +534,7 @@ pub fn ask_nodes(
         config.push.keys = exocal_dbc::auth::KeySet::derived(seed);
     }
     let mut scenario = Scenario::paper();
+    scenario.arm.joints = config.calibration.joints;
     scenario.seed = seed;
     scenario.duration_s = 1.0;
     scenario.faults.transfer = silent
@@ -569,17 +570,27 @@ pub fn ask_nodes(
     })
 }
 
-/// Checks that every node's flash holds the table the daemon pushed to it.
-pub fn check_flash(result: &DemoResult) -> Result<(), DaemonError> {
+/// Checks that the daemon pushed a table to each of the arm's `joints` nodes and that every
+/// one's flash holds it.
+pub fn check_flash(result: &DemoResult, joints: usize) -> Result<(), DaemonError> {
     let Some(push) = &result.summary.push else {
         return Err(DaemonError::Push("nothing was pushed".into()));
     };
     let mut wrong = Vec::new();
-    for (report, (node, crc)) in push.nodes.iter().zip(&result.flash_crc) {
-        if *crc != Some(report.new_crc) {
+    if push.nodes.len() != joints {
+        wrong.push(format!(
+            "{} nodes pushed, the arm has {joints}",
+            push.nodes.len()
+        ));
+    }
+    for report in &push.nodes {
+        let crc = (result.flash_crc.iter())
+            .find(|(node, _)| node.name() == report.node)
+            .and_then(|&(_, crc)| crc);
+        if crc != Some(report.new_crc) {
             wrong.push(format!(
-                "{node}: flash holds {crc:?}, pushed {:#010x}",
-                report.new_crc
+                "{}: flash holds {crc:?}, pushed {:#010x}",
+                report.node, report.new_crc
             ));
         }
     }
@@ -622,7 +633,7 @@ mod tests {
         config.calibration.window.min_duration_s = 60.0;
         config.calibration.window.stop_at_expected_error = None;
         let r = run(&config, &opts).map_err(|e| e.error).unwrap();
-        check_flash(&r).unwrap();
+        check_flash(&r, 7).unwrap();
         let outcome = r.summary.outcome.as_ref().expect("calibrated");
         let v = outcome
             .em
@@ -715,7 +726,7 @@ mod tests {
             );
             eprintln!("told {told}: real {real:?}, stated {stated:?}, real ÷ stated {ratio:?}");
             if told {
-                let rest = outcome.at_rest.expect("unaided joints");
+                let rest = outcome.at_rest.clone().expect("unaided joints");
                 assert!(rest.runs >= 1 && rest.still_s > 4.0, "{rest:?}");
                 for j in [0, 2, 4] {
                     let (bias, se) = (rest.bias_deg_s[j], rest.se_deg_s[j]);
@@ -838,7 +849,7 @@ mod tests {
         }
         match &outcomes[1] {
             Ok(r) => {
-                check_flash(r).unwrap();
+                check_flash(r, 7).unwrap();
                 assert!(r.summary.aligned_samples as f64 <= 61.0 * 100.0);
             }
             Err(e) => panic!("{}", e.error),
@@ -931,7 +942,7 @@ mod tests {
     #[test]
     fn the_paper_scenario_calibrates_pushes_and_persists() {
         let (dir, config, result) = seed_2024("paper");
-        check_flash(&result).unwrap();
+        check_flash(&result, 7).unwrap();
         let s = &result.summary;
         let v = &s.outcome.as_ref().unwrap().verdict;
         assert!(
@@ -960,8 +971,8 @@ mod tests {
         let limits = &config.calibration.bounds.joint_range.limits;
         let pushed = s.outcome.as_ref().unwrap().table();
         let want = [
-            crate::log::records::urdf(&config.calibration.nominal, limits).unwrap(),
-            crate::log::records::urdf(&pushed, limits).unwrap(),
+            crate::log::records::urdf(&config.calibration.nominal, limits, 7).unwrap(),
+            crate::log::records::urdf(&pushed, limits, 7).unwrap(),
         ];
         assert_eq!(
             urdfs.len(),

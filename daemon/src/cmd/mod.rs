@@ -181,6 +181,9 @@ fn demo(
         eprintln!("exocald: configuration from {source}");
     }
     let mut config = crate::cmd::demo::demo_config(config, &args.output, 1.0);
+    if let Some(n) = args.joints {
+        config.calibration = config.calibration.first(usize::from(n));
+    }
     config.live.enabled |= args.live;
     if let Some(listen) = args.listen {
         config.live.enabled = true;
@@ -209,7 +212,7 @@ fn demo(
             return finish(Err(e), output);
         }
     };
-    let mut check = crate::cmd::demo::check_flash(&result);
+    let mut check = crate::cmd::demo::check_flash(&result, config.calibration.joints);
     let mut extra: Vec<String> = result
         .flash_crc
         .iter()

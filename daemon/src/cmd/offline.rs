@@ -53,7 +53,7 @@ use exocal_session::gate::{RejectRun, StreamGate};
 use exocal_session::pipeline::{self, Calibrated};
 use exocal_session::replay::{replay_gated, Recording};
 use exocal_session::rules::Budget;
-use exocal_session::{CalibrationJob, WindowRules};
+use exocal_session::{CalibrationJob, Settings};
 
 pub use crate::cli::Format;
 use crate::config::Config;
@@ -173,15 +173,16 @@ fn each_line(
 }
 
 /// Reads `input` (from `path`, for the messages) as `format`, keeping at most what one session
-/// under `rules` can hold ([`Budget`]); for an MCAP log cut short, also what was read of it and
-/// where it stops.
+/// under `settings`' window rules can hold ([`Budget`]), CSV samples of the arm of
+/// `settings.joints` joints; for an MCAP log cut short, also what was read of it and where it
+/// stops.
 pub fn read_input(
     path: &Path,
     input: impl Read,
     format: Format,
-    rules: &WindowRules,
+    settings: &Settings,
 ) -> Result<(Recording, Option<Scan>), DaemonError> {
-    read_input_gated(path, input, format, rules).map(|(r, cut, _)| (r, cut))
+    read_input_gated(path, input, format, settings).map(|(r, cut, _)| (r, cut))
 }
 
 /// [`read_input`], with the live session's stream gate to re-apply when the log has one (an
@@ -191,8 +192,9 @@ pub fn read_input_gated(
     path: &Path,
     input: impl Read,
     format: Format,
-    rules: &WindowRules,
+    settings: &Settings,
 ) -> Result<(Recording, Option<Scan>, Option<StreamGate>), DaemonError> {
+    let rules = &settings.window;
     let input = BufReader::new(input);
     match format {
         Format::Mcap => {
@@ -249,7 +251,7 @@ pub fn read_input_gated(
             Ok((Recording::Frames(frames), None, gate))
         }
         Format::Csv => {
-            let mut reader = CsvReader::new(rules);
+            let mut reader = CsvReader::new(rules, settings.joints);
             each_line(path, InputKind::Csv, input, |l| reader.line(l))?;
             let samples = reader
                 .finish()
@@ -406,7 +408,7 @@ pub fn run(
             detect_format(path, &head)?
         }
     };
-    let (input, recovery, gate) = read_input_gated(path, file, format, &config.calibration.window)?;
+    let (input, recovery, gate) = read_input_gated(path, file, format, &config.calibration)?;
     if let Some(r) = &recovery {
         eprintln!(
             "exocald: warning: {} was cut short (no summary or footer: the daemon was killed or \
@@ -478,7 +480,9 @@ pub fn run(
     })?;
     if let Some(out) = &opts.export_csv {
         let samples = pipeline::timed(&replayed.job.collected().samples);
-        write_file(out, "CSV samples", formats::csv_text(&samples).as_bytes())?;
+        let joints = replayed.job.settings().joints;
+        let text = formats::csv_text(&samples, joints);
+        write_file(out, "CSV samples", text.as_bytes())?;
     }
     let calibrated = match calibrated {
         Ok(c) => c,
@@ -518,11 +522,14 @@ pub fn run(
             );
             continue;
         }
+        let settings = replayed.job.settings();
         let text = if what == "URDF" {
-            let limits = &replayed.job.settings().bounds.joint_range.limits;
-            exocal_report::export::urdf("exocal_suit", &table, limits).map_err(|e| e.to_string())
+            let limits = &settings.bounds.joint_range.limits;
+            crate::log::records::urdf(&table, limits, settings.joints)
+                .ok_or_else(|| "the table has a non-finite value".to_string())
         } else {
-            crate::config::with_nominal(config_text, &table).map_err(|e| e.to_string())
+            let rows = &table.rows[..settings.joints];
+            crate::config::with_nominal(config_text, rows).map_err(|e| e.to_string())
         }
         .map_err(|e| DaemonError::Input(format!("exporting the {what}: {e}")))?;
         write_file(out, what, text.as_bytes())?;

@@ -19,8 +19,9 @@ use exocal_log::{proto, CanFrameRecord, CollectionEnd};
 
 pub use exocal_log::record::{Link, Record, Transform, BASE_FRAME, TOOL_FRAME};
 
-use crate::config::JOINTS;
+use crate::config::MAX_JOINTS;
 use crate::push::{Holds, PushReport};
+use exocal_session::arm::narrow;
 use exocal_session::ingest::ClockReport;
 use exocal_session::pipeline::{NodeRow, Outcome};
 use exocal_session::Session;
@@ -35,10 +36,19 @@ pub trait Observer {
 /// The robot name of the suit's URDF.
 pub const ROBOT_NAME: &str = "exocal_suit";
 
-/// The URDF of `table` with the joints' `limits` (rad), as `--export-urdf` writes it; `None`
-/// when the table has a non-finite value (nothing to draw).
-pub fn urdf(table: &calib_core::DhTable<JOINTS>, limits: &[(f64, f64); JOINTS]) -> Option<String> {
-    exocal_report::export::urdf(ROBOT_NAME, table, limits).ok()
+/// The URDF of the arm of `table`'s first `joints` rows with the joints' `limits` (rad), as
+/// `--export-urdf` writes it; `None` when the table has a non-finite value (nothing to draw).
+pub fn urdf(
+    table: &calib_core::DhTable<MAX_JOINTS>,
+    limits: &[(f64, f64); MAX_JOINTS],
+    joints: usize,
+) -> Option<String> {
+    exocal_session::with_joints!(joints, |N| exocal_report::export::urdf(
+        ROBOT_NAME,
+        &table.first::<N>(),
+        &narrow(limits)
+    ))
+    .ok()
 }
 
 /// The record of a collection's end (`exocald offline` honours it: a replay calibrates on the
@@ -116,14 +126,21 @@ fn quat_wxyz(r: &nalgebra::Matrix3<f64>) -> [f64; 4] {
 /// The arm's frames at joint readings `q` for `table`, in the exported URDF's convention
 /// (`calib_core::DhTable::links`: link `i` turns about its z axis by `q[i-1]` plus the row's θ
 /// offset at the previous row's `Tz(d) Tx(a) Rx(α)`; [`TOOL_FRAME`] sits at the last row's).
-/// Composed, they are the table's forward kinematics.
-pub fn arm_transforms(table: &calib_core::DhTable<JOINTS>, q: &[f64; JOINTS]) -> Vec<Link> {
+/// Composed, they are the table's forward kinematics. The arm is `table`'s first `joints` rows.
+pub fn arm_transforms(
+    table: &calib_core::DhTable<MAX_JOINTS>,
+    q: &[f64; MAX_JOINTS],
+    joints: usize,
+) -> Vec<Link> {
     let name = |i: usize| match i {
         0 => BASE_FRAME.to_string(),
-        i if i > JOINTS => TOOL_FRAME.to_string(),
+        i if i > joints => TOOL_FRAME.to_string(),
         i => format!("link{i}"),
     };
-    let (links, tool) = table.links(q);
+    let (links, tool): (Vec<calib_core::Frame>, _) = exocal_session::with_joints!(joints, |N| {
+        let (links, tool) = table.first::<N>().links(&narrow(q));
+        (links.to_vec(), tool)
+    });
     (links.iter().chain([&tool]))
         .enumerate()
         .map(|(i, frame)| Link {
@@ -191,7 +208,7 @@ pub fn calibration_record(
         drift: outcome
             .em
             .as_ref()
-            .and_then(|em| em.drift_95)
+            .and_then(|em| em.drift_95.clone())
             .map_or_else(Vec::new, |d| {
                 d.iter()
                     .map(|d| proto::DriftFit {
@@ -293,14 +310,19 @@ mod tests {
         let record = calibration_record(&c.outcome, &[], 0, 0, None);
         let em = c.outcome.em.as_ref().unwrap();
         // The rough drift taken out of the readings, in mrad.
-        let rms = c.outcome.reading_drift_rms.map(|r| r * 1e3);
+        let rms = c
+            .outcome
+            .reading_drift_rms
+            .iter()
+            .map(|r| r * 1e3)
+            .collect::<Vec<_>>();
         assert!(rms.iter().all(|&r| r > 0.0), "{rms:?}");
         assert_eq!(record.reading_drift_rms_mrad, rms.to_vec());
         // Each joint's drift with its interval, its model and why.
-        let drift = em.drift_95.unwrap();
-        assert_eq!(record.drift.len(), JOINTS);
+        let drift = em.drift_95.clone().unwrap();
+        assert_eq!(record.drift.len(), MAX_JOINTS);
         assert_eq!(record.drift[2].tau_high_s, drift[2].tau_95_s[1]);
-        assert_eq!(record.drift_model.len(), JOINTS);
+        assert_eq!(record.drift_model.len(), MAX_JOINTS);
         assert!(
             record.drift_model[0].starts_with("Gauss-Markov"),
             "{:?}",
@@ -310,7 +332,7 @@ mod tests {
         assert!(record.discounted > 20, "{}", record.discounted);
         assert_eq!(record.discounted, em.discounted as u64);
         assert_eq!(record.discounted_s.len(), 2 * em.discounted_s.len());
-        assert_eq!(record.drift_consistency.len(), JOINTS);
+        assert_eq!(record.drift_consistency.len(), MAX_JOINTS);
         // A parameter moved onto its bound is in the record, worded as the summary words it.
         assert!(record.onto_bounds.is_empty());
         let mut moved = c.outcome.clone();
@@ -357,13 +379,13 @@ mod tests {
 
     #[test]
     fn the_arm_frames_compose_to_the_tables_forward_kinematics() {
-        let table = calib_core::DhTable::<JOINTS>::paper_nominal();
+        let table = calib_core::DhTable::<MAX_JOINTS>::paper_nominal();
         let q = [0.3, -0.7, 0.2, 1.1, -0.1, 0.25, 0.6];
-        let links = arm_transforms(&table, &q);
-        assert_eq!(links.len(), JOINTS + 1);
+        let links = arm_transforms(&table, &q, MAX_JOINTS);
+        assert_eq!(links.len(), MAX_JOINTS + 1);
         assert_eq!(links[0].parent, "base_link");
         assert_eq!(links[1].parent, "link1");
-        assert_eq!(links[JOINTS].child, "tool0");
+        assert_eq!(links[MAX_JOINTS].child, "tool0");
         for w in links.windows(2) {
             assert_eq!(w[0].child, w[1].parent);
         }

@@ -165,7 +165,7 @@ pub fn report_input(
                 .map(ToString::to_string)
                 .collect(),
         }),
-        at_rest: calibrated.outcome.at_rest,
+        at_rest: calibrated.outcome.at_rest.clone(),
         push,
     }
 }

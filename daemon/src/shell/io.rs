@@ -89,7 +89,11 @@ impl<'a> Io<'a> {
         let started = format!("session started on {}", config.interface);
         io.event(start, Level::Info, &started);
         let limits = &config.calibration.bounds.joint_range.limits;
-        if let Some(urdf) = records::urdf(&config.calibration.nominal, limits) {
+        if let Some(urdf) = records::urdf(
+            &config.calibration.nominal,
+            limits,
+            config.calibration.joints,
+        ) {
             let r = io.log.robot_description(ns(start), &urdf);
             io.check(r);
         }

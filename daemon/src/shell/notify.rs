@@ -246,7 +246,7 @@ mod tests {
         let progress = |elapsed_s, mm| Progress {
             elapsed_s,
             samples: 5_500,
-            coverage: [0.9; 7],
+            coverage: vec![0.9; 7],
             condition_number: Some(25.0),
             expected: Some(exocal_session::validate::Expected {
                 position_mm: mm,

@@ -405,9 +405,10 @@ impl<T: Transport> Running<'_, '_, T> {
     /// The calibration's record, its line and the arm on the calibrated table, into the log.
     fn log_result(&mut self, collected: &Collected, calibrated: &Calibrated) {
         let table = calibrated.outcome.table();
+        let joints = self.config.calibration.joints;
         let step = ((self.config.calibration.window.grid_hz / TF_HZ).round() as usize).max(1);
         for (i, s) in collected.samples.iter().step_by(step).enumerate() {
-            let links = records::arm_transforms(&table, &s.joints);
+            let links = records::arm_transforms(&table, &s.joints, joints);
             let r = self.io.log.arm_transforms(self.log_time(s.t), &links);
             self.io.check(r);
             self.io.between_records(i);
@@ -415,7 +416,7 @@ impl<T: Transport> Running<'_, '_, T> {
         let now = self.clock.now();
         self.log_calibration(now, &calibrated.outcome, None);
         let limits = &self.config.calibration.bounds.joint_range.limits;
-        if let Some(urdf) = records::urdf(&table, limits) {
+        if let Some(urdf) = records::urdf(&table, limits, joints) {
             let r = self.io.log.robot_description(ns(now), &urdf);
             self.io.check(r);
         }

@@ -284,8 +284,8 @@ pub fn json(summary: Option<&SessionSummary>, error: Option<&DaemonError>) -> se
         })),
         "condition_number": v.map(|v| v.condition_number),
         "refusals": v.map(|v| v.reasons.iter().map(ToString::to_string).collect::<Vec<_>>()),
-        "table": outcome.map(|o| o.node_rows),
-        "gyro_at_rest": outcome.and_then(|o| o.at_rest),
+        "table": outcome.map(|o| &o.node_rows),
+        "gyro_at_rest": outcome.and_then(|o| o.at_rest.as_ref()),
         "push": push.map(|p| &p.nodes),
     })
 }
@@ -362,7 +362,7 @@ pub fn print_summary(summary: &SessionSummary) {
             println!("gyro at rest: {r}");
         }
         if let Some(em) = &o.em {
-            if let Some(drift) = em.drift_95 {
+            if let Some(drift) = &em.drift_95 {
                 for (j, d) in drift.iter().enumerate() {
                     println!("drift joint {}: {d} (95%)", j + 1);
                 }
