@@ -184,7 +184,8 @@ pub struct OfflineArgs {
     #[arg(long, value_name = "OUT.log")]
     pub export_candump: Option<PathBuf>,
     /// Write the aligned samples the calibration was given as CSV
-    /// (`t,q1…q7,x,y,z,qw,qx,qy,qz`, the format `offline` reads), whatever the verdict.
+    /// (`t,q1…qn,x,y,z,qw,qx,qy,qz` for the configured arm of n joints, the format `offline`
+    /// reads), whatever the verdict.
     #[arg(long, value_name = "OUT.csv")]
     pub export_csv: Option<PathBuf>,
     /// Print only the verdict (the summary's last line) on stdout, and no progress.
@@ -295,7 +296,7 @@ pub enum Format {
     Mcap,
     /// A `candump -L` log.
     Candump,
-    /// CSV samples: `t,q1,q2,q3,q4,q5,q6,q7,x,y,z,qw,qx,qy,qz`.
+    /// CSV samples: `t,q1,…,qn,x,y,z,qw,qx,qy,qz` for the configured arm of n joints.
     Csv,
 }
 

@@ -407,8 +407,8 @@ struct RawTrigger {
 impl Config {
     /// The configured joint nodes' ids (the ones the DBC knows), joint 1 first.
     pub fn joint_node_ids(&self) -> Vec<exocal_dbc::NodeId> {
-        self.calibration
-            .joint_nodes
+        let joints = self.calibration.joints.min(MAX_JOINTS);
+        self.calibration.joint_nodes[..joints]
             .iter()
             .filter_map(|&n| exocal_dbc::NodeId::new(n))
             .collect()
@@ -1146,7 +1146,7 @@ impl Config {
         let deg = |r: f64| ((r / (std::f64::consts::PI / 180.0)) * 1e9).round() / 1e9;
         let list = |v: &mut dyn Iterator<Item = String>| v.collect::<Vec<_>>().join(", ");
         let num = |x: f64| format!("{x:?}");
-        let joints = self.calibration.joints;
+        let joints = self.calibration.joints.min(MAX_JOINTS);
         let pairs = |v: &[(f64, f64); MAX_JOINTS], scale: &dyn Fn(f64) -> f64| {
             list(
                 &mut v[..joints]

@@ -14,7 +14,7 @@
 //!   the connection gate);
 //! - it is an observer of the session's records ([`crate::shell::tee::Recorder`] hands it every
 //!   [`Record`] the log gets) and never fails the session: a slow client misses messages;
-//! - channels, with the log's schemas (`exocal-log`): `/joint_states` (all seven joints) and
+//! - channels, with the log's schemas (`exocal-log`): `/joint_states` (every joint of the arm) and
 //!   `/tf` (the arm's frames on the current table, as the exported URDF names them) and
 //!   `/ee_pose` (the measured end-effector pose) and a channel per raw IMU stream (the log's
 //!   topics: `/ee_gyro`, `/ee_mag`), each at most `[live] max_hz` messages per second of log time, their timestamps never
@@ -214,12 +214,13 @@ async fn gate(listener: TcpListener, inner: SocketAddr, max: usize) {
     }
 }
 
-/// The padded table of an arm's rows (`None` for more than [`MAX_JOINTS`]).
+/// The padded table of an arm of `joints` rows (`None` for another count).
 fn table_of(
     rows: impl Iterator<Item = calib_core::DhRow>,
+    joints: usize,
 ) -> Option<calib_core::DhTable<MAX_JOINTS>> {
     let rows: Vec<calib_core::DhRow> = rows.collect();
-    (rows.len() <= MAX_JOINTS).then(|| calib_core::DhTable {
+    (rows.len() == joints && joints <= MAX_JOINTS).then(|| calib_core::DhTable {
         rows: std::array::from_fn(|j| {
             rows.get(j)
                 .copied()
@@ -426,7 +427,7 @@ impl Observer for LiveView {
             }
             Record::Frame { .. }
             | Record::Arm(_)
-            | Record::Aligned(_)
+            | Record::Aligned { .. }
             | Record::CollectionEnd(_) => {}
         }
     }
@@ -476,7 +477,7 @@ impl LiveView {
             d: r.d,
             theta_offset: r.theta_offset,
         });
-        if let Some(table) = table_of(rows) {
+        if let Some(table) = table_of(rows, state.joints.len()) {
             state.table = table;
         }
     }

@@ -2,7 +2,8 @@
 //! n nodes (and `[nominal]` and `[bounds]` n rows) calibrates an emulated suit of n joint
 //! nodes, pushes every one of them, logs and reports the arm of n joints; `exocald offline`
 //! replays its log, writes its aligned samples as a CSV of n joint columns and calibrates that
-//! CSV again, and a configuration of another arm refuses the CSV (exit 65, naming both counts).
+//! CSV again, and a configuration of another arm refuses the CSV (exit 65, naming both counts)
+//! and names the joint nodes of the log that are not on it.
 
 use std::path::PathBuf;
 
@@ -155,6 +156,25 @@ fn the_demo_of_a_six_joint_arm_pushes_every_node_and_its_csv_calibrates_offline(
             assert!(d.abs() < 1e-9, "{a:?} vs {b:?}");
         }
     }
+
+    // The six-joint log under a configuration of four: joints 5 and 6 are named, not used.
+    let four = arm_config(4, &dir);
+    let log_only = OfflineOptions {
+        input: result.summary.log_path.clone(),
+        report: Some(dir.join("four.html")),
+        ..OfflineOptions::default()
+    };
+    let summary = match offline::run(&four, exocald::config::DEFAULT_TOML, &log_only) {
+        Ok(s) => s,
+        Err(e) => e.summary.unwrap_or_else(|| panic!("{}", e.error)),
+    };
+    let line = exocald::shell::summary::off_arm_line(&summary.frames).expect("a warning");
+    assert!(
+        line.contains("Joint5 (") && line.contains("Joint6 ("),
+        "{line}"
+    );
+    assert!(!line.contains("Joint4"), "{line}");
+    assert!(exocald::shell::summary::off_arm_line(&result.summary.frames).is_none());
 
     let seven = Config::default_config();
     let refused =

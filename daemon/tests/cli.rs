@@ -221,6 +221,48 @@ fn dev_zero_as_mcap_is_refused_at_once() {
 }
 
 #[test]
+fn demo_joints_calibrates_the_configurations_first_joints_and_refuses_more() {
+    let dir = std::env::temp_dir().join(format!("exocald-cli-joints-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let out = dir.to_str().unwrap();
+    let (code, json, err) = exocald(&[
+        "demo", "--joints", "3", "--speed", "1e6", "-o", out, "--json",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let v: serde_json::Value = serde_json::from_str(&json).expect("one JSON object");
+    assert_eq!(v["verdict"], "pushed");
+    assert_eq!(v["table"].as_array().map(Vec::len), Some(3), "{json}");
+    let pushed: Vec<&str> = (v["push"].as_array().unwrap().iter())
+        .map(|n| n["node"].as_str().unwrap())
+        .collect();
+    assert_eq!(pushed, ["Joint1", "Joint2", "Joint3"]);
+    // More joints than the configuration's arm, and a joint count out of 1–7.
+    let four = temp("arm4.toml", &{
+        let mut c = exocald::config::Config::default_config();
+        c.calibration = c.calibration.first(4);
+        c.to_toml()
+    });
+    let (code, _, err) = exocald(&[
+        "--config",
+        four.to_str().unwrap(),
+        "demo",
+        "--joints",
+        "5",
+        "-o",
+        out,
+    ]);
+    assert_eq!(code, 64, "{err}");
+    assert!(
+        err.contains("--joints 5: the configuration's arm has 4 joints"),
+        "{err}"
+    );
+    let (code, _, err) = exocald(&["demo", "--joints", "8", "-o", out]);
+    assert_eq!(code, 64, "{err}");
+    assert!(err.contains("8 is not in 1..=7"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn a_negative_speed_is_a_usage_error_naming_it() {
     let (code, _, err) = exocald(&["demo", "--speed", "-1"]);
     assert_eq!(code, 64, "{err}");

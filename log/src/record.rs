@@ -65,8 +65,14 @@ pub enum Record<'a> {
     },
     /// The arm's frames (`calib_core::DhTable::links`, link by link).
     Arm(&'a [Link]),
-    /// A sample on the common grid, as fed to the calibration.
-    Aligned(&'a AlignedSample),
+    /// A sample on the common grid, as fed to the calibration, of an arm of `joints` joints
+    /// (its readings past them are the padding, not logged).
+    Aligned {
+        /// The sample.
+        sample: &'a AlignedSample,
+        /// Joints of the arm.
+        joints: usize,
+    },
     /// Collection progress.
     Progress(&'a Progress),
     /// The end of the collection window.

@@ -37,7 +37,7 @@
 //! | `/joint_states` | `foxglove.JointStates` | the decoded joint readings (`jointN`: position, velocity, as the exported URDF names the joints), one message per sample of the arm (the readings within a few milliseconds, each joint once) |
 //! | `/ee_pose` | `foxglove.PoseInFrame` | each assembled end-effector reference pose, frame `base_link` |
 //! | `/ee_gyro`, `/ee_mag` | `exocal.AngularRate`, `exocal.MagneticField` | the end effector's raw IMU vectors: rate (rad/s), field (µT); one topic per raw IMU stream of `exocal_session::stream::STREAMS` |
-//! | `/tf` | `foxglove.FrameTransforms` | the arm's frames on the calibrated table (`base_link → link1 … link7 → tool0`, the URDF's): Foxglove's 3D panel draws the arm |
+//! | `/tf` | `foxglove.FrameTransforms` | the arm's frames on the calibrated table (`base_link → link1 … linkN → tool0` for an arm of N joints, the URDF's): Foxglove's 3D panel draws the arm |
 //! | `/aligned` | `exocal.AlignedSample` | samples on the common time grid, as fed to the calibration |
 //! | `/progress` | `exocal.Progress` | collection progress: coverage per joint, samples, condition number |
 //! | `/collection` | `exocal.CollectionEnd` | once, when collection ends: frames received in the window (a replay calibrates on exactly those), the window's end, bad-frame and drop counts |
@@ -193,11 +193,14 @@ pub fn log_message(log_ns: u64, level: Level, message: &str) -> fox::Log {
     }
 }
 
-/// `exocal.AlignedSample`.
-pub fn aligned_sample(s: &exocal_session::align::AlignedSample) -> proto::AlignedSample {
+/// `exocal.AlignedSample` of an arm of `joints` joints.
+pub fn aligned_sample(
+    s: &exocal_session::align::AlignedSample,
+    joints: usize,
+) -> proto::AlignedSample {
     proto::AlignedSample {
         t: s.t,
-        joints: s.joints.to_vec(),
+        joints: s.joints[..joints.min(s.joints.len())].to_vec(),
         position: s.pose.position.to_vec(),
         orientation_wxyz: s.pose.orientation.to_vec(),
         unseen_s: s.unseen_s,
@@ -545,7 +548,9 @@ impl<W: Write + Seek> SessionLog<W> {
                 Ok(())
             }
             Record::Arm(links) => self.write(Topic::Tf, log_ns, &frame_transforms(log_ns, links)),
-            Record::Aligned(s) => self.write(Topic::Aligned, log_ns, &aligned_sample(s)),
+            Record::Aligned { sample, joints } => {
+                self.write(Topic::Aligned, log_ns, &aligned_sample(sample, joints))
+            }
             Record::Progress(p) => self.write(Topic::Progress, log_ns, &progress(p)),
             // Every frame before these records in time is before them in the file.
             Record::CollectionEnd(end) => {
@@ -717,8 +722,14 @@ mod tests {
                 };
                 log.write_record(ns, &Record::EePose(&p)).unwrap();
                 log.write_record(ns, &Record::Arm(&links(p, 8))).unwrap();
-                log.write_record(ns, &Record::Aligned(&sample(k as f64 * 0.01)))
-                    .unwrap();
+                log.write_record(
+                    ns,
+                    &Record::Aligned {
+                        sample: &sample(k as f64 * 0.01),
+                        joints: 7,
+                    },
+                )
+                .unwrap();
             }
             log.tick(k * 10_000_000).unwrap();
         }

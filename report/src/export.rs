@@ -1,10 +1,11 @@
 //! Exports: the calibrated table as URDF joint origins.
 //!
 //! Contract:
-//! - [`urdf`] writes a chain `base_link → link1 … link7 → tool0` whose revolute joint `jointN`
-//!   turns about its z axis by the joint's *reading*: each joint's origin carries the previous
-//!   row's `Tz(d) Tx(a) Rx(α)` and its own `Rz(θ offset)`, the fixed joint `tool0_joint` the last
-//!   row's; forward kinematics of the URDF equals the table's (tested).
+//! - [`urdf`] writes a chain `base_link → link1 … linkN → tool0` (an arm of N joints) whose
+//!   revolute joint `jointI` turns about its z axis by the joint's *reading*: each joint's
+//!   origin carries the previous row's `Tz(d) Tx(a) Rx(α)` and its own `Rz(θ offset)`, the fixed
+//!   joint `tool0_joint` the last row's; forward kinematics of the URDF equals the table's
+//!   (tested).
 
 use std::fmt::{self, Write as _};
 

@@ -29,7 +29,7 @@
 //! - [`resample_scalar`] / [`resample_quat`] evaluate a time-sorted stream on a grid: linear
 //!   interpolation for angles, slerp (shortest arc) for unit quaternions. A grid point is a gap
 //!   (`None`) unless it is bracketed by two samples at most `max_gap` apart (or hits a sample).
-//! - [`align`] puts the seven joint streams and the pose stream on one grid and keeps only the
+//! - [`align`] puts the arm's joint streams and the pose stream on one grid and keeps only the
 //!   grid points where every stream has a value; the others are counted as gaps. A kept point
 //!   interpolated across readings that were lost (a hole in a stream shorter than `max_gap`)
 //!   says how long its stream went unseen there ([`AlignedSample::unseen_s`], [`unseen`]): a

@@ -116,6 +116,7 @@ pub fn widen_sample<const N: usize>(s: &Sample<N>) -> Sample<MAX_JOINTS> {
 /// Per-parameter values of an `N`-joint arm (calib-core's order `kind·N + joint`) in the
 /// padded order `kind·MAX_JOINTS + joint`, the padded joints' entries `fill`.
 pub fn widen_params<const N: usize>(arm: &[f64], fill: f64) -> [f64; MAX_PARAMS] {
+    debug_assert_eq!(arm.len(), 4 * N, "one value per parameter of the arm");
     let mut out = [fill; MAX_PARAMS];
     for (p, &v) in arm.iter().enumerate().take(4 * N) {
         let (kind, joint) = ParamKind::of_index(p, N);

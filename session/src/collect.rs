@@ -22,7 +22,7 @@ use crate::gate::{Dropped, StreamGate};
 use crate::ingest::{ClockReport, Event, FrameStats, Ingest, Reading, StallReport};
 use crate::stream::{Column, STREAMS};
 use crate::window::{Shortfall, Window};
-use crate::Settings;
+use crate::{Settings, MAX_JOINTS};
 
 /// A session's frames so far: the decoded streams, the collection window and the stream gate.
 /// Fed only by a [`crate::Session`] (`Session::take`), which is what callers drive; outside the
@@ -43,7 +43,7 @@ pub struct Collector {
 impl Collector {
     /// An empty collection under `config`'s node ids, session rules and joint ranges.
     pub fn new(settings: &Settings) -> Collector {
-        let ingest = Ingest::new(&settings.joint_nodes[..settings.joints]);
+        let ingest = Ingest::new(&settings.joint_nodes[..settings.joints.min(MAX_JOINTS)]);
         Collector {
             // The gyro at rest needs the joint gyros where some joint is unaided: about each
             // joint's axis, `z_{j−1}` seen from link `j`, `R_x(α_j)ᵀ ẑ`.

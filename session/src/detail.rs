@@ -42,8 +42,8 @@ pub struct LsDetail {
     pub table: DhTable<MAX_JOINTS>,
     /// Gauss–Newton/LM trial steps taken, accepted or not.
     pub iterations: usize,
-    /// Numerical rank of the column-scaled Jacobian ([`MAX_PARAMS`] when every parameter is
-    /// identifiable).
+    /// Numerical rank of the column-scaled Jacobian (`4 ·` [`Calibration::joints`] when every
+    /// parameter is identifiable).
     pub rank: usize,
     /// Column-scaled condition number.
     #[serde(rename = "condition_number")]

@@ -224,8 +224,8 @@ impl CsvReader {
                     n,
                     match theirs {
                         Some(m) => format!(
-                            "the file has {m} joint columns (q1…q{m}), the configured arm {} \
-                             joints ([nodes] joints): header must be `{header}`",
+                            "the file has {m} joint columns (q1…q{m}), the configured arm has \
+                             {} joints ([nodes] joints): header must be `{header}`",
                             self.joints
                         ),
                         None => format!("header must be `{header}`"),
@@ -416,6 +416,34 @@ mod tests {
 
     fn samples(k: usize) -> Vec<TimedSample> {
         TimedSample::simulated(ScenarioConfig::paper(), 2, k)
+    }
+
+    #[test]
+    fn an_arms_csv_has_its_joint_columns_and_another_arms_is_named() {
+        let s: Vec<TimedSample> = (samples(20).into_iter())
+            .map(|mut s| {
+                s.sample.joints[4..].fill(0.0);
+                s
+            })
+            .collect();
+        let text = csv_text(&s, 4);
+        assert_eq!(text.lines().next(), Some("t,q1,q2,q3,q4,x,y,z,qw,qx,qy,qz"));
+        let back = parse_csv(&text, &rules(), 4).unwrap();
+        for (a, b) in back.iter().zip(&s) {
+            assert_eq!(a.sample.joints, b.sample.joints, "the padding reads 0");
+        }
+        let e = parse_csv(&text, &rules(), 6).unwrap_err().to_string();
+        assert!(
+            e.contains("4 joint columns") && e.contains("has 6 joints"),
+            "{e}"
+        );
+        let e = parse_csv(&format!("{CSV_HEADER}\n"), &rules(), 4)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("7 joint columns") && e.contains("has 4 joints"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -67,6 +67,10 @@ pub struct FrameStats {
     pub poses: u64,
     /// Heartbeats per node id 1..=8 (index 0 unused).
     pub heartbeats: [u64; 9],
+    /// Joint-state frames from joint nodes that are not on the configured arm, per node id
+    /// 1..=8 (index 0 unused): a suit with more joints than its configuration, or a recording
+    /// of another arm. Not calibrated on.
+    pub off_arm: [u64; 9],
     /// Timestamped frames identical to the previous frame of their identifier, per node id
     /// 1..=8 (index 0 unused): a genuine one carries a new timestamp or sequence number.
     pub repeats: [u64; 9],
@@ -393,6 +397,9 @@ impl Ingest {
         match message {
             Message::JointState(js) => {
                 let Some(joint) = self.joint_of_node[usize::from(js.node.raw())] else {
+                    if let Some(n) = self.stats.off_arm.get_mut(usize::from(js.node.raw())) {
+                        *n += 1;
+                    }
                     return Event::Message(message);
                 };
                 if repeated {

@@ -325,7 +325,7 @@ impl Settings {
     /// The same suit's arm of its first `joints` joints (at most [`Settings::joints`]): the
     /// rows, ranges, node ids and unaided joints past them cleared ([`crate::arm`]).
     pub fn first(&self, joints: usize) -> Settings {
-        let joints = joints.clamp(1, self.joints);
+        let joints = joints.clamp(1, self.joints.clamp(1, MAX_JOINTS));
         let mut s = self.clone();
         s.joints = joints;
         for j in joints..MAX_JOINTS {

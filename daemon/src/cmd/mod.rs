@@ -181,8 +181,23 @@ fn demo(
         eprintln!("exocald: configuration from {source}");
     }
     let mut config = crate::cmd::demo::demo_config(config, &args.output, 1.0);
-    if let Some(n) = args.joints {
-        config.calibration = config.calibration.first(usize::from(n));
+    if let Some(n) = args.joints.map(usize::from) {
+        let arm = config.calibration.joints;
+        if n > arm {
+            return Err(DaemonError::Usage(format!(
+                "--joints {n}: the configuration's arm has {arm} joints ([nodes] joints)"
+            )));
+        }
+        config.calibration = config.calibration.first(n);
+    }
+    // The emulated suit puts joint i on node i.
+    let arm = config.calibration.joints;
+    let nodes = &config.calibration.joint_nodes[..arm.min(crate::config::MAX_JOINTS)];
+    if !nodes.iter().copied().eq(1..=arm as u8) {
+        return Err(DaemonError::Usage(format!(
+            "the emulated suit's joints are on nodes 1 to {arm} in order; the configuration's \
+             [nodes] joints = {nodes:?}"
+        )));
     }
     config.live.enabled |= args.live;
     if let Some(listen) = args.listen {

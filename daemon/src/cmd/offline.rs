@@ -24,7 +24,8 @@
 //!   session's log or recording can have, the input is refused at that point (65, naming the
 //!   line or message and the limit). Memory is bounded by the configuration, whatever the
 //!   file's size or what its lengths claim;
-//! - CSV samples (`t,q1,…,q7,x,y,z,qw,qx,qy,qz`, see [`exocal_session::formats`]) bypass
+//! - CSV samples (`t,q1,…,qn,x,y,z,qw,qx,qy,qz` for the arm of n joints, see
+//!   [`exocal_session::formats`]) bypass
 //!   alignment; the EM steps at the file's median sample interval (`session.grid_hz` when they
 //!   agree to [`exocal_session::replay::CSV_RATE_TOLERANCE`]);
 //! - the recording is judged by the live session's rules (`[session]`: `min_duration_s`, give or
@@ -525,8 +526,7 @@ pub fn run(
         let settings = replayed.job.settings();
         let text = if what == "URDF" {
             let limits = &settings.bounds.joint_range.limits;
-            crate::log::records::urdf(&table, limits, settings.joints)
-                .ok_or_else(|| "the table has a non-finite value".to_string())
+            crate::log::records::urdf(&table, limits, settings.joints).map_err(|e| e.to_string())
         } else {
             let rows = &table.rows[..settings.joints];
             crate::config::with_nominal(config_text, rows).map_err(|e| e.to_string())

@@ -11,7 +11,7 @@
 //! - the log's errors are the session's ([`crate::shell::tee::Recorder::record`] returns them);
 //!   the live view never fails a session (a client that cannot keep up misses messages, nothing else);
 //! - the arm's frames ([`arm_transforms`]) follow the URDF the report exports
-//!   (`base_link → link1 … link7 → tool0`, `exocal_report::export::urdf`), so the transforms and a
+//!   (`base_link → link1 … linkN → tool0`, `exocal_report::export::urdf`), so the transforms and a
 //!   URDF of the same table describe one tree.
 
 use exocal_bus::Frame;
@@ -37,18 +37,18 @@ pub trait Observer {
 pub const ROBOT_NAME: &str = "exocal_suit";
 
 /// The URDF of the arm of `table`'s first `joints` rows with the joints' `limits` (rad), as
-/// `--export-urdf` writes it; `None` when the table has a non-finite value (nothing to draw).
+/// `--export-urdf` writes it; an error naming the parameter when the table has a non-finite
+/// value (nothing to draw).
 pub fn urdf(
     table: &calib_core::DhTable<MAX_JOINTS>,
     limits: &[(f64, f64); MAX_JOINTS],
     joints: usize,
-) -> Option<String> {
+) -> Result<String, exocal_report::export::ExportError> {
     exocal_session::with_joints!(joints, |N| exocal_report::export::urdf(
         ROBOT_NAME,
         &table.first::<N>(),
         &narrow(limits)
     ))
-    .ok()
 }
 
 /// The record of a collection's end (`exocald offline` honours it: a replay calibrates on the

@@ -19,7 +19,7 @@ use exocal_session::align::AlignedSample;
 use exocal_session::collect::Collected;
 use exocal_session::ingest::FrameStats;
 use exocal_session::pipeline::{timed, Calibrated};
-use exocal_session::Settings;
+use exocal_session::{Settings, MAX_JOINTS};
 
 use exocal_log::write::Level;
 
@@ -103,13 +103,25 @@ impl ReportFile {
 /// The report of a session stopped `seconds` into its collection: when and with how many
 /// frames (`stats`), and that the log has them. Rendered without aligning what was collected: a
 /// stop is given seconds (the unit's `TimeoutStopSec`), which aligning a long collection on a
-/// slow controller could exceed; `exocald offline` on the log shows the rest.
-pub fn interrupted(title: String, source: String, stats: &FrameStats, seconds: f64) -> String {
+/// slow controller could exceed; `exocald offline` on the log shows the rest. Its excitation
+/// figure has a bar per joint of the arm of `settings`.
+pub fn interrupted(
+    title: String,
+    source: String,
+    stats: &FrameStats,
+    seconds: f64,
+    settings: &Settings,
+) -> String {
     let reasons = vec![format!(
         "stopped {seconds:.1} s into the collection, with {} frames received ({} decoded)",
         stats.received, stats.decoded
     )];
-    let mut input = session_input(title, source, &[], reasons, Quality::default());
+    let quality = Quality {
+        joint_ranges: settings.bounds.joint_range.limits[..settings.joints.min(MAX_JOINTS)]
+            .to_vec(),
+        ..Quality::default()
+    };
+    let mut input = session_input(title, source, &[], reasons, quality);
     input.interrupted = true;
     exocal_report::html::render_session(&input)
 }

@@ -89,11 +89,8 @@ impl<'a> Io<'a> {
         let started = format!("session started on {}", config.interface);
         io.event(start, Level::Info, &started);
         let limits = &config.calibration.bounds.joint_range.limits;
-        if let Some(urdf) = records::urdf(
-            &config.calibration.nominal,
-            limits,
-            config.calibration.joints,
-        ) {
+        let joints = config.calibration.joints;
+        if let Ok(urdf) = records::urdf(&config.calibration.nominal, limits, joints) {
             let r = io.log.robot_description(ns(start), &urdf);
             io.check(r);
         }

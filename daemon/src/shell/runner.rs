@@ -312,7 +312,8 @@ impl<T: Transport> Running<'_, '_, T> {
         let grid = lines.pop();
         self.io.lines(now, lines);
         for (i, s) in job.collected().samples.iter().enumerate() {
-            let r = self.io.log.aligned(self.log_time(s.t), s);
+            let joints = self.config.calibration.joints;
+            let r = self.io.log.aligned(self.log_time(s.t), s, joints);
             self.io.check(r);
             self.io.between_records(i);
         }
@@ -416,7 +417,7 @@ impl<T: Transport> Running<'_, '_, T> {
         let now = self.clock.now();
         self.log_calibration(now, &calibrated.outcome, None);
         let limits = &self.config.calibration.bounds.joint_range.limits;
-        if let Some(urdf) = records::urdf(&table, limits, joints) {
+        if let Ok(urdf) = records::urdf(&table, limits, joints) {
             let r = self.io.log.robot_description(ns(now), &urdf);
             self.io.check(r);
         }
@@ -483,7 +484,8 @@ impl<T: Transport> Running<'_, '_, T> {
     fn interrupted_report(&mut self, start: Duration) {
         let (title, source) = self.report.titles("session");
         let seconds = self.clock.now().saturating_sub(start).as_secs_f64();
-        let html = html_report::interrupted(title, source, &self.summary.frames, seconds);
+        let settings = &self.config.calibration;
+        let html = html_report::interrupted(title, source, &self.summary.frames, seconds, settings);
         let line = self.report.write(&html, "session report");
         self.io.lines(self.clock.now(), vec![line]);
     }

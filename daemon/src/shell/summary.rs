@@ -290,6 +290,25 @@ pub fn json(summary: Option<&SessionSummary>, error: Option<&DaemonError>) -> se
     })
 }
 
+/// The joint nodes that sent angles without being on the configured arm, in a line (`None`
+/// when none did): a configuration of fewer joints than the suit, or a recording of another arm.
+pub fn off_arm_line(f: &FrameStats) -> Option<String> {
+    let nodes: Vec<String> = (f.off_arm.iter().enumerate())
+        .filter(|&(_, &n)| n > 0)
+        .filter_map(|(id, &n)| {
+            let node = exocal_dbc::NodeId::new(u8::try_from(id).ok()?)?;
+            Some(format!("{node} ({n} frames)"))
+        })
+        .collect();
+    (!nodes.is_empty()).then(|| {
+        format!(
+            "warning: joint angles from nodes not on the configured arm, not calibrated on: {} \
+             (is [nodes] joints this suit's?)",
+            nodes.join(", ")
+        )
+    })
+}
+
 /// Prints what a session did, to stdout (one line per fact).
 pub fn print_summary(summary: &SessionSummary) {
     println!("log: {}", summary.log_path.display());
@@ -298,6 +317,9 @@ pub fn print_summary(summary: &SessionSummary) {
         "frames: {} received, {} unknown, {} malformed, {} invalid angles",
         f.received, f.unknown, f.malformed, f.invalid_angles
     );
+    if let Some(line) = off_arm_line(f) {
+        println!("{line}");
+    }
     if let Some(g) = &summary.stream {
         println!(
             "streams: {} spans verified ({} frames), {} dropped unverified ({} frames, {:.1} s), \

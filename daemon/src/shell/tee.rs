@@ -99,9 +99,14 @@ impl<'a, W: Write + std::io::Seek> Recorder<'a, W> {
         self.record(log_ns, Record::Arm(links))
     }
 
-    /// Records a sample on the common grid.
-    pub fn aligned(&mut self, log_ns: u64, sample: &AlignedSample) -> Result<(), LogError> {
-        self.record(log_ns, Record::Aligned(sample))
+    /// Records a sample on the common grid, of an arm of `joints` joints.
+    pub fn aligned(
+        &mut self,
+        log_ns: u64,
+        sample: &AlignedSample,
+        joints: usize,
+    ) -> Result<(), LogError> {
+        self.record(log_ns, Record::Aligned { sample, joints })
     }
 
     /// Records a snapshot of the collection's progress.
